@@ -1,0 +1,1 @@
+"""Datasets (HDF5) and the collectors that fill them."""

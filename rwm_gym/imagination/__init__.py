@@ -1,0 +1,1 @@
+"""Environments whose step queries a trained world model instead of physics."""

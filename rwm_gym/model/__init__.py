@@ -1,0 +1,1 @@
+"""World models (RWM and baselines), their trainer, checkpoints and evaluation."""

@@ -1,0 +1,31 @@
+"""Where the shipped task specs (`envs/`) and robot models (`assets/`) live.
+
+In a wheel they are installed inside the package as `rwm_gym/_data/{envs,assets}`; in a source checkout they are the
+top-level `envs/` and `assets/` folders. Code never builds these paths from strings elsewhere.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+_PACKAGE = Path(__file__).resolve().parent
+
+
+def _data_dir(name: str) -> Path:
+    installed = _PACKAGE / "_data" / name
+    if installed.is_dir():
+        return installed
+    checkout = _PACKAGE.parent / name
+    if checkout.is_dir():
+        return checkout
+    raise FileNotFoundError(f"rwm_gym data folder {name!r} not found in {installed} or {checkout}")
+
+
+def specs_dir() -> Path:
+    """Folder of the task specs (`*.toml`)."""
+    return _data_dir("envs")
+
+
+def assets_dir() -> Path:
+    """Folder of the robot models and shipped checkpoints."""
+    return _data_dir("assets")

@@ -1,0 +1,254 @@
+"""The task spec: one TOML file per environment in `envs/`, read into frozen dataclasses.
+
+The spec is the single place where a task's numbers live (layouts, normalisation, reward weights, command ranges, dt,
+actuator figures). Its text is stored verbatim in every dataset and checkpoint, so a file can always be matched to
+the task it came from.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from rwm_gym.resources import assets_dir, specs_dir
+
+
+@dataclass(frozen=True)
+class Group:
+    """A named block of consecutive columns with its normalisation, e.g. `joint_vel` (12 columns, rad/s)."""
+
+    name: str
+    columns: tuple[str, ...]
+    unit: str
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.columns)
+
+
+@dataclass(frozen=True)
+class ActuatorSpec:
+    joints: tuple[str, ...]
+    default_pose: tuple[float, ...]
+    """rad, one per joint."""
+    action_scale: float
+    """rad per unit action; actions live in [-1, 1]."""
+    kp: float
+    """N·m/rad."""
+    kd: float
+    """N·m·s/rad."""
+    effort_limit: float
+    """N·m."""
+    velocity_limit: float
+    """rad/s."""
+
+
+@dataclass(frozen=True)
+class PrivilegedSpec:
+    contact_bodies: tuple[str, ...]
+    contact_threshold: float
+    """N: a body is in contact when its net contact force exceeds this."""
+    feet: tuple[str, ...]
+    thighs: tuple[str, ...]
+    termination_bodies: tuple[str, ...]
+    foot_height_std: float
+    """m, normalisation of foot heights for the world model."""
+
+
+@dataclass(frozen=True)
+class CommandSpec:
+    names: tuple[str, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    resample_seconds: float
+    standing_fraction: float
+    standing_threshold: float
+
+
+@dataclass(frozen=True)
+class RewardSpec:
+    weights: dict[str, float]
+    tracking_sigma: float
+    feet_air_time_target: float
+
+
+@dataclass(frozen=True)
+class ObservationSpec:
+    groups: tuple[str, ...]
+    noise: dict[str, float]
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task: robot model, state and privileged layouts, observation, commands, reward, timing."""
+
+    name: str
+    physics_env_id: str
+    imagined_env_id: str
+    model: str
+    """MJCF path relative to `assets/` (or absolute)."""
+    policy_dt: float
+    physics_dt: float
+    episode_steps: int
+    keyframe: str
+    base_body: str
+    actuator: ActuatorSpec
+    state: tuple[Group, ...]
+    privileged: PrivilegedSpec
+    observation: ObservationSpec
+    command: CommandSpec
+    reward: RewardSpec
+    text: str = field(repr=False, compare=False)
+    """The TOML source, stored in datasets and checkpoints."""
+    extra: dict = field(default_factory=dict, repr=False, compare=False)
+    """Tables of the TOML this class does not type (task-specific sections, e.g. dm_control's)."""
+
+    @property
+    def substeps(self) -> int:
+        return int(round(self.policy_dt / self.physics_dt))
+
+    @property
+    def model_path(self) -> Path:
+        path = Path(self.model)
+        return path if path.is_absolute() else assets_dir() / path
+
+    @cached_property
+    def state_columns(self) -> tuple[str, ...]:
+        return tuple(f"{g.name}/{c}" for g in self.state for c in g.columns)
+
+    @property
+    def state_dim(self) -> int:
+        return sum(g.size for g in self.state)
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.actuator.joints)
+
+    @cached_property
+    def state_slices(self) -> dict[str, slice]:
+        """Slice of each state group in the state vector."""
+        out, start = {}, 0
+        for g in self.state:
+            out[g.name] = slice(start, start + g.size)
+            start += g.size
+        return out
+
+    @cached_property
+    def state_mean(self) -> np.ndarray:
+        return np.concatenate([np.asarray(g.mean, dtype=np.float64) for g in self.state])
+
+    @cached_property
+    def state_std(self) -> np.ndarray:
+        return np.concatenate([np.asarray(g.std, dtype=np.float64) for g in self.state])
+
+    @property
+    def contact_dim(self) -> int:
+        return len(self.privileged.contact_bodies)
+
+    @property
+    def foot_dim(self) -> int:
+        return len(self.privileged.feet)
+
+    @cached_property
+    def observation_dim(self) -> int:
+        sizes = {g.name: g.size for g in self.state}
+        sizes["command"] = len(self.command.names)
+        sizes["last_action"] = self.action_dim
+        return sum(sizes[name] for name in self.observation.groups)
+
+
+def _group(table: dict, joints: tuple[str, ...], where: str) -> Group:
+    columns = joints if table["columns"] == "joints" else tuple(table["columns"])
+    n = len(columns)
+
+    def per_column(key: str) -> tuple[float, ...]:
+        value = table[key]
+        values = (float(value),) * n if isinstance(value, (int, float)) else tuple(float(v) for v in value)
+        if len(values) != n:
+            raise ValueError(f"{where}: state group {table['name']!r} has {n} columns but {len(values)} {key} values")
+        return values
+
+    return Group(table["name"], tuple(columns), table.get("unit", ""), per_column("mean"), per_column("std"))
+
+
+def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
+    """Parse a spec from TOML text; `where` names its origin in error messages."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"{where}: not valid TOML ({err})") from None
+    try:
+        task, act = raw["task"], raw["actuator"]
+        joints = tuple(act["joints"])
+        actuator = ActuatorSpec(
+            joints=joints,
+            default_pose=tuple(float(v) for v in act["default_pose"]),
+            action_scale=float(act["action_scale"]),
+            kp=float(act["kp"]),
+            kd=float(act["kd"]),
+            effort_limit=float(act["effort_limit"]),
+            velocity_limit=float(act["velocity_limit"]),
+        )
+        if len(actuator.default_pose) != len(joints):
+            raise ValueError(f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints")
+        priv = raw["privileged"]
+        cmd = raw["command"]
+        rew = raw["reward"]
+        obs = raw["observation"]
+        known = {"task", "actuator", "state", "privileged", "command", "reward", "observation"}
+        return TaskSpec(
+            name=task["name"],
+            physics_env_id=task["physics_env_id"],
+            imagined_env_id=task["imagined_env_id"],
+            model=task["model"],
+            policy_dt=float(task["policy_dt"]),
+            physics_dt=float(task["physics_dt"]),
+            episode_steps=int(task["episode_steps"]),
+            keyframe=task.get("keyframe", ""),
+            base_body=task["base_body"],
+            actuator=actuator,
+            state=tuple(_group(g, joints, where) for g in raw["state"]),
+            privileged=PrivilegedSpec(
+                contact_bodies=tuple(priv["contact_bodies"]),
+                contact_threshold=float(priv["contact_threshold"]),
+                feet=tuple(priv["feet"]),
+                thighs=tuple(priv.get("thighs", ())),
+                termination_bodies=tuple(priv["termination_bodies"]),
+                foot_height_std=float(priv.get("foot_height_std", 0.1)),
+            ),
+            observation=ObservationSpec(tuple(obs["groups"]), {k: float(v) for k, v in obs.get("noise", {}).items()}),
+            command=CommandSpec(
+                names=tuple(cmd["names"]),
+                low=tuple(float(v) for v in cmd["low"]),
+                high=tuple(float(v) for v in cmd["high"]),
+                resample_seconds=float(cmd["resample_seconds"]),
+                standing_fraction=float(cmd.get("standing_fraction", 0.0)),
+                standing_threshold=float(cmd.get("standing_threshold", 0.1)),
+            ),
+            reward=RewardSpec(
+                weights={k: float(v) for k, v in rew["weights"].items()},
+                tracking_sigma=float(rew.get("tracking_sigma", 0.25)),
+                feet_air_time_target=float(rew.get("feet_air_time_target", 0.5)),
+            ),
+            text=text,
+            extra={k: v for k, v in raw.items() if k not in known},
+        )
+    except KeyError as err:
+        raise ValueError(f"{where}: missing field {err.args[0]!r}") from None
+
+
+def load_spec(name_or_path: str | Path) -> TaskSpec:
+    """Load a spec by file path or by name of a shipped spec (`"anymal_d"` -> `envs/anymal_d.toml`)."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = specs_dir() / f"{name_or_path}.toml"
+    if not path.is_file():
+        available = sorted(p.stem for p in specs_dir().glob("*.toml"))
+        raise FileNotFoundError(f"task spec {str(name_or_path)!r} not found (shipped specs: {', '.join(available)})")
+    return parse_spec(path.read_text(), where=str(path))
