@@ -85,6 +85,18 @@ class ObservationSpec:
 
 
 @dataclass(frozen=True)
+class ResetSpec:
+    """Uniform perturbations of the keyframe at reset (half-widths)."""
+
+    joint_pos_noise: float = 0.0
+    """rad."""
+    base_lin_vel_noise: float = 0.0
+    """m/s."""
+    base_ang_vel_noise: float = 0.0
+    """rad/s."""
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """A task: robot model, state and privileged layouts, observation, commands, reward, timing."""
 
@@ -104,6 +116,7 @@ class TaskSpec:
     observation: ObservationSpec
     command: CommandSpec
     reward: RewardSpec
+    reset: ResetSpec
     text: str = field(repr=False, compare=False)
     """The TOML source, stored in datasets and checkpoints."""
     extra: dict = field(default_factory=dict, repr=False, compare=False)
@@ -201,7 +214,8 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
         cmd = raw["command"]
         rew = raw["reward"]
         obs = raw["observation"]
-        known = {"task", "actuator", "state", "privileged", "command", "reward", "observation"}
+        reset = {k: float(v) for k, v in raw.get("reset", {}).items()}
+        known = {"reset", "task", "actuator", "state", "privileged", "command", "reward", "observation"}
         return TaskSpec(
             name=task["name"],
             physics_env_id=task["physics_env_id"],
@@ -236,6 +250,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 tracking_sigma=float(rew.get("tracking_sigma", 0.25)),
                 feet_air_time_target=float(rew.get("feet_air_time_target", 0.5)),
             ),
+            reset=ResetSpec(**reset),
             text=text,
             extra={k: v for k, v in raw.items() if k not in known},
         )

@@ -1,0 +1,211 @@
+"""Velocity-tracking locomotion in MuJoCo: the vectorised task core and the single `gymnasium.Env`.
+
+`LocomotionCore` runs the task (commands, observation, reward, termination, time limit) for N simulations at once on
+either simulator backend; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the batched
+envs in `rwm_gym.physics.batched` are the same core with N > 1. So the three give identical transitions per seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.robot import Measurement, RobotLayout, measure
+from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
+from rwm_gym.spec import TaskSpec, load_spec
+from rwm_gym.task.commands import resample_period, sample_commands
+from rwm_gym.task.observation import build_observation
+from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
+
+
+def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Validate a batch of actions: right shape, finite; clipped to [-1, 1]."""
+    actions = np.asarray(actions, dtype=np.float64)
+    if actions.shape != shape:
+        raise ValueError(f"action has shape {actions.shape}, expected {shape}")
+    if not np.all(np.isfinite(actions)):
+        raise ValueError(f"action contains NaN or inf at env(s) {np.flatnonzero(~np.isfinite(actions).all(-1)).tolist()}")
+    return np.clip(actions, -1.0, 1.0)
+
+
+class LocomotionCore:
+    """The task for N simulations of one robot. Arrays are (N, ...) unless said otherwise."""
+
+    def __init__(
+        self,
+        spec: TaskSpec,
+        num_envs: int = 1,
+        *,
+        xml_file: str | Path | None = None,
+        physics: PhysicsParams | Mapping[str, object] | None = None,
+        observation_noise: bool = False,
+        nthread: int = 0,
+    ):
+        self.spec = spec
+        self.num_envs = num_envs
+        self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
+        self.model = build_model(spec, xml_file, self.params)
+        self.layout = RobotLayout.from_model(self.model, spec)
+        self.sim = SingleSimulator(self.model) if num_envs == 1 else BatchSimulator(self.model, num_envs, nthread)
+        self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
+        if self.keyframe < 0:
+            raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")
+        self.observation_noise = observation_noise
+        self.rngs = [np.random.default_rng() for _ in range(num_envs)]
+        n, a = num_envs, spec.action_dim
+        self.command = np.zeros((n, len(spec.command.names)), dtype=np.float32)
+        self.last_action = np.zeros((n, a))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.air_time = FeetAirTime(n, spec.foot_dim)
+        self.period = resample_period(spec.command, spec.policy_dt)
+        self.current: Measurement = self._measure()
+
+        high = np.ones(a, dtype=np.float32)
+        self.single_action_space = gym.spaces.Box(-high, high, dtype=np.float32)
+        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (spec.observation_dim,), dtype=np.float32)
+
+    def _measure(self) -> Measurement:
+        return measure(self.layout, self.spec, **self.sim.arrays())
+
+    def _observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+        rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
+        return build_observation(self.spec, self.current.state[ids], self.command[ids], self.last_action[ids], rngs)
+
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
+        """Start new episodes in envs `ids` (re-seeding those with a seed); return their observations."""
+        ids = np.asarray(ids, dtype=int)
+        for i, seed in zip(ids, seeds or [None] * len(ids)):
+            if seed is not None:
+                self.rngs[i] = np.random.default_rng(seed)
+        key, r = self.model.key(self.keyframe), self.spec.reset
+        qpos = np.repeat(key.qpos[None], len(ids), axis=0)
+        qvel = np.repeat(key.qvel[None], len(ids), axis=0)
+        for row, i in enumerate(ids):
+            rng = self.rngs[i]
+            qpos[row, self.layout.qpos_adr] += rng.uniform(-r.joint_pos_noise, r.joint_pos_noise, self.spec.action_dim)
+            qvel[row, 0:3] += rng.uniform(-r.base_lin_vel_noise, r.base_lin_vel_noise, 3)
+            qvel[row, 3:6] += rng.uniform(-r.base_ang_vel_noise, r.base_ang_vel_noise, 3)
+        self.sim.reset(ids, self.keyframe, qpos, qvel)
+        self.command[ids] = sample_commands(self.spec.command, [self.rngs[i] for i in ids])
+        self.last_action[ids] = 0.0
+        self.steps[ids] = 0
+        self.air_time.reset(ids)
+        fresh = self._measure()
+        for field in ("state", "contact", "foot_height", "terminated"):
+            getattr(self.current, field)[ids] = getattr(fresh, field)[ids]
+        return self._observe(ids)
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Advance every env one policy step. Returns obs, reward, terminated, truncated, info (arrays per env).
+
+        No env is reset here; callers reset finished envs (the vector adapters do it automatically).
+        """
+        actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
+        act = self.spec.actuator
+        ctrl = np.zeros((self.num_envs, self.model.nu))
+        ctrl[:, self.layout.actuator_ids] = np.asarray(act.default_pose) + act.action_scale * actions
+        self.sim.step(ctrl, self.spec.substeps)
+
+        prev, now = self.current, self._measure()
+        feet = np.isin(self.spec.privileged.contact_bodies, self.spec.privileged.feet)
+        air = self.air_time.update(now.contact[:, feet], self.spec.policy_dt, self.spec.reward.feet_air_time_target)
+        terms = reward_terms(self.spec, now.state, prev.state, now.contact, self.command, actions, self.last_action, air)
+        reward = total_reward(self.spec, terms)
+        info = {"command": self.command.copy(), **{f"reward/{k}": v for k, v in terms.items()}}
+
+        self.current, self.last_action = now, actions
+        self.steps += 1
+        terminated = now.terminated.copy()
+        truncated = (self.steps >= self.spec.episode_steps) & ~terminated
+        resample = np.flatnonzero(self.steps % self.period == 0)
+        if len(resample):
+            self.command[resample] = sample_commands(self.spec.command, [self.rngs[i] for i in resample])
+        return self._observe(), reward.astype(np.float64), terminated, truncated, info
+
+    def record(self) -> dict[str, np.ndarray]:
+        """The dataset row of every env at the current time (see `rwm_gym.data.dataset` for the layout)."""
+        arrays = self.sim.arrays()
+        return {
+            "state": self.current.state.copy(),
+            "contact": self.current.contact.copy(),
+            "foot_height": self.current.foot_height.copy(),
+            "terminated": self.current.terminated.copy(),
+            "command": self.command.copy(),
+            "qpos": np.array(arrays["qpos"], dtype=np.float64),
+            "qvel": np.array(arrays["qvel"], dtype=np.float64),
+        }
+
+
+class LocomotionEnv(gym.Env):
+    """A legged robot tracking velocity commands in MuJoCo (e.g. `AnymalD-MuJoCo-v0`).
+
+    Observation (spec `observation.groups`, 48 for ANYmal D), action in [-1, 1]^A scaled to joint-position offsets
+    around the default pose. `info` carries the command and every unweighted reward term. The MuJoCo model and data are
+    `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        spec: str | TaskSpec = "anymal_d",
+        *,
+        xml_file: str | Path | None = None,
+        physics: PhysicsParams | Mapping[str, object] | None = None,
+        observation_noise: bool = False,
+        render_mode: str | None = None,
+        width: int = 640,
+        height: int = 480,
+        camera: str = "track",
+    ):
+        self.task_spec = spec if isinstance(spec, TaskSpec) else load_spec(spec)
+        self.core = LocomotionCore(self.task_spec, 1, xml_file=xml_file, physics=physics,
+                                   observation_noise=observation_noise)
+        self.observation_space = self.core.single_observation_space
+        self.action_space = self.core.single_action_space
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}
+        self.render_mode = render_mode
+        self._render_size, self._camera, self._renderer = (height, width), camera, None
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self.core.model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        return self.core.sim.data
+
+    @property
+    def physics_params(self) -> PhysicsParams:
+        return self.core.params
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs = self.core.reset(np.array([0]), [seed])
+        return obs[0], {"command": self.core.command[0].copy()}
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.core.step(np.asarray(action)[None])
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), {k: v[0] for k, v in info.items()}
+
+    def record(self) -> dict[str, np.ndarray]:
+        return {k: v[0] for k, v in self.core.record().items()}
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._renderer is None:
+            height, width = self._render_size
+            self._renderer = mujoco.Renderer(self.model, height=height, width=width)
+        self._renderer.update_scene(self.data, camera=self._camera)
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

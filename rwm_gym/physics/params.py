@@ -1,0 +1,124 @@
+"""Physical parameters of a simulated robot that users (and the sim-to-real workflow) may change.
+
+`PhysicsParams` holds overrides on top of the MJCF and the task spec, each with a physical unit. Every field's neutral
+value leaves the model unchanged, so `PhysicsParams()` is the nominal robot. Per-joint fields take one value for all
+actuated joints or one value per joint (spec order). Everything here lands in the compiled `MjModel` (MuJoCo holds
+actuator delay natively), so the single env, the batched env and `mujoco.sysid` all see the same robot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from rwm_gym.spec import TaskSpec
+
+PerJoint = float | tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class PhysicsParams:
+    """Overrides of the nominal robot; units in the field docs."""
+
+    kp_scale: PerJoint = 1.0
+    """PD stiffness multiplier on the spec's kp (1)."""
+    kd_scale: PerJoint = 1.0
+    """PD damping multiplier on the spec's kd (1)."""
+    motor_strength: PerJoint = 1.0
+    """Torque gain: the actuator's output torque multiplier (1)."""
+    torque_limit: PerJoint | None = None
+    """Torque saturation (N·m); None keeps the spec's effort limit."""
+    joint_friction: PerJoint = 0.0
+    """Coulomb friction torque added at each joint (N·m)."""
+    joint_damping: PerJoint = 0.0
+    """Viscous damping added at each joint (N·m·s/rad)."""
+    armature: PerJoint = 0.0
+    """Reflected rotor inertia added at each joint (kg·m²)."""
+    action_delay: float = 0.0
+    """Delay between a position target and its effect in the actuator (s); a multiple of the physics dt."""
+    payload_mass: float = 0.0
+    """Point mass added to the base (kg)."""
+    payload_com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Position of the payload in the base frame (m)."""
+    ground_friction: float | None = None
+    """Sliding friction coefficient of the floor (1); None keeps the model's."""
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, object] | None) -> PhysicsParams:
+        """Build from a plain dict (gym.make kwargs, JSON); unknown names raise a one-line error."""
+        if not values:
+            return cls()
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"unknown physics parameter(s) {unknown}; known: {sorted(names)}")
+        return cls(**{k: tuple(v) if isinstance(v, (list, np.ndarray)) else v for k, v in values.items()})
+
+    def to_dict(self) -> dict[str, object]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    def replace(self, **changes: object) -> PhysicsParams:
+        return dataclasses.replace(self, **changes)
+
+
+def per_joint(value: PerJoint, n: int, name: str) -> np.ndarray:
+    """Broadcast a scalar or per-joint value to shape (n,)."""
+    out = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)) if np.ndim(value) == 0 else np.asarray(value, float)
+    if out.shape != (n,):
+        raise ValueError(f"physics parameter {name!r} has {out.size} values for {n} joints")
+    return out
+
+
+def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None) -> mujoco.MjModel:
+    """Compile the robot of `spec` (or `xml_file`) with the spec's actuator figures and `params` applied.
+
+    The MJCF must name its actuated hinge joints and their position actuators as the spec's `actuator.joints`.
+    """
+    params = params or PhysicsParams()
+    path = Path(xml_file) if xml_file is not None else spec.model_path
+    if not path.is_file():
+        raise FileNotFoundError(f"robot model {path} not found")
+    mj = mujoco.MjSpec.from_file(str(path))
+    act = spec.actuator
+    n = len(act.joints)
+    kp = act.kp * per_joint(params.kp_scale, n, "kp_scale")
+    kd = act.kd * per_joint(params.kd_scale, n, "kd_scale")
+    strength = per_joint(params.motor_strength, n, "motor_strength")
+    limit = per_joint(act.effort_limit if params.torque_limit is None else params.torque_limit, n, "torque_limit")
+    friction = per_joint(params.joint_friction, n, "joint_friction")
+    damping = per_joint(params.joint_damping, n, "joint_damping")
+    armature = per_joint(params.armature, n, "armature")
+    delay_steps = params.action_delay / spec.physics_dt
+    if params.action_delay < 0 or abs(delay_steps - round(delay_steps)) > 1e-6:
+        raise ValueError(f"action_delay {params.action_delay} s is not a non-negative multiple of {spec.physics_dt} s")
+    for i, name in enumerate(act.joints):
+        actuator, joint = mj.actuator(name), mj.joint(name)
+        if actuator is None or joint is None:
+            raise ValueError(f"{path}: no joint and position actuator named {name!r} (task spec {spec.name})")
+        # Position actuator: force = strength * (kp * (target - q) - kd * qdot), saturated at +-limit.
+        actuator.gainprm[0] = strength[i] * kp[i]
+        actuator.biasprm[:3] = [0.0, -strength[i] * kp[i], -strength[i] * kd[i]]
+        actuator.forcelimited = True
+        actuator.forcerange = [-limit[i], limit[i]]
+        if round(delay_steps) > 0:
+            actuator.delay = float(params.action_delay)
+            actuator.nsample = int(round(delay_steps)) + 1
+        joint.frictionloss += friction[i]
+        joint.damping += damping[i]
+        joint.armature += armature[i]
+    if params.payload_mass > 0:
+        base = mj.body(spec.base_body)
+        payload = base.add_body(name="payload", pos=list(params.payload_com), mass=params.payload_mass)
+        payload.inertia = [1e-4 * params.payload_mass] * 3  # a compact point-like mass (kg·m²)
+        payload.explicitinertial = True
+    if params.ground_friction is not None:
+        floor = mj.geom("floor")
+        if floor is None:
+            raise ValueError(f"{path}: ground_friction needs a geom named 'floor'")
+        floor.friction[0] = params.ground_friction
+    return mj.compile()
