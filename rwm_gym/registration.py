@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import gymnasium as gym
 
+# id -> entry points of the single env, the Gymnasium VectorEnv, and the batched core the collectors drive.
 PHYSICS_ENVS: dict[str, dict] = {
     "AnymalD-MuJoCo-v0": {
         "entry_point": "rwm_gym.physics.locomotion:LocomotionEnv",
         "kwargs": {"spec": "anymal_d"},
         "vector_entry_point": "rwm_gym.physics.batched:BatchedLocomotionVectorEnv",
+        "core_entry_point": "rwm_gym.physics.batched:make_core",
     },
 }
 

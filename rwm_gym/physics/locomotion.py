@@ -72,7 +72,7 @@ class LocomotionCore:
     def _measure(self) -> Measurement:
         return measure(self.layout, self.spec, **self.sim.arrays())
 
-    def _observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+    def observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
         return build_observation(self.spec, self.current.state[ids], self.command[ids], self.last_action[ids], rngs)
 
@@ -98,7 +98,7 @@ class LocomotionCore:
         fresh = self._measure()
         for field in ("state", "contact", "foot_height", "terminated"):
             getattr(self.current, field)[ids] = getattr(fresh, field)[ids]
-        return self._observe(ids)
+        return self.observe(ids)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every env one policy step. Returns obs, reward, terminated, truncated, info (arrays per env).
@@ -125,7 +125,7 @@ class LocomotionCore:
         resample = np.flatnonzero(self.steps % self.period == 0)
         if len(resample):
             self.command[resample] = sample_commands(self.spec.command, [self.rngs[i] for i in resample])
-        return self._observe(), reward.astype(np.float64), terminated, truncated, info
+        return self.observe(), reward.astype(np.float64), terminated, truncated, info
 
     def record(self) -> dict[str, np.ndarray]:
         """The dataset row of every env at the current time (see `rwm_gym.data.dataset` for the layout)."""

@@ -1,0 +1,196 @@
+"""Collect episodes from a physics env into an HDF5 dataset (`rwm-gym collect`).
+
+Runs N envs of a batched physics core side by side; episode k always starts from seed `seed + k` (env and policy), so
+its content does not depend on N. Each finished episode is appended and flushed at once: an interrupted collection
+keeps every finished episode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+import rwm_gym
+from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
+from rwm_gym.data.policies import Policy, make_policy
+from rwm_gym.registration import PHYSICS_ENVS
+
+ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
+
+
+def make_physics_core(env_id: str, num_envs: int, **kwargs):
+    """The batched core behind a registered physics env id (see `rwm_gym.registration.PHYSICS_ENVS`)."""
+    if env_id not in PHYSICS_ENVS:
+        raise ValueError(f"unknown physics env {env_id!r}; registered: {sorted(PHYSICS_ENVS)}")
+    entry = PHYSICS_ENVS[env_id]
+    module, name = entry["core_entry_point"].split(":")
+    return getattr(importlib.import_module(module), name)(num_envs=num_envs, **{**entry["kwargs"], **kwargs})
+
+
+def dataset_columns(core) -> dict[str, list[str]]:
+    """Column names of every dataset field, from the task spec and the MuJoCo model."""
+    spec = core.spec
+    return {
+        "state": list(spec.state_columns),
+        "action": list(spec.actuator.joints),
+        "contact": list(spec.privileged.contact_bodies),
+        "foot_height": list(spec.privileged.feet),
+        "command": list(spec.command.names),
+        "qpos": _coordinate_names(core.model, velocity=False),
+        "qvel": _coordinate_names(core.model, velocity=True),
+    }
+
+
+def _coordinate_names(model, velocity: bool) -> list[str]:
+    import mujoco
+
+    free = ["x", "y", "z", "wx", "wy", "wz"] if velocity else ["x", "y", "z", "qw", "qx", "qy", "qz"]
+    ball = ["wx", "wy", "wz"] if velocity else ["qw", "qx", "qy", "qz"]
+    names = []
+    for j in range(model.njnt):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
+        kind = model.jnt_type[j]
+        suffixes = free if kind == mujoco.mjtJoint.mjJNT_FREE else ball if kind == mujoco.mjtJoint.mjJNT_BALL else [""]
+        names += [f"{name}/{s}" if s else name for s in suffixes]
+    return names
+
+
+def collect(
+    env_id: str,
+    policy: str | Policy,
+    episodes: int,
+    out: str | Path,
+    *,
+    seed: int = 0,
+    num_envs: int = 1,
+    action_noise: float = 0.0,
+    max_steps: int | None = None,
+    env_kwargs: Mapping[str, object] | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Collect `episodes` episodes of `env_id` driven by `policy` into `out`; returns the path.
+
+    max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
+    (e.g. `xml_file`, `physics`).
+    """
+    num_envs = max(1, min(num_envs, episodes))
+    core = make_physics_core(env_id, num_envs, **dict(env_kwargs or {}))
+    spec = core.spec
+    pol = make_policy(policy, spec, num_envs, action_noise=action_noise) if isinstance(policy, str) else policy
+    horizon = min(max_steps or spec.episode_steps, spec.episode_steps)
+    info = DatasetInfo(
+        env_id=env_id, spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
+        seed=seed, physics_params=core.params.to_dict(),
+        metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
+    )
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    buffers: list[list[dict] | None] = [None] * num_envs
+    next_episode = 0
+
+    def start(ids: np.ndarray) -> np.ndarray:
+        nonlocal next_episode
+        ids = ids[: max(0, episodes - next_episode)]
+        if len(ids) == 0:
+            return ids
+        numbers = np.arange(next_episode, next_episode + len(ids))
+        next_episode += len(ids)
+        core.reset(ids, [seed + int(k) for k in numbers])
+        pol.reset(ids, [np.random.default_rng([seed + int(k), 1]) for k in numbers])
+        record = core.record()
+        for i in ids:
+            buffers[i] = [{f: record[f][i] for f in ROW_FIELDS}]
+        return ids
+
+    with DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
+        total=episodes, desc=f"collect {env_id}", unit="ep", disable=not progress
+    ) as bar:
+        obs = np.zeros((num_envs, spec.observation_dim), dtype=np.float32)
+        ids = start(np.arange(num_envs))
+        obs[ids] = core.observe(ids)
+        while writer.num_episodes < episodes:
+            actions = pol.act(obs)
+            obs, reward, terminated, truncated, _ = core.step(actions)
+            record = core.record()
+            truncated = truncated | (core.steps >= horizon) & ~terminated
+            finished = []
+            for i in range(num_envs):
+                rows = buffers[i]
+                if rows is None:
+                    continue
+                rows[-1]["action"], rows[-1]["reward"] = actions[i], reward[i]
+                rows.append({f: record[f][i] for f in ROW_FIELDS})
+                if terminated[i] or truncated[i]:
+                    rows[-1]["truncated"] = bool(truncated[i])
+                    writer.append_episode(_episode(rows, spec.action_dim))
+                    bar.update(1)
+                    buffers[i] = None
+                    finished.append(i)
+            if finished:
+                restarted = start(np.asarray(finished))
+                if len(restarted):
+                    obs[restarted] = core.observe(restarted)
+    return out
+
+
+def _episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
+    """Stack buffered rows into dataset arrays; the last row carries no transition."""
+    rows[-1]["action"], rows[-1]["reward"] = np.zeros(action_dim), 0.0
+    n = len(rows)
+    episode = {f: np.stack([r[f] for r in rows]) for f in ROW_FIELDS if f != "terminated"}
+    episode["action"] = np.stack([r["action"] for r in rows]).astype(np.float32)
+    episode["reward"] = np.asarray([r["reward"] for r in rows], dtype=np.float32)
+    episode["terminated"] = np.zeros(n, dtype=bool)
+    episode["truncated"] = np.zeros(n, dtype=bool)
+    episode["terminated"][-1] = bool(rows[-1]["terminated"])
+    episode["truncated"][-1] = rows[-1].get("truncated", False) and not episode["terminated"][-1]
+    return episode
+
+
+def _jsonable(value):
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in value]
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
+    return value if isinstance(value, (int, float, str, bool, type(None))) else str(value)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id")
+    parser.add_argument("--policy", default="gait", help="'random', 'gait' or the path of an SB3 .zip")
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (mujoco.batch)")
+    parser.add_argument("--action-noise", type=float, default=0.0, help="Gaussian std added to the policy's actions")
+    parser.add_argument("--max-steps", type=int, default=None, help="cap on episode length (policy steps)")
+    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
+    parser.add_argument("--physics", default=None, help="JSON dict of physics parameters (see PhysicsParams)")
+    parser.add_argument("--overwrite", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    env_kwargs: dict[str, object] = {}
+    if args.xml_file:
+        env_kwargs["xml_file"] = str(args.xml_file)
+    if args.physics:
+        env_kwargs["physics"] = json.loads(args.physics)
+    path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
+                   action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
+                   overwrite=args.overwrite)
+    from rwm_gym.data.dataset import Dataset
+
+    ds = Dataset.load(path)
+    falls = int(ds["terminated"].sum())
+    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated (rwm-gym {rwm_gym.__version__})")
+    return 0

@@ -1,0 +1,88 @@
+"""Policies that drive collections: random exploration, the scripted gait, or a trained SB3 policy.
+
+Every policy is vectorised over N envs and follows one small protocol:
+`reset(ids, rngs)` at the start of episodes in envs `ids` (one generator each, so the data is deterministic), and
+`act(obs) -> actions` with obs (N, O) and actions (N, A) in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from rwm_gym.spec import TaskSpec
+
+
+class Policy(Protocol):
+    name: str
+
+    def reset(self, ids: np.ndarray, rngs: list[np.random.Generator]) -> None: ...
+
+    def act(self, obs: np.ndarray) -> np.ndarray: ...
+
+
+class RandomPolicy:
+    """Temporally correlated random actions: a(t) = rho * a(t-1) + sqrt(1 - rho^2) * sigma * eps, clipped to [-1, 1].
+
+    rho = 0 is white noise; rho near 1 gives slow, large motions that explore the state space better.
+    """
+
+    name = "random"
+
+    def __init__(self, spec: TaskSpec, num_envs: int, *, correlation: float = 0.9, scale: float = 0.5):
+        self.correlation, self.scale = correlation, scale
+        self.actions = np.zeros((num_envs, spec.action_dim))
+        self.rngs: list[np.random.Generator] = [np.random.default_rng(0) for _ in range(num_envs)]
+
+    def reset(self, ids: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        for i, rng in zip(ids, rngs):
+            self.rngs[i] = rng
+            self.actions[i] = rng.normal(0.0, self.scale, self.actions.shape[1])
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        rho = self.correlation
+        noise = np.stack([rng.normal(0.0, self.scale, self.actions.shape[1]) for rng in self.rngs])
+        self.actions = rho * self.actions + np.sqrt(1.0 - rho**2) * noise
+        return np.clip(self.actions, -1.0, 1.0)
+
+
+class SB3Policy:
+    """A trained Stable-Baselines3 policy (a `.zip` from `model.save`), acting deterministically, plus optional noise."""
+
+    def __init__(
+        self, path: str | Path, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0, algorithm: str = "PPO"
+    ):
+        import stable_baselines3
+
+        self.model = getattr(stable_baselines3, algorithm).load(path, device="cpu")
+        self.name = f"sb3:{Path(path).name}"
+        self.action_noise = action_noise
+        self.rngs: list[np.random.Generator] = [np.random.default_rng(0) for _ in range(num_envs)]
+        self.action_dim = spec.action_dim
+
+    def reset(self, ids: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        for i, rng in zip(ids, rngs):
+            self.rngs[i] = rng
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        actions, _ = self.model.predict(obs.astype(np.float32), deterministic=True)
+        if self.action_noise > 0:
+            actions = actions + np.stack([rng.normal(0, self.action_noise, self.action_dim) for rng in self.rngs])
+        return np.clip(actions, -1.0, 1.0)
+
+
+def make_policy(name: str, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0) -> Policy:
+    """`random`, `gait`, or the path of an SB3 `.zip`."""
+    if name == "random":
+        return RandomPolicy(spec, num_envs)
+    if name == "gait":
+        from rwm_gym.data.gait import GaitPolicy
+
+        return GaitPolicy(spec, num_envs, action_noise=action_noise)
+    if name.endswith(".zip"):
+        if not Path(name).is_file():
+            raise FileNotFoundError(f"policy file {name} not found")
+        return SB3Policy(name, spec, num_envs, action_noise=action_noise)
+    raise ValueError(f"unknown policy {name!r}: use 'random', 'gait' or the path of an SB3 .zip")
