@@ -79,6 +79,11 @@ def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: Phys
 
     The MJCF must name its actuated hinge joints and their position actuators as the spec's `actuator.joints`.
     """
+    return build_spec(spec, xml_file, params).compile()
+
+
+def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None) -> mujoco.MjSpec:
+    """The uncompiled `MjSpec` of `build_model` (e.g. to write the modified robot as MJCF with `to_xml()`)."""
     params = params or PhysicsParams()
     path = Path(xml_file) if xml_file is not None else spec.model_path
     if not path.is_file():
@@ -121,4 +126,5 @@ def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: Phys
         if floor is None:
             raise ValueError(f"{path}: ground_friction needs a geom named 'floor'")
         floor.friction[0] = params.ground_friction
-    return mj.compile()
+        floor.priority = 1  # MuJoCo mixes two geoms' friction by max; a higher priority makes the floor's count
+    return mj
