@@ -104,7 +104,7 @@ class TaskSpec:
     physics_env_id: str
     imagined_env_id: str
     model: str
-    """MJCF path relative to `assets/` (or absolute)."""
+    """MJCF path relative to `assets/` (or absolute); empty when the simulator ships its own (dm_control)."""
     policy_dt: float
     physics_dt: float
     episode_steps: int
@@ -199,20 +199,23 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
     try:
         task, act = raw["task"], raw["actuator"]
         joints = tuple(act["joints"])
+        # Only `joints` is required: tasks whose actions drive the simulator's own actuators (dm_control) have no
+        # PD figures, and get neutral ones (zero pose, unit scale, no gains, no limits).
         actuator = ActuatorSpec(
             joints=joints,
-            default_pose=tuple(float(v) for v in act["default_pose"]),
-            action_scale=float(act["action_scale"]),
-            kp=float(act["kp"]),
-            kd=float(act["kd"]),
-            effort_limit=float(act["effort_limit"]),
-            velocity_limit=float(act["velocity_limit"]),
+            default_pose=tuple(float(v) for v in act.get("default_pose", [0.0] * len(joints))),
+            action_scale=float(act.get("action_scale", 1.0)),
+            kp=float(act.get("kp", 0.0)),
+            kd=float(act.get("kd", 0.0)),
+            effort_limit=float(act.get("effort_limit", "inf")),
+            velocity_limit=float(act.get("velocity_limit", "inf")),
         )
         if len(actuator.default_pose) != len(joints):
             raise ValueError(f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints")
-        priv = raw["privileged"]
-        cmd = raw["command"]
-        rew = raw["reward"]
+        # [privileged], [command] and [reward] may be left out (no contacts, no commands, the simulator's reward).
+        priv = raw.get("privileged", {})
+        cmd = raw.get("command", {})
+        rew = raw.get("reward", {})
         obs = raw["observation"]
         reset = {k: float(v) for k, v in raw.get("reset", {}).items()}
         known = {"reset", "task", "actuator", "state", "privileged", "command", "reward", "observation"}
@@ -220,33 +223,33 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             name=task["name"],
             physics_env_id=task["physics_env_id"],
             imagined_env_id=task["imagined_env_id"],
-            model=task["model"],
+            model=task.get("model", ""),
             policy_dt=float(task["policy_dt"]),
             physics_dt=float(task["physics_dt"]),
             episode_steps=int(task["episode_steps"]),
             keyframe=task.get("keyframe", ""),
-            base_body=task["base_body"],
+            base_body=task.get("base_body", ""),
             actuator=actuator,
             state=tuple(_group(g, joints, where) for g in raw["state"]),
             privileged=PrivilegedSpec(
-                contact_bodies=tuple(priv["contact_bodies"]),
-                contact_threshold=float(priv["contact_threshold"]),
-                feet=tuple(priv["feet"]),
+                contact_bodies=tuple(priv.get("contact_bodies", ())),
+                contact_threshold=float(priv.get("contact_threshold", 0.0)),
+                feet=tuple(priv.get("feet", ())),
                 thighs=tuple(priv.get("thighs", ())),
-                termination_bodies=tuple(priv["termination_bodies"]),
+                termination_bodies=tuple(priv.get("termination_bodies", ())),
                 foot_height_std=float(priv.get("foot_height_std", 0.1)),
             ),
             observation=ObservationSpec(tuple(obs["groups"]), {k: float(v) for k, v in obs.get("noise", {}).items()}),
             command=CommandSpec(
-                names=tuple(cmd["names"]),
-                low=tuple(float(v) for v in cmd["low"]),
-                high=tuple(float(v) for v in cmd["high"]),
-                resample_seconds=float(cmd["resample_seconds"]),
+                names=tuple(cmd.get("names", ())),
+                low=tuple(float(v) for v in cmd.get("low", ())),
+                high=tuple(float(v) for v in cmd.get("high", ())),
+                resample_seconds=float(cmd.get("resample_seconds", "inf")),
                 standing_fraction=float(cmd.get("standing_fraction", 0.0)),
                 standing_threshold=float(cmd.get("standing_threshold", 0.1)),
             ),
             reward=RewardSpec(
-                weights={k: float(v) for k, v in rew["weights"].items()},
+                weights={k: float(v) for k, v in rew.get("weights", {}).items()},
                 tracking_sigma=float(rew.get("tracking_sigma", 0.25)),
                 feet_air_time_target=float(rew.get("feet_air_time_target", 0.5)),
             ),
