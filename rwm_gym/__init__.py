@@ -4,7 +4,14 @@ Importing the package registers its environments with string entry points, so ne
 until an environment is made.
 """
 
-from rwm_gym.registration import register_all
+import os
+
+# Offscreen rendering without a display: MuJoCo picks its GL backend when first imported, so choose EGL here unless
+# the user already chose one.
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "egl"
+
+from rwm_gym.registration import register_all  # noqa: E402
 
 __version__ = "0.1.0"
 

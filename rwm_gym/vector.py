@@ -95,6 +95,7 @@ class CoreVecEnv(VecEnv):
 
     def __init__(self, core: BatchedCore):
         self.core = core
+        self.render_mode = None
         super().__init__(core.num_envs, core.single_observation_space, core.single_action_space)
         self._actions: np.ndarray | None = None
         self._seeds: list[int | None] = [None] * core.num_envs
