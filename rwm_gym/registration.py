@@ -15,8 +15,36 @@ PHYSICS_ENVS: dict[str, dict] = {
 }
 
 
+# dm_control suite tasks: id -> spec name in envs/ (see rwm_gym.physics.dmc).
+DMC_SPECS: dict[str, str] = {
+    "DMC-Cheetah-Run-v0": "dmc_cheetah_run",
+    "DMC-Walker-Walk-v0": "dmc_walker_walk",
+    "DMC-Hopper-Hop-v0": "dmc_hopper_hop",
+    "DMC-Quadruped-Walk-v0": "dmc_quadruped_walk",
+    "DMC-Humanoid-Walk-v0": "dmc_humanoid_walk",
+    "DMC-Finger-Spin-v0": "dmc_finger_spin",
+}
+for _env_id, _spec in DMC_SPECS.items():
+    PHYSICS_ENVS[_env_id] = {
+        "entry_point": "rwm_gym.physics.dmc:DMCEnv",
+        "kwargs": {"spec": _spec},
+        "vector_entry_point": "rwm_gym.physics.dmc:DMCVectorEnv",
+        "core_entry_point": "rwm_gym.physics.dmc:make_core",
+    }
+
+
+# Imagined envs: id -> entry points; `checkpoint=None` loads the task's checkpoint shipped in assets/.
+IMAGINED_ENVS: dict[str, dict] = {
+    "RWM-AnymalD-v0": {
+        "entry_point": "rwm_gym.imagination.env:ImaginedEnv",
+        "kwargs": {},
+        "vector_entry_point": "rwm_gym.imagination.vec_env:ImaginedVectorEnv",
+    },
+}
+
+
 def register_all() -> None:
-    for env_id, entry in PHYSICS_ENVS.items():
+    for env_id, entry in {**PHYSICS_ENVS, **IMAGINED_ENVS}.items():
         if env_id in gym.registry:
             continue
         gym.register(

@@ -1,0 +1,189 @@
+"""The imagined task: N rollouts of a trained world model stepped in one forward pass.
+
+`ImaginedCore` has the same interface as the physics core (`rwm_gym.physics.locomotion.LocomotionCore`): the same
+observation, command sampling, reward and termination code, fed with the model's predicted state and privileged
+signals instead of measured ones. Contacts are predicted logits > 0; termination is a predicted probability > 0.5.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.imagination.reset_data import ResetWindows
+from rwm_gym.model.checkpoint import load_checkpoint
+from rwm_gym.physics.locomotion import check_actions
+from rwm_gym.resources import assets_dir
+from rwm_gym.spec import TaskSpec
+from rwm_gym.task.commands import resample_period, sample_commands
+from rwm_gym.task.observation import build_observation
+from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
+
+DEFAULT_CHECKPOINTS = {"AnymalD": "checkpoints/anymal_d_rwm.safetensors"}
+"""Task name -> the checkpoint shipped in `assets/`."""
+
+
+def default_checkpoint(task: str = "AnymalD") -> Path:
+    path = assets_dir() / DEFAULT_CHECKPOINTS[task]
+    if not path.is_file():
+        raise FileNotFoundError(f"the default {task} checkpoint {path} is not installed; pass checkpoint=PATH")
+    return path
+
+
+@dataclass(frozen=True)
+class ImaginationOptions:
+    """How imagined episodes run."""
+
+    sample_predictions: bool = False
+    """Step with a sample of the predicted Gaussian instead of its mean."""
+    history: int | None = None
+    """Real rows replayed at every reset (None: the checkpoint's training history)."""
+    episode_steps: int | None = None
+    """Time limit in policy steps (None: the task spec's)."""
+    uncertainty_penalty: float = 0.0
+    """lambda of the RWM-U penalty -lambda * u * dt, u the ensemble disagreement."""
+    resample_commands: bool = True
+    """Resample commands on the spec's period (off: one command per episode)."""
+    push_interval_s: float = 0.0
+    """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
+    push_velocity: float = 0.5
+    """m/s, half-width of a push."""
+    divergence_bound: float = 50.0
+    """|normalised state| above which the model is taken to have diverged and the episode ends."""
+
+
+class ImaginedCore:
+    """N imagined rollouts; arrays are (N, ...) numpy, the model runs on `device`."""
+
+    def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
+                 reset_data: str | Path | None = None, options: ImaginationOptions | None = None, **kwargs):
+        self.options = options or ImaginationOptions(**kwargs)
+        self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint()
+        self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
+        self.spec: TaskSpec = self.meta.spec
+        self.norm = self.meta.normalizer
+        self.device = torch.device(device)
+        self.num_envs = num_envs
+        history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
+        self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
+        self.episode_steps = self.options.episode_steps or self.spec.episode_steps
+        self.period = resample_period(self.spec.command, self.spec.policy_dt) if self.options.resample_commands \
+            else np.iinfo(np.int64).max
+        n, s, a = num_envs, self.spec.state_dim, self.spec.action_dim
+        self.rngs = [np.random.default_rng() for _ in range(n)]
+        self.state = np.zeros((n, s), dtype=np.float32)
+        self.contact = np.zeros((n, self.spec.contact_dim), dtype=bool)
+        self.foot_height = np.zeros((n, self.spec.foot_dim), dtype=np.float32)
+        self.command = np.zeros((n, len(self.spec.command.names)), dtype=np.float32)
+        self.last_action = np.zeros((n, a))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.uncertainty = np.zeros(n)
+        self.member = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.air_time = FeetAirTime(n, self.spec.foot_dim)
+        self.hidden = self.model.initial_hidden(n, self.device)
+        self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
+        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
+
+    def _reset_data_path(self, given: str | Path | None) -> Path:
+        if given is not None:
+            return Path(given)
+        named = self.meta.extras.get("reset_data")
+        if named:
+            return self.checkpoint.parent / named
+        dataset = self.meta.provenance.get("dataset")
+        if dataset and Path(dataset).is_file():
+            return Path(dataset)
+        raise ValueError(f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
+                         f"{dataset!r} is not here; pass reset_data=PATH")
+
+    @property
+    def ensemble_size(self) -> int:
+        return self.model.config.ensemble_size
+
+    def observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
+        return build_observation(self.spec, self.state[ids], self.command[ids], self.last_action[ids])
+
+    @torch.no_grad()
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
+        """Start envs `ids` from real history windows, replaying the full warm-up through the model."""
+        ids = np.asarray(ids, dtype=int)
+        for i, seed in zip(ids, seeds or [None] * len(ids)):
+            if seed is not None:
+                self.rngs[i] = np.random.default_rng(seed)
+        windows = [self.reset_windows.sample(self.rngs[i]) for i in ids]
+        members = [int(self.rngs[i].integers(self.ensemble_size)) for i in ids]
+        states = torch.as_tensor(np.stack([w.states for w in windows]), device=self.device)
+        actions = torch.as_tensor(np.stack([w.actions for w in windows]), device=self.device)
+        index = torch.as_tensor(ids, device=self.device)
+        member = torch.as_tensor(members, device=self.device)
+        self.member[index] = member
+        hidden, _ = self.model.warm_up(self.norm.normalize_state(states).float(), actions.float(),
+                                       member if self.ensemble_size > 1 else None)
+        self.hidden = self.model.scatter_hidden(self.hidden, index, hidden)
+        self.state[ids] = np.stack([w.states[-1] for w in windows])
+        self.contact[ids] = np.stack([w.contact for w in windows])
+        self.foot_height[ids] = np.stack([w.foot_height for w in windows])
+        self.last_action[ids] = np.stack([w.actions[-1] for w in windows])
+        self.command[ids] = sample_commands(self.spec.command, [self.rngs[i] for i in ids])
+        self.steps[ids] = 0
+        self.uncertainty[ids] = 0.0
+        self.air_time.reset(ids)
+        return self.observe(ids)
+
+    @torch.no_grad()
+    def step(self, actions: np.ndarray):
+        """Every env one imagined step: obs, reward, terminated, truncated, info (arrays per env)."""
+        actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
+        x = self.norm.normalize_state(torch.as_tensor(self.state, device=self.device))
+        u = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        member = self.member if self.ensemble_size > 1 else None
+        self.hidden, p = self.model.step(self.hidden, x.float(), u, member)
+        mean = p.state_mean
+        if self.options.sample_predictions:
+            noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
+            mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
+        next_norm = mean.cpu().numpy().astype(np.float64)
+        diverged = ~np.isfinite(next_norm).all(axis=1) | (np.abs(next_norm) > self.options.divergence_bound).any(axis=1)
+        next_state = self.norm.denormalize_state(next_norm).astype(np.float32)
+        next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
+        contact = (p.contact_logits > 0).cpu().numpy()
+        foot_height = self.norm.denormalize_foot_height(p.foot_height.cpu().numpy()).astype(np.float32)
+        terminated = (p.termination_logit > 0).cpu().numpy() | diverged
+        self.uncertainty = np.nan_to_num(p.uncertainty.cpu().numpy().astype(np.float64), nan=0.0)
+
+        feet = np.isin(self.spec.privileged.contact_bodies, self.spec.privileged.feet)
+        air = self.air_time.update(contact[:, feet], self.spec.policy_dt, self.spec.reward.feet_air_time_target)
+        terms = reward_terms(self.spec, next_state, self.state, contact, self.command, actions, self.last_action, air)
+        reward = total_reward(self.spec, terms) - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
+        reward = np.where(diverged, 0.0, reward)
+        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty": self.uncertainty.copy(),
+                **{f"reward/{k}": v for k, v in terms.items()}}
+
+        self.state, self.contact, self.foot_height, self.last_action = next_state, contact, foot_height, actions
+        self.steps += 1
+        truncated = (self.steps >= self.episode_steps) & ~terminated
+        self._push()
+        resample = np.flatnonzero(self.steps % self.period == 0)
+        if len(resample):
+            self.command[resample] = sample_commands(self.spec.command, [self.rngs[i] for i in resample])
+        return self.observe(), reward.astype(np.float64), terminated, truncated, info
+
+    def _push(self) -> None:
+        if self.options.push_interval_s <= 0:
+            return
+        every = max(1, int(round(self.options.push_interval_s / self.spec.policy_dt)))
+        lin = self.spec.state_slices["base_lin_vel"]
+        for i in np.flatnonzero(self.steps % every == 0):
+            v = self.options.push_velocity
+            self.state[i, lin.start:lin.start + 2] += self.rngs[i].uniform(-v, v, 2).astype(np.float32)
+
+    def record(self) -> dict[str, np.ndarray]:
+        """The imagined rows, in the dataset's field names (no simulator state: qpos/qvel are absent)."""
+        return {"state": self.state.copy(), "contact": self.contact.copy(), "foot_height": self.foot_height.copy(),
+                "command": self.command.copy()}

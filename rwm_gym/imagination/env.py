@@ -1,0 +1,60 @@
+"""`RWM-AnymalD-v0`: a `gymnasium.Env` whose step queries the world model instead of physics.
+
+Same observation and action spaces, commands, reward and termination as the physics env (`AnymalD-MuJoCo-v0`).
+`render_mode="rgb_array"` draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the
+base position integrated from the predicted velocity.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
+
+
+class ImaginedEnv(gym.Env):
+    """One imagined rollout. kwargs: the fields of `ImaginationOptions` (sample_predictions, uncertainty_penalty, ...)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
+                 render_mode: str | None = None, width: int = 640, height: int = 480, **options):
+        self.core = ImaginedCore(checkpoint, 1, device=device, reset_data=reset_data,
+                                 options=ImaginationOptions(**options))
+        self.task_spec = self.core.spec
+        self.observation_space = self.core.single_observation_space
+        self.action_space = self.core.single_action_space
+        self.render_mode = render_mode
+        self._render_size = (height, width)
+        self._dream = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs = self.core.reset(np.array([0]), [seed])
+        if self._dream is not None:
+            self._dream.reset()
+        return obs[0], {"command": self.core.command[0].copy()}
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.core.step(np.asarray(action)[None])
+        if self._dream is not None:
+            self._dream.advance(self.core.state[0], self.core.foot_height[0])
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), {k: v[0] for k, v in info.items()}
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._dream is None:
+            from rwm_gym.imagination.dream import DreamRenderer
+
+            self._dream = DreamRenderer(self.task_spec, *self._render_size)
+            self._dream.advance(self.core.state[0], self.core.foot_height[0], dt=0.0)
+        return self._dream.render()
+
+    def close(self):
+        if self._dream is not None:
+            self._dream.close()
+            self._dream = None

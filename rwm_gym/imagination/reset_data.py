@@ -1,0 +1,76 @@
+"""Real history windows that imagined episodes start from.
+
+An imagined episode replays the last H steps of a real trajectory through the world model before the policy acts
+(RWM's warm-up: a cold GRU state predicts poorly). The windows come from a small dataset in the ordinary HDF5 format,
+named by the checkpoint (`extras["reset_data"]`, relative to the checkpoint's folder) or given by the user.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rwm_gym.data.dataset import Dataset, DatasetInfo, write_dataset
+
+
+@dataclass
+class ResetWindow:
+    """One real history: H rows ending at the row the imagined episode continues from."""
+
+    states: np.ndarray
+    """(H, S) physical units, rows t-H+1 .. t."""
+    actions: np.ndarray
+    """(H - 1, A) actions of rows t-H+1 .. t-1 (the policy picks the action of row t)."""
+    contact: np.ndarray
+    """(C,) bool, contact flags at row t."""
+    foot_height: np.ndarray
+    """(F,) m, at row t."""
+
+
+class ResetWindows:
+    """All windows of `history` rows that fit inside one episode of a dataset, sampled uniformly."""
+
+    def __init__(self, dataset: Dataset, history: int):
+        self.dataset, self.history = dataset, history
+        starts, lengths = dataset.episode_starts, dataset.episode_lengths
+        # row t can end a window if t - history + 1 >= episode start and row t is not a terminal state
+        ends = [np.arange(s + history - 1, s + n) for s, n in zip(starts, lengths) if n >= history]
+        self.ends = np.concatenate(ends) if ends else np.zeros(0, dtype=np.int64)
+        self.ends = self.ends[~dataset["terminated"][self.ends]]
+        if len(self.ends) == 0:
+            raise ValueError(f"{dataset.path}: no episode has the {history} rows a reset window needs")
+        self.states, self.actions = dataset["state"], dataset["action"]
+        self.contact, self.foot_height = dataset["contact"], dataset["foot_height"]
+
+    def sample(self, rng: np.random.Generator) -> ResetWindow:
+        t = int(self.ends[rng.integers(len(self.ends))])
+        rows = slice(t - self.history + 1, t + 1)
+        return ResetWindow(self.states[rows], self.actions[t - self.history + 1 : t], self.contact[t],
+                           self.foot_height[t])
+
+
+def make_reset_data(source: Dataset | str | Path, out: str | Path, *, episodes: int = 32, rows: int = 200,
+                    seed: int = 0) -> Path:
+    """Cut a small reset dataset (`episodes` episodes, at most `rows` rows each) out of a collected one."""
+    ds = source if isinstance(source, Dataset) else Dataset.load(source)
+    rng = np.random.default_rng(seed)
+    chosen = np.sort(rng.permutation(ds.num_episodes)[:episodes])
+
+    def cut(i: int) -> dict[str, np.ndarray]:
+        ep = {k: v.copy() for k, v in ds.episode(int(i)).items()}
+        if len(ep["state"]) > rows:
+            ep = {k: v[:rows] for k, v in ep.items()}
+            ep["action"][-1], ep["reward"][-1] = 0.0, 0.0
+            ep["terminated"][-1], ep["truncated"][-1] = False, True
+        return ep
+
+    info = DatasetInfo(**{**_info_fields(ds.info), "metadata": {**ds.info.metadata, "reset_data_from": str(ds.path),
+                                                                "sha256": ds.file_hash()}})
+    write_dataset(out, info, (cut(i) for i in chosen))
+    return Path(out)
+
+
+def _info_fields(info: DatasetInfo) -> dict:
+    return {k: getattr(info, k) for k in ("env_id", "spec_text", "dt", "columns", "policy", "seed", "physics_params")}

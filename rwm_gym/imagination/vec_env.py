@@ -1,0 +1,33 @@
+"""The imagined env, batched: all N rollouts in one forward pass of the world model.
+
+`gym.make_vec("RWM-AnymalD-v0", num_envs=N, vectorization_mode="vector_entry_point")` gives `ImaginedVectorEnv`;
+SB3 takes `ImaginedVecEnv`. Both share the auto-reset rules of `rwm_gym.vector`; every reset replays a real warm-up.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
+from rwm_gym.vector import CoreVecEnv, CoreVectorEnv
+
+
+def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
+                       reset_data: str | Path | None = None, **options) -> ImaginedCore:
+    return ImaginedCore(checkpoint, num_envs, device=device, reset_data=reset_data,
+                        options=ImaginationOptions(**options))
+
+
+class ImaginedVectorEnv(CoreVectorEnv):
+    """Gymnasium VectorEnv of N imagined rollouts; kwargs as `ImaginedEnv`."""
+
+    def __init__(self, num_envs: int = 1, checkpoint: str | Path | None = None, **kwargs):
+        kwargs.pop("render_mode", None)
+        super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs))
+
+
+class ImaginedVecEnv(CoreVecEnv):
+    """Stable-Baselines3 VecEnv of N imagined rollouts (numpy in and out; the model on cpu or cuda)."""
+
+    def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, **kwargs):
+        super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs))

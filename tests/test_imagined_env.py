@@ -1,0 +1,159 @@
+"""RWM-AnymalD-v0: the world model behind Gymnasium and SB3, checked on a tiny model trained on tiny data."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+import rwm_gym  # noqa: F401
+from rwm_gym.data.collect import collect
+from rwm_gym.imagination.env import ImaginedEnv
+from rwm_gym.imagination.reset_data import make_reset_data
+from rwm_gym.imagination.vec_env import ImaginedVecEnv
+from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rwm_gym.model.config import TrainConfig
+from rwm_gym.model.factory import model_config_for
+from rwm_gym.model.train import train
+from rwm_gym.spec import load_spec
+
+ENV_ID = "RWM-AnymalD-v0"
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """A tiny RWM (2 ensemble heads) trained 30 iterations on 6 short random episodes, with its reset data."""
+    folder = tmp_path_factory.mktemp("rwm")
+    data = collect("AnymalD-MuJoCo-v0", "random", 6, folder / "data.h5", seed=0, num_envs=2, max_steps=60,
+                   progress=False)
+    spec = load_spec("anymal_d")
+    config = model_config_for("rwm", spec, hidden_size=32, num_layers=1, head_hidden=32, ensemble_size=2)
+    path = folder / "model.safetensors"
+    train(data, config, TrainConfig(history=8, forecast=4, batch_size=16, iterations=30, val_every=1000,
+                                    checkpoint_every=1000), path, progress=False)
+    make_reset_data(data, folder / "reset.h5", episodes=4)
+    model, meta = load_checkpoint(path)
+    save_checkpoint(path, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
+                    stats=meta.stats, extras={"reset_data": "reset.h5"})
+    return path
+
+
+def test_checkers_pass(checkpoint):
+    gym_check_env(gym.make(ENV_ID, checkpoint=checkpoint).unwrapped, skip_render_check=True)
+    sb3_check_env(ImaginedEnv(checkpoint), warn=True)
+
+
+def test_spaces_match_the_physics_env(checkpoint):
+    imagined, physics = gym.make(ENV_ID, checkpoint=checkpoint), gym.make("AnymalD-MuJoCo-v0")
+    assert imagined.observation_space == physics.observation_space
+    assert imagined.action_space == physics.action_space
+
+
+def _rollout(env, seed, steps=25):
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    out, rewards = [obs], []
+    for _ in range(steps):
+        obs, r, term, trunc, info = env.step(rng.uniform(-1, 1, 12).astype(np.float32))
+        out.append(obs)
+        rewards.append(r)
+        if term or trunc:
+            obs, _ = env.reset()
+    return np.stack(out), np.array(rewards)
+
+
+def test_same_seed_same_rollout_also_when_sampling(checkpoint):
+    for sample in (False, True):
+        a = _rollout(ImaginedEnv(checkpoint, sample_predictions=sample), 3)
+        b = _rollout(ImaginedEnv(checkpoint, sample_predictions=sample), 3)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+    assert not np.array_equal(_rollout(ImaginedEnv(checkpoint), 3)[0], _rollout(ImaginedEnv(checkpoint), 4)[0])
+
+
+def test_reset_replays_a_real_warm_up(checkpoint):
+    env = ImaginedEnv(checkpoint)
+    env.reset(seed=0)
+    core = env.core
+    assert any(torch.count_nonzero(h) > 0 for h in core.hidden)  # warmed up, not a cold zero state
+    ends = core.reset_windows.ends
+    states = core.reset_windows.states[ends]
+    assert np.any(np.all(states == core.state[0], axis=1))  # the first state is a real row
+
+
+def test_batched_env_matches_single_envs(checkpoint):
+    n, steps, seed = 3, 20, 5
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (steps, n, 12)).astype(np.float32)
+    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", checkpoint=checkpoint,
+                       episode_steps=1000)
+    obs_b, _ = vec.reset(seed=seed)
+    trajectory = [obs_b]
+    for t in range(steps):
+        trajectory.append(vec.step(actions[t])[0])
+    for i in range(n):
+        env = ImaginedEnv(checkpoint, episode_steps=1000)
+        obs, _ = env.reset(seed=seed + i)
+        np.testing.assert_allclose(obs, trajectory[0][i], rtol=1e-5, atol=1e-5)
+        for t in range(steps):
+            obs, _, term, _, _ = env.step(actions[t, i])
+            if term:
+                break  # the vector env auto-reset here
+            np.testing.assert_allclose(obs, trajectory[t + 1][i], rtol=1e-4, atol=1e-4)
+
+
+def test_divergence_guard_ends_the_episode_without_nan(checkpoint, tmp_path):
+    model, meta = load_checkpoint(checkpoint)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if "state_head" in name or "head" in name:
+                p.mul_(1e4)
+    broken = tmp_path / "broken.safetensors"
+    save_checkpoint(broken, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
+                    extras={"reset_data": str(checkpoint.parent / "reset.h5")})
+    env = ImaginedEnv(broken)
+    env.reset(seed=0)
+    diverged = False
+    for _ in range(20):
+        obs, reward, terminated, truncated, info = env.step(np.zeros(12, dtype=np.float32))
+        assert np.all(np.isfinite(obs)) and np.isfinite(reward)
+        if info["model_diverged"]:
+            assert terminated
+            diverged = True
+            break
+        if terminated:
+            env.reset()
+    assert diverged
+
+
+def test_sb3_vecenv_and_uncertainty_penalty(checkpoint):
+    venv = ImaginedVecEnv(checkpoint, num_envs=4, uncertainty_penalty=10.0)
+    venv.seed(0)
+    obs = venv.reset()
+    assert obs.shape == (4, 48)
+    _, rewards, dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
+    assert all(info["uncertainty"] >= 0 for info in infos)
+    plain = ImaginedVecEnv(checkpoint, num_envs=4)
+    plain.seed(0)
+    plain.reset()
+    _, plain_rewards, _, _ = plain.step(np.zeros((4, 12), dtype=np.float32))
+    assert np.all(rewards <= plain_rewards + 1e-6) and np.any(rewards < plain_rewards)
+
+
+def test_bad_checkpoints_fail_clearly(checkpoint, tmp_path):
+    truncated = tmp_path / "cut.safetensors"
+    truncated.write_bytes(checkpoint.read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match="cut.safetensors"):
+        ImaginedEnv(truncated)
+    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+        ImaginedEnv(tmp_path / "missing.safetensors")
+
+
+def test_nan_action_is_refused(checkpoint):
+    env = ImaginedEnv(checkpoint)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.full(12, np.nan, dtype=np.float32))
