@@ -1,0 +1,125 @@
+"""The one interface every world model implements: `step(hidden, state, action) -> (hidden, prediction)`.
+
+Everything is in normalised units (see `normalization.py`): states are `(x - mean) / std` with the task spec's fixed
+statistics, foot heights are divided by the spec's `foot_height_std`, actions are passed as they are (in [-1, 1]).
+
+The hidden state is explicit: a tuple of tensors, each with the batch on dim 0, so that an environment holding many
+rollouts can pick, overwrite or reset some of them with `select_hidden`, `scatter_hidden` and `reset_hidden` without
+knowing the model's kind. Causal alignment: `step(h, state[t], action[t])` predicts `state[t+1]` (and the contacts,
+foot heights and termination flag of row t+1).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.heads import StateHead
+from rwm_gym.model.prediction import Prediction
+
+Hidden = tuple[torch.Tensor, ...]
+"""A model's recurrent state: tensors with the batch on dim 0 (an empty tuple for memoryless models)."""
+
+
+class WorldModel(nn.Module):
+    """Base class of all world models. Subclasses implement `initial_hidden` and `step` (or `observe`, see below).
+
+    `step` predicts one row ahead; `observe` runs many known steps at once (the default loops over `step`; recurrent
+    models override it with a sequence kernel and then define `step` through it); `warm_up` and `forecast` build the
+    history-then-open-loop rollouts used by training, evaluation and the imagined environment.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.register_buffer("_anchor", torch.zeros(0), persistent=False)  # device of a model without parameters
+
+    @property
+    def device(self) -> torch.device:
+        return self._anchor.device
+
+    def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
+        """The hidden state before any step (zeros / an empty history) for `batch_size` rollouts."""
+        raise NotImplementedError
+
+    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
+             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+        """Advance one step. state (B, S) normalised, action (B, A) -> (new hidden, prediction of row t+1).
+
+        member: (B,) long, the ensemble head used by each rollout; None averages the heads.
+        next_state: (B, S) true next state when known (history); only latent-variable models (RSSM) use it, to
+        filter with the posterior. Leave None when predicting.
+        """
+        raise NotImplementedError
+
+    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
+                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+        """Run known steps: states (B, T, S), actions (B, T, A) -> (hidden after T steps, predictions (B, T, ...))."""
+        predictions = []
+        for t in range(states.shape[1]):
+            hidden, p = self.step(hidden, states[:, t], actions[:, t], member,
+                                  None if next_states is None else next_states[:, t])
+            predictions.append(p)
+        return hidden, Prediction.stack(predictions)
+
+    def warm_up(self, states: torch.Tensor, actions: torch.Tensor,
+                member: torch.Tensor | None = None) -> tuple[Hidden, Prediction | None]:
+        """Hidden state after a true history, ready to `step` from its last state.
+
+        states (B, H, S): true rows s_0..s_{H-1}; actions (B, >= H-1, A): a_0..a_{H-2} are used. The model observes
+        (s_t, a_t, s_{t+1}) for t < H-1; the caller then steps with (s_{H-1}, a_{H-1}). Returns the hidden state and
+        the warm-up predictions (B, H-1, ...) (None when H == 1).
+        """
+        batch, history = states.shape[:2]
+        hidden = self.initial_hidden(batch, states.device)
+        if history == 1:
+            return hidden, None
+        return self.observe(hidden, states[:, :-1], actions[:, :history - 1], member, next_states=states[:, 1:])
+
+    def forecast(self, states: torch.Tensor, actions: torch.Tensor, horizon: int, *, sample: bool,
+                 member: torch.Tensor | None = None) -> tuple[Prediction, Prediction | None]:
+        """Warm up on a true history, then predict `horizon` rows open-loop, feeding back the own predictions.
+
+        states (B, H, S) true history s_0..s_{H-1}; actions (B, H + horizon - 1, A) the true actions a_0.. .
+        Step k (0-based) feeds back the previous prediction: a reparameterised sample if `sample` (training, gradients
+        flow through it) else its mean (evaluation). Returns (predictions of s_H..s_{H+horizon-1}, (B, horizon, ...);
+        warm-up predictions or None).
+        """
+        history = states.shape[1]
+        if actions.shape[1] < history + horizon - 1:
+            raise ValueError(f"forecast needs {history + horizon - 1} actions, got {actions.shape[1]}")
+        hidden, warm = self.warm_up(states, actions, member)
+        x, predictions = states[:, -1], []
+        for k in range(horizon):
+            hidden, p = self.step(hidden, x, actions[:, history - 1 + k], member)
+            predictions.append(p)
+            if k + 1 < horizon:
+                x = p.sample() if sample else p.state_mean
+        return Prediction.stack(predictions), warm
+
+    def regularization(self) -> torch.Tensor:
+        """Extra training loss of the parameters: the width of the learned log-std band of every state head."""
+        total = torch.zeros((), device=self.device)
+        for module in self.modules():
+            if isinstance(module, StateHead):
+                total = total + module.bound_loss()
+        return total
+
+    @staticmethod
+    def select_hidden(hidden: Hidden, index: torch.Tensor) -> Hidden:
+        """The hidden states of some rollouts: index is (n,) long or (B,) bool."""
+        return tuple(h[index] for h in hidden)
+
+    @staticmethod
+    def scatter_hidden(hidden: Hidden, index: torch.Tensor, values: Hidden) -> Hidden:
+        """A copy of `hidden` with rollouts `index` ((n,) long) replaced by `values` (batch n)."""
+        return tuple(h.index_copy(0, index, v.to(h.dtype)) for h, v in zip(hidden, values, strict=True))
+
+    def reset_hidden(self, hidden: Hidden, mask: torch.Tensor) -> Hidden:
+        """A copy of `hidden` with the rollouts where mask ((B,) bool) is true set back to `initial_hidden`.
+
+        Prefer `warm_up` on a real history for restarted rollouts: a cold hidden state predicts poorly.
+        """
+        fresh = self.initial_hidden(mask.shape[0], mask.device)
+        return tuple(torch.where(mask.view(-1, *([1] * (h.dim() - 1))), f, h) for h, f in zip(hidden, fresh, strict=True))

@@ -1,0 +1,174 @@
+"""Typed, frozen configuration of world models and of their training; both are saved into every checkpoint.
+
+Sizes of the robot (state, action, contacts, feet) come from the task spec and the data, never from code. Field
+docstrings double as the `--help` text of `rwm-gym train`.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, fields
+from functools import cache
+from typing import Any
+
+MODEL_KINDS = ("rwm", "mlp", "rssm", "transformer", "no_change")
+LOSSES = ("mse", "nll")
+SCHEDULES = ("cosine", "step", "constant")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of one world model. Units: everything the model sees and predicts is normalised."""
+
+    kind: str
+    """Model family: rwm, mlp, rssm, transformer or no_change."""
+    state_dim: int
+    """S, size of the world-model state."""
+    action_dim: int
+    """A, size of the action."""
+    contact_dim: int = 0
+    """C, number of contact flags (0: no contact head)."""
+    foot_dim: int = 0
+    """F, number of foot heights (0: no foot-height head)."""
+    hidden_size: int = 256
+    """Width of the recurrent cores (GRU units) and of the MLP baseline's layers."""
+    num_layers: int = 2
+    """Stacked GRU layers (RWM, RSSM) or hidden layers (MLP)."""
+    head_hidden: int = 128
+    """Width of the one hidden layer of every prediction head."""
+    ensemble_size: int = 1
+    """k state heads; their disagreement is the epistemic uncertainty (RWM-U uses 5)."""
+    log_std_min_init: float = -5.0
+    """Initial learned lower bound of the predicted log-std (normalised units)."""
+    log_std_max_init: float = 0.5
+    """Initial learned upper bound of the predicted log-std (normalised units)."""
+    mlp_history: int = 4
+    """Number of past (state, action) pairs the MLP baseline stacks as its input."""
+    rssm_latent: int = 32
+    """Size of the RSSM stochastic Gaussian latent."""
+    transformer_context: int = 32
+    """Tokens (past (state, action) pairs) the causal Transformer attends to."""
+    transformer_dim: int = 128
+    """Token width of the Transformer."""
+    transformer_heads: int = 4
+    """Attention heads of the Transformer."""
+    transformer_layers: int = 2
+    """Encoder layers of the Transformer."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in MODEL_KINDS:
+            raise ValueError(f"model kind {self.kind!r} unknown (choose from {', '.join(MODEL_KINDS)})")
+        if min(self.state_dim, self.action_dim) < 1 or min(self.contact_dim, self.foot_dim) < 0:
+            raise ValueError(f"model sizes must be positive: state {self.state_dim}, action {self.action_dim}, "
+                             f"contact {self.contact_dim}, foot {self.foot_dim}")
+        if self.ensemble_size < 1:
+            raise ValueError(f"ensemble_size must be >= 1, got {self.ensemble_size}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
+        return cls(**_checked(cls, data))
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Dual-autoregressive training of a world model on windows of history + forecast steps."""
+
+    history: int = 32
+    """H: true steps the model warms up on before forecasting."""
+    forecast: int = 8
+    """F: steps predicted autoregressively from the model's own samples (1 = teacher forcing)."""
+    batch_size: int = 64
+    """Windows per gradient step."""
+    lr: float = 1e-3
+    """Adam learning rate at the start of the schedule."""
+    weight_decay: float = 0.0
+    """Adam (L2) weight decay."""
+    grad_clip: float = 1.0
+    """Global gradient-norm clip."""
+    schedule: str = "cosine"
+    """Learning-rate schedule over the budget: cosine (to 5%), step (x0.1 at 50% and 75%) or constant."""
+    iterations: int = 2000
+    """Budget in gradient steps (0: no limit, then `minutes` must be set)."""
+    minutes: float = 0.0
+    """Budget in wall-clock minutes (0: no limit); the run stops at whichever budget ends first."""
+    val_fraction: float = 0.1
+    """Fraction of episodes held out for validation (whole episodes)."""
+    val_every: int = 100
+    """Iterations between validation passes."""
+    val_windows: int = 256
+    """Validation windows (fixed, drawn once per run)."""
+    checkpoint_every: int = 100
+    """Iterations between checkpoints (with optimizer and RNG state, for --resume)."""
+    seed: int = 0
+    """Seeds weights, window sampling and forecast noise; a run is deterministic in it."""
+    device: str = "cpu"
+    """torch device: cpu or cuda."""
+    loss: str = "mse"
+    """State loss on forecast steps: mse (of reparameterised samples, as RWM) or nll (Gaussian)."""
+    contact_weight: float = 1.0
+    """Weight of the contact BCE."""
+    termination_weight: float = 1.0
+    """Weight of the class-weighted termination BCE."""
+    foot_weight: float = 1.0
+    """Weight of the foot-height MSE."""
+    bound_weight: float = 0.01
+    """Weight of the log-std band term sum(max_log_std) - sum(min_log_std)."""
+    kl_weight: float = 1.0
+    """Weight of the RSSM KL term (posterior from the true next state vs prior)."""
+    kl_free_nats: float = 1.0
+    """KL below this many nats per step is not penalised (RSSM)."""
+
+    def __post_init__(self) -> None:
+        if self.history < 1 or self.forecast < 1:
+            raise ValueError(f"history and forecast must be >= 1, got {self.history} and {self.forecast}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss {self.loss!r} unknown (choose from {', '.join(LOSSES)})")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule {self.schedule!r} unknown (choose from {', '.join(SCHEDULES)})")
+        if self.iterations <= 0 and self.minutes <= 0:
+            raise ValueError("set a budget: iterations > 0 or minutes > 0")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        return cls(**_checked(cls, data))
+
+
+def _checked(cls: type, data: dict[str, Any]) -> dict[str, Any]:
+    """`data` if every key is a field of `cls`; an unknown key (a newer file) is refused, not silently dropped."""
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown field {unknown[0]!r}")
+    return dict(data)
+
+
+def config_difference(found: Any, expected: Any, ignore: Iterable[str] = ()) -> str | None:
+    """The first field in which two configs of one class differ, as "name: a in the file, b now"; None if none."""
+    a, b = found.to_dict(), expected.to_dict()
+    for name in a:
+        if name not in ignore and a[name] != b[name]:
+            return f"{name}: {a[name]!r} in the file, {b[name]!r} now"
+    return None
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (read from its source), for `--help` texts."""
+    docs, previous = {}, None
+    for node in ast.parse(inspect.getsource(cls)).body[0].body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            previous = node.target.id
+        elif previous and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            docs[previous] = " ".join(str(node.value.value).split())
+            previous = None
+        else:
+            previous = None
+    return docs

@@ -1,0 +1,112 @@
+"""Prediction heads shared by every learned world model: a Gaussian state head (optionally an ensemble) and the
+privileged head (contact logits, foot heights, termination logit)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from rwm_gym.model.prediction import Prediction
+from rwm_gym.model.config import ModelConfig
+
+
+def soft_bound(x: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """Softly clamp x into [low, high] with softplus (as PETS does for log-variances); smooth, so gradients flow."""
+    x = high - F.softplus(high - x)
+    return low + F.softplus(x - low)
+
+
+class EnsembleLinear(nn.Module):
+    """k independent linear layers applied at once: (k, N, in) -> (k, N, out)."""
+
+    def __init__(self, k: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        bound = in_features ** -0.5
+        self.weight = nn.Parameter(torch.empty(k, in_features, out_features).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(k, 1, out_features).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class StateHead(nn.Module):
+    """k MLP heads (one hidden layer) predicting a Gaussian residual on the last state, log-std softly bounded
+    between learned limits.
+
+    forward(features (N, D), last_state (N, S), member (N,) long | None) -> (mean (N, S), std (N, S), uncertainty (N,)).
+    With member None the heads are combined as an equal mixture: mean of means, std from the mixture variance.
+    """
+
+    def __init__(self, in_features: int, state_dim: int, hidden: int, ensemble_size: int,
+                 log_std_min: float, log_std_max: float) -> None:
+        super().__init__()
+        self.k, self.state_dim = ensemble_size, state_dim
+        self.hidden = EnsembleLinear(ensemble_size, in_features, hidden)
+        self.out = EnsembleLinear(ensemble_size, hidden, 2 * state_dim)
+        self.min_log_std = nn.Parameter(torch.full((state_dim,), float(log_std_min)))
+        self.max_log_std = nn.Parameter(torch.full((state_dim,), float(log_std_max)))
+
+    def forward(self, features: torch.Tensor, last_state: torch.Tensor,
+                member: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        x = features.unsqueeze(0).expand(self.k, -1, -1)
+        out = self.out(F.elu(self.hidden(x)))  # (k, N, 2S)
+        residual, raw_log_std = out.split(self.state_dim, dim=-1)
+        means = last_state.unsqueeze(0) + residual
+        stds = soft_bound(raw_log_std, self.min_log_std, self.max_log_std).exp()
+        if self.k == 1:
+            uncertainty = torch.zeros(features.shape[0], device=features.device, dtype=features.dtype)
+        else:
+            uncertainty = means.std(dim=0, unbiased=False).mean(dim=-1)
+        if member is not None:
+            rows = torch.arange(features.shape[0], device=features.device)
+            return means[member, rows], stds[member, rows], uncertainty
+        if self.k == 1:
+            return means[0], stds[0], uncertainty
+        variance = stds.square().mean(dim=0) + means.var(dim=0, unbiased=False)
+        return means.mean(dim=0), variance.sqrt(), uncertainty
+
+    def bound_loss(self) -> torch.Tensor:
+        """sum(max_log_std) - sum(min_log_std): keeps the learned band from widening without need."""
+        return self.max_log_std.sum() - self.min_log_std.sum()
+
+
+class PrivilegedHead(nn.Module):
+    """One-hidden-layer MLP: features (N, D) -> contact logits (N, C), foot heights (N, F), termination logit (N,)."""
+
+    def __init__(self, in_features: int, contact_dim: int, foot_dim: int, hidden: int) -> None:
+        super().__init__()
+        self.sizes = (contact_dim, foot_dim, 1)
+        self.net = nn.Sequential(nn.Linear(in_features, hidden), nn.ELU(), nn.Linear(hidden, sum(self.sizes)))
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        contact, foot, termination = self.net(features).split(self.sizes, dim=-1)
+        return contact, foot, termination.squeeze(-1)
+
+
+class Heads(nn.Module):
+    """The state head and the privileged head together, producing a `Prediction`.
+
+    forward(state_features (B, [T,] D1), privileged_features (B, [T,] D2), last_state (B, [T,] S), member (B,) | None)
+    -> Prediction with the same leading dims (a member is held for all T steps of its rollout).
+    """
+
+    def __init__(self, state_features: int, privileged_features: int, config: ModelConfig) -> None:
+        super().__init__()
+        self.state = StateHead(state_features, config.state_dim, config.head_hidden, config.ensemble_size,
+                               config.log_std_min_init, config.log_std_max_init)
+        self.privileged = PrivilegedHead(privileged_features, config.contact_dim, config.foot_dim, config.head_hidden)
+
+    def forward(self, state_features: torch.Tensor, privileged_features: torch.Tensor, last_state: torch.Tensor,
+                member: torch.Tensor | None = None) -> Prediction:
+        lead = last_state.shape[:-1]
+        if member is not None and len(lead) == 2:
+            member = member.repeat_interleave(lead[1])
+        mean, std, uncertainty = self.state(state_features.reshape(-1, state_features.shape[-1]),
+                                            last_state.reshape(-1, last_state.shape[-1]), member)
+        contact, foot, termination = self.privileged(privileged_features.reshape(-1, privileged_features.shape[-1]))
+        return Prediction(
+            state_mean=mean.reshape(*lead, -1), state_std=std.reshape(*lead, -1),
+            contact_logits=contact.reshape(*lead, -1), foot_height=foot.reshape(*lead, -1),
+            termination_logit=termination.reshape(lead), uncertainty=uncertainty.reshape(lead),
+        )

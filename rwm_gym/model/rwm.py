@@ -1,0 +1,46 @@
+"""The Robotic World Model (Li, Krause, Hutter, arXiv 2501.10100): two GRUs over (normalised state, action).
+
+One GRU feeds the Gaussian state head (a residual on the last state, log-std softly bounded between learned limits,
+optionally an ensemble of k heads); the other feeds the privileged head (contact logits, foot heights, termination
+logit), so the rarely-needed privileged targets do not compete with the state for the recurrent capacity.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from rwm_gym.model.base import Hidden, Prediction, WorldModel
+from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.heads import Heads
+
+
+class RWM(WorldModel):
+    """Hidden = (state GRU, privileged GRU), each (B, num_layers, hidden_size): batch first, unlike `nn.GRU`."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config)
+        inputs = config.state_dim + config.action_dim
+        self.state_gru = nn.GRU(inputs, config.hidden_size, config.num_layers, batch_first=True)
+        self.privileged_gru = nn.GRU(inputs, config.hidden_size, config.num_layers, batch_first=True)
+        self.heads = Heads(config.hidden_size, config.hidden_size, config)
+
+    def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
+        shape = (batch_size, self.config.num_layers, self.config.hidden_size)
+        device = self.device if device is None else device
+        return torch.zeros(shape, device=device), torch.zeros(shape, device=device)
+
+    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
+                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+        """Both GRUs over the whole sequence at once (cuDNN on GPU); `next_states` is not used."""
+        x = torch.cat([states, actions], dim=-1)
+        h_state, h_privileged = (h.transpose(0, 1).contiguous() for h in hidden)
+        out_state, h_state = self.state_gru(x, h_state)
+        out_privileged, h_privileged = self.privileged_gru(x, h_privileged)
+        prediction = self.heads(out_state, out_privileged, states, member)
+        return (h_state.transpose(0, 1), h_privileged.transpose(0, 1)), prediction
+
+    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
+             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+        hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
+        return hidden, prediction.map(lambda t: t.squeeze(1))

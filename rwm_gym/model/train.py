@@ -1,0 +1,289 @@
+"""Dual-autoregressive training of a world model on a dataset (`rwm-gym train`).
+
+Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
+whole episode); the loss is in `losses.py`. Adam with gradient clipping and a learning-rate schedule over the budget
+(iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
+from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
+RNG states, so `--resume` continues to the same result as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from rwm_gym.data.dataset import Dataset, DatasetError
+from rwm_gym.model.base import WorldModel
+from rwm_gym.model.checkpoint import CheckpointError, load_training_state, save_checkpoint
+from rwm_gym.model.config import MODEL_KINDS, ModelConfig, TrainConfig, config_difference, field_docs
+from rwm_gym.model.factory import build_model, model_config_for
+from rwm_gym.model.losses import relative_error, window_loss
+from rwm_gym.model.normalization import Normalizer
+from rwm_gym.model.windows import WindowData
+
+RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
+"""TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
+
+
+@dataclass
+class TrainResult:
+    model: WorldModel
+    """The trained model (train mode, on the training device)."""
+    stats: dict
+    """iterations, wall_s, train_loss (mean over the last validation interval), val_error, log."""
+    path: Path | None
+    """The checkpoint written, if any."""
+
+
+def learning_rate_factor(schedule: str, progress: float) -> float:
+    """Multiplier of the base learning rate at `progress` in [0, 1] of the budget."""
+    progress = min(max(progress, 0.0), 1.0)
+    if schedule == "cosine":
+        return 0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress))
+    if schedule == "step":
+        return 1.0 if progress < 0.5 else 0.1 if progress < 0.75 else 0.01
+    return 1.0
+
+
+@contextmanager
+def _deterministic(device: torch.device) -> Iterator[None]:
+    """Deterministic kernels for the duration of a run; the previous global settings are restored afterwards."""
+    previous = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+                torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark)
+    if device.type == "cuda":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = previous[2], previous[3]
+
+
+@torch.no_grad()
+def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tensor, config: TrainConfig) -> float | None:
+    """Mean relative error (RWM's metric) of open-loop mean forecasts over F steps on fixed validation windows."""
+    if len(starts) == 0:
+        return None
+    was_training, h, f = model.training, config.history, config.forecast
+    model.eval()
+    total = 0.0
+    for chunk in starts.split(1024):
+        batch = windows.gather(chunk, h + f)
+        prediction, _ = model.forecast(batch.states[:, :h], batch.actions[:, :h + f - 1], f, sample=False)
+        total += float(relative_error(prediction.state_mean, batch.states[:, h:]).mean(1).sum())
+    model.train(was_training)
+    return total / len(starts)
+
+
+def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
+    state = {"rng_torch": torch.get_rng_state()}
+    if device.type == "cuda":
+        state["rng_cuda"] = torch.cuda.get_rng_state(device)
+    return state
+
+
+def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
+          out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
+          tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None) -> TrainResult:
+    """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
+
+    resume: continue from the checkpoint at `out` if it exists (same data file, same config except the budget).
+    callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
+    saves a resumable checkpoint first).
+    """
+    dataset = data if isinstance(data, Dataset) else Dataset.load(data)
+    spec = dataset.spec()
+    sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
+    if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
+        raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
+                         f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
+    device, out = torch.device(config.device), out and Path(out)
+    normalizer = Normalizer.from_spec(spec)
+    train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
+    rows = config.history + config.forecast
+    with _deterministic(device):
+        torch.manual_seed(config.seed)
+        model = build_model(model_config).to(device).train()
+        windows = WindowData(dataset, normalizer, device)
+        train_starts = windows.window_starts(train_ids, rows)
+        if len(train_starts) == 0:
+            raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
+        val_starts = windows.window_starts(val_ids, rows)
+        pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
+        val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
+        pos_weight = windows.termination_pos_weight(train_ids)
+        params = [p for p in model.parameters() if p.requires_grad]
+        optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
+        provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
+                      "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
+                      "train_windows": len(train_starts), "termination_pos_weight": pos_weight}
+        stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
+        if resume and out is not None and out.exists():
+            stats = _resume(out, model, optimizer, config, provenance["sha256"], device)
+
+        def save() -> Path | None:
+            if out is None:
+                return None
+            return save_checkpoint(out, model, spec, normalizer=normalizer, train_config=config, provenance=provenance,
+                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device))
+
+        writer = _tensorboard(tensorboard)
+        started = time.monotonic() - stats["wall_s"]
+        iteration, running, parts_sum = stats["iterations"], 0.0, {}
+
+        def finished() -> bool:
+            if optimizer is None:
+                return True
+            by_steps = config.iterations > 0 and iteration >= config.iterations
+            return by_steps or (config.minutes > 0 and time.monotonic() - started >= 60 * config.minutes)
+
+        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress,
+                   desc=f"train {model_config.kind}", dynamic_ncols=True)
+        try:
+            while not finished():
+                by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
+                by_time = (time.monotonic() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
+                lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+                index = torch.randint(len(train_starts), (config.batch_size,))
+                member = None
+                if model_config.ensemble_size > 1:
+                    member = torch.randint(model_config.ensemble_size, (config.batch_size,)).to(device)
+                batch = windows.gather(train_starts[index.to(device)], rows)
+                loss, parts = window_loss(model, batch, config, pos_weight, member)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
+                optimizer.step()
+                iteration += 1
+                running += float(loss.detach())
+                for name, value in parts.items():
+                    parts_sum[name] = parts_sum.get(name, 0.0) + value
+                stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
+                if iteration % config.val_every == 0 or finished():
+                    count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
+                    stats["train_loss"] = running / max(count, 1)
+                    stats["train_parts"] = {k: v / max(count, 1) for k, v in parts_sum.items()}
+                    stats["val_error"] = validation_error(model, windows, val_starts, config)
+                    stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
+                                         "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
+                    running, parts_sum = 0.0, {}
+                    if writer is not None:
+                        for name, value in stats["log"][-1].items():
+                            if name != "iteration" and value is not None:
+                                writer.add_scalar(name, value, iteration)
+                if iteration % config.checkpoint_every == 0:
+                    save()
+                bar.update(1)
+                bar.set_postfix(loss=f"{float(loss):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                if callback is not None:
+                    callback(iteration, stats)
+        except KeyboardInterrupt:
+            stats["wall_s"] = time.monotonic() - started
+            if save() is not None:
+                print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
+            raise
+        finally:
+            bar.close()
+            if writer is not None:
+                writer.close()
+        if optimizer is None:
+            stats["val_error"] = validation_error(model, windows, val_starts, config)
+        stats["wall_s"] = time.monotonic() - started
+        return TrainResult(model, stats, save())
+
+
+def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | None, config: TrainConfig,
+            sha256: str, device: torch.device) -> dict:
+    """Load the state of an interrupted run into model and optimizer; return its stats."""
+    meta, state = load_training_state(path, model, optimizer)
+    if meta.train_config is None:
+        raise CheckpointError(f"{path}: no training config saved, cannot resume")
+    if difference := config_difference(meta.train_config, config, ignore=RESUME_MAY_CHANGE):
+        raise CheckpointError(f"{path}: cannot resume with a different training config ({difference})")
+    if meta.provenance.get("sha256") != sha256:
+        raise CheckpointError(f"{path}: was trained on another data file (sha256 {meta.provenance.get('sha256')})")
+    if "rng_torch" not in state:
+        raise CheckpointError(f"{path}: no RNG state saved, cannot resume")
+    torch.set_rng_state(state["rng_torch"])
+    if device.type == "cuda" and "rng_cuda" in state:
+        torch.cuda.set_rng_state(state["rng_cuda"], device)
+    return meta.stats
+
+
+def _tensorboard(log_dir: str | None):
+    """A SummaryWriter when a log dir is asked for and tensorboard is installed (it is not a dependency)."""
+    if not log_dir:
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        print("tensorboard is not installed; no TensorBoard scalars written", file=sys.stderr)
+        return None
+    return SummaryWriter(log_dir)
+
+
+_MODEL_OPTIONS = tuple(f for f in fields(ModelConfig)
+                       if f.name not in ("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym train`: the run, then one flag per TrainConfig and ModelConfig field."""
+    parser.add_argument("--data", required=True, help="HDF5 dataset to train on")
+    parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
+    parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
+    parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
+    parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
+    parser.add_argument("--ensemble", type=int, dest="ensemble_size", help="same as --ensemble-size")
+    parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    for title, cls, options in (("training", TrainConfig, fields(TrainConfig)), ("model", ModelConfig, _MODEL_OPTIONS)):
+        group, docs = parser.add_argument_group(f"{title} options"), field_docs(cls)
+        for f in options:
+            if f.name == "ensemble_size":
+                continue
+            flag = "--" + f.name.replace("_", "-")
+            group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
+                               help=f"{docs.get(f.name, '')} (default {f.default})")
+    parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
+
+
+def _given(args: argparse.Namespace, options) -> dict:
+    return {f.name: getattr(args, f.name) for f in options if getattr(args, f.name, None) is not None}
+
+
+def run(args: argparse.Namespace) -> int:
+    """`rwm-gym train`: train, print a summary line, write the checkpoint; 2 on bad input, 130 on Ctrl-C."""
+    try:
+        options = _given(args, fields(TrainConfig))
+        if args.teacher_forcing:
+            options["forecast"] = 1
+        if options.get("minutes") and "iterations" not in options:
+            options["iterations"] = 0
+        config = TrainConfig(**options)
+        dataset = Dataset.load(args.data)
+        model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
+        result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
+                       tensorboard=args.tensorboard)
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
+        print(f"rwm-gym train: {err}", file=sys.stderr)
+        return 2
+    summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
+    print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
+    return 0

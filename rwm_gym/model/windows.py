@@ -1,0 +1,73 @@
+"""Training and evaluation windows: runs of consecutive rows inside one episode, gathered as normalised tensors.
+
+A window of `rows` rows starting at row r of an episode holds rows r..r+rows-1; with the dataset's layout (an episode
+of L transitions has L+1 rows) it fits when r + rows <= L + 1, so no window ever crosses into the next episode.
+A training window has rows = history + forecast: the model warms up on rows 0..H-1 and predicts rows H..H+F-1
+with actions 0..H+F-2 (the last row's action is never used).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.model.normalization import Normalizer
+
+
+@dataclass
+class Window:
+    """A batch of windows, batch first: (B, rows, ...) tensors, normalised."""
+
+    states: torch.Tensor
+    """(B, R, S) normalised states."""
+    actions: torch.Tensor
+    """(B, R, A) actions applied in each row's state."""
+    contacts: torch.Tensor
+    """(B, R, C) contact flags as 0/1 floats."""
+    foot_heights: torch.Tensor
+    """(B, R, F) foot heights / foot_height_std."""
+    terminated: torch.Tensor
+    """(B, R) 1 where the row is a terminal state."""
+
+
+class WindowData:
+    """All rows of a dataset as normalised tensors on one device, indexed by episode."""
+
+    def __init__(self, dataset: Dataset, normalizer: Normalizer, device: torch.device | str = "cpu") -> None:
+        def tensor(array: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(array, dtype=np.float32), device=device)
+
+        self.path = dataset.path
+        self.states = tensor(normalizer.normalize_state(dataset["state"].astype(np.float64)))
+        self.actions = tensor(dataset["action"])
+        self.contacts = tensor(dataset["contact"])
+        self.foot_heights = tensor(normalizer.normalize_foot_height(dataset["foot_height"].astype(np.float64)))
+        self.terminated = tensor(dataset["terminated"])
+        self.episode_starts = np.asarray(dataset.episode_starts, dtype=np.int64)
+        self.episode_rows = np.asarray(dataset.episode_lengths, dtype=np.int64)
+
+    def window_starts(self, episodes: Sequence[int] | np.ndarray, rows: int) -> torch.Tensor:
+        """Global first rows (n,) long of every window of `rows` rows lying wholly inside one of `episodes`."""
+        starts = [self.episode_starts[e] + np.arange(self.episode_rows[e] - rows + 1) for e in episodes]
+        flat = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+        return torch.as_tensor(flat.astype(np.int64), device=self.states.device)
+
+    def gather(self, starts: torch.Tensor, rows: int) -> Window:
+        """The windows beginning at `starts` (B,) long, `rows` rows each."""
+        index = starts.to(self.states.device).unsqueeze(1) + torch.arange(rows, device=self.states.device)
+        return Window(self.states[index], self.actions[index], self.contacts[index], self.foot_heights[index],
+                      self.terminated[index])
+
+    def termination_pos_weight(self, episodes: Sequence[int] | np.ndarray) -> float:
+        """Negatives per positive of the termination flag over the rows of `episodes` that can be predicted (all
+        but each episode's first), clipped to [1, 1000]; 1 when no episode terminates."""
+        flags = np.concatenate([self.terminated[s + 1:s + r].cpu().numpy()
+                                for s, r in zip(self.episode_starts[episodes], self.episode_rows[episodes])])
+        positives = float(flags.sum())
+        if positives == 0:
+            return 1.0
+        return float(np.clip((len(flags) - positives) / positives, 1.0, 1000.0))

@@ -1,0 +1,139 @@
+"""The shared world-model interface: every kind steps, observes, forecasts and exposes its hidden state alike; the
+forecast loop really feeds the model's own samples back."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rwm_gym.model import MODEL_KINDS, Prediction, WorldModel, build_model, model_config_for
+from rwm_gym.model.config import ModelConfig, TrainConfig
+from rwm_gym.model.losses import window_loss
+from rwm_gym.model.windows import Window
+from synthetic_dynamics import SPEC
+
+TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
+S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim
+
+
+def tiny(kind: str, **options) -> WorldModel:
+    torch.manual_seed(0)
+    return build_model(model_config_for(kind, SPEC, **{**TINY, **options}))
+
+
+def random_window(batch: int, rows: int) -> Window:
+    g = torch.Generator().manual_seed(1)
+    return Window(torch.randn(batch, rows, S, generator=g), torch.rand(batch, rows, A, generator=g) * 2 - 1,
+                  (torch.rand(batch, rows, C, generator=g) > 0.5).float(), torch.randn(batch, rows, F, generator=g),
+                  torch.zeros(batch, rows))
+
+
+@pytest.mark.parametrize("kind", MODEL_KINDS)
+@pytest.mark.parametrize("ensemble", [1, 3])
+def test_every_kind_shares_the_step_interface(kind: str, ensemble: int) -> None:
+    model = tiny(kind, ensemble_size=ensemble).eval()
+    batch = 4
+    hidden = model.initial_hidden(batch, "cpu")
+    assert all(h.shape[0] == batch for h in hidden)
+    state, action = torch.randn(batch, S), torch.rand(batch, A) * 2 - 1
+    hidden, p = model.step(hidden, state, action)
+    assert p.state_mean.shape == p.state_std.shape == (batch, S)
+    assert p.contact_logits.shape == (batch, C) and p.foot_height.shape == (batch, F)
+    assert p.termination_logit.shape == p.uncertainty.shape == (batch,)
+    assert (p.state_std > 0).all() and torch.isfinite(p.state_mean).all()
+    if kind == "no_change":
+        torch.testing.assert_close(p.state_mean, state)
+    # one member per rollout; with several members their disagreement is the uncertainty
+    _, p_member = model.step(hidden, state, action, member=torch.tensor([0, ensemble - 1, 0, ensemble - 1]))
+    assert p_member.state_mean.shape == (batch, S)
+    assert (p.uncertainty > 0).all() == (ensemble > 1 and kind != "no_change")
+    # hidden helpers: pick, overwrite and reset some rollouts without knowing the model's kind
+    index = torch.tensor([2, 0])
+    sub = model.select_hidden(hidden, index)
+    assert all(h.shape[0] == 2 for h in sub)
+    moved = model.scatter_hidden(hidden, torch.tensor([1, 3]), sub)
+    for h, m in zip(hidden, moved):
+        torch.testing.assert_close(m[1], h[2])
+        torch.testing.assert_close(m[3], h[0])
+    reset = model.reset_hidden(hidden, torch.tensor([True, False, False, False]))
+    for h, r, fresh in zip(hidden, reset, model.initial_hidden(batch, "cpu")):
+        torch.testing.assert_close(r[0], fresh[0])
+        torch.testing.assert_close(r[1:], h[1:])
+    # a forecast of N rows after a warm-up of H rows
+    window = random_window(batch, 9)
+    forecast, warm = model.forecast(window.states[:, :5], window.actions[:, :8], 4, sample=False)
+    assert forecast.state_mean.shape == (batch, 4, S) and warm.state_mean.shape == (batch, 4, S)
+    again, _ = model.forecast(window.states[:, :5], window.actions[:, :8], 4, sample=False)
+    torch.testing.assert_close(again.state_mean, forecast.state_mean)
+
+
+def test_rwm_sequence_kernel_equals_stepping() -> None:
+    model = tiny("rwm", ensemble_size=2).eval()
+    window = random_window(3, 7)
+    member = torch.tensor([0, 1, 1])
+    hidden, seq = model.observe(model.initial_hidden(3), window.states, window.actions, member)
+    stepped, h = [], model.initial_hidden(3)
+    for t in range(7):
+        h, p = model.step(h, window.states[:, t], window.actions[:, t], member)
+        stepped.append(p)
+    torch.testing.assert_close(Prediction.stack(stepped).state_mean, seq.state_mean)
+    torch.testing.assert_close(Prediction.stack(stepped).termination_logit, seq.termination_logit)
+    for a, b in zip(h, hidden):
+        torch.testing.assert_close(a, b)
+
+
+class ShiftModel(WorldModel):
+    """Predicts state + 1 with zero spread and records every state it is fed."""
+
+    def __init__(self) -> None:
+        super().__init__(ModelConfig("no_change", S, A, C, F))
+        self.inputs: list[torch.Tensor] = []
+
+    def initial_hidden(self, batch_size, device=None):
+        return ()
+
+    def step(self, hidden, state, action, member=None, next_state=None):
+        self.inputs.append(state.clone())
+        zeros = state.new_zeros(state.shape[0])
+        return (), Prediction(state + 1, torch.zeros_like(state), state.new_zeros(len(state), C),
+                              state.new_zeros(len(state), F), zeros, zeros)
+
+
+def test_forecast_feeds_back_its_own_predictions_not_the_truth() -> None:
+    model = ShiftModel()
+    true = torch.zeros(2, 12, S)  # the truth never moves; the model says +1 per step
+    forecast, _ = model.forecast(true[:, :8], torch.zeros(2, 11, A), 4, sample=True)
+    fed = model.inputs[-4:]  # inputs of the 4 forecast steps: the last true state, then the own predictions
+    for k in range(4):
+        torch.testing.assert_close(fed[k], torch.full_like(fed[k], float(k)))
+    torch.testing.assert_close(forecast.state_mean[:, -1], torch.full((2, S), 4.0))  # teacher forcing would give 1
+
+
+def test_training_loss_feeds_back_reparameterised_samples(monkeypatch) -> None:
+    """Spy on a real RWM inside the training loss: forecast step k>0 gets the sample drawn from step k-1's
+    prediction (a tensor in the autograd graph), never the true state of that row."""
+    model = tiny("rwm").train()
+    config = TrainConfig(history=5, forecast=4)
+    window = random_window(3, 9)
+    samples, inputs = [], []
+    original_sample, original_step = Prediction.sample, model.step
+
+    def spy_sample(self):
+        samples.append(original_sample(self))
+        return samples[-1]
+
+    def spy_step(hidden, state, action, member=None, next_state=None):
+        inputs.append(state)
+        return original_step(hidden, state, action, member, next_state)
+
+    monkeypatch.setattr(Prediction, "sample", spy_sample)
+    monkeypatch.setattr(model, "step", spy_step)
+    loss, parts = window_loss(model, window, config, pos_weight=1.0)
+    assert len(inputs) == 4  # warm-up runs as one sequence; then one step per forecast row
+    torch.testing.assert_close(inputs[0], window.states[:, 4])  # the last true history row
+    for k in range(1, 4):
+        assert inputs[k] is samples[k - 1] and inputs[k].requires_grad
+        assert not torch.allclose(inputs[k], window.states[:, 4 + k])
+    loss.backward()
+    assert set(parts) == {"state", "contact", "foot", "termination", "bound"}
+    assert all(p.grad is not None for p in model.parameters())
