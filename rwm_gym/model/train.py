@@ -258,7 +258,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                 continue
             flag = "--" + f.name.replace("_", "-")
             group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
-                               help=f"{docs.get(f.name, '')} (default {f.default})")
+                               help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
     parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
 
 
