@@ -1,0 +1,257 @@
+"""PPO in imagination (or in physics, the model-free baseline), then a physics evaluation (`rwm-gym ppo`).
+
+Stable-Baselines3's PPO with RWM's settings (`PPOConfig`): actor and critic 128-128-128 ELU, initial action std 1,
+clip 0.2, 5 epochs of 4 minibatches, lr 1e-3 adapted to a KL target of 0.01 (rsl_rl's rule), gamma 0.99, lambda 0.95,
+entropy 0.005. The policy is saved as an ordinary SB3 zip (`PPO.load(path)` needs nothing else); the config, the
+training statistics and the physics evaluation go beside it as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.vec_env import VecEnv
+from tqdm import tqdm
+
+from rwm_gym.model.config import field_docs
+
+WHERE = ("imagination", "physics")
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (RWM's 'policy in imagination' figures, sized for a small CPU by default)."""
+
+    num_envs: int = 512
+    """Envs stepped together; one rollout is num_envs x n_steps transitions."""
+    n_steps: int = 24
+    """Steps per env per update."""
+    net_arch: tuple[int, ...] = (128, 128, 128)
+    """Hidden layers of the actor and of the (separate) critic."""
+    activation: str = "elu"
+    """Activation of both MLPs: elu, tanh or relu."""
+    log_std_init: float = 0.0
+    """Initial log std of the Gaussian policy (0: std 1)."""
+    clip_range: float = 0.2
+    """PPO ratio clip."""
+    n_epochs: int = 5
+    """Passes over each rollout."""
+    num_minibatches: int = 4
+    """Minibatches per pass (batch size = num_envs x n_steps / num_minibatches)."""
+    learning_rate: float = 1e-3
+    """Initial Adam learning rate."""
+    target_kl: float = 0.01
+    """KL target of the adaptive learning rate: /1.5 above 2x, x1.5 below 1/2 (0: constant learning rate)."""
+    gamma: float = 0.99
+    """Discount per policy step."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    ent_coef: float = 0.005
+    """Entropy bonus weight."""
+    vf_coef: float = 1.0
+    """Value-loss weight."""
+    max_grad_norm: float = 1.0
+    """Global gradient-norm clip."""
+
+    def __post_init__(self) -> None:
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"PPOConfig.activation {self.activation!r} unknown (choose from {', '.join(ACTIVATIONS)})")
+        if (self.num_envs * self.n_steps) % self.num_minibatches:
+            raise ValueError(f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "
+                             f"num_minibatches ({self.num_minibatches})")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+ACTIVATIONS = ("elu", "tanh", "relu")
+
+
+def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cpu") -> PPO:
+    """A fresh SB3 PPO on `env` with `config`'s settings."""
+    import torch
+
+    activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
+    arch = list(config.net_arch)
+    return PPO(
+        "MlpPolicy", env, learning_rate=config.learning_rate, n_steps=config.n_steps,
+        batch_size=env.num_envs * config.n_steps // config.num_minibatches, n_epochs=config.n_epochs,
+        gamma=config.gamma, gae_lambda=config.gae_lambda, clip_range=config.clip_range, ent_coef=config.ent_coef,
+        vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
+        policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
+                       "log_std_init": config.log_std_init},
+    )
+
+
+class _Progress(BaseCallback):
+    """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate, and one log row per rollout."""
+
+    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool):
+        super().__init__()
+        self.total, self.minutes, self.target_kl, self.show = total, minutes, target_kl, bar
+        self.log: list[dict] = []
+
+    def _on_training_start(self) -> None:
+        self.started = time.monotonic()
+        self.start_steps = self.num_timesteps
+        self.bar = tqdm(total=self.total, unit="step", unit_scale=True, desc="ppo", disable=not self.show,
+                        dynamic_ncols=True)
+
+    def _on_step(self) -> bool:
+        return self.minutes is None or time.monotonic() - self.started < 60 * self.minutes
+
+    def _on_rollout_end(self) -> None:
+        buffer, values = self.model.rollout_buffer, self.model.logger.name_to_value
+        kl = values.get("train/approx_kl")  # from the previous update (the logger is dumped after this call)
+        lr = self.model.lr_schedule(1.0)
+        if self.target_kl > 0 and kl is not None:
+            if kl > 2.0 * self.target_kl:
+                lr = max(1e-5, lr / 1.5)
+            elif kl < self.target_kl / 2.0:
+                lr = min(1e-2, lr * 1.5)
+            self.model.learning_rate = lr
+            self.model._setup_lr_schedule()
+        rewards = float(buffer.rewards.mean())
+        starts = float(buffer.episode_starts[1:].mean()) if len(buffer.episode_starts) > 1 else 0.0
+        self.log.append({"timesteps": int(self.num_timesteps), "wall_s": time.monotonic() - self.started,
+                         "mean_step_reward": rewards, "done_fraction": starts, "lr": lr, "approx_kl": None if kl is None else float(kl),
+                         "std": float(self.model.policy.log_std.exp().mean())})
+        self.bar.update(self.num_timesteps - self.bar.n - self.start_steps)
+        self.bar.set_postfix(reward=f"{rewards:.4f}", lr=f"{lr:.1e}")
+
+    def _on_training_end(self) -> None:
+        self.bar.close()
+
+
+@dataclass
+class TrainStats:
+    """What one `learn` call did."""
+
+    timesteps: int
+    """Env steps taken (imagined or physics)."""
+    wall_s: float
+    steps_per_s: float
+    log: list[dict] = field(default_factory=list)
+    """Per rollout: timesteps, wall_s, mean_step_reward, done_fraction, lr, approx_kl, std."""
+
+
+def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
+          progress: bool = True) -> TrainStats:
+    """Continue training `model` on its env for `timesteps` and/or `minutes` (whichever ends first)."""
+    if not timesteps and not minutes:
+        raise ValueError("set a budget: timesteps and/or minutes")
+    total = int(timesteps) if timesteps else 10**12
+    callback = _Progress(total if timesteps else None, minutes, target_kl, progress)
+    before, started = model.num_timesteps, time.monotonic()
+    model.learn(total, callback=CallbackList([callback]), reset_num_timesteps=False, progress_bar=False)
+    wall = time.monotonic() - started
+    done = model.num_timesteps - before
+    return TrainStats(done, wall, done / max(wall, 1e-9), callback.log)
+
+
+def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
+             seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
+    """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
+    if where == "imagination":
+        from rwm_gym.imagination.vec_env import ImaginedVecEnv
+
+        env = ImaginedVecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
+    elif where == "physics":
+        from rwm_gym.physics.batched import BatchedLocomotionVecEnv
+
+        env = BatchedLocomotionVecEnv(num_envs=num_envs, **(env_kwargs or {}))
+    else:
+        raise ValueError(f"--in {where!r} unknown (choose from {', '.join(WHERE)})")
+    env.seed(seed)
+    return env
+
+
+def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> int | None:
+    """Physics transitions the policy cost: its own steps in physics, or the rows of the world model's dataset."""
+    if where == "physics":
+        return trained_steps
+    if checkpoint is None:
+        try:
+            from rwm_gym.imagination.vec_env import default_checkpoint
+
+            checkpoint = default_checkpoint()
+        except ImportError:
+            return None
+    from rwm_gym.model.checkpoint import read_meta
+
+    provenance = read_meta(checkpoint).provenance
+    for key in ("dataset_steps", "dataset_rows", "num_steps"):
+        if key in provenance:
+            return int(provenance[key])
+    dataset = Path(provenance.get("dataset", ""))
+    if dataset.is_file():
+        from rwm_gym.data.dataset import Dataset
+
+        return int(Dataset.load(dataset).num_steps)
+    return None
+
+
+def save_policy(model: PPO, path: str | os.PathLike) -> Path:
+    """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.zip")
+    model.save(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
+                        help="train in the imagined env (world model) or in physics (model-free baseline)")
+    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument("--timesteps", type=int, default=None, help="budget in env steps")
+    parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
+    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
+    parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
+    parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
+    docs = field_docs(PPOConfig)
+    for f in fields(PPOConfig):
+        flag = "--" + f.name.replace("_", "-")
+        if f.name == "net_arch":
+            parser.add_argument(flag, type=int, nargs="+", default=None, help=docs.get(f.name))
+        elif f.name != "activation":
+            parser.add_argument(flag, type=type(f.default), default=None, help=docs.get(f.name))
+        else:
+            parser.add_argument(flag, choices=ACTIVATIONS, default=None, help=docs.get(f.name))
+
+
+def run(args: argparse.Namespace) -> int:
+    from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, plot, write_json
+
+    given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
+    if "net_arch" in given:
+        given["net_arch"] = tuple(given["net_arch"])
+    config = PPOConfig(**given)
+    if not args.timesteps and not args.minutes:
+        args.minutes = 8.0
+    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed)
+    model = make_ppo(env, config, seed=args.seed, device=args.device)
+    stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
+    out = save_policy(model, args.out)
+    print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+          f"wrote {out}")
+    report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
+              "train": asdict(stats), "physics_samples": physics_samples(args.where, args.checkpoint, stats.timesteps)}
+    if not args.no_eval:
+        evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print(format_table(evaluation))
+        report["evaluation"] = evaluation.to_dict()
+        print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+    print(f"report: {write_json(report, out.with_suffix('.json'))}")
+    return 0
