@@ -26,7 +26,7 @@ from tqdm import tqdm
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_training_state, save_checkpoint
-from rwm_gym.model.config import MODEL_KINDS, ModelConfig, TrainConfig, config_difference, field_docs
+from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.losses import relative_error, window_loss
 from rwm_gym.model.normalization import Normalizer
@@ -189,7 +189,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 if iteration % config.checkpoint_every == 0:
                     save()
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
         except KeyboardInterrupt:
@@ -258,7 +258,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                 continue
             flag = "--" + f.name.replace("_", "-")
             group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
-                               help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
+                               choices={"loss": LOSSES, "schedule": SCHEDULES}.get(f.name), help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
     parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
 
 

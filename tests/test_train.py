@@ -1,0 +1,125 @@
+"""The trainer: windows stay inside episodes, validation is held out by episode, runs are deterministic and resume to
+the same weights, every kind trains, and a tiny RWM learns a linear system better than "no change"."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rwm_gym.cli import main
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.model import MODEL_KINDS, build_model, model_config_for
+from rwm_gym.model.checkpoint import CheckpointError, read_meta
+from rwm_gym.model.config import TrainConfig
+from rwm_gym.model.normalization import Normalizer
+from rwm_gym.model.train import train
+from rwm_gym.model.windows import WindowData
+from synthetic_dynamics import SPEC, one_thread, write_linear_dataset
+
+TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
+FAST = TrainConfig(history=6, forecast=3, batch_size=8, iterations=4, val_every=2, checkpoint_every=2,
+                   val_fraction=0.25)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    with one_thread():
+        yield
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return write_linear_dataset(tmp_path_factory.mktemp("data") / "linear.h5")
+
+
+def weights(model) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def test_windows_never_cross_an_episode_boundary(data: Path) -> None:
+    ds = Dataset.load(data)
+    windows = WindowData(ds, Normalizer.from_spec(SPEC))
+    rows = 20
+    starts = windows.window_starts(range(ds.num_episodes), rows).numpy()
+    assert len(starts) == sum(max(0, n - rows + 1) for n in ds.episode_lengths)
+    episode = np.searchsorted(ds.episode_starts, starts, side="right") - 1
+    ends = ds.episode_starts[episode] + ds.episode_lengths[episode]
+    assert (starts + rows <= ends).all()  # the last row of a window is at most the episode's last row
+    assert (starts + rows == ends).any()  # ... and windows do reach it (terminal rows are targets)
+    batch = windows.gather(torch.as_tensor(starts), rows)
+    terminal_inside = batch.terminated[:, :-1].sum()
+    assert terminal_inside == 0  # a terminal row is only ever a window's last row
+    only_long = windows.window_starts([0], int(ds.episode_lengths[0]) + 1)
+    assert len(only_long) == 0  # an episode shorter than a window contributes none
+
+
+def test_validation_is_held_out_by_episode(data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "m.safetensors"
+    train(data, model_config_for("mlp", SPEC, **TINY), FAST, out, progress=False)
+    provenance = read_meta(out).provenance
+    train_ids, val_ids = set(provenance["train_episodes"]), set(provenance["val_episodes"])
+    assert train_ids and val_ids and not train_ids & val_ids
+    assert train_ids | val_ids == set(range(Dataset.load(data).num_episodes))
+    assert provenance["sha256"] == Dataset.load(data).file_hash()
+
+
+@pytest.mark.parametrize("kind", MODEL_KINDS)
+def test_every_kind_trains(kind: str, data: Path) -> None:
+    config = model_config_for(kind, SPEC, **TINY, ensemble_size=2)
+    torch.manual_seed(0)
+    before = weights(build_model(config))
+    result = train(data, config, FAST, progress=False)
+    assert result.stats["val_error"] is not None and np.isfinite(result.stats["val_error"])
+    if kind == "no_change":
+        assert result.stats["iterations"] == 0
+    else:
+        assert result.stats["iterations"] == 4 and np.isfinite(result.stats["train_loss"])
+        assert any(not torch.equal(before[k], v) for k, v in weights(result.model).items())
+
+
+def test_same_seed_same_weights_and_resume_matches_uninterrupted_run(data: Path, tmp_path: Path) -> None:
+    config = model_config_for("rwm", SPEC, **TINY, ensemble_size=2)
+    run = TrainConfig(history=6, forecast=3, batch_size=8, iterations=20, val_every=5, checkpoint_every=7,
+                      val_fraction=0.25)
+    full = weights(train(data, config, run, tmp_path / "full.safetensors", progress=False).model)
+    again = weights(train(data, config, run, progress=False).model)
+    assert all(torch.equal(full[k], again[k]) for k in full)
+
+    def interrupt_at_10(iteration: int, stats: dict) -> None:
+        if iteration == 10:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "resumed.safetensors"
+    with pytest.raises(KeyboardInterrupt):
+        train(data, config, run, out, progress=False, callback=interrupt_at_10)
+    assert read_meta(out).stats["iterations"] == 10
+    resumed = train(data, config, run, out, resume=True, progress=False)
+    assert resumed.stats["iterations"] == 20
+    assert all(torch.equal(full[k], weights(resumed.model)[k]) for k in full)
+    different = TrainConfig(**{**run.to_dict(), "history": 5})
+    with pytest.raises(CheckpointError, match="history"):
+        train(data, config, different, out, resume=True, progress=False)
+
+
+def test_tiny_rwm_beats_no_change(data: Path) -> None:
+    run = TrainConfig(history=8, forecast=4, batch_size=16, iterations=300, lr=3e-3, val_every=300,
+                      val_fraction=0.25)
+    options = dict(hidden_size=64, num_layers=1, head_hidden=64)
+    rwm = train(data, model_config_for("rwm", SPEC, **options), run, progress=False).stats["val_error"]
+    still = train(data, model_config_for("no_change", SPEC), run, progress=False).stats["val_error"]
+    assert rwm < 0.8 * still, (rwm, still)
+
+
+def test_cli_teacher_forcing_and_bad_data(data: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "tf.safetensors"
+    code = main(["train", "--data", str(data), "--model", "mlp", "--out", str(out), "--teacher-forcing",
+                 "--iterations", "3", "--history", "4", "--hidden-size", "8", "--head-hidden", "8", "--quiet"])
+    assert code == 0
+    meta = read_meta(out)
+    assert meta.train_config.forecast == 1 and meta.train_config.iterations == 3
+    assert meta.model_config.hidden_size == 8 and meta.stats["iterations"] == 3
+    assert main(["train", "--data", str(tmp_path / "missing.h5"), "--out", str(out)]) == 2
+    assert "missing.h5" in capsys.readouterr().err
