@@ -1,0 +1,215 @@
+"""Long-horizon prediction error of a world model, as in the RWM paper (`rwm-gym evaluate`).
+
+Windows from held-out episodes: H true rows of history (warm-up), then open-loop prediction of N rows feeding back the
+mean predictions, with the true actions (causal: state[t], action[t] -> state[t+1]). Error of a predicted row =
+sum |pred - true| / sum |true| over the normalised state dims; the error at horizon N is its mean over the N rows and
+all windows. Reported for N = 8, 32, 100 and the longest the episodes allow (capped), per state group of the spec,
+with contact accuracy, and again with Gaussian noise added to the history's states and actions (robustness).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rwm_gym.data.dataset import Dataset, DatasetError
+from rwm_gym.model.base import WorldModel
+from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
+from rwm_gym.model.normalization import Normalizer
+from rwm_gym.model.windows import WindowData
+from rwm_gym.spec import TaskSpec
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    history: int = 32
+    """H: true rows the model warms up on."""
+    horizons: tuple[int, ...] = (8, 32, 100)
+    """N: open-loop rows to report (plus the longest the episodes allow)."""
+    max_horizon: int = 368
+    """Cap of the longest horizon."""
+    noise_levels: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
+    """Std of the Gaussian noise added to the normalised history states and actions."""
+    max_windows: int = 512
+    """Windows per horizon (a seeded subset when more fit)."""
+    batch_size: int = 512
+    """Windows per forward pass."""
+    seed: int = 0
+    device: str = "cpu"
+
+
+@torch.no_grad()
+def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, config: EvalConfig, horizon: int,
+             noise: float, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Per-window, per-step errors (W, N, S) of |pred - true|, |true|, and contact hits (W, N, C)."""
+    h, out = config.history, {"abs_error": [], "abs_true": [], "contact_hit": []}
+    for chunk in starts.split(config.batch_size):
+        batch = windows.gather(chunk, h + horizon)
+        states, actions = batch.states[:, :h], batch.actions[:, :h + horizon - 1]
+        if noise > 0:
+            states = states + noise * torch.randn(states.shape, generator=generator).to(states.device)
+            history_noise = noise * torch.randn(actions[:, :h].shape, generator=generator).to(states.device)
+            actions = torch.cat([actions[:, :h] + history_noise, actions[:, h:]], dim=1)
+        prediction, _ = model.forecast(states, actions, horizon, sample=False)
+        true = batch.states[:, h:]
+        out["abs_error"].append((prediction.state_mean - true).abs().cpu())
+        out["abs_true"].append(true.abs().cpu())
+        out["contact_hit"].append(((prediction.contact_logits > 0) == (batch.contacts[:, h:] > 0.5)).cpu())
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def _ratio(abs_error: torch.Tensor, abs_true: torch.Tensor) -> torch.Tensor:
+    """Relative error per window and step: (W, N, S') -> (W, N)."""
+    return abs_error.sum(-1) / abs_true.sum(-1).clamp(min=1e-8)
+
+
+def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: TaskSpec,
+             config: EvalConfig = EvalConfig(), episodes: np.ndarray | None = None, progress: bool = True) -> dict:
+    """The metric on `episodes` of `dataset` (default all); returns a JSON-ready dict (see module docstring)."""
+    episodes = np.arange(dataset.num_episodes) if episodes is None else np.asarray(episodes)
+    model = model.to(config.device).eval()
+    windows = WindowData(dataset, normalizer, config.device)
+    longest = min(int(dataset.episode_lengths[episodes].max()) - config.history, config.max_horizon)
+    if longest < 1:
+        raise ValueError(f"{dataset.path}: no evaluated episode is longer than the history ({config.history} rows)")
+    horizons = sorted({n for n in config.horizons if n <= longest} | {longest})
+    generator = torch.Generator().manual_seed(config.seed)
+    result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
+                    "episodes": len(episodes), "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
+                    "noise": {str(s): {} for s in config.noise_levels}}
+    jobs = [(n, s) for n in horizons for s in (0.0, *config.noise_levels)]
+    for horizon, noise in tqdm(jobs, desc="evaluate", disable=not progress, dynamic_ncols=True):
+        starts = windows.window_starts(episodes, config.history + horizon)
+        pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(config.seed + horizon))
+        starts = starts[pick[:config.max_windows].to(starts.device)].sort().values
+        run = _rollout(model, windows, starts, config, horizon, noise, generator)
+        error = float(_ratio(run["abs_error"], run["abs_true"]).mean())
+        key = str(horizon)
+        if noise > 0:
+            result["noise"][str(noise)][key] = error
+            continue
+        result["windows"][key], result["error"][key] = len(starts), error
+        result["group_error"][key] = {name: float(_ratio(run["abs_error"][..., s], run["abs_true"][..., s]).mean())
+                                      for name, s in spec.state_slices.items()}
+        hits = run["contact_hit"]
+        result["contact_accuracy"][key] = float(hits.float().mean()) if hits.shape[-1] else None
+        if horizon == longest:
+            result["curve"] = _ratio(run["abs_error"], run["abs_true"]).mean(0).tolist()
+    return result
+
+
+def format_table(result: dict) -> str:
+    """The error table: one row per horizon (error, per-group errors, contact accuracy), then robustness."""
+    groups = list(next(iter(result["group_error"].values())))
+    head = ["N", "windows", "error", *groups, "contact acc"]
+    lines = [" | ".join(head), " | ".join("---" for _ in head)]
+    for key in result["error"]:
+        acc = result["contact_accuracy"][key]
+        lines.append(" | ".join([key, str(result["windows"][key]), f"{result['error'][key]:.4f}",
+                                 *(f"{result['group_error'][key][g]:.4f}" for g in groups),
+                                 "-" if acc is None else f"{acc:.3f}"]))
+    if result["noise"]:
+        lines += ["", " | ".join(["noise std", *(f"N={k}" for k in result["error"])]),
+                  " | ".join("---" for _ in range(len(result["error"]) + 1))]
+        for level, errors in result["noise"].items():
+            lines.append(" | ".join([level, *(f"{errors[k]:.4f}" for k in result["error"])]))
+    return "\n".join(lines)
+
+
+def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: str = "") -> None:
+    """Per-step relative error against the open-loop horizon, one line per model (PNG, log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, curve in curves.items():
+        ax.plot(np.arange(1, len(curve) + 1), curve, label=name)
+    ax.set(xlabel="open-loop steps after the true history", ylabel="relative error  sum|pred-true| / sum|true|", yscale="log", title=title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    _atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    plt.close(fig)
+
+
+def _atomic(path: str | os.PathLike, write) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def write_json(data: dict, path: str | os.PathLike) -> None:
+    """Atomic JSON write."""
+    _atomic(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
+
+
+def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
+                        config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True) -> dict:
+    """Load a checkpoint and evaluate it on a dataset of the same task. When the dataset is the checkpoint's own
+    training file, only its held-out validation episodes are used (unless `all_episodes`)."""
+    dataset = data if isinstance(data, Dataset) else Dataset.load(data)
+    spec = dataset.spec()
+    model, meta = load_checkpoint(checkpoint, device=config.device, expect_spec=spec)
+    episodes, held_out = None, "all episodes of the file"
+    if not all_episodes and meta.provenance.get("sha256") == dataset.file_hash():
+        episodes, held_out = np.asarray(meta.provenance["val_episodes"], dtype=np.int64), "validation episodes"
+        if len(episodes) == 0:
+            raise ValueError(f"{dataset.path}: the checkpoint was trained on this file with no held-out episodes")
+    result = evaluate(model, dataset, meta.normalizer, spec, config, episodes, progress)
+    return {"checkpoint": str(checkpoint), "model": meta.model_config.kind, "data": str(dataset.path),
+            "episode_set": held_out, "config": asdict(config), **result}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    d = EvalConfig()
+    parser.add_argument("--checkpoint", required=True, help="world-model checkpoint (.safetensors)")
+    parser.add_argument("--data", required=True, help="HDF5 dataset of the same task (held-out episodes)")
+    parser.add_argument("--out", help="folder for evaluation.json and error_vs_horizon.png")
+    parser.add_argument("--history", type=int, default=d.history, help=f"warm-up rows (default {d.history})")
+    parser.add_argument("--horizons", type=int, nargs="+", default=list(d.horizons), help="horizons to report")
+    parser.add_argument("--max-horizon", type=int, default=d.max_horizon, help="cap of the longest horizon")
+    parser.add_argument("--noise", type=float, nargs="*", default=list(d.noise_levels),
+                        help="noise stds for the robustness test (none: skip)")
+    parser.add_argument("--max-windows", type=int, default=d.max_windows, help="windows per horizon")
+    parser.add_argument("--device", default=d.device, help="torch device")
+    parser.add_argument("--seed", type=int, default=d.seed, help="seed of window choice and noise")
+    parser.add_argument("--all-episodes", action="store_true",
+                        help="use every episode even if the file is the checkpoint's training data")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
+                        noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
+                        device=args.device)
+    try:
+        result = evaluate_checkpoint(args.checkpoint, args.data, config, args.all_episodes, not args.quiet)
+    except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
+        print(f"rwm-gym evaluate: {err}", file=sys.stderr)
+        return 2
+    print(f"{result['model']} on {result['data']} ({result['episode_set']}, {result['episodes']} episodes)")
+    print(format_table(result))
+    if args.out:
+        out = Path(args.out)
+        write_json(result, out / "evaluation.json")
+        plot_curves({result["model"]: result["curve"]}, out / "error_vs_horizon.png")
+        print(f"wrote {out / 'evaluation.json'} and {out / 'error_vs_horizon.png'}")
+    return 0

@@ -1,0 +1,75 @@
+"""The long-horizon metric: exact on a hand-checkable case, held-out episodes, robustness rows, CLI outputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rwm_gym.cli import main
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.model import build_model, model_config_for
+from rwm_gym.model.checkpoint import save_checkpoint
+from rwm_gym.model.config import TrainConfig
+from rwm_gym.model.evaluate import EvalConfig, evaluate, evaluate_checkpoint
+from rwm_gym.model.normalization import Normalizer
+from rwm_gym.model.train import train
+from synthetic_dynamics import SPEC, one_thread, write_linear_dataset
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    with one_thread():
+        yield
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return write_linear_dataset(tmp_path_factory.mktemp("data") / "linear.h5", num_episodes=6)
+
+
+def test_no_change_error_matches_a_hand_computation(data: Path) -> None:
+    ds = Dataset.load(data)
+    norm = Normalizer.from_spec(SPEC)
+    config = EvalConfig(history=10, horizons=(5,), max_horizon=5, noise_levels=(), max_windows=10_000)
+    result = evaluate(build_model(model_config_for("no_change", SPEC)), ds, norm, SPEC, config, progress=False)
+    assert result["horizons"] == [5] and result["longest"] == 5
+    errors = []
+    for e in range(ds.num_episodes):
+        z = norm.normalize_state(ds.episode(e)["state"].astype(np.float64))
+        for start in range(len(z) - 15 + 1):
+            last, future = z[start + 9], z[start + 10:start + 15]  # prediction = the last history row, 5 steps on
+            errors.append((np.abs(future - last).sum(-1) / np.abs(future).sum(-1)).mean())
+    assert result["windows"]["5"] == len(errors)
+    assert result["error"]["5"] == pytest.approx(np.mean(errors), rel=1e-4)
+    assert result["contact_accuracy"]["5"] == pytest.approx(float((~ds["contact"]).mean()), abs=0.05)
+
+
+def test_checkpoint_evaluation_uses_held_out_episodes_and_reports_noise(data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "rwm.safetensors"
+    run = TrainConfig(history=8, forecast=4, batch_size=8, iterations=5, val_fraction=0.34)
+    train(data, model_config_for("rwm", SPEC, hidden_size=16, num_layers=1, head_hidden=16), run, out, progress=False)
+    config = EvalConfig(history=8, horizons=(4, 16, 1000), max_horizon=20, noise_levels=(0.2, 0.8), max_windows=64)
+    result = evaluate_checkpoint(out, data, config, progress=False)
+    assert result["episode_set"] == "validation episodes" and result["episodes"] == 2
+    assert result["horizons"] == [4, 16, 20] and len(result["curve"]) == 20
+    assert set(result["group_error"]["4"]) == set(SPEC.state_slices)
+    assert set(result["noise"]) == {"0.2", "0.8"} and set(result["noise"]["0.8"]) == {"4", "16", "20"}
+    everything = evaluate_checkpoint(out, data, config, all_episodes=True, progress=False)
+    assert everything["episodes"] == 6
+
+
+def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, capsys) -> None:
+    ckpt = save_checkpoint(tmp_path / "still.safetensors", build_model(model_config_for("no_change", SPEC)), SPEC)
+    code = main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), "--out", str(tmp_path / "ev"),
+                 "--history", "8", "--horizons", "4", "--noise", "0.1", "--quiet"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "no_change" in printed and "joint_torque" in printed and "noise std" in printed
+    saved = json.loads((tmp_path / "ev" / "evaluation.json").read_text())
+    assert saved["model"] == "no_change" and saved["error"]["4"] > 0
+    assert (tmp_path / "ev" / "error_vs_horizon.png").read_bytes()[:4] == b"\x89PNG"
+    assert main(["evaluate", "--checkpoint", str(tmp_path / "nope.safetensors"), "--data", str(data)]) == 2
