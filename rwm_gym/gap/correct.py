@@ -1,0 +1,35 @@
+"""Write the corrected simulator: the fitted effect as env options (`PhysicsParams` JSON) and as a standalone MJCF.
+
+`corrected_physics.json` holds the env kwargs `{"physics": {...}}` that make the physics env the corrected robot:
+`gym.make("AnymalD-MuJoCo-v0", **json.load(open(path)))` (or `rwm-gym collect --physics`). `corrected_model.xml` is the
+same robot written by `MjSpec.to_xml()`, with every effect in it (MuJoCo holds actuator delay natively), for use
+outside rwm-gym. Inside rwm-gym use the JSON: the env re-applies the task spec's PD gains to whatever MJCF it loads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from rwm_gym.physics.params import PhysicsParams, build_spec
+from rwm_gym.spec import TaskSpec
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: str | Path | None = None,
+                    env_kwargs: dict | None = None) -> dict[str, str]:
+    """Write both files into `out`; returns {"physics": path, "mjcf": path}."""
+    out.mkdir(parents=True, exist_ok=True)
+    physics_path, mjcf_path = out / "corrected_physics.json", out / "corrected_model.xml"
+    kwargs = {k: v for k, v in (env_kwargs or {}).items() if k != "physics"}
+    _atomic_write(physics_path, json.dumps({**kwargs, "physics": params.to_dict()}, indent=2))
+    _atomic_write(mjcf_path, build_spec(spec, xml_file, params).to_xml())
+    return {"physics": str(physics_path), "mjcf": str(mjcf_path)}

@@ -1,0 +1,146 @@
+"""The vocabulary of physical effects a simulator may miss, each a parametric change of `PhysicsParams` with units.
+
+An `Effect` maps a small parameter vector (1-3 numbers, physical units) to `PhysicsParams` overrides. The gap workflow
+fits every effect of `vocabulary(spec)` to measured data and names the one that explains the gap; `make-measured` hides one
+(or several) in a simulator. All effects act globally (the same value on all 12 joints); `PhysicsParams` itself also
+takes per-joint values, which `make-measured --physics` can hide but the workflow does not fit.
+
+Backlash is not in the vocabulary: a gearbox dead band needs a second body per joint (or an env-side hysteresis) that
+`PhysicsParams` cannot express yet, and a fake stand-in would make the workflow name the wrong thing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rwm_gym.physics.params import PhysicsParams
+from rwm_gym.spec import TaskSpec
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted number of an effect."""
+
+    name: str
+    unit: str
+    nominal: float
+    """Value of the nominal simulator (the effect is absent)."""
+    low: float
+    high: float
+    """Plausible range searched by the fit."""
+    default: float
+    """A realistic magnitude, used by `make-measured` when no magnitude is given."""
+    step: float = 0.0
+    """Resolution of a discrete parameter (0: continuous)."""
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate physical effect: parameters in physical units and how they change the simulator."""
+
+    name: str
+    description: str
+    parameters: tuple[Parameter, ...]
+    apply: Callable[[np.ndarray], dict[str, object]]
+    """Parameter vector (P,) -> `PhysicsParams` field overrides."""
+    scope: str = "global"
+    nested_in: tuple[str, ...] = ()
+    """Effects that contain this one as a special case (equal fit there: the simpler one is named)."""
+
+    @property
+    def nominal(self) -> np.ndarray:
+        return np.array([p.nominal for p in self.parameters])
+
+    @property
+    def magnitude_name(self) -> str:
+        """The parameter whose value is "the magnitude" of the effect (the first)."""
+        return self.parameters[0].name
+
+    def physics(self, values: Sequence[float], base: PhysicsParams | None = None) -> PhysicsParams:
+        """`base` (default nominal) with this effect at `values` applied on top."""
+        return (base or PhysicsParams()).replace(**self.apply(np.asarray(values, float)))
+
+    def values_from_magnitude(self, magnitude: Sequence[float] | float) -> np.ndarray:
+        """Full parameter vector from a magnitude (first parameters given, the rest nominal)."""
+        given = np.atleast_1d(np.asarray(magnitude, float))
+        if len(given) > len(self.parameters):
+            raise ValueError(f"effect {self.name!r} has {len(self.parameters)} parameter(s), got {len(given)} values")
+        values = self.nominal.copy()
+        values[: len(given)] = given
+        return values
+
+
+def _payload(v: np.ndarray, spec: TaskSpec) -> dict[str, object]:
+    return {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}
+
+
+def vocabulary(spec: TaskSpec) -> dict[str, Effect]:
+    """Every effect the workflow knows, with ranges resolved against the task spec (effort limit, physics dt)."""
+    limit, dt = spec.actuator.effort_limit, spec.physics_dt
+    effects = (
+        Effect("action_delay", "dead time between a position target and the actuator acting on it",
+               (Parameter("action_delay", "s", 0.0, 0.0, 8 * dt, 3 * dt, step=dt),),
+               lambda v: {"action_delay": round(float(v[0]) / dt) * dt}),
+        Effect("joint_friction", "Coulomb friction torque in every joint (gearbox, seals)",
+               (Parameter("joint_friction", "N·m", 0.0, 0.0, 8.0, 2.0),),
+               lambda v: {"joint_friction": float(v[0])}),
+        Effect("joint_damping", "viscous damping torque in every joint, proportional to joint velocity",
+               (Parameter("joint_damping", "N·m·s/rad", 0.0, 0.0, 5.0, 1.0),),
+               lambda v: {"joint_damping": float(v[0])}),
+        Effect("armature", "reflected rotor inertia of every drive (rotor inertia x gear ratio^2)",
+               (Parameter("armature", "kg·m²", 0.0, 0.0, 0.3, 0.05),),
+               lambda v: {"armature": float(v[0])}),
+        Effect("motor_strength", "torque gain of every drive: output torque = gain x commanded torque",
+               (Parameter("motor_strength", "1", 1.0, 0.4, 1.6, 0.8),),
+               lambda v: {"motor_strength": float(v[0])}, nested_in=("pd_gains",)),
+        Effect("torque_limit", "saturation torque of every drive, lower than the data sheet's",
+               (Parameter("torque_limit", "N·m", limit, 0.1 * limit, limit, 0.4 * limit),),
+               lambda v: {"torque_limit": float(v[0])}),
+        Effect("pd_gains", "PD gain mismatch of the joint controllers: kp and kd scaled separately",
+               (Parameter("kp_scale", "1", 1.0, 0.4, 1.6, 0.7), Parameter("kd_scale", "1", 1.0, 0.2, 3.0, 1.0)),
+               lambda v: {"kp_scale": float(v[0]), "kd_scale": float(v[1])}),
+        Effect("payload", "unmodelled point mass on the base at a horizontal offset from the base origin",
+               (Parameter("payload_mass", "kg", 0.0, 0.0, 30.0, 8.0),
+                Parameter("payload_com_x", "m", 0.0, -0.4, 0.4, 0.1),
+                Parameter("payload_com_y", "m", 0.0, -0.2, 0.2, 0.0)),
+               lambda v: {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}),
+        Effect("ground_friction", "sliding friction coefficient of the floor",
+               (Parameter("ground_friction", "1", 1.0, 0.05, 1.0, 0.3),),
+               lambda v: {"ground_friction": float(v[0])}),
+    )
+    return {e.name: e for e in effects}
+
+
+EFFECT_NAMES: tuple[str, ...] = ("action_delay", "joint_friction", "joint_damping", "armature", "motor_strength",
+                                 "torque_limit", "pd_gains", "payload", "ground_friction")
+"""The vocabulary's names, in report order (`vocabulary(spec)` has the same keys)."""
+
+
+def parse_effects(spec: TaskSpec, names: Sequence[str], magnitudes: Sequence[str] | None) -> dict[str, np.ndarray]:
+    """Pair `--effect` names with `--magnitude` strings ("2.0" or "0.7,1.2"; missing: the realistic default)."""
+    effects = vocabulary(spec)
+    magnitudes = list(magnitudes or [])
+    if len(magnitudes) > len(names):
+        raise ValueError(f"{len(magnitudes)} --magnitude values for {len(names)} --effect names")
+    out: dict[str, np.ndarray] = {}
+    for i, name in enumerate(names):
+        if name not in effects:
+            raise ValueError(f"unknown effect {name!r}; vocabulary: {', '.join(EFFECT_NAMES)}")
+        effect = effects[name]
+        if i < len(magnitudes):
+            out[name] = effect.values_from_magnitude([float(x) for x in magnitudes[i].split(",")])
+        else:
+            out[name] = effect.values_from_magnitude(effect.parameters[0].default)
+    return out
+
+
+def combined_physics(effects: Mapping[str, Sequence[float]], spec: TaskSpec,
+                     base: PhysicsParams | None = None) -> PhysicsParams:
+    """`base` with every effect of `effects` ({name: values}) applied in turn."""
+    params, known = base or PhysicsParams(), vocabulary(spec)
+    for name, values in effects.items():
+        params = known[name].physics(values, params)
+    return params

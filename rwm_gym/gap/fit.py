@@ -1,0 +1,234 @@
+"""Fit each candidate effect to measured windows, score it on held-out episodes, and name the one that explains the gap.
+
+Fitting (training episodes): the residual vector is the normalised state error of re-simulated windows over the first
+`fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are refined:
+one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay) on their
+steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
+
+Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
+step; the explained fraction is 1 - gap_after / gap_before; the score subtracts `penalty_per_parameter` per extra
+parameter. Significance: one-sided t-test on per-block (`block_rows` rows of an episode) mean error reductions.
+
+Decision: the best-scoring effect is named when it is significant, explains at least `min_explained`, and no
+different effect (one that does not nest it, see `Effect.nested_in`) comes within `ambiguity_margin`; a significant
+but unexplained or ambiguous gap gives `unexplained`; otherwise `none`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from mujoco import sysid
+from scipy import optimize, stats
+from tqdm import tqdm
+
+from rwm_gym.gap.effects import Effect
+from rwm_gym.gap.resim import Resimulator, Windows, normalised_residual
+from rwm_gym.physics.params import PhysicsParams
+
+GAP_HORIZONS: tuple[int, ...] = (1, 5, 25)
+"""Steps ahead (policy steps) at which the gap is measured."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How candidates are fitted and judged."""
+
+    fit_horizon: int = 5
+    """Steps of each training window in the fit objective."""
+    grid_points: int = 5
+    """Coarse grid over the first parameter's range before the local search."""
+    max_evaluations: int = 12
+    """Cap on re-simulations of the local search."""
+    penalty_per_parameter: float = 0.02
+    """Explained fraction charged for each parameter beyond the first."""
+    significance: float = 0.01
+    """p-value under which a reduction of the held-out gap is significant."""
+    min_explained: float = 0.3
+    """Explained fraction an effect needs to be named."""
+    ambiguity_margin: float = 0.05
+    """A different effect scoring within this of the best makes the answer `unexplained`."""
+    block_rows: int = 50
+    """Rows of an episode pooled into one sample of the significance test."""
+    refine_top: int = 3
+    """Effects (best on the coarse grid) whose parameters are refined; the rest keep their best grid point."""
+
+
+@dataclass
+class CandidateFit:
+    """One fitted effect and how it does on held-out data."""
+
+    effect: str
+    names: list[str]
+    units: list[str]
+    values: list[float]
+    uncertainty: list[float]
+    """1-sigma, same units."""
+    train_cost: float
+    gap: dict[int, float] = field(default_factory=dict)
+    """Held-out normalised MSE at each horizon."""
+    gap_mean: float = float("nan")
+    explained_fraction: float = float("nan")
+    score: float = float("nan")
+    p_value: float = 1.0
+
+
+def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:
+    """(W, len(GAP_HORIZONS)) normalised MSE over channels at each horizon step."""
+    res = normalised_residual(spec, simulated, windows.target)
+    return np.stack([(res[:, h - 1] ** 2).mean(-1) for h in GAP_HORIZONS], axis=1)
+
+
+def _objective(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, horizon: int):
+    def residual(values: np.ndarray) -> np.ndarray:
+        sim = resim.rollout(train, effect.physics(values, base), horizon=horizon)
+        return normalised_residual(resim.spec, sim, train.target[:, :horizon]).ravel()
+    return residual
+
+
+def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams,
+                  config: FitConfig, nominal_cost: float) -> tuple[np.ndarray, float]:
+    """Coarse grid over the effect's first parameter (the others nominal): best values and their training cost.
+
+    The nominal point (cost `nominal_cost`, shared by all effects) is part of the grid.
+    """
+    residual = _objective(effect, resim, train, base, config.fit_horizon)
+    first = effect.parameters[0]
+    grid = np.linspace(first.low, first.high, config.grid_points)
+    if first.step > 0:
+        grid = np.unique(np.round(grid / first.step) * first.step)
+    grid = grid[~np.isclose(grid, first.nominal)]
+    costs = [float(np.mean(residual(effect.values_from_magnitude(g)) ** 2)) for g in grid]
+    best = int(np.argmin(costs))
+    if costs[best] >= nominal_cost:
+        return effect.nominal, nominal_cost
+    return effect.values_from_magnitude(grid[best]), costs[best]
+
+
+def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
+               start: np.ndarray) -> CandidateFit:
+    """Refine `effect`'s parameters (on top of `base`) from `start` on the training windows."""
+    residual = _objective(effect, resim, train, base, config.fit_horizon)
+
+    def cost(values: np.ndarray) -> float:
+        return float(np.mean(residual(values) ** 2))
+
+    first = effect.parameters[0]
+    width = (first.high - first.low) / (config.grid_points - 1)
+    values = start.copy()
+    if first.step > 0:
+        steps = np.arange(start[0] - width, start[0] + width + first.step / 2, first.step)
+        steps = steps[(steps >= first.low - 1e-12) & (steps <= first.high + 1e-12)]
+        values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
+    elif len(effect.parameters) == 1:
+        lo, hi = max(first.low, start[0] - width), min(first.high, start[0] + width)
+        found = optimize.minimize_scalar(lambda x: cost(np.array([x])), bounds=(lo, hi), method="bounded",
+                                         options={"xatol": 5e-3 * (first.high - first.low),
+                                                  "maxiter": config.max_evaluations})
+        values = np.array([found.x])
+    else:
+        lows = np.array([p.low for p in effect.parameters])
+        highs = np.array([p.high for p in effect.parameters])
+        found = optimize.least_squares(residual, np.clip(start, lows, highs), bounds=(lows, highs),
+                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=config.max_evaluations // 4)
+        values = found.x
+    r_star = residual(values)
+    return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
+                        [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
+                        float(np.mean(r_star**2)))
+
+
+def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarray) -> list[float]:
+    """1-sigma per parameter from a forward-difference Jacobian at the optimum (discrete: half a step)."""
+    jac = np.zeros((len(r_star), len(values)))
+    for i, p in enumerate(effect.parameters):
+        if p.step > 0:
+            continue
+        dx = 1e-2 * (p.high - p.low)
+        x = values.copy()
+        x[i] = x[i] + dx if x[i] + dx <= p.high else x[i] - dx
+        jac[:, i] = (residual(x) - r_star) / (x[i] - values[i])
+    sigma, _ = sysid.calculate_intervals([r_star], jac)
+    out = np.sqrt(np.abs(np.diag(sigma))) if sigma.size else np.zeros(len(values))
+    return [float(p.step / 2) if p.step > 0 else float(s) for p, s in zip(effect.parameters, out)]
+
+
+def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Windows, base: PhysicsParams,
+              before: np.ndarray, config: FitConfig) -> np.ndarray:
+    """Fill the held-out gap, explained fraction, score and p-value of `fit`; return its per-window gap (W, 3)."""
+    after = gap_per_window(resim.spec, resim.rollout(heldout, effect.physics(fit.values, base)), heldout)
+    fit.gap = {h: float(v) for h, v in zip(GAP_HORIZONS, after.mean(0))}
+    fit.gap_mean = float(after.mean())
+    fit.explained_fraction = 1.0 - fit.gap_mean / float(before.mean())
+    fit.score = fit.explained_fraction - config.penalty_per_parameter * (len(fit.values) - 1)
+    fit.p_value = paired_p_value(before.mean(1) - after.mean(1), heldout, config.block_rows)
+    return after
+
+
+def paired_p_value(reduction: np.ndarray, windows: Windows, block_rows: int) -> float:
+    """One-sided p-value that the mean per-window reduction (W,) is > 0, windows pooled into independent-ish blocks."""
+    blocks = windows.episode * 100_000 + windows.start // block_rows
+    means = np.array([reduction[blocks == b].mean() for b in np.unique(blocks)])
+    if len(means) < 3 or np.allclose(means, means[0]):
+        return 1.0
+    return float(stats.ttest_1samp(means, 0.0, alternative="greater").pvalue)
+
+
+@dataclass
+class Verdict:
+    effect: str
+    """A vocabulary name, `unexplained` or `none`."""
+    reason: str
+    winner: CandidateFit | None
+
+
+def decide(fits: list[CandidateFit], effects: dict[str, Effect], config: FitConfig) -> Verdict:
+    """Name the effect, or say `unexplained` / `none` (see the module docstring)."""
+    ranked = sorted(fits, key=lambda f: f.score, reverse=True)
+    best = ranked[0]
+    significant = [f for f in ranked if f.p_value < config.significance and f.explained_fraction > 0.05]
+    if best.p_value >= config.significance or best.explained_fraction < config.min_explained:
+        if significant:
+            return Verdict("unexplained", f"best candidate {best.effect} explains {best.explained_fraction:.0%} "
+                                          f"(p={best.p_value:.2g}): a significant gap no candidate explains", None)
+        return Verdict("none", "no candidate reduces the held-out gap significantly", None)
+    for other in ranked[1:]:
+        related = other.effect in effects[best.effect].nested_in or best.effect in effects[other.effect].nested_in
+        if not related and best.score - other.score < config.ambiguity_margin:
+            return Verdict("unexplained", f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and "
+                                          f"{other.effect} ({other.explained_fraction:.0%}) explain the gap alike", None)
+    return Verdict(best.effect, f"explains {best.explained_fraction:.0%} of the held-out gap (p={best.p_value:.2g})",
+                   best)
+
+
+def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams,
+            config: FitConfig, progress: bool = True) -> tuple[list[CandidateFit], np.ndarray]:
+    """Screen every effect on a coarse grid, refine the `refine_top` best, score all on held-out windows.
+
+    Returns the fits (unrefined ones at their best grid point, uncertainty NaN) and the nominal per-window held-out
+    gap (W, len(GAP_HORIZONS)).
+    """
+    before = gap_per_window(resim.spec, resim.rollout(heldout, base), heldout)
+    bar = tqdm(total=2 * len(effects) + config.refine_top, desc="fit effects", unit="step", disable=not progress)
+    h = config.fit_horizon
+    nominal_cost = float(np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h),
+                                                     train.target[:, :h]) ** 2))
+    screened = {}
+    for name, effect in effects.items():
+        screened[name] = screen_effect(effect, resim, train, base, config, nominal_cost)
+        bar.update(1)
+    order = sorted(screened, key=lambda n: screened[n][1])
+    fits = []
+    for name in order:
+        effect, (start, cost) = effects[name], screened[name]
+        if len(fits) < config.refine_top and cost < nominal_cost:
+            fit = fit_effect(effect, resim, train, base, config, start)
+        else:
+            fit = CandidateFit(name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
+                               [float(v) for v in start], [float("nan")] * len(start), cost)
+        score_fit(fit, effect, resim, heldout, base, before, config)
+        fits.append(fit)
+        bar.update(2 if len(fits) <= config.refine_top else 1)
+    bar.close()
+    return fits, before

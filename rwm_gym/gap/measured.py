@@ -1,0 +1,146 @@
+"""`rwm-gym make-measured`: "measured" data from a simulator with hidden physical effects, for demos and tests.
+
+The data is collected from the nominal robot with one or more effects of the vocabulary (`rwm_gym.gap.effects`)
+added, then given small sensor noise and written in exactly the dataset format a converted robot log has: the env id
+is the nominal simulator's, `physics_params` is empty (unknown), the policy is "unknown" and the metadata is empty.
+Nothing in the file names the effect; the workflow has to find it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from rwm_gym.data.collect import collect, make_physics_core
+from rwm_gym.data.dataset import Dataset, DatasetWriter
+from rwm_gym.gap.effects import combined_physics, parse_effects
+from rwm_gym.gap.excitation import ExcitationPolicy
+from rwm_gym.physics.robot import measure
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Std of Gaussian sensor noise per measured quantity (SI units); `scale` multiplies all of them."""
+
+    joint_pos: float = 2e-4
+    """rad, joint encoders."""
+    joint_vel: float = 0.02
+    """rad/s, differentiated encoders."""
+    joint_torque: float = 0.3
+    """N·m, drive current -> torque."""
+    base_lin_vel: float = 0.02
+    """m/s, state estimator."""
+    base_ang_vel: float = 0.01
+    """rad/s, IMU gyro."""
+    base_orientation: float = 0.002
+    """rad, IMU attitude."""
+    scale: float = 1.0
+
+
+def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, rng: np.random.Generator) -> None:
+    """Perturb qpos/qvel/torque of one episode in place and rebuild its state from them (so the two agree)."""
+    if noise.scale == 0:
+        return
+    layout, spec, s = core.layout, core.spec, noise.scale
+    qpos, qvel = episode["qpos"].copy(), episode["qvel"].copy()
+    rows = len(qpos)
+    qpos[:, layout.qpos_adr] += rng.normal(0, s * noise.joint_pos, (rows, len(layout.qpos_adr)))
+    qvel[:, layout.dof_adr] += rng.normal(0, s * noise.joint_vel, (rows, len(layout.dof_adr)))
+    qvel[:, 0:3] += rng.normal(0, s * noise.base_lin_vel, (rows, 3))
+    qvel[:, 3:6] += rng.normal(0, s * noise.base_ang_vel, (rows, 3))
+    for t in range(rows):  # a small random rotation of the base orientation
+        quat = qpos[t, 3:7].copy()
+        mujoco.mju_quatIntegrate(quat, rng.normal(0, s * noise.base_orientation, 3), 1.0)
+        qpos[t, 3:7] = quat
+    torque = np.zeros((rows, core.model.nu))
+    torque[:, layout.actuator_ids] = episode["state"][:, spec.state_slices["joint_torque"]]
+    torque[:, layout.actuator_ids] += rng.normal(0, s * noise.joint_torque, (rows, len(layout.actuator_ids)))
+    sensors, sites = np.zeros((rows, core.model.nsensordata)), np.zeros((rows, core.model.nsite, 3))
+    episode["state"] = measure(layout, spec, qpos, qvel, torque, sensors, sites).state
+    episode["qpos"], episode["qvel"] = qpos, qvel
+
+
+def make_measured(
+    effects: Mapping[str, Sequence[float]],
+    episodes: int,
+    out: str | Path,
+    *,
+    env_id: str = "AnymalD-MuJoCo-v0",
+    env_kwargs: Mapping[str, object] | None = None,
+    extra_physics: Mapping[str, object] | None = None,
+    seed: int = 0,
+    max_steps: int = 250,
+    num_envs: int = 8,
+    noise: SensorNoise = SensorNoise(),
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Write `episodes` episodes of `env_id` with `effects` ({name: parameter values}) hidden in the robot.
+
+    `extra_physics` (PhysicsParams fields, e.g. per-joint values) is hidden too. The excitation policy drives the robot.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: file exists (pass --overwrite to replace it)")
+    env_kwargs = dict(env_kwargs or {})
+    nominal = make_physics_core(env_id, 1, **env_kwargs)
+    hidden = combined_physics(effects, nominal.spec, nominal.params.replace(**dict(extra_physics or {})))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, raw = tempfile.mkstemp(suffix=".h5", dir=out.parent)
+    os.close(fd)
+    try:
+        policy = ExcitationPolicy(nominal.spec, max(1, min(num_envs, episodes)))
+        collect(env_id, policy, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
+                env_kwargs={**env_kwargs, "physics": hidden}, overwrite=True, progress=progress)
+        source = Dataset.load(raw)
+        info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
+                       complete=False)
+        rng = np.random.default_rng([seed, 7])
+        fd, tmp = tempfile.mkstemp(suffix=".h5", dir=out.parent)
+        os.close(fd)
+        with DatasetWriter(tmp, info, overwrite=True) as writer:
+            for e in range(source.num_episodes):
+                episode = {k: np.array(v) for k, v in source.episode(e).items()}
+                add_sensor_noise(episode, nominal, noise, rng)
+                writer.append_episode(episode)
+        os.replace(tmp, out)
+    finally:
+        Path(raw).unlink(missing_ok=True)
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--effect", action="append", default=[], help="effect of the vocabulary to hide (repeatable)")
+    parser.add_argument("--magnitude", action="append", default=[],
+                        help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)")
+    parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
+    parser.add_argument("--episodes", type=int, default=16)
+    parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
+    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id (the nominal simulator)")
+    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
+    parser.add_argument("--noise-scale", type=float, default=1.0, help="multiplier on the default sensor noise (0: none)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--overwrite", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}
+    spec = make_physics_core(args.env, 1, **env_kwargs).spec
+    effects = parse_effects(spec, args.effect, args.magnitude)
+    path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
+                         extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,
+                         max_steps=args.max_steps, noise=SensorNoise(scale=args.noise_scale), overwrite=args.overwrite)
+    ds = Dataset.load(path)
+    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (effects hidden: "
+          f"{', '.join(args.effect) or 'none'})")
+    return 0

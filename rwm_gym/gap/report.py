@@ -1,0 +1,103 @@
+"""The gap report: `report.json`, `report.md` and PNG plots (per-channel residuals before/after, rollout overlay).
+
+report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `parameters` ({name: value}),
+`units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over
+horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
+`candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from rwm_gym.spec import TaskSpec
+
+
+def write_json(path: Path, data: dict) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2)
+    os.replace(tmp, path)
+
+
+def plot_channels(spec: TaskSpec, before: np.ndarray, after: np.ndarray, path: Path, horizon: int) -> None:
+    """Bar chart of per-channel normalised MSE (S,) before and after the correction."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(spec.state_dim)
+    fig, ax = plt.subplots(figsize=(14, 4))
+    ax.bar(x - 0.2, before, 0.4, label="nominal simulator")
+    ax.bar(x + 0.2, after, 0.4, label="corrected simulator")
+    ax.set_xticks(x, spec.state_columns, rotation=90, fontsize=7)
+    ax.set_ylabel(f"normalised MSE at {horizon} steps")
+    ax.set_yscale("log")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corrected: np.ndarray, channels: list[str],
+                 path: Path) -> None:
+    """Overlay of one held-out window (H, S): measured vs nominal vs corrected re-simulation on a few channels."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(channels), 1, figsize=(8, 2.2 * len(channels)), sharex=True, squeeze=False)
+    t = np.arange(1, len(measured) + 1) * spec.policy_dt
+    for ax, name in zip(axes[:, 0], channels):
+        i = spec.state_columns.index(name)
+        ax.plot(t, measured[:, i], "k.-", label="measured")
+        ax.plot(t, nominal[:, i], label="nominal sim")
+        ax.plot(t, corrected[:, i], label="corrected sim")
+        ax.set_ylabel(name, fontsize=8)
+    axes[0, 0].legend(fontsize=8)
+    axes[-1, 0].set_xlabel("s after the window start")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def markdown(report: dict) -> str:
+    """The human-readable report."""
+    lines = [f"# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`** — {report['reason']}\n"]
+    if report["parameters"]:
+        lines.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
+        for name, value in report["parameters"].items():
+            lines.append(f"| {name} | {value:.4g} | {report['uncertainty'][name]:.2g} | {report['units'][name]} |")
+        lines.append("")
+    lines.append(f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n")
+    lines.append("| horizon (steps) | gap before | gap after |\n|---|---|---|")
+    for h, before in report["gap_before_per_horizon"].items():
+        lines.append(f"| {h} | {before:.4g} | {report['gap_after_per_horizon'][h]:.4g} |")
+    lines.append(f"| mean | {report['gap_before']:.4g} | {report['gap_after']:.4g} |\n")
+    lines.append(f"Explained fraction: {report['explained_fraction']:.1%}\n")
+    lines.append("## Where the gap lives (nominal simulator, held-out)\n")
+    lines.append("| channel | MSE at 5 steps | share |\n|---|---|---|")
+    lines += [f"| {c['channel']} | {c['mse']:.3g} | {c['share']:.1%} |" for c in report["where"]["channels_h5"]]
+    lines.append("\n| condition (joints, 1 step) | residual / overall | share of samples |\n|---|---|---|")
+    lines += [f"| {c['condition']} | {c['ratio']:.2f} | {c['fraction_of_samples']:.0%} |"
+              for c in report["where"]["conditions"]]
+    lag = report["where"]["response_lag_s"]
+    lines.append(f"\nResponse lag of joint velocity to target changes: measured {lag['measured'] * 1e3:.1f} ms, "
+                 f"nominal simulator {lag['simulated'] * 1e3:.1f} ms.\n")
+    lines.append("## Candidates (held-out)\n")
+    lines.append("| effect | parameters | explained | score | p |\n|---|---|---|---|---|")
+    for c in report["candidates"]:
+        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
+        lines.append(f"| {c['effect']} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
+                     f"{c['p_value']:.2g} |")
+    lines.append("\n## Files\n")
+    lines += [f"- {k}: `{v}`" for k, v in {**report["corrected"], **report["plots"]}.items()]
+    lines += [f"\n![{k}]({Path(v).name})" for k, v in report["plots"].items()]
+    return "\n".join(lines) + "\n"
