@@ -179,10 +179,10 @@ def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_st
         return trained_steps
     if checkpoint is None:
         try:
-            from rwm_gym.imagination.vec_env import default_checkpoint
+            from rwm_gym.imagination.core import default_checkpoint
 
             checkpoint = default_checkpoint()
-        except ImportError:
+        except (ImportError, FileNotFoundError):
             return None
     from rwm_gym.model.checkpoint import read_meta
 
@@ -216,6 +216,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)")
     parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
     parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
     parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
@@ -238,6 +240,10 @@ def run(args: argparse.Namespace) -> int:
     if "net_arch" in given:
         given["net_arch"] = tuple(given["net_arch"])
     config = PPOConfig(**given)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     if not args.timesteps and not args.minutes:
         args.minutes = 8.0
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed)

@@ -1,0 +1,181 @@
+"""The MBPO-PPO loop (`rwm-gym mbpo`): PPO in imagination, judge in physics, collect, retrain the model, repeat.
+
+Each iteration: (1) continue PPO on the imagined env of the current world model; (2) evaluate the policy in physics
+(fixed commands and seeds) and keep the best zip; (3) collect fresh physics episodes with the policy (plus action
+noise); (4) measure the current model's prediction error on that fresh data (the states the policy now visits);
+(5) retrain the world model on all data so far (from scratch, same budget each time: `train` resumes only on an
+unchanged dataset). Logged per iteration, as JSON and a PNG curve: model error on fresh data, imagined reward, physics
+return and tracking error, physics samples so far.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from tqdm import tqdm
+
+from rwm_gym.model.config import field_docs
+
+
+@dataclass(frozen=True)
+class MBPOConfig:
+    """Budget of one MBPO-PPO run (PPO's own settings are `PPOConfig`)."""
+
+    iterations: int = 4
+    """Loop iterations."""
+    ppo_timesteps: int = 300_000
+    """Imagined steps of PPO per iteration."""
+    num_envs: int = 512
+    """Imagined envs."""
+    imagined_episode_steps: int = 250
+    """Time limit of an imagined episode (policy steps); PPO bootstraps at the limit."""
+    collect_episodes: int = 32
+    """Physics episodes collected per iteration."""
+    collect_steps: int = 250
+    """Cap on a collected episode's length (policy steps)."""
+    action_noise: float = 0.1
+    """Gaussian std added to the policy's actions while collecting (exploration)."""
+    model_iterations: int = 1000
+    """World-model gradient steps per retraining."""
+    eval_seeds: int = 2
+    """Physics evaluation episodes per command."""
+    eval_steps: int = 500
+    """Policy steps per physics evaluation episode."""
+    seed: int = 0
+    """Seeds PPO, collection and model training (each iteration offsets it)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
+         model_kind: str = "rwm", device: str = "cpu", progress: bool = True) -> dict:
+    """Run the loop from the dataset `data` into the folder `out`; returns the report (also `out/mbpo.json`).
+
+    checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps).
+    """
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import Dataset, merge_datasets
+    from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, write_json
+    from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, save_policy
+    from rwm_gym.model.config import TrainConfig
+    from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
+    from rwm_gym.model.factory import model_config_for
+    from rwm_gym.model.train import train
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    spec = Dataset.load(data).spec()
+    model_config = model_config_for(model_kind, spec)
+
+    def retrain(dataset: Path, k: int) -> Path:
+        train_config = TrainConfig(iterations=config.model_iterations, seed=config.seed + k, device=device,
+                                   val_every=max(1, config.model_iterations // 4),
+                                   checkpoint_every=config.model_iterations)
+        return train(dataset, model_config, train_config, out / f"model_{k}.safetensors", progress=progress).path
+
+    all_data = Path(data)
+    physics_samples = int(Dataset.load(all_data).num_steps)
+    checkpoint = Path(checkpoint) if checkpoint else retrain(all_data, 0)
+    ppo_config = PPOConfig(num_envs=config.num_envs)
+    env_kwargs = {"episode_steps": config.imagined_episode_steps}
+    env = make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device, seed=config.seed,
+                   env_kwargs=env_kwargs)
+    policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
+    log: list[dict] = []
+    best = None
+    for k in tqdm(range(1, config.iterations + 1), desc="mbpo", disable=not progress):
+        if k > 1:
+            policy.set_env(make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device,
+                                    seed=config.seed + k, env_kwargs=env_kwargs))
+        stats = learn(policy, timesteps=config.ppo_timesteps, target_kl=ppo_config.target_kl, progress=progress)
+        zip_path = save_policy(policy, out / f"policy_{k}.zip")
+        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
+        if best is None or evaluation.episode_return > best[1]:
+            best = (k, evaluation.episode_return)
+            save_policy(policy, out / "best_policy.zip")
+        fresh = collect(spec.physics_env_id, str(zip_path), config.collect_episodes, out / f"data_{k}.h5",
+                        seed=config.seed + 1000 * k, num_envs=config.collect_episodes,
+                        action_noise=config.action_noise, max_steps=config.collect_steps, overwrite=True,
+                        progress=progress)
+        model_error = evaluate_checkpoint(checkpoint, fresh, EvalConfig(horizons=(8, 32), max_horizon=100,
+                                                                        noise_levels=(), device=device),
+                                          all_episodes=True, progress=False)["error"]
+        physics_samples += int(Dataset.load(fresh).num_steps)
+        merged = out / f"all_{k}.h5"
+        merge_datasets([all_data, fresh], merged)
+        all_data = merged
+        checkpoint = retrain(all_data, k)
+        row = {"iteration": k, "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
+               "imagined_steps": stats.timesteps, "physics_return": evaluation.episode_return,
+               "lin_vel_error": evaluation.lin_vel_error, "yaw_rate_error": evaluation.yaw_rate_error,
+               "falls": evaluation.falls, "model_error_fresh": model_error, "physics_samples": physics_samples,
+               "wall_s": time.monotonic() - started}
+        log.append(row)
+        tqdm.write(f"iteration {k}: physics return {row['physics_return']:.2f}, |dv_xy| {row['lin_vel_error']:.3f}, "
+                   f"model error on fresh data {model_error}, imagined step reward {row['imagined_step_reward']:.4f}")
+        tqdm.write(format_table(evaluation))
+        report = {"config": config.to_dict(), "ppo": ppo_config.to_dict(), "data": str(data), "log": log,
+                  "best_iteration": best[0], "best_physics_return": best[1]}
+        write_json(report, out / "mbpo.json")
+        plot_curve(log, out / "mbpo.png")
+    return report
+
+
+def plot_curve(log: list[dict], path: Path) -> None:
+    """Physics return, tracking error and fresh-data model error per iteration, written atomically."""
+    import os
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    it = [r["iteration"] for r in log]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
+    axes[0].plot(it, [r["physics_return"] for r in log], "o-")
+    axes[0].set_title("physics return")
+    axes[1].plot(it, [r["lin_vel_error"] for r in log], "o-", label="|dv_xy| m/s")
+    axes[1].plot(it, [r["yaw_rate_error"] for r in log], "o-", label="|dwz| rad/s")
+    axes[1].set_title("tracking error")
+    axes[1].legend()
+    for horizon in log[0]["model_error_fresh"]:
+        axes[2].plot(it, [r["model_error_fresh"][horizon] for r in log], "o-", label=f"{horizon} steps")
+    axes[2].set_title("model error on fresh physics data")
+    axes[2].legend()
+    for ax in axes:
+        ax.set_xlabel("iteration")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
+    parser.add_argument("--out", required=True, type=Path, help="folder for models, data, policies and the report")
+    parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
+    parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    docs = field_docs(MBPOConfig)
+    for f in fields(MBPOConfig):
+        parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default,
+                            help=docs.get(f.name))
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
+    report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, model_kind=args.model, device=args.device)
+    print(f"best physics return {report['best_physics_return']:.2f} at iteration {report['best_iteration']}; "
+          f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
+    return 0
