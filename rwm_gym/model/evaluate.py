@@ -139,11 +139,12 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    _atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
     plt.close(fig)
 
 
-def _atomic(path: str | os.PathLike, write) -> None:
+def atomic_write(path: str | os.PathLike, write) -> None:
+    """Call write(temp path) for a temp file in path's folder, then os.replace it onto path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -158,7 +159,7 @@ def _atomic(path: str | os.PathLike, write) -> None:
 
 def write_json(data: dict, path: str | os.PathLike) -> None:
     """Atomic JSON write."""
-    _atomic(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
+    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
 
 
 def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
