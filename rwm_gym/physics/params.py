@@ -121,6 +121,7 @@ def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: Physi
         payload = base.add_body(name="payload", pos=list(params.payload_com), mass=params.payload_mass)
         payload.inertia = [1e-4 * params.payload_mass] * 3  # a compact point-like mass (kg·m²)
         payload.explicitinertial = True
+        payload.ipos = [0.0, 0.0, 0.0]  # else the compiler places the mass at 2 x payload_com and to_xml drops it
     if params.ground_friction is not None:
         floor = mj.geom("floor")
         if floor is None:
