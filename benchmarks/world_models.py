@@ -16,7 +16,6 @@ Writes `results.json`, `results.md` and `error_vs_horizon.png` (+ data and check
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path

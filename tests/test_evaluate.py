@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset

@@ -123,3 +123,15 @@ def test_cli_teacher_forcing_and_bad_data(data: Path, tmp_path: Path, capsys) ->
     assert meta.model_config.hidden_size == 8 and meta.stats["iterations"] == 3
     assert main(["train", "--data", str(tmp_path / "missing.h5"), "--out", str(out)]) == 2
     assert "missing.h5" in capsys.readouterr().err
+
+
+def test_init_from_checkpoint_starts_from_its_weights(data: Path, tmp_path: Path) -> None:
+    config = model_config_for("rwm", SPEC, **TINY)
+    first = train(data, config, FAST, tmp_path / "a.safetensors", progress=False)
+    tiny_step = TrainConfig(**{**FAST.to_dict(), "iterations": 1, "lr": 1e-9, "seed": 5})
+    tuned = train(data, config, tiny_step, init=first.path, progress=False)
+    for name, value in weights(first.model).items():
+        torch.testing.assert_close(weights(tuned.model)[name], value, atol=1e-6, rtol=0)
+    other = model_config_for("rwm", SPEC, **{**TINY, "hidden_size": 8})
+    with pytest.raises(CheckpointError, match="hidden_size"):
+        train(data, other, tiny_step, init=first.path, progress=False)

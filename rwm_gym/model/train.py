@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
-from rwm_gym.model.checkpoint import CheckpointError, load_training_state, save_checkpoint
+from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.losses import relative_error, window_loss
@@ -97,9 +97,12 @@ def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
 
 def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
           out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
-          tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None) -> TrainResult:
+          tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
+          init: str | os.PathLike | None = None) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
+    init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
+    the optimizer starts fresh.
     resume: continue from the checkpoint at `out` if it exists (same data file, same config except the budget).
     callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
     saves a resumable checkpoint first).
@@ -131,6 +134,12 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                       "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
                       "train_windows": len(train_starts), "termination_pos_weight": pos_weight}
         stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
+        if init is not None:
+            loaded, _ = load_checkpoint(init, device=device, expect_spec=spec)
+            if difference := config_difference(loaded.config, model_config):
+                raise CheckpointError(f"{init}: cannot start from a model with another config ({difference})")
+            model.load_state_dict(loaded.state_dict())
+            provenance["init_checkpoint"] = str(init)
         if resume and out is not None and out.exists():
             stats = _resume(out, model, optimizer, config, provenance["sha256"], device)
 
@@ -247,6 +256,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
     parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
+    parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
     parser.add_argument("--ensemble", type=int, dest="ensemble_size", help="same as --ensemble-size")
     parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
@@ -278,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
         dataset = Dataset.load(args.data)
         model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
         result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                       tensorboard=args.tensorboard)
+                       tensorboard=args.tensorboard, init=args.init)
     except KeyboardInterrupt:
         return 130
     except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
