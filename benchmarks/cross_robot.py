@@ -1,0 +1,231 @@
+"""Cross-robot benchmark: one world-model recipe on every dm_control suite domain, against the baselines.
+
+For every `DMC-*` physics env: collect a data mix (correlated random actions plus slow, large, saturating noisy
+actions), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with the same budget and
+hyperparameters (only the sizes come from each task spec), plus the "no change" predictor. Each is scored on held-out
+episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from its own mean predictions, and
+take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised state) at steps 8, 32 and 100.
+
+Writes `results.json`, `results.md` (table + mean rank over domains and horizons) and `error_vs_horizon.png` to `--out`.
+
+    python benchmarks/cross_robot.py                       # full budget on CPU (see --help)
+    python benchmarks/cross_robot.py --device cuda         # same on a GPU
+    python benchmarks/cross_robot.py --iterations 20 --episodes 4 --domains DMC-Cheetah-Run-v0   # smoke test
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rwm_gym.data.collect import collect
+from rwm_gym.data.dataset import Dataset, merge_datasets
+from rwm_gym.data.policies import RandomPolicy
+from rwm_gym.model import TrainConfig, model_config_for
+from rwm_gym.model.config import field_docs
+from rwm_gym.model.losses import relative_error
+from rwm_gym.model.normalization import Normalizer
+from rwm_gym.model.train import train
+from rwm_gym.model.windows import WindowData
+from rwm_gym.registration import DMC_SPECS
+from rwm_gym.spec import load_spec
+
+# name -> (model kind, forecast steps in training; 1 = teacher forcing)
+MODELS: dict[str, tuple[str, int | None]] = {
+    "RWM": ("rwm", None), "RWM-TF": ("rwm", 1), "MLP": ("mlp", None), "RSSM": ("rssm", None),
+    "Transformer": ("transformer", None), "no-change": ("no_change", None),
+}
+
+
+@dataclass(frozen=True)
+class Options:
+    """Cross-robot world-model benchmark on the dm_control suite domains."""
+
+    out: Path = Path("benchmarks/results/cross_robot")
+    """Folder for data, results.json, results.md and error_vs_horizon.png."""
+    domains: str = ",".join(sorted(DMC_SPECS))
+    """Comma-separated physics env ids."""
+    models: str = ",".join(MODELS)
+    """Comma-separated models to run (default all)."""
+    episodes: int = 32
+    """Episodes per policy (random and noisy) and domain."""
+    episode_steps: int = 500
+    """Length of each collected episode (policy steps)."""
+    iterations: int = 1000
+    """Gradient steps per model (the same for every model and domain)."""
+    minutes: float = 0.0
+    """Wall-clock cap per model (0: none)."""
+    history: int = 32
+    """True steps each model warms up on, in training and evaluation."""
+    forecast: int = 8
+    """Autoregressive forecast steps in training (RWM, MLP, RSSM, Transformer)."""
+    hidden_size: int = 256
+    """GRU / MLP width, the same for every domain."""
+    horizons: str = "8,32,100"
+    """Forecast steps at which the error is reported."""
+    eval_windows: int = 256
+    """Held-out windows per domain."""
+    seed: int = 0
+    device: str = "cpu"
+    """torch device: cpu or cuda."""
+
+
+def collect_mix(env_id: str, options: Options, folder: Path) -> Path:
+    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged."""
+    out = folder / f"{env_id}.h5"
+    if out.exists():
+        return out
+    spec = load_spec(DMC_SPECS[env_id])
+    parts = []
+    for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
+        policy = RandomPolicy(spec, options.episodes, correlation=rho, scale=sigma)
+        policy.name = f"random(rho={rho},sigma={sigma})"
+        path = folder / f"{env_id}.part{k}.h5"
+        collect(env_id, policy, options.episodes, path, seed=options.seed + 10_000 * k, num_envs=options.episodes,
+                max_steps=options.episode_steps, overwrite=True, progress=False)
+        parts.append(path)
+    merge_datasets(parts, out)
+    for path in parts:
+        path.unlink()
+    return out
+
+
+@torch.no_grad()
+def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Options) -> np.ndarray:
+    """Mean relative error at every forecast step 1..max(horizons) over held-out windows, (max_horizon,)."""
+    horizon = max(int(h) for h in options.horizons.split(","))
+    rows = options.history + horizon
+    windows = WindowData(dataset, Normalizer.from_spec(dataset.spec()), options.device)
+    starts = windows.window_starts(val_ids, rows)
+    if len(starts) == 0:
+        raise ValueError(f"{dataset.path}: no held-out episode has {rows} rows; raise --episode-steps")
+    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[:options.eval_windows]
+    batch = windows.gather(starts[pick.to(starts.device)], rows)
+    model.eval()
+    prediction, _ = model.forecast(batch.states[:, :options.history], batch.actions[:, :rows - 1], horizon,
+                                   sample=False)
+    return relative_error(prediction.state_mean, batch.states[:, options.history:]).mean(0).cpu().numpy()
+
+
+def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
+    dataset = Dataset.load(collect_mix(env_id, options, options.out / "data"))
+    spec = dataset.spec()
+    base = TrainConfig(history=options.history, forecast=options.forecast, iterations=options.iterations,
+                       minutes=options.minutes, seed=options.seed, device=options.device)
+    _, val_ids = dataset.split_episodes(base.val_fraction, base.seed)
+    results = {"state_dim": spec.state_dim, "action_dim": spec.action_dim, "rows": dataset.num_steps, "models": {}}
+    for name in options.models.split(","):
+        kind, forecast = MODELS[name]
+        bar.set_postfix_str(f"{env_id} {name}")
+        config = replace(base, forecast=forecast or base.forecast)
+        model_config = model_config_for(kind, spec, hidden_size=options.hidden_size)
+        start = time.perf_counter()
+        trained = train(dataset, model_config, config, progress=False)
+        wall = time.perf_counter() - start
+        errors = horizon_errors(trained.model, dataset, val_ids, options)
+        results["models"][name] = {"errors": errors.tolist(), "train_wall_s": wall,
+                                   "iterations": trained.stats["iterations"]}
+        bar.update(1)
+    return results
+
+
+def mean_ranks(results: dict, horizons: list[int]) -> dict[str, float]:
+    """Rank of each model (1 = lowest error) per domain and horizon, averaged."""
+    names = list(next(iter(results.values()))["models"])
+    ranks: dict[str, list[float]] = {name: [] for name in names}
+    for domain in results.values():
+        for h in horizons:
+            errors = np.array([domain["models"][name]["errors"][h - 1] for name in names])
+            for name, rank in zip(names, errors.argsort().argsort() + 1):
+                ranks[name].append(float(rank))
+    return {name: float(np.mean(r)) for name, r in ranks.items()}
+
+
+def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s: float, options: Options) -> str:
+    head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | train s |"
+    lines = [f"Relative L1 error of open-loop forecasts after {options.history} true steps (lower is better); "
+             f"{options.iterations} iterations per model, device {options.device}, total wall time {wall_s / 60:.1f} "
+             "min.", "", head, "|" + "---|" * (len(horizons) + 3)]
+    for env_id, domain in results.items():
+        for name, r in domain["models"].items():
+            cells = " | ".join(f"{r['errors'][h - 1]:.3f}" for h in horizons)
+            lines.append(f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['train_wall_s']:.0f} |")
+    lines += ["", "| model | mean rank |", "|---|---|"]
+    lines += [f"| {name} | {rank:.2f} |" for name, rank in sorted(ranks.items(), key=lambda item: item[1])]
+    return "\n".join(lines) + "\n"
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(results)
+    cols = min(3, n)
+    fig, axes = plt.subplots((n + cols - 1) // cols, cols, figsize=(4.5 * cols, 3.5 * ((n + cols - 1) // cols)),
+                             squeeze=False)
+    for ax, (env_id, domain) in zip(axes.flat, results.items()):
+        for name, r in domain["models"].items():
+            ax.plot(np.arange(1, len(r["errors"]) + 1), r["errors"], label=name)
+        ax.set(title=env_id, xlabel="forecast step", ylabel="relative L1 error", yscale="log")
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    _atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    plt.close(fig)
+
+
+def _atomic(path: Path, write) -> None:
+    """Write via a temp file in the same folder, then os.replace."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def main(argv: list[str] | None = None) -> int:
+    docs = field_docs(Options)
+    parser = argparse.ArgumentParser(description=Options.__doc__)
+    for f in fields(Options):
+        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
+                            help=docs.get(f.name, ""))
+    options = Options(**vars(parser.parse_args(argv)))
+    (options.out / "data").mkdir(parents=True, exist_ok=True)
+    env_ids = options.domains.split(",")
+    horizons = [int(h) for h in options.horizons.split(",")]
+    start, results = time.perf_counter(), {}
+    unknown = sorted(set(options.models.split(",")) - set(MODELS))
+    if unknown:
+        parser.error(f"--models: unknown model {unknown[0]!r} (choose from {', '.join(MODELS)})")
+    with tqdm(total=len(env_ids) * len(options.models.split(",")), desc="cross-robot", unit="model") as bar:
+        for env_id in env_ids:
+            results[env_id] = run_domain(env_id, options, bar)
+    wall = time.perf_counter() - start
+    ranks = mean_ranks(results, horizons)
+    summary = {"options": {k: str(v) for k, v in asdict(options).items()}, "wall_s": wall, "mean_rank": ranks,
+               "domains": results}
+    _atomic(options.out / "results.json", lambda tmp: Path(tmp).write_text(json.dumps(summary, indent=1)))
+    table = markdown(results, horizons, ranks, wall, options)
+    _atomic(options.out / "results.md", lambda tmp: Path(tmp).write_text(table))
+    plot(results, options.out / "error_vs_horizon.png")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
