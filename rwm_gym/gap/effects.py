@@ -13,10 +13,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.physics.params import PhysicsParams
+import mujoco
+
+from rwm_gym.physics.params import PhysicsParams, build_model
 from rwm_gym.spec import TaskSpec
 
 
@@ -77,9 +80,13 @@ def _payload(v: np.ndarray, spec: TaskSpec) -> dict[str, object]:
     return {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}
 
 
-def vocabulary(spec: TaskSpec) -> dict[str, Effect]:
-    """Every effect the workflow knows, with ranges resolved against the task spec (effort limit, physics dt)."""
+def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, Effect]:
+    """Every effect the workflow knows, with nominal values and ranges resolved against the task spec (effort limit,
+    physics dt) and the robot model (floor friction)."""
     limit, dt = spec.actuator.effort_limit, spec.physics_dt
+    model = build_model(spec, xml_file)
+    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    mu = float(model.geom_friction[floor, 0]) if floor >= 0 else 1.0
     effects = (
         Effect("action_delay", "dead time between a position target and the actuator acting on it",
                (Parameter("action_delay", "s", 0.0, 0.0, 8 * dt, 3 * dt, step=dt),),
@@ -108,7 +115,7 @@ def vocabulary(spec: TaskSpec) -> dict[str, Effect]:
                 Parameter("payload_com_y", "m", 0.0, -0.2, 0.2, 0.0)),
                lambda v: {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}),
         Effect("ground_friction", "sliding friction coefficient of the floor",
-               (Parameter("ground_friction", "1", 1.0, 0.05, 1.0, 0.3),),
+               (Parameter("ground_friction", "1", mu, 0.05, max(mu, 1.0), 0.3 * mu),),
                lambda v: {"ground_friction": float(v[0])}),
     )
     return {e.name: e for e in effects}
@@ -133,7 +140,7 @@ def parse_effects(spec: TaskSpec, names: Sequence[str], magnitudes: Sequence[str
         if i < len(magnitudes):
             out[name] = effect.values_from_magnitude([float(x) for x in magnitudes[i].split(",")])
         else:
-            out[name] = effect.values_from_magnitude(effect.parameters[0].default)
+            out[name] = np.array([p.default for p in effect.parameters])
     return out
 
 

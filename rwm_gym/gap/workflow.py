@@ -56,7 +56,7 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
     held = make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
     resim = Resimulator(spec, sim_kwargs.get("xml_file"))
-    effects = vocabulary(spec)
+    effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
     fits, before = fit_all(effects, resim, train, held, base, fit_config, progress)
     verdict = decide(fits, effects, fit_config)

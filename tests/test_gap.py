@@ -1,0 +1,124 @@
+"""The sim-to-real gap workflow: vocabulary, hidden measured data, exact re-simulation, corrected model, and the
+workflow naming each hidden effect (the broad sweep over magnitudes is `slow`)."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import mujoco
+import numpy as np
+import pytest
+
+from rwm_gym.cli import main
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.correct import write_corrected
+from rwm_gym.gap.effects import EFFECT_NAMES, combined_physics, parse_effects, vocabulary
+from rwm_gym.gap.measured import SensorNoise, make_measured
+from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
+from rwm_gym.gap.workflow import run_gap
+from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.spec import load_spec
+
+SPEC = load_spec("anymal_d")
+EFFECTS = vocabulary(SPEC)
+SIM = "AnymalD-MuJoCo-v0"
+
+
+def test_vocabulary_is_complete_with_units_and_nominal_values():
+    assert tuple(EFFECTS) == EFFECT_NAMES
+    for effect in EFFECTS.values():
+        nominal = effect.physics(effect.nominal)
+        if effect.name in ("torque_limit", "ground_friction"):  # nominal = the spec's / the model's value
+            model, default = build_model(SPEC, params=nominal), build_model(SPEC)
+            for field in ("actuator_forcerange", "geom_friction"):
+                np.testing.assert_array_equal(getattr(model, field), getattr(default, field))
+        else:
+            assert nominal == PhysicsParams(), effect.name
+        for p in effect.parameters:
+            assert p.unit and p.low <= p.nominal <= p.high and p.low <= p.default <= p.high, (effect.name, p.name)
+    hidden = parse_effects(SPEC, ["joint_friction", "pd_gains"], ["1.5", "0.8,1.2"])
+    params = combined_physics(hidden, SPEC)
+    assert (params.joint_friction, params.kp_scale, params.kd_scale) == (1.5, 0.8, 1.2)
+    with pytest.raises(ValueError, match="unknown effect 'backlash'"):
+        parse_effects(SPEC, ["backlash"], None)
+
+
+def test_measured_data_hides_the_effect(tmp_path):
+    path = make_measured({"armature": [0.1]}, 2, tmp_path / "m.h5", max_steps=30, progress=False)
+    with h5py.File(path) as f:
+        attrs = {k: str(v) for k, v in f.attrs.items() if k != "spec"}
+    assert json.loads(attrs["physics_params"]) == {} and json.loads(attrs["metadata"]) == {}
+    assert attrs["policy"] == "unknown" and attrs["env_id"] == SIM
+    assert not any("armature" in v for v in attrs.values())
+    assert [p.name for p in tmp_path.iterdir()] == ["m.h5"]  # no temp file left beside it
+    # The effect is really in the data: the nominal simulator does not reproduce it, the hidden one does.
+    data = Dataset.load(path)
+    windows = make_windows(data, np.arange(2), 5, 4)
+    resim = Resimulator(SPEC)
+    errors = [float((normalised_residual(SPEC, resim.rollout(windows, p), windows.target) ** 2).mean())
+              for p in (PhysicsParams(), PhysicsParams(armature=0.1))]
+    assert errors[1] < 0.5 * errors[0]
+
+
+@pytest.mark.parametrize("physics", [{}, {"action_delay": 0.015}])
+def test_resimulation_reproduces_noise_free_data_exactly(tmp_path, physics):
+    hidden = {"action_delay": [physics["action_delay"]]} if physics else {}
+    path = make_measured(hidden, 2, tmp_path / "m.h5", max_steps=40, noise=SensorNoise(scale=0.0), progress=False)
+    data = Dataset.load(path)
+    windows = make_windows(data, np.arange(2), 10, 7)
+    simulated = Resimulator(SPEC).rollout(windows, PhysicsParams.from_dict(physics))
+    np.testing.assert_allclose(simulated, windows.target, atol=1e-4)  # state is stored as float32
+
+
+def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
+    params = PhysicsParams(joint_friction=1.5, armature=0.05, action_delay=0.01, payload_mass=5.0,
+                           payload_com=(0.1, 0.0, 0.0), motor_strength=0.9, ground_friction=0.5)
+    paths = write_corrected(SPEC, params, tmp_path)
+    assert PhysicsParams.from_dict(json.loads(open(paths["physics"]).read())["physics"]) == params
+    written, direct = mujoco.MjModel.from_xml_path(paths["mjcf"]), build_model(SPEC, params=params)
+    runs = []
+    for model in (written, direct):
+        data = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+        data.ctrl[:] = data.qpos[7:] + 0.2
+        mujoco.mj_step(model, data, 40)
+        runs.append(data.qpos.copy())
+    np.testing.assert_allclose(runs[0], runs[1], atol=2e-3)  # MJCF holds 6 significant digits
+
+
+def _hidden_and_check(tmp_path, name: str, scale: float = 1.0, episodes: int = 6, steps: int = 150):
+    effect = EFFECTS[name]
+    p = effect.parameters[0]
+    true = p.nominal + scale * (p.default - p.nominal)
+    data = make_measured({name: effect.values_from_magnitude(true)}, episodes, tmp_path / "m.h5", max_steps=steps,
+                         progress=False)
+    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    assert report["effect"] == name, report["reason"]
+    fitted = report["parameters"][p.name]
+    assert abs(fitted - true) <= 0.25 * abs(true - p.nominal), (fitted, true)
+    assert report["gap_after"] <= 0.5 * report["gap_before"]
+    return report
+
+
+@pytest.mark.parametrize("name", EFFECT_NAMES)
+def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name):
+    report = _hidden_and_check(tmp_path, name)
+    assert set(report) >= {"effect", "parameters", "explained_fraction", "gap_before", "gap_after", "where",
+                           "corrected", "plots"}
+
+
+def test_cli_without_effect_says_none(tmp_path):
+    measured, out = tmp_path / "m.h5", tmp_path / "report"
+    assert main(["make-measured", "--episodes", "6", "--max-steps", "150", "--out", str(measured)]) == 0
+    assert main(["gap", "--sim", SIM, "--measured", str(measured), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["effect"] == "none" and report["parameters"] == {}
+    assert (out / "report.md").is_file() and (out / "residual_channels.png").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", [0.5, 2.0])
+@pytest.mark.parametrize("name", EFFECT_NAMES)
+def test_workflow_other_magnitudes(tmp_path, name, scale):
+    _hidden_and_check(tmp_path, name, scale)
