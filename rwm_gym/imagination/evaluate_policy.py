@@ -36,7 +36,7 @@ class CommandResult:
     episode_return: float
     """Mean sum of rewards (the task's weighted terms, each x dt); about 30 for a perfect 20 s episode."""
     lin_vel_error: float
-    """m/s, mean |v_xy - cmd_xy| over the steps after settling, while upright."""
+    """m/s, mean |v_xy - cmd_xy| over the steps after settling (a fallen robot's velocity counts as 0)."""
     yaw_rate_error: float
     """rad/s, mean |w_z - cmd_yaw| over the same steps."""
     falls: int
@@ -44,7 +44,7 @@ class CommandResult:
     distance: float
     """m, distance walked along the commanded xy direction (body-frame velocity integrated); 0 for no xy command."""
     achieved: tuple[float, float, float]
-    """Mean (vx, vy, yaw rate) over the settled, upright steps."""
+    """Mean (vx, vy, yaw rate) over the settled steps (0 after a fall)."""
     achieved_std: tuple[float, float, float]
     """Std of the per-seed means of (vx, vy, yaw rate)."""
 
@@ -126,16 +126,17 @@ def evaluate_policy(
         returns += np.where(alive, reward, 0.0)
         alive &= ~terminated
         state = core.current.state
-        v, wz = state[:, lin][:, :2], state[:, ang][:, 2]
+        # a fallen robot makes no progress: it counts as standing still for the rest of the evaluation
+        v = np.where(alive[:, None], state[:, lin][:, :2], 0.0)
+        wz = np.where(alive, state[:, ang][:, 2], 0.0)
         sums["dist"] += np.where(alive, (v * direction).sum(1) * dt, 0.0)
         if t >= settle_steps:
-            w = alive.astype(float)
-            counted += w
-            sums["lin_err"] += w * np.linalg.norm(v - cmd[:, :2], axis=1)
-            sums["yaw_err"] += w * np.abs(wz - cmd[:, 2])
-            sums["vx"] += w * v[:, 0]
-            sums["vy"] += w * v[:, 1]
-            sums["wz"] += w * wz
+            counted += 1
+            sums["lin_err"] += np.linalg.norm(v - cmd[:, :2], axis=1)
+            sums["yaw_err"] += np.abs(wz - cmd[:, 2])
+            sums["vx"] += v[:, 0]
+            sums["vy"] += v[:, 1]
+            sums["wz"] += wz
     means = {k: s / np.maximum(counted, 1) for k, s in sums.items() if k != "dist"}
     rows = []
     for c in commands:

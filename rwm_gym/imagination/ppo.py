@@ -17,10 +17,12 @@ from pathlib import Path
 import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
 from rwm_gym.model.config import field_docs
+from rwm_gym.spec import TaskSpec
 
 WHERE = ("imagination", "physics")
 
@@ -74,9 +76,43 @@ class PPOConfig:
 ACTIVATIONS = ("elu", "tanh", "relu")
 
 
+def observation_scale(spec: TaskSpec) -> tuple[list[float], list[float]]:
+    """Fixed (mean, std) of every observation entry: the spec's state normalisation; commands and actions as they are.
+
+    Raw observations mix m/s, rad and rad/s of very different spread; the policy sees them on a common scale.
+    """
+    mean, std = [], []
+    groups = {g.name: g for g in spec.state}
+    for name in spec.observation.groups:
+        size = len(spec.command.names) if name == "command" else spec.action_dim if name == "last_action" else 0
+        if name in groups:
+            mean += list(groups[name].mean)
+            std += list(groups[name].std)
+        else:
+            mean += [0.0] * size
+            std += [1.0] * size
+    return mean, std
+
+
+class ScaledObservation(BaseFeaturesExtractor):
+    """(obs - mean) / std with fixed, saved constants (part of the policy, so the SB3 zip stays self-contained)."""
+
+    def __init__(self, observation_space, mean: list[float], std: list[float]):
+        import torch
+
+        super().__init__(observation_space, observation_space.shape[0])
+        self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32))
+        self.register_buffer("std", torch.tensor(std, dtype=torch.float32))
+
+    def forward(self, observations):
+        return (observations - self.mean) / self.std
+
+
 def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cpu") -> PPO:
-    """A fresh SB3 PPO on `env` with `config`'s settings."""
+    """A fresh SB3 PPO on `env` with `config`'s settings; observations scaled by the env's task spec."""
     import torch
+
+    mean, std = observation_scale(env.get_attr("spec")[0])
 
     activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
     arch = list(config.net_arch)
@@ -86,7 +122,8 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
         gamma=config.gamma, gae_lambda=config.gae_lambda, clip_range=config.clip_range, ent_coef=config.ent_coef,
         vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
         policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
-                       "log_std_init": config.log_std_init},
+                       "log_std_init": config.log_std_init, "features_extractor_class": ScaledObservation,
+                       "features_extractor_kwargs": {"mean": mean, "std": std}},
     )
 
 
@@ -103,13 +140,21 @@ class _Progress(BaseCallback):
         self.start_steps = self.num_timesteps
         self.bar = tqdm(total=self.total, unit="step", unit_scale=True, desc="ppo", disable=not self.show,
                         dynamic_ncols=True)
+        self.running = np.zeros(self.training_env.num_envs)
+        self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
 
     def _on_step(self) -> bool:
+        # the env's own rewards: SB3 adds value bootstraps at time limits into its buffer after this call
+        rewards, dones = self.locals["rewards"], self.locals["dones"]
+        self.reward_sum += float(rewards.sum())
+        self.reward_count += rewards.size
+        self.running += rewards
+        self.finished += self.running[dones].tolist()
+        self.running[dones] = 0.0
         return self.minutes is None or time.monotonic() - self.started < 60 * self.minutes
 
     def _on_rollout_end(self) -> None:
-        buffer, values = self.model.rollout_buffer, self.model.logger.name_to_value
-        kl = values.get("train/approx_kl")  # from the previous update (the logger is dumped after this call)
+        kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
         lr = self.model.lr_schedule(1.0)
         if self.target_kl > 0 and kl is not None:
             if kl > 2.0 * self.target_kl:
@@ -118,13 +163,15 @@ class _Progress(BaseCallback):
                 lr = min(1e-2, lr * 1.5)
             self.model.learning_rate = lr
             self.model._setup_lr_schedule()
-        rewards = float(buffer.rewards.mean())
-        starts = float(buffer.episode_starts[1:].mean()) if len(buffer.episode_starts) > 1 else 0.0
+        reward = self.reward_sum / max(self.reward_count, 1)
+        returns = float(np.mean(self.finished)) if self.finished else None
         self.log.append({"timesteps": int(self.num_timesteps), "wall_s": time.monotonic() - self.started,
-                         "mean_step_reward": rewards, "done_fraction": starts, "lr": lr, "approx_kl": None if kl is None else float(kl),
-                         "std": float(self.model.policy.log_std.exp().mean())})
+                         "mean_step_reward": reward, "episodes": len(self.finished), "mean_episode_return": returns,
+                         "lr": lr, "approx_kl": None if kl is None else float(kl),
+                         "std": float(self.model.policy.log_std.detach().exp().mean())})
+        self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
         self.bar.update(self.num_timesteps - self.bar.n - self.start_steps)
-        self.bar.set_postfix(reward=f"{rewards:.4f}", lr=f"{lr:.1e}")
+        self.bar.set_postfix(reward=f"{reward:.4f}", lr=f"{lr:.1e}")
 
     def _on_training_end(self) -> None:
         self.bar.close()
@@ -139,7 +186,8 @@ class TrainStats:
     wall_s: float
     steps_per_s: float
     log: list[dict] = field(default_factory=list)
-    """Per rollout: timesteps, wall_s, mean_step_reward, done_fraction, lr, approx_kl, std."""
+    """Per rollout: timesteps, wall_s, mean_step_reward (the env's), episodes ended and their mean_episode_return, lr,
+    approx_kl (of the update before the rollout), std (mean action std)."""
 
 
 def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
