@@ -260,6 +260,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
                         help="train in the imagined env (world model) or in physics (model-free baseline)")
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument("--episode-steps", type=int, default=None,
+                        help="time limit of an imagined episode in policy steps (default: the task's; PPO bootstraps)")
     parser.add_argument("--timesteps", type=int, default=None, help="budget in env steps")
     parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
     parser.add_argument("--seed", type=int, default=0)
@@ -294,7 +296,9 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if not args.timesteps and not args.minutes:
         args.minutes = 8.0
-    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed)
+    env_kwargs = {"episode_steps": args.episode_steps} if args.where == "imagination" and args.episode_steps else {}
+    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
+                   env_kwargs=env_kwargs)
     model = make_ppo(env, config, seed=args.seed, device=args.device)
     stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
     out = save_policy(model, args.out)
