@@ -95,7 +95,8 @@ class CoreVecEnv(VecEnv):
 
     def __init__(self, core: BatchedCore):
         self.core = core
-        self.render_mode = None
+        if not hasattr(core, "render_mode"):
+            core.render_mode = None  # batched cores do not render; SB3 asks every env for this attribute
         super().__init__(core.num_envs, core.single_observation_space, core.single_action_space)
         self._actions: np.ndarray | None = None
         self._seeds: list[int | None] = [None] * core.num_envs
