@@ -149,7 +149,8 @@ def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarra
         x = values.copy()
         x[i] = x[i] + dx if x[i] + dx <= p.high else x[i] - dx
         jac[:, i] = (residual(x) - r_star) / (x[i] - values[i])
-    sigma, _ = sysid.calculate_intervals([r_star], jac)
+    with np.errstate(invalid="ignore", divide="ignore"):  # an unidentifiable parameter has a zero Jacobian
+        sigma, _ = sysid.calculate_intervals([r_star], jac)
     out = np.sqrt(np.abs(np.diag(sigma))) if sigma.size else np.zeros(len(values))
     return [float(p.step / 2) if p.step > 0 else float(s) for p, s in zip(effect.parameters, out)]
 
