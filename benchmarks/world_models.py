@@ -46,9 +46,9 @@ class Options:
     """Comma-separated dataset files to use instead of collecting (merged)."""
     env: str = "AnymalD-MuJoCo-v0"
     """Physics env to collect from."""
-    gait_episodes: int = 96
+    gait_episodes: int = 256
     """Episodes of the noisy scripted trot under random commands."""
-    random_episodes: int = 32
+    random_episodes: int = 64
     """Episodes of random actions (short: the robot falls; they teach termination)."""
     action_noise: float = 0.3
     """Gaussian std added to the trot's actions."""
