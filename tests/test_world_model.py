@@ -88,6 +88,37 @@ def test_rwm_sequence_kernel_equals_stepping() -> None:
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.parametrize("already", [0, 2])
+@pytest.mark.parametrize("rows", [4, 9])
+def test_transformer_causal_pass_equals_stepping(already: int, rows: int) -> None:
+    """observe over T steps (one causal pass while the tokens fit in the context of 6, then per step) == T steps,
+    from an empty or a partly filled context, in training mode (gradients) and with a trained distance bias."""
+    model = tiny("transformer", ensemble_size=2).train()
+    with torch.no_grad():
+        model.distance_bias.normal_()
+    window = random_window(3, already + rows)
+    member = torch.tensor([0, 1, 1])
+    start = model.initial_hidden(3)
+    for t in range(already):
+        start, _ = model.step(start, window.states[:, t], window.actions[:, t], member)
+    states, actions = window.states[:, already:], window.actions[:, already:]
+    hidden, seq = model.observe(start, states, actions, member)
+    stepped, h = [], start
+    for t in range(rows):
+        h, p = model.step(h, states[:, t], actions[:, t], member)
+        stepped.append(p)
+    stepped = Prediction.stack(stepped)
+    for name in ("state_mean", "state_std", "contact_logits", "foot_height", "termination_logit"):
+        torch.testing.assert_close(getattr(seq, name), getattr(stepped, name))
+    for a, b in zip(h, hidden, strict=True):
+        torch.testing.assert_close(a, b)
+    seq.state_mean.sum().backward()
+    assert model.distance_bias.grad.abs().sum() > 0
+    with torch.no_grad():  # inference (PyTorch's encoder fast path would give NaNs with the float mask)
+        _, inferred = model.eval().observe(start, states, actions, member)
+    torch.testing.assert_close(inferred.state_mean, seq.state_mean)
+
+
 class ShiftModel(WorldModel):
     """Predicts state + 1 with zero spread and records every state it is fed."""
 

@@ -8,6 +8,7 @@ the RWM.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from rwm_gym.model.base import Hidden, WorldModel
@@ -50,20 +51,24 @@ class MLPModel(WorldModel):
 
 
 class TransformerModel(WorldModel):
-    """Transformer encoder over the last `transformer_context` (state, action) tokens; reads out the newest one.
+    """Causal Transformer encoder over the last K = `transformer_context` (state, action) tokens; reads out the newest.
 
-    Hidden = (tokens (B, T, S + A), valid (B, T) bool), oldest first. The window holds only past and present tokens,
-    so attending over all of it is causal; empty slots before the first steps are masked out. Positions are learned
-    per slot, counted back from the newest token.
+    Hidden = (tokens (B, K, S + A), valid (B, K) bool), oldest first; the valid tokens are the newest ones (a
+    suffix), empty slots before the first steps are invalid. Every token attends to itself and to the valid tokens
+    before it (causal), with a learned per-head bias by distance (relative positions). A token's features therefore do
+    not depend on the slot it sits in, and `observe` runs known steps as one causal pass over [context, new tokens]
+    that equals stepping; `step` (the forecast) appends a token and encodes the bounded window again.
     """
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__(config)
         d = config.transformer_dim
         self.embed = nn.Linear(config.state_dim + config.action_dim, d)
-        self.position = nn.Parameter(torch.randn(config.transformer_context, d) * 0.02)
-        layer = nn.TransformerEncoderLayer(d, config.transformer_heads, 4 * d, dropout=0.0, batch_first=True,
-                                           norm_first=True)
+        self.distance_bias = nn.Parameter(torch.zeros(config.transformer_heads, config.transformer_context))
+        # ELU as in the other models; unlike ReLU/GELU it also keeps PyTorch's inference fast path off, which turns
+        # the per-head float mask (distance bias) into NaNs (torch 2.13).
+        layer = nn.TransformerEncoderLayer(d, config.transformer_heads, 4 * d, dropout=0.0, activation=F.elu,
+                                           batch_first=True, norm_first=True)
         self.encoder = nn.TransformerEncoder(layer, config.transformer_layers, norm=nn.LayerNorm(d),
                                              enable_nested_tensor=False)
         self.heads = Heads(d, d, config)
@@ -73,12 +78,45 @@ class TransformerModel(WorldModel):
         tokens = torch.zeros(batch_size, c.transformer_context, c.state_dim + c.action_dim, device=device)
         return tokens, torch.zeros(batch_size, c.transformer_context, dtype=torch.bool, device=device)
 
+    def _encode(self, tokens: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """Features (B, L, d) of tokens (B, L, S + A), each attending causally to the valid tokens (B, L) at most
+        K - 1 rows back, with the distance bias. Invalid tokens attend to themselves only (finite, never read)."""
+        length, context = tokens.shape[1], self.config.transformer_context
+        rows = torch.arange(length, device=tokens.device)
+        distance = rows[:, None] - rows[None, :]  # (L, L): query row - key row
+        allowed = (distance >= 0) & (distance < context) & (valid[:, None, :] | (distance == 0))  # (B, L, L)
+        bias = self.distance_bias[:, distance.clamp(0, context - 1)]  # (heads, L, L)
+        mask = torch.where(allowed[:, None], bias, float("-inf")).flatten(0, 1)  # (B * heads, L, L)
+        return self.encoder(self.embed(tokens), mask=mask)
+
+    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
+                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+        """The steps that fit into the context beside the valid tokens run as one causal pass; any further ones
+        step by step (once old tokens leave the window, the bounded context is inherently per step)."""
+        tokens, valid = hidden
+        context, length = self.config.transformer_context, states.shape[1]
+        kept = int(valid.sum(1).max())
+        fit = min(length, context - kept)
+        if fit == 0:
+            return super().observe(hidden, states, actions, member, next_states)
+        new = torch.cat([states[:, :fit], actions[:, :fit]], dim=-1)
+        features = self._encode(torch.cat([tokens[:, context - kept:], new], dim=1),
+                                torch.cat([valid[:, context - kept:], valid.new_ones(valid.shape[0], fit)], dim=1))
+        features = features[:, kept:]
+        prediction = self.heads(features, features, states[:, :fit], member)
+        hidden = (torch.cat([tokens, new], dim=1)[:, -context:],
+                  torch.cat([valid, valid.new_ones(valid.shape[0], fit)], dim=1)[:, -context:])
+        if fit == length:
+            return hidden, prediction
+        hidden, rest = super().observe(hidden, states[:, fit:], actions[:, fit:], member,
+                                       None if next_states is None else next_states[:, fit:])
+        return hidden, Prediction.cat([prediction, rest])
+
     def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
         tokens = _push(hidden[0], torch.cat([state, action], dim=-1))
         valid = _push(hidden[1], torch.ones_like(hidden[1][:, 0]))
-        x = self.embed(tokens) + self.position
-        features = self.encoder(x, src_key_padding_mask=~valid)[:, -1]
+        features = self._encode(tokens, valid)[:, -1]
         return (tokens, valid), self.heads(features, features, state, member)
 
 

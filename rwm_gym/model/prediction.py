@@ -43,3 +43,11 @@ class Prediction:
         return Prediction(**{f.name: None if getattr(first, f.name) is None
                              else torch.stack([getattr(p, f.name) for p in predictions], dim)
                              for f in fields(first)})
+
+    @staticmethod
+    def cat(predictions: Sequence[Prediction], dim: int = 1) -> Prediction:
+        """Concatenate predictions of consecutive steps along their time dim (default 1: (B, T1 + T2 + ..., ...))."""
+        first = predictions[0]
+        return Prediction(**{f.name: None if getattr(first, f.name) is None
+                             else torch.cat([getattr(p, f.name) for p in predictions], dim)
+                             for f in fields(first)})
