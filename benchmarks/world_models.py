@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+import torch
 from tqdm import tqdm
 
 from rwm_gym.data.collect import collect
@@ -67,6 +68,8 @@ class Options:
     """torch device: cpu or cuda."""
     max_windows: int = 256
     """Held-out windows per horizon in the evaluation."""
+    threads: int = 1
+    """torch CPU threads (1 is fastest on a busy machine: more threads spin-wait on shared cores)."""
 
 
 def dataset(options: Options) -> Path:
@@ -100,13 +103,13 @@ def markdown(results: dict, data: Dataset, options: Options, wall_s: float) -> s
              f"device {options.device}, total {wall_s / 60:.1f} min. Relative L1 error of open-loop mean predictions "
              f"after {first['history']} true steps on {first['episodes']} held-out episodes (lower is better).", "",
              "| model | " + " | ".join(f"N={h}" for h in horizons) + f" | contact acc N={horizons[0]} | "
-             + " | ".join(f"noise {s} N={ref}" for s in noise) + " | train s |",
-             "|---" * (len(horizons) + len(noise) + 3) + "|"]
+             + " | ".join(f"noise {s} N={ref}" for s in noise) + " | train s | eval s |",
+             "|---" * (len(horizons) + len(noise) + 4) + "|"]
     for name, r in results.items():
         acc = r["contact_accuracy"][horizons[0]]
         cells = [f"{r['error'][h]:.3f}" for h in horizons] + ["-" if acc is None else f"{acc:.3f}"]
         cells += [f"{r['noise'][s][ref]:.3f}" for s in noise]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['train_wall_s']:.0f} |")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['train_wall_s']:.0f} | {r['eval_wall_s']:.0f} |")
     lines += ["", f"Per-group error at N={ref}:", "", "| model | " + " | ".join(groups) + " |",
               "|---" * (1 + len(groups)) + "|"]
     for name, r in results.items():
@@ -121,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
                             help=docs.get(f.name, ""))
     options = Options(**vars(parser.parse_args(argv)))
+    torch.set_num_threads(options.threads)
     out = Path(options.out)
     (out / "data").mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -134,9 +138,11 @@ def main(argv: list[str] | None = None) -> int:
                              val_every=max(1, options.iterations // 10), checkpoint_every=options.iterations)
         tic = time.perf_counter()
         trained = train(data, model_config_for(kind, spec), config, out / f"{name}.safetensors")
-        wall = time.perf_counter() - tic
-        results[name] = {**evaluate_checkpoint(trained.path, data, evaluation), "train_wall_s": wall,
-                         "iterations": trained.stats["iterations"], "val_error": trained.stats["val_error"]}
+        wall, tic = time.perf_counter() - tic, time.perf_counter()
+        scores = evaluate_checkpoint(trained.path, data, evaluation)
+        results[name] = {**scores, "train_wall_s": wall, "eval_wall_s": time.perf_counter() - tic,
+                         "iterations": trained.stats["iterations"], "val_error": trained.stats["val_error"],
+                         "log": trained.stats["log"]}
     wall = time.perf_counter() - started
     write_json({"options": asdict(options), "rows": data.num_steps, "episodes": data.num_episodes, "wall_s": wall,
                 "models": results}, out / "results.json")
