@@ -91,7 +91,7 @@ class DatasetWriter:
         self.info = info
         self.num_episodes = 0
         self._widths: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
-        self._file = h5py.File(self.path, "w")
+        self._file = h5py.File(self.path, "w", libver="latest")
         attrs = {
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "env_id": info.env_id, "spec": info.spec_text,
             "dt": float(info.dt), "columns": json.dumps(info.columns), "policy": info.policy, "seed": int(info.seed),
@@ -148,6 +148,7 @@ class DatasetWriter:
         """Validate one episode ({field: (L+1, ...) array}) and append it; on error nothing is written."""
         arrays = self._validate(episode)
         steps, rows = self._file["steps"], len(arrays["state"])
+        first = not self._widths
         for name, value in arrays.items():
             if name not in steps:
                 tail = value.shape[1:]
@@ -155,6 +156,9 @@ class DatasetWriter:
                 steps.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=value.dtype,
                                      chunks=chunks, compression="lzf")
                 self._widths[name] = (tail, value.dtype)
+        if first:  # every dataset exists now: from here on, HDF5 orders its writes so a crash leaves a readable file
+            self._file.swmr_mode = True
+        for name, value in arrays.items():
             data = steps[name]
             data.resize(len(data) + rows, axis=0)
             data[len(data) - rows:] = value
@@ -168,8 +172,9 @@ class DatasetWriter:
     def close(self) -> None:
         """Mark the file complete and close it."""
         if self._file.id.valid:
-            self._file.attrs["complete"] = True
             self._file.close()
+            with h5py.File(self.path, "r+", libver="latest") as f:  # attributes are read-only while in SWMR mode
+                f.attrs["complete"] = True
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -200,7 +205,7 @@ class Dataset:
             raise FileNotFoundError(f"{path}: no such dataset file")
         where = "file"
         try:
-            with h5py.File(path, "r") as f:
+            with _open_for_reading(path) as f:
                 where = "attribute 'format'"
                 if f.attrs.get("format") != FORMAT_NAME:
                     raise DatasetError(f"{path}: {where}: expected {FORMAT_NAME!r}, got {f.attrs.get('format')!r}")
@@ -272,6 +277,16 @@ class Dataset:
         """sha256 hex digest of the file's bytes, for provenance."""
         with open(self.path, "rb") as f:
             return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _open_for_reading(path: Path) -> h5py.File:
+    """Open a dataset read-only, also one whose writer was killed (its SWMR-write flag is still set)."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        if "already open for write" not in str(err):
+            raise
+        return h5py.File(path, "r", libver="latest", swmr=True)
 
 
 def _check(path: Path, info: DatasetInfo, data: dict[str, np.ndarray], lengths: np.ndarray) -> dict[str, np.ndarray]:
