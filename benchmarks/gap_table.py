@@ -14,6 +14,8 @@ import json
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from rwm_gym.gap.effects import EFFECT_NAMES, vocabulary
 from rwm_gym.gap.measured import make_measured
 from rwm_gym.gap.workflow import run_gap
@@ -24,7 +26,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=6)
     parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--scale", type=float, default=1.0, help="magnitude = nominal + scale * (default - nominal)")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="magnitude = nominal + scale * (default - nominal), clipped to the effect's range")
     parser.add_argument("--effects", nargs="*", default=[*EFFECT_NAMES, "none"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=Path("gap_table.json"))
@@ -37,7 +40,8 @@ def main() -> None:
             hidden, true = {}, float("nan")
             if name != "none":
                 p = effects[name].parameters[0]
-                true = p.nominal + args.scale * (p.default - p.nominal)
+                true = float(np.clip(p.nominal + args.scale * (p.default - p.nominal), p.low, p.high))
+                true = round(true / p.step) * p.step if p.step else true  # what the simulator can hold
                 hidden = {name: effects[name].values_from_magnitude(true)}
             data = make_measured(hidden, args.episodes, Path(tmp) / f"{name}.h5", max_steps=args.steps,
                                  seed=args.seed, progress=False)

@@ -37,8 +37,8 @@ class FitConfig:
 
     fit_horizon: int = 5
     """Steps of each training window in the fit objective."""
-    grid_points: int = 5
-    """Coarse grid over the first parameter's range before the local search."""
+    grid_fractions: tuple[float, ...] = (0.12, 0.35, 1.0)
+    """Screening grid of the first parameter: these fractions of the way from nominal to each bound."""
     max_evaluations: int = 12
     """Cap on re-simulations of the local search."""
     penalty_per_parameter: float = 0.02
@@ -87,44 +87,49 @@ def _objective(effect: Effect, resim: Resimulator, train: Windows, base: Physics
     return residual
 
 
-def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams,
-                  config: FitConfig, nominal_cost: float) -> tuple[np.ndarray, float]:
-    """Coarse grid over the effect's first parameter (the others nominal): best values and their training cost.
+def screen_grid(effect: Effect, fractions: tuple[float, ...]) -> np.ndarray:
+    """Sorted grid of the first parameter: the nominal value and `fractions` of the way to each bound."""
+    p = effect.parameters[0]
+    grid = [p.nominal] + [p.nominal + f * (bound - p.nominal) for bound in (p.low, p.high) for f in fractions]
+    grid = np.asarray(grid)
+    if p.step > 0:
+        grid = np.round(grid / p.step) * p.step
+    return np.unique(np.round(grid, 12))
 
-    The nominal point (cost `nominal_cost`, shared by all effects) is part of the grid.
+
+def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams,
+                  config: FitConfig, nominal_cost: float) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """Coarse grid over the effect's first parameter (the others nominal, `nominal_cost` at the nominal point).
+
+    Returns the best values, their training cost and the bracket (the best point's neighbours on the grid).
     """
     residual = _objective(effect, resim, train, base, config.fit_horizon)
     first = effect.parameters[0]
-    grid = np.linspace(first.low, first.high, config.grid_points)
-    if first.step > 0:
-        grid = np.unique(np.round(grid / first.step) * first.step)
-    grid = grid[~np.isclose(grid, first.nominal)]
-    costs = [float(np.mean(residual(effect.values_from_magnitude(g)) ** 2)) for g in grid]
+    grid = screen_grid(effect, config.grid_fractions)
+    costs = np.array([nominal_cost if np.isclose(g, first.nominal) else
+                      float(np.mean(residual(effect.values_from_magnitude(g)) ** 2)) for g in grid])
     best = int(np.argmin(costs))
-    if costs[best] >= nominal_cost:
-        return effect.nominal, nominal_cost
-    return effect.values_from_magnitude(grid[best]), costs[best]
+    bracket = (float(grid[max(best - 1, 0)]), float(grid[min(best + 1, len(grid) - 1)]))
+    return effect.values_from_magnitude(grid[best]), float(costs[best]), bracket
 
 
 def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
-               start: np.ndarray) -> CandidateFit:
-    """Refine `effect`'s parameters (on top of `base`) from `start` on the training windows."""
+               start: np.ndarray, bracket: tuple[float, float]) -> CandidateFit:
+    """Refine `effect`'s parameters (on top of `base`) from `start`, the first within `bracket`, on training windows."""
     residual = _objective(effect, resim, train, base, config.fit_horizon)
 
     def cost(values: np.ndarray) -> float:
         return float(np.mean(residual(values) ** 2))
 
     first = effect.parameters[0]
-    width = (first.high - first.low) / (config.grid_points - 1)
+    lo, hi = bracket
     values = start.copy()
     if first.step > 0:
-        steps = np.arange(start[0] - width, start[0] + width + first.step / 2, first.step)
-        steps = steps[(steps >= first.low - 1e-12) & (steps <= first.high + 1e-12)]
+        steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
     elif len(effect.parameters) == 1:
-        lo, hi = max(first.low, start[0] - width), min(first.high, start[0] + width)
         found = optimize.minimize_scalar(lambda x: cost(np.array([x])), bounds=(lo, hi), method="bounded",
-                                         options={"xatol": 5e-3 * (first.high - first.low),
+                                         options={"xatol": 5e-3 * min(hi - lo, 0.2 * (first.high - first.low)),
                                                   "maxiter": config.max_evaluations})
         values = np.array([found.x])
     else:
@@ -224,9 +229,9 @@ def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, held
     order = sorted(screened, key=lambda n: screened[n][1])
     fits = []
     for name in order:
-        effect, (start, cost) = effects[name], screened[name]
+        effect, (start, cost, bracket) = effects[name], screened[name]
         if len(fits) < config.refine_top and cost < nominal_cost:
-            fit = fit_effect(effect, resim, train, base, config, start)
+            fit = fit_effect(effect, resim, train, base, config, start, bracket)
         else:
             fit = CandidateFit(name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
                                [float(v) for v in start], [float("nan")] * len(start), cost)
