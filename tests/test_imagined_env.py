@@ -157,3 +157,17 @@ def test_nan_action_is_refused(checkpoint):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN"):
         env.step(np.full(12, np.nan, dtype=np.float32))
+
+
+def test_render_draws_the_dream(checkpoint):
+    env = ImaginedEnv(checkpoint, render_mode="rgb_array", width=160, height=120)
+    env.reset(seed=0)
+    try:
+        first = env.render()
+    except Exception as err:  # no OpenGL backend on this machine
+        pytest.skip(f"offscreen rendering unavailable (set MUJOCO_GL=egl or osmesa): {err}")
+    for _ in range(10):
+        env.step(env.action_space.sample())
+    later = env.render()
+    assert first.shape == later.shape == (120, 160, 3) and first.std() > 0
+    assert not np.array_equal(first, later)  # the drawn robot follows the predicted state
