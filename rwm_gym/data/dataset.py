@@ -29,7 +29,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,6 +36,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from rwm_gym.atomic import atomic_write
 from rwm_gym.spec import TaskSpec, parse_spec
 
 FORMAT_NAME = "rwm-gym-dataset"
@@ -312,17 +312,12 @@ def _check(path: Path, info: DatasetInfo, data: dict[str, np.ndarray], lengths: 
 
 def write_dataset(path: str | os.PathLike, info: DatasetInfo, episodes: Iterable[Mapping[str, np.ndarray]]) -> None:
     """Write a whole dataset atomically: into a temp file in the same folder, then os.replace onto `path`."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    def write(tmp: str) -> None:
         with DatasetWriter(tmp, info, overwrite=True) as writer:
             for episode in episodes:
                 writer.append_episode(episode)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+
+    atomic_write(path, write)
 
 
 def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
