@@ -34,7 +34,9 @@ def main() -> None:
     args = parser.parse_args()
     effects = vocabulary(load_spec("anymal_d"))
     rows = []
-    print(f"{'effect':16s} {'true':>9s} {'named':16s} {'fitted':>9s} {'gap before':>11s} {'gap after':>10s} {'error':>7s}")
+    header = ("effect", "true", "named", "fitted", "gap before", "gap after", "error")
+    print(f"{header[0]:16s} {header[1]:>9s} {header[2]:16s} {header[3]:>9s} {header[4]:>11s} {header[5]:>10s} "
+          f"{header[6]:>7s}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.effects:
             hidden, true = {}, float("nan")

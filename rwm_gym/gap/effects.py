@@ -1,8 +1,8 @@
 """The vocabulary of physical effects a simulator may miss, each a parametric change of `PhysicsParams` with units.
 
 An `Effect` maps a small parameter vector (1-3 numbers, physical units) to `PhysicsParams` overrides. The gap workflow
-fits every effect of `vocabulary(spec)` to measured data and names the one that explains the gap; `make-measured` hides one
-(or several) in a simulator. All effects act globally (the same value on all 12 joints); `PhysicsParams` itself also
+fits every effect of `vocabulary(spec)` to measured data and names the one that explains the gap; `make-measured` hides
+one (or several) in a simulator. All effects act globally (the same value on all 12 joints); `PhysicsParams` itself also
 takes per-joint values, which `make-measured --physics` can hide but the workflow does not fit.
 
 Backlash is not in the vocabulary: a gearbox dead band needs a second body per joint (or an env-side hysteresis) that

@@ -1,17 +1,20 @@
 """Fit each candidate effect to measured windows, score it on held-out episodes, and name the one that explains the gap.
 
 Fitting (training episodes): the residual vector is the normalised state error of re-simulated windows over the first
-`fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are refined:
-one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay) on their
-steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
+`fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are
+refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay)
+on their steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the optimum
+(`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
-step; the explained fraction is 1 - gap_after / gap_before; the score subtracts `penalty_per_parameter` per extra
-parameter. Significance: one-sided Wilcoxon signed-rank test on per-block (`block_rows` rows of an episode) mean error reductions.
+step; the explained fraction is 1 - gap_after / gap_before; the score charges `penalty_per_parameter` per extra
+parameter: score = 1 - (gap_after / gap_before) x (1 + penalty x extra parameters). Significance: one-sided Wilcoxon
+signed-rank test on per-block (`block_rows` rows of an episode) mean error reductions.
 
 Decision: the best-scoring effect is named when it is significant, explains at least `min_explained`, and no
-different effect (one that does not nest it, see `Effect.nested_in`) comes within `ambiguity_margin`; a significant
-but unexplained or ambiguous gap gives `unexplained`; otherwise `none`.
+different effect (one that does not nest it, see `Effect.nested_in`) leaves a remaining gap within `ambiguity_ratio`
+of the best's; a significant (or, with too little held-out data to test, a clearly moved) but unexplained or ambiguous
+gap gives `unexplained`; otherwise `none`.
 """
 
 from __future__ import annotations
@@ -41,14 +44,16 @@ class FitConfig:
     """Screening grid of the first parameter: these fractions of the way from nominal to each bound."""
     max_evaluations: int = 12
     """Cap on re-simulations of the local search."""
-    penalty_per_parameter: float = 0.02
-    """Explained fraction charged for each parameter beyond the first."""
+    penalty_per_parameter: float = 0.1
+    """Each parameter beyond the first inflates the remaining gap by this fraction in the score."""
     significance: float = 0.01
     """p-value under which a reduction of the held-out gap is significant."""
     min_explained: float = 0.3
     """Explained fraction an effect needs to be named."""
-    ambiguity_margin: float = 0.05
-    """A different effect scoring within this of the best makes the answer `unexplained`."""
+    ambiguity_ratio: float = 0.25
+    """A different effect whose penalised remaining gap is within this factor of the best's makes it `unexplained`."""
+    min_moved: float = 0.1
+    """Explained fraction above which a gap counts as real (`unexplained` rather than `none`) even untested."""
     block_rows: int = 25
     """Rows of an episode pooled into one sample of the significance test."""
     refine_top: int = 3
@@ -136,7 +141,7 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
         lows = np.array([p.low for p in effect.parameters])
         highs = np.array([p.high for p in effect.parameters])
         found = optimize.least_squares(residual, np.clip(start, lows, highs), bounds=(lows, highs),
-                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=config.max_evaluations // 4)
+                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=config.max_evaluations // 2)
         values = found.x
     r_star = residual(values)
     return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
@@ -167,7 +172,8 @@ def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Wi
     fit.gap = {h: float(v) for h, v in zip(GAP_HORIZONS, after.mean(0))}
     fit.gap_mean = float(after.mean())
     fit.explained_fraction = 1.0 - fit.gap_mean / float(before.mean())
-    fit.score = fit.explained_fraction - config.penalty_per_parameter * (len(fit.values) - 1)
+    remaining = (fit.gap_mean / float(before.mean())) * (1.0 + config.penalty_per_parameter * (len(fit.values) - 1))
+    fit.score = 1.0 - remaining
     fit.p_value = paired_p_value(before.mean(1) - after.mean(1), heldout, config.block_rows)
     return after
 
@@ -197,15 +203,17 @@ def decide(fits: list[CandidateFit], effects: dict[str, Effect], config: FitConf
     best = ranked[0]
     significant = [f for f in ranked if f.p_value < config.significance and f.explained_fraction > 0.05]
     if best.p_value >= config.significance or best.explained_fraction < config.min_explained:
-        if significant:
-            return Verdict("unexplained", f"best candidate {best.effect} explains {best.explained_fraction:.0%} "
-                                          f"(p={best.p_value:.2g}): a significant gap no candidate explains", None)
+        if significant or best.explained_fraction >= config.min_moved:
+            reason = (f"best candidate {best.effect} explains {best.explained_fraction:.0%} (p={best.p_value:.2g}): "
+                      "a real gap that no candidate explains significantly")
+            return Verdict("unexplained", reason, None)
         return Verdict("none", "no candidate reduces the held-out gap significantly", None)
     for other in ranked[1:]:
         related = other.effect in effects[best.effect].nested_in or best.effect in effects[other.effect].nested_in
-        if not related and best.score - other.score < config.ambiguity_margin:
-            return Verdict("unexplained", f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and "
-                                          f"{other.effect} ({other.explained_fraction:.0%}) explain the gap alike", None)
+        if not related and 1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
+            reason = (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
+                      f"({other.explained_fraction:.0%}) explain the gap alike")
+            return Verdict("unexplained", reason, None)
     return Verdict(best.effect, f"explains {best.explained_fraction:.0%} of the held-out gap (p={best.p_value:.2g})",
                    best)
 

@@ -125,7 +125,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
     parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id (the nominal simulator)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument("--noise-scale", type=float, default=1.0, help="multiplier on the default sensor noise (0: none)")
+    parser.add_argument("--noise-scale", type=float, default=1.0,
+                        help="multiplier on the default sensor noise (0: none)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--overwrite", action="store_true")

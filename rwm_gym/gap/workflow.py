@@ -68,7 +68,9 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
          for h in GAP_HORIZONS], axis=1)
 
     plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
-    per_channel = [(normalised_residual(spec, s[:, 4], held.target[:, 4]) ** 2).mean(0) for s in (nominal_sim, corrected_sim)]
+    h5 = min(5, horizon) - 1
+    per_channel = [(normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0)
+                   for s in (nominal_sim, corrected_sim)]
     plot_channels(spec, *per_channel, Path(plots["channels"]), 5)
     top = [c["channel"] for c in where(spec, nominal_sim, held)["channels_h5"][:3]]
     worst = int(np.argmax(before.mean(1)))
