@@ -3,8 +3,8 @@
 Fitting (training episodes): the residual vector is the normalised state error of re-simulated windows over the first
 `fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are
 refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay)
-on their steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the optimum
-(`mujoco.sysid.calculate_intervals`).
+on their steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the
+optimum (`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
 step; the explained fraction is 1 - gap_after / gap_before; the score charges `penalty_per_parameter` per extra
