@@ -117,8 +117,15 @@ def test_cli_without_effect_says_none(tmp_path):
     assert (out / "report.md").is_file() and (out / "residual_channels.png").is_file()
 
 
+_KNOWN_LIMITS = {
+    ("torque_limit", 0.5): "56 N·m is almost never reached by the excitation: the workflow says none",
+    ("torque_limit", 2.0): "clipped to 8 N·m the robot collapses: no episode is long enough for held-out windows",
+}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("scale", [0.5, 2.0])
-@pytest.mark.parametrize("name", EFFECT_NAMES)
+@pytest.mark.parametrize("name,scale", [
+    pytest.param(n, s, marks=pytest.mark.xfail(reason=_KNOWN_LIMITS[n, s], strict=False)) if (n, s) in _KNOWN_LIMITS
+    else (n, s) for s in (0.5, 2.0) for n in EFFECT_NAMES])
 def test_workflow_other_magnitudes(tmp_path, name, scale):
     _hidden_and_check(tmp_path, name, scale)
