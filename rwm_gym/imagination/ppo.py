@@ -269,6 +269,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)")
     parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--bc-data", type=Path, nargs="+", default=None,
+                        help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
+                             "from before PPO (rwm_gym.imagination.warm_start)")
+    parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
+    parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
     parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
     parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
     parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
@@ -294,20 +299,43 @@ def run(args: argparse.Namespace) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
-    if not args.timesteps and not args.minutes:
+    if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
     env_kwargs = {"episode_steps": args.episode_steps} if args.where == "imagination" and args.episode_steps else {}
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
     model = make_ppo(env, config, seed=args.seed, device=args.device)
-    stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
+    cloned = None
+    if args.bc_data:
+        from rwm_gym.imagination.warm_start import CloneConfig, behaviour_clone
+
+        cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
+                                                                  seed=args.seed), progress=True)
+        print(f"behaviour cloning: {cloned.pairs} pairs from {cloned.episodes} episodes, action MSE "
+              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {cloned.val_mse_after}) "
+              f"in {cloned.wall_s:.0f} s")
+        if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+            cloned_eval = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+            print("physics evaluation of the cloned actor, before PPO:")
+            print(format_table(cloned_eval))
+            save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
+            print(f"wrote {out_bc}")
+    if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
+        stats = TrainStats(0, 0.0, 0.0)
+    else:
+        stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
     out = save_policy(model, args.out)
     print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
     report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
+              "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
+                                                                 **cloned.to_dict(),
+                                                                 "evaluation": None if args.no_eval
+                                                                 else cloned_eval.to_dict()},
               "train": asdict(stats), "physics_samples": physics_samples(args.where, args.checkpoint, stats.timesteps)}
     if not args.no_eval:
         evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print("physics evaluation" + (" after PPO:" if cloned else ":"))
         print(format_table(evaluation))
         report["evaluation"] = evaluation.to_dict()
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")

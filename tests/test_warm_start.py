@@ -1,0 +1,62 @@
+"""Behaviour cloning of the shipped trot data into an SB3 PPO actor: pairs, fit, log std, held-out error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.imagination.ppo import PPOConfig, make_env, make_ppo
+from rwm_gym.imagination.warm_start import CloneConfig, action_mse, behaviour_clone, demonstrations
+from rwm_gym.resources import assets_dir
+
+TINY = PPOConfig(num_envs=2, n_steps=16, num_minibatches=1, net_arch=(64, 64))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def trot() -> Dataset:
+    return Dataset.load(assets_dir() / "checkpoints" / "anymal_d_reset.h5")
+
+
+def test_pairs_follow_the_dataset_layout(trot):
+    demos = demonstrations([trot], drop_before_fall=50)
+    spec = trot.spec()
+    # every episode loses its last row (no transition); none of these episodes ends in a fall
+    assert len(demos.actions) == trot.num_steps - trot.num_episodes
+    assert demos.observations.shape == (len(demos.actions), 48) and demos.actions.shape[1] == spec.action_dim
+    assert np.array_equal(demos.actions[:3], trot["action"][:3])
+    last = slice(36, 48)  # last_action: zero at the first row, the previous row's action after it
+    assert not demos.observations[0, last].any()
+    assert np.array_equal(demos.observations[1, last], trot["action"][0])
+    assert len(np.unique(demos.episode)) == trot.num_episodes
+
+
+def test_cloning_fits_the_logged_actions(trot):
+    model = make_ppo(make_env("physics", TINY.num_envs, seed=0), TINY, seed=0)
+    demos = demonstrations([trot])
+    before = action_mse(model, demos.observations, demos.actions)
+    stats = behaviour_clone(model, [trot], CloneConfig(steps=300, batch_size=256, log_std=-1.0, seed=0))
+    assert stats.pairs + stats.val_pairs == len(demos.actions) and stats.episodes == trot.num_episodes
+    assert stats.train_mse_before == pytest.approx(before, rel=0.2)
+    assert stats.curve[-1][1] < 0.5 * stats.curve[0][1]  # the minibatch loss falls
+    assert stats.train_mse_after < 0.25 * stats.train_mse_before
+    assert stats.val_mse_after < 0.5 * stats.val_mse_before  # held-out episodes too
+    assert torch.allclose(model.policy.log_std, torch.full((12,), -1.0))
+    # the deterministic action SB3 applies is the cloned mean
+    action, _ = model.predict(demos.observations[:64], deterministic=True)
+    assert np.mean((action - demos.actions[:64]) ** 2) < 0.5 * before
+
+
+def test_cloning_refuses_empty_data():
+    model = make_ppo(make_env("physics", TINY.num_envs, seed=0), TINY, seed=0)
+    with pytest.raises(ValueError, match="no usable"):
+        behaviour_clone(model, [], CloneConfig(steps=1))
