@@ -9,19 +9,11 @@ outside rwm-gym. Inside rwm-gym use the JSON: the env re-applies the task spec's
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
+from rwm_gym.atomic import write_text
 from rwm_gym.physics.params import PhysicsParams, build_spec
 from rwm_gym.spec import TaskSpec
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: str | Path | None = None,
@@ -30,6 +22,6 @@ def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: 
     out.mkdir(parents=True, exist_ok=True)
     physics_path, mjcf_path = out / "corrected_physics.json", out / "corrected_model.xml"
     kwargs = {k: v for k, v in (env_kwargs or {}).items() if k != "physics"}
-    _atomic_write(physics_path, json.dumps({**kwargs, "physics": params.to_dict()}, indent=2))
-    _atomic_write(mjcf_path, build_spec(spec, xml_file, params).to_xml())
+    write_text(physics_path, json.dumps({**kwargs, "physics": params.to_dict()}, indent=2))
+    write_text(mjcf_path, build_spec(spec, xml_file, params).to_xml())
     return {"physics": str(physics_path), "mjcf": str(mjcf_path)}

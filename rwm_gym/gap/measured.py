@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.data.collect import collect, make_physics_core
-from rwm_gym.data.dataset import Dataset, DatasetWriter
+from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics, parse_effects
 from rwm_gym.gap.excitation import ExcitationPolicy
 from rwm_gym.physics.robot import measure
@@ -103,14 +103,14 @@ def make_measured(
         info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
                        complete=False)
         rng = np.random.default_rng([seed, 7])
-        fd, tmp = tempfile.mkstemp(suffix=".h5", dir=out.parent)
-        os.close(fd)
-        with DatasetWriter(tmp, info, overwrite=True) as writer:
+
+        def noisy_episodes():
             for e in range(source.num_episodes):
                 episode = {k: np.array(v) for k, v in source.episode(e).items()}
                 add_sensor_noise(episode, nominal, noise, rng)
-                writer.append_episode(episode)
-        os.replace(tmp, out)
+                yield episode
+
+        write_dataset(out, info, noisy_episodes())
     finally:
         Path(raw).unlink(missing_ok=True)
     return out

@@ -8,21 +8,16 @@ horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_af
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from rwm_gym import atomic
 from rwm_gym.spec import TaskSpec
 
 
 def write_json(path: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)
+    atomic.write_json(path, data)
 
 
 def plot_channels(spec: TaskSpec, before: np.ndarray, after: np.ndarray, path: Path, horizon: int) -> None:
@@ -70,7 +65,7 @@ def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corr
 
 def markdown(report: dict) -> str:
     """The human-readable report."""
-    lines = [f"# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`** — {report['reason']}\n"]
+    lines = ["# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`** — {report['reason']}\n"]
     if report["parameters"]:
         lines.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
         for name, value in report["parameters"].items():
