@@ -11,14 +11,16 @@
    with 512 imagined robots stepped in one forward pass.
 4. The PPO policy is evaluated in physics on the same commands and seeds.
 
-Both tables are printed; compare them: PPO in imagination can also make the policy worse in physics (the policy
-exploits the world model's errors). Written to `quickstart/`: policy_bc.zip (the clone), policy.zip (after PPO; load
-either with `PPO.load`), policy.json (config, cloning and training logs, both evaluations) and policy.png (commanded vs
-achieved velocity per command, after PPO). The same as
+Both tables are printed; compare them. PPO in imagination can make the policy worse in physics (it exploits the
+world model's errors: on the shipped model, 5 min of PPO took the clone from 5/18 falls to 18/18 while the imagined
+return stayed level); `--keep-best` then keeps the clone as policy.zip and says so (a choice made on the physics
+evaluation). Written to `quickstart/`: policy_bc.zip (the clone), policy.zip (the kept policy; load with `PPO.load`),
+policy_ppo.zip (after PPO, when it was not kept), policy.json (config, cloning and training logs, both evaluations,
+`kept`) and policy.png (commanded vs achieved velocity per command of the kept policy). The same as
 
     rwm-gym ppo --in imagination --minutes 5 --num-envs 512 --n-steps 24 --episode-steps 250 --net-arch 512 256 128 \\
         --learning-rate 1e-4 --bc-data <assets>/checkpoints/anymal_d_demos.h5 --bc-steps 6000 --bc-log-std -2.3 \\
-        --threads 1 --out quickstart/policy.zip
+        --keep-best --threads 1 --out quickstart/policy.zip
 """
 
 from __future__ import annotations
@@ -40,4 +42,4 @@ if __name__ == "__main__":
     sys.exit(main(["ppo", "--in", "imagination", "--minutes", args.minutes, "--num-envs", "512", "--n-steps", "24",
                    "--episode-steps", "250", "--net-arch", "512", "256", "128", "--learning-rate", "1e-4",
                    "--bc-data", str(default_demonstrations()), "--bc-steps", "6000", "--bc-log-std", "-2.3",
-                   "--threads", args.threads, "--out", args.out, *rest]))
+                   "--keep-best", "--threads", args.threads, "--out", args.out, *rest]))

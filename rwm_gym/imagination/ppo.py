@@ -274,6 +274,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "from before PPO (rwm_gym.imagination.warm_start)")
     parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
     parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
+    parser.add_argument("--keep-best", action="store_true",
+                        help="with --bc-data: if the physics return after PPO is below the clone's, write the clone as "
+                             "--out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
     parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
     parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
     parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
@@ -338,6 +341,14 @@ def run(args: argparse.Namespace) -> int:
         print("physics evaluation" + (" after PPO:" if cloned else ":"))
         print(format_table(evaluation))
         report["evaluation"] = evaluation.to_dict()
+        if args.keep_best and cloned is not None and cloned_eval.episode_return > evaluation.episode_return:
+            os.replace(out, out.with_name(out.stem + "_ppo.zip"))
+            save_policy(PPO.load(out_bc, device=args.device), out)
+            evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
+            print(f"PPO in imagination made the policy worse in physics (return {cloned_eval.episode_return:.2f} -> "
+                  f"{report['evaluation']['episode_return']:.2f}, falls {cloned_eval.falls} -> "
+                  f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
+                  f"{out.with_name(out.stem + '_ppo.zip')}")
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
     print(f"report: {write_json(report, out.with_suffix('.json'))}")
     return 0
