@@ -7,7 +7,6 @@ falls, the distance walked along the command and the velocity achieved; a table,
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -16,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rwm_gym import atomic
+from rwm_gym.atomic import atomic_write
 from rwm_gym.spec import TaskSpec
 
 PolicyFn = Callable[[np.ndarray], np.ndarray]
@@ -195,20 +196,11 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
     fig.suptitle(title or f"physics evaluation: return {evaluation.episode_return:.2f}, "
                           f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=100)
+    path = atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 
 def write_json(data: dict, path: str | os.PathLike) -> Path:
     """Write `data` as indented JSON atomically (temp file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
-    return path
+    return atomic.write_json(path, data)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from rwm_gym.atomic import atomic_write
 from rwm_gym.model.config import field_docs
 
 
@@ -128,7 +129,6 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
 
 def plot_curve(log: list[dict], path: Path) -> None:
     """Physics return, tracking error and fresh-data model error per iteration, written atomically."""
-    import os
 
     import matplotlib
 
@@ -150,10 +150,8 @@ def plot_curve(log: list[dict], path: Path) -> None:
     for ax in axes:
         ax.set_xlabel("iteration")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=100)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

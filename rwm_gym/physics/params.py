@@ -9,7 +9,7 @@ actuator delay natively), so the single env, the batched env and `mujoco.sysid` 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
