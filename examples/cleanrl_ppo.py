@@ -1,0 +1,190 @@
+"""PPO in imagination without Stable-Baselines3: a CleanRL-style single file on the Gymnasium vector env.
+
+    python examples/cleanrl_ppo.py --total-steps 500000 --num-envs 256
+
+Everything is in this file and reads top to bottom: the batched imagined env `RWM-AnymalD-v0` (one world-model forward
+pass steps every env, `gym.make_vec(..., vectorization_mode="vector_entry_point")`), a Gaussian actor and a critic,
+GAE, and the clipped PPO update. It shows the Gymnasium vector API a hand-written loop sees: same-step auto-reset,
+`terminated` vs `truncated`, and `infos["final_obs"]` for bootstrapping at time limits. The options are the fields
+of `Args` (their docstrings are the `--help`). It prints one line per update and writes the actor's weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+import rwm_gym  # noqa: F401  (registers the environments)
+from rwm_gym.imagination.ppo import observation_scale
+from rwm_gym.model.config import field_docs
+
+
+@dataclass(frozen=True)
+class Args:
+    """PPO settings (RWM's figures where they fit a small CPU)."""
+
+    env_id: str = "RWM-AnymalD-v0"
+    """Imagined env id (any id with a vector entry point works, e.g. AnymalD-MuJoCo-v0 for physics)."""
+    checkpoint: str | None = None
+    """World-model checkpoint (None: the shipped one)."""
+    num_envs: int = 256
+    """Envs stepped together."""
+    num_steps: int = 24
+    """Steps per env per update."""
+    total_steps: int = 200_000
+    """Env steps in all."""
+    episode_steps: int = 250
+    """Time limit of an imagined episode (policy steps)."""
+    learning_rate: float = 3e-4
+    """Adam learning rate."""
+    gamma: float = 0.99
+    """Discount per policy step."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    update_epochs: int = 5
+    """Passes over each rollout."""
+    num_minibatches: int = 4
+    """Minibatches per pass."""
+    clip_coef: float = 0.2
+    """PPO ratio clip."""
+    ent_coef: float = 0.005
+    """Entropy bonus weight."""
+    vf_coef: float = 1.0
+    """Value-loss weight."""
+    max_grad_norm: float = 1.0
+    """Global gradient-norm clip."""
+    seed: int = 0
+    """Seeds the envs and the networks."""
+    out: str = "cleanrl_actor.pt"
+    """Where the actor's state dict is written."""
+
+
+def mlp(inputs: int, outputs: int, out_gain: float) -> nn.Sequential:
+    layers, size = [], inputs
+    for hidden in (128, 128, 128):
+        layers += [nn.Linear(size, hidden), nn.ELU()]
+        size = hidden
+    head = nn.Linear(size, outputs)
+    nn.init.orthogonal_(head.weight, out_gain)
+    nn.init.zeros_(head.bias)
+    return nn.Sequential(*layers, head)
+
+
+class Agent(nn.Module):
+    """Gaussian actor (state-independent log std) and critic on observations scaled by the task's fixed constants."""
+
+    def __init__(self, obs_mean: list[float], obs_std: list[float], actions: int):
+        super().__init__()
+        self.register_buffer("obs_mean", torch.tensor(obs_mean))
+        self.register_buffer("obs_std", torch.tensor(obs_std))
+        self.actor = mlp(len(obs_mean), actions, 0.01)
+        self.critic = mlp(len(obs_mean), 1, 1.0)
+        self.log_std = nn.Parameter(torch.zeros(actions))
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.critic((obs - self.obs_mean) / self.obs_std).squeeze(-1)
+
+    def act(self, obs: torch.Tensor, action: torch.Tensor | None = None):
+        x = (obs - self.obs_mean) / self.obs_std
+        dist = torch.distributions.Normal(self.actor(x), self.log_std.exp())
+        if action is None:
+            action = dist.sample()
+        return action, dist.log_prob(action).sum(-1), dist.entropy().sum(-1), self.critic(x).squeeze(-1)
+
+
+def main(args: Args) -> dict:
+    torch.manual_seed(args.seed)
+    kwargs = {"episode_steps": args.episode_steps} if args.env_id.startswith("RWM-") else {}
+    if args.env_id.startswith("RWM-"):
+        kwargs["checkpoint"] = args.checkpoint
+    envs = gym.make_vec(args.env_id, num_envs=args.num_envs, vectorization_mode="vector_entry_point", **kwargs)
+    n, obs_dim = args.num_envs, envs.single_observation_space.shape[0]
+    act_dim = envs.single_action_space.shape[0]
+    agent = Agent(*observation_scale(envs.unwrapped.core.spec), act_dim)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+
+    obs_buf = torch.zeros(args.num_steps, n, obs_dim)
+    act_buf = torch.zeros(args.num_steps, n, act_dim)
+    logp_buf, rew_buf, done_buf, val_buf = (torch.zeros(args.num_steps, n) for _ in range(4))
+    batch = args.num_steps * n
+    minibatch = batch // args.num_minibatches
+
+    obs, _ = envs.reset(seed=args.seed)
+    obs = torch.as_tensor(obs)
+    returns_log, started, step = [], time.monotonic(), 0
+    episode_return = np.zeros(n)
+    for update in range(1, args.total_steps // batch + 1):
+        finished = []
+        for t in range(args.num_steps):
+            with torch.no_grad():
+                action, logp, _, value = agent.act(obs)
+            next_obs, reward, terminated, truncated, infos = envs.step(action.clamp(-1, 1).numpy())
+            episode_return += reward
+            reward = torch.as_tensor(reward, dtype=torch.float32)
+            if "_final_obs" in infos:  # bootstrap through time limits: the episode did not end, it was cut
+                cut = np.flatnonzero(infos["_final_obs"] & truncated)
+                if len(cut):
+                    final = torch.as_tensor(np.stack([infos["final_obs"][i] for i in cut]))
+                    with torch.no_grad():
+                        reward[cut] += args.gamma * agent.value(final)
+            done = terminated | truncated
+            finished += episode_return[done].tolist()
+            episode_return[done] = 0.0
+            obs_buf[t], act_buf[t], logp_buf[t], val_buf[t] = obs, action, logp, value
+            rew_buf[t], done_buf[t] = reward, torch.as_tensor(done, dtype=torch.float32)
+            obs = torch.as_tensor(next_obs)
+            step += n
+
+        with torch.no_grad():  # generalised advantage estimation
+            advantages = torch.zeros_like(rew_buf)
+            last_gae, next_value = torch.zeros(n), agent.value(obs)
+            for t in reversed(range(args.num_steps)):
+                not_done = 1.0 - done_buf[t]
+                delta = rew_buf[t] + args.gamma * next_value * not_done - val_buf[t]
+                last_gae = delta + args.gamma * args.gae_lambda * not_done * last_gae
+                advantages[t], next_value = last_gae, val_buf[t]
+            returns = advantages + val_buf
+
+        b_obs, b_act = obs_buf.reshape(batch, obs_dim), act_buf.reshape(batch, act_dim)
+        b_logp, b_adv, b_ret = logp_buf.reshape(-1), advantages.reshape(-1), returns.reshape(-1)
+        for _ in range(args.update_epochs):
+            for idx in torch.randperm(batch).split(minibatch):
+                _, logp, entropy, value = agent.act(b_obs[idx], b_act[idx])
+                ratio = (logp - b_logp[idx]).exp()
+                adv = (b_adv[idx] - b_adv[idx].mean()) / (b_adv[idx].std() + 1e-8)
+                policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
+                loss = policy_loss + args.vf_coef * ((value - b_ret[idx]) ** 2).mean() - args.ent_coef * entropy.mean()
+                optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+                optimizer.step()
+
+        mean_step_reward = float(rew_buf.mean())
+        returns_log.append(mean_step_reward)
+        ended = f"{len(finished):4d} episodes ended, mean return {np.mean(finished):+.3f}" if finished else "no episode ended"
+        print(f"update {update:4d}  steps {step:9d}  mean step reward {mean_step_reward:+.5f}  {ended}  "
+              f"{step / (time.monotonic() - started):6.0f} steps/s", flush=True)
+
+    envs.close()
+    torch.save(agent.actor.state_dict(), Path(args.out))
+    return {"steps": step, "mean_step_reward": returns_log}
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    docs = field_docs(Args)
+    for f in fields(Args):
+        kind = str if f.name == "checkpoint" else type(f.default)
+        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default, help=docs.get(f.name))
+    return Args(**vars(parser.parse_args(argv)))
+
+
+if __name__ == "__main__":
+    main(parse_args())
