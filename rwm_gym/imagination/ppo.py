@@ -61,6 +61,8 @@ class PPOConfig:
     """Value-loss weight."""
     max_grad_norm: float = 1.0
     """Global gradient-norm clip."""
+    critic_warmup_steps: int = 0
+    """Env steps that train only the critic before the actor moves (for a warm-started actor; 0: none)."""
 
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
@@ -204,6 +206,25 @@ def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = N
     return TrainStats(done, wall, done / max(wall, 1e-9), callback.log)
 
 
+def warm_up_critic(model: PPO, timesteps: int, *, progress: bool = True) -> TrainStats:
+    """Train only the value function for `timesteps` env steps: actor frozen, learning rate constant.
+
+    A cloned actor (`rwm_gym.imagination.warm_start`) beside a freshly initialised critic gets advantages that are
+    noise, and PPO's first updates would pull it off the demonstrations before anything is learnt. Fitting the clone's
+    value first makes those updates point somewhere.
+    """
+    policy = model.policy
+    actor = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
+    trainable = [p.requires_grad for p in actor]
+    for p in actor:
+        p.requires_grad_(False)
+    try:
+        return learn(model, timesteps=timesteps, target_kl=0.0, progress=progress)
+    finally:
+        for p, flag in zip(actor, trainable):
+            p.requires_grad_(flag)
+
+
 def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
              seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
     """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
@@ -323,6 +344,10 @@ def run(args: argparse.Namespace) -> int:
             print(format_table(cloned_eval))
             save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
             print(f"wrote {out_bc}")
+    warmup = None
+    if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
+        warmup = warm_up_critic(model, config.critic_warmup_steps)
+        print(f"critic warm-up: {warmup.timesteps} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
     if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
         stats = TrainStats(0, 0.0, 0.0)
     else:
@@ -335,7 +360,9 @@ def run(args: argparse.Namespace) -> int:
                                                                  **cloned.to_dict(),
                                                                  "evaluation": None if args.no_eval
                                                                  else cloned_eval.to_dict()},
-              "train": asdict(stats), "physics_samples": physics_samples(args.where, args.checkpoint, stats.timesteps)}
+              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
+              "physics_samples": physics_samples(args.where, args.checkpoint,
+                                                 stats.timesteps + (warmup.timesteps if warmup else 0))}
     if not args.no_eval:
         evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
         print("physics evaluation" + (" after PPO:" if cloned else ":"))
