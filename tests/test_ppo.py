@@ -142,3 +142,32 @@ def test_imagined_return_rises_on_the_shipped_model():
                                                        progress=False).log]
     initial = max(np.mean(before[:5]), np.mean(before[5:10]))
     assert np.mean(after[-5:]) > initial + 0.1 * abs(initial), (before, after)
+
+
+def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkpoint, tmp_path):
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import Dataset
+    from rwm_gym.imagination.mbpo import MBPOConfig, mbpo
+    from rwm_gym.model.checkpoint import read_meta
+
+    data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60,
+                   progress=False)
+    start = make_ppo(make_env("imagination", 8, checkpoint=tiny_checkpoint, seed=0),
+                     PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32)), seed=0)
+    start.save(tmp_path / "start.zip")
+    config = MBPOConfig(iterations=2, ppo_timesteps=128, num_envs=8, imagined_episode_steps=20, collect_episodes=2,
+                        collect_steps=48, model_iterations=5, model_finetune=True, model_lr=3e-4,
+                        critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
+    report = mbpo(data, tmp_path / "mbpo", config, checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip",
+                  progress=False)
+    log = report["log"]
+    assert [row["iteration"] for row in log] == [0, 1, 2]
+    assert log[0]["model_error_fresh"] is None and all(row["model_error_fresh"] for row in log[1:])
+    rows = [row["physics_samples"] for row in log]
+    assert rows[0] == Dataset.load(data).num_steps and rows[0] < rows[1] < rows[2]
+    assert report["best_physics_return"] == max(row["physics_return"] for row in log)
+    for k in (1, 2):  # each model is fine-tuned from the one before
+        previous = tiny_checkpoint if k == 1 else tmp_path / "mbpo" / "model_1.safetensors"
+        assert read_meta(tmp_path / "mbpo" / f"model_{k}.safetensors").provenance["init_checkpoint"] == str(previous)
+    assert (tmp_path / "mbpo" / "mbpo.png").stat().st_size > 0
+    assert json.loads((tmp_path / "mbpo" / "mbpo.json").read_text())["log"] == json.loads(json.dumps(log))

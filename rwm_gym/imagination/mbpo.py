@@ -4,8 +4,10 @@ Each iteration: (1) continue PPO on the imagined env of the current world model;
 (fixed commands and seeds) and keep the best zip; (3) collect fresh physics episodes with the policy (plus action
 noise); (4) measure the current model's prediction error on that fresh data (the states the policy now visits);
 (5) retrain the world model on all data so far (from scratch, same budget each time: `train` resumes only on an
-unchanged dataset). Logged per iteration, as JSON and a PNG curve: model error on fresh data, imagined reward, physics
-return and tracking error, physics samples so far.
+unchanged dataset) or fine-tune it from its last weights (`model_finetune`, the cheap choice on a small CPU). Logged
+per iteration, as JSON and a PNG curve: model error on fresh data, imagined reward, physics return and tracking error,
+physics samples so far. A policy to start from (`init_policy`, e.g. the behaviour-cloned actor `rwm-gym ppo --bc-data
+... --timesteps 0` writes) is evaluated first as iteration 0, and its critic is warmed up before the actor moves.
 """
 
 from __future__ import annotations
@@ -41,6 +43,12 @@ class MBPOConfig:
     """Gaussian std added to the policy's actions while collecting (exploration)."""
     model_iterations: int = 1000
     """World-model gradient steps per retraining."""
+    model_finetune: bool = False
+    """Fine-tune the current world model on all data so far instead of retraining it from scratch."""
+    model_lr: float = 1e-3
+    """Adam learning rate of the world-model (re)training (lower it for fine-tuning, e.g. 3e-4)."""
+    critic_warmup_steps: int = 0
+    """Imagined steps that train only the critic of `init_policy` before the first PPO iteration."""
     eval_seeds: int = 2
     """Physics evaluation episodes per command."""
     eval_steps: int = 500
@@ -53,17 +61,22 @@ class MBPOConfig:
 
 
 def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
-         model_kind: str = "rwm", device: str = "cpu", progress: bool = True) -> dict:
+         init_policy: str | Path | None = None, model_kind: str = "rwm", device: str = "cpu",
+         progress: bool = True) -> dict:
     """Run the loop from the dataset `data` into the folder `out`; returns the report (also `out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps).
+    init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
     """
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset, merge_datasets
     from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, write_json
-    from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, save_policy
+    from stable_baselines3 import PPO
+
+    from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
     from rwm_gym.model.config import TrainConfig
     from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
+    from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.model.factory import model_config_for
     from rwm_gym.model.train import train
 
@@ -71,24 +84,40 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     spec = Dataset.load(data).spec()
-    model_config = model_config_for(model_kind, spec)
+    model_config = read_meta(checkpoint).model_config if checkpoint else model_config_for(model_kind, spec)
 
-    def retrain(dataset: Path, k: int) -> Path:
+    def retrain(dataset: Path, k: int, previous: Path | None) -> Path:
         train_config = TrainConfig(iterations=config.model_iterations, seed=config.seed + k, device=device,
-                                   val_every=max(1, config.model_iterations // 4),
+                                   lr=config.model_lr, val_every=max(1, config.model_iterations // 4),
                                    checkpoint_every=config.model_iterations)
-        return train(dataset, model_config, train_config, out / f"model_{k}.safetensors", progress=progress).path
+        init = previous if config.model_finetune else None
+        return train(dataset, model_config, train_config, out / f"model_{k}.safetensors", progress=progress,
+                     init=init).path
 
     all_data = Path(data)
     physics_samples = int(Dataset.load(all_data).num_steps)
-    checkpoint = Path(checkpoint) if checkpoint else retrain(all_data, 0)
+    checkpoint = Path(checkpoint) if checkpoint else retrain(all_data, 0, None)
     ppo_config = PPOConfig(num_envs=config.num_envs)
     env_kwargs = {"episode_steps": config.imagined_episode_steps}
     env = make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device, seed=config.seed,
                    env_kwargs=env_kwargs)
-    policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
     log: list[dict] = []
     best = None
+    if init_policy is not None:
+        policy = PPO.load(init_policy, env=env, device=device)
+        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
+        best = (0, evaluation.episode_return)
+        save_policy(policy, out / "best_policy.zip")
+        log.append({"iteration": 0, "imagined_step_reward": None, "imagined_steps": 0,
+                    "physics_return": evaluation.episode_return, "lin_vel_error": evaluation.lin_vel_error,
+                    "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls,
+                    "model_error_fresh": None, "physics_samples": physics_samples,
+                    "wall_s": time.monotonic() - started})
+        tqdm.write(f"iteration 0 ({init_policy}): physics return {evaluation.episode_return:.2f}")
+        if config.critic_warmup_steps:
+            warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
+    else:
+        policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
     for k in tqdm(range(1, config.iterations + 1), desc="mbpo", disable=not progress):
         if k > 1:
             policy.set_env(make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device,
@@ -110,7 +139,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         merged = out / f"all_{k}.h5"
         merge_datasets([all_data, fresh], merged)
         all_data = merged
-        checkpoint = retrain(all_data, k)
+        checkpoint = retrain(all_data, k, checkpoint)
         row = {"iteration": k, "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
                "imagined_steps": stats.timesteps, "physics_return": evaluation.episode_return,
                "lin_vel_error": evaluation.lin_vel_error, "yaw_rate_error": evaluation.yaw_rate_error,
@@ -143,8 +172,10 @@ def plot_curve(log: list[dict], path: Path) -> None:
     axes[1].plot(it, [r["yaw_rate_error"] for r in log], "o-", label="|dwz| rad/s")
     axes[1].set_title("tracking error")
     axes[1].legend()
-    for horizon in log[0]["model_error_fresh"]:
-        axes[2].plot(it, [r["model_error_fresh"][horizon] for r in log], "o-", label=f"{horizon} steps")
+    measured = [r for r in log if r["model_error_fresh"]]
+    for horizon in (measured[0]["model_error_fresh"] if measured else []):
+        axes[2].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
+                     label=f"{horizon} steps")
     axes[2].set_title("model error on fresh physics data")
     axes[2].legend()
     for ax in axes:
@@ -159,12 +190,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="folder for models, data, policies and the report")
     parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
     parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
+    parser.add_argument("--init-policy", default=None, type=Path,
+                        help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     docs = field_docs(MBPOConfig)
     for f in fields(MBPOConfig):
-        parser.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default,
-                            help=docs.get(f.name))
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(f.default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs.get(f.name))
+        else:
+            parser.add_argument(flag, type=type(f.default), default=f.default, help=docs.get(f.name))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -173,7 +209,8 @@ def run(args: argparse.Namespace) -> int:
 
         torch.set_num_threads(args.threads)
     config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
-    report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, model_kind=args.model, device=args.device)
+    report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
+                  model_kind=args.model, device=args.device)
     print(f"best physics return {report['best_physics_return']:.2f} at iteration {report['best_iteration']}; "
           f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
     return 0
