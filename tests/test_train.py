@@ -64,6 +64,7 @@ def test_validation_is_held_out_by_episode(data: Path, tmp_path: Path) -> None:
     assert train_ids and val_ids and not train_ids & val_ids
     assert train_ids | val_ids == set(range(Dataset.load(data).num_episodes))
     assert provenance["sha256"] == Dataset.load(data).file_hash()
+    assert provenance["dataset_steps"] == Dataset.load(data).num_steps  # the physics samples a model cost
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)

@@ -131,6 +131,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
         provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
+                      "dataset_steps": int(dataset.num_steps),
                       "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
                       "train_windows": len(train_starts), "termination_pos_weight": pos_weight}
         stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
