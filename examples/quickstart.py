@@ -7,19 +7,22 @@
    data the world model was trained on). PPO from scratch does not find a walk in the few million imagined steps a
    small CPU affords; the clone starts from one.
 2. The cloned actor is evaluated in physics (MuJoCo, `AnymalD-MuJoCo-v0`) on fixed commands.
-3. PPO (Stable-Baselines3) fine-tunes it for a few minutes on `RWM-AnymalD-v0`, the shipped ANYmal D world model,
-   with 512 imagined robots stepped in one forward pass.
+3. On `RWM-AnymalD-v0`, the shipped ANYmal D world model with 512 imagined robots stepped in one forward pass: the
+   critic is fitted to the clone first (actor frozen, 5 rollouts), then PPO (Stable-Baselines3) fine-tunes the actor
+   for 13 rollouts (160k imagined steps) in 2 s episodes that restart from real 32-step histories.
 4. The PPO policy is evaluated in physics on the same commands and seeds.
 
-Both tables are printed; compare them. PPO in imagination can make the policy worse in physics (it exploits the
-world model's errors: on the shipped model, 5 min of PPO took the clone from 5/18 falls to 18/18 while the imagined
-return stayed level); `--keep-best` then keeps the clone as policy.zip and says so (a choice made on the physics
-evaluation). Written to `quickstart/`: policy_bc.zip (the clone), policy.zip (the kept policy; load with `PPO.load`),
-policy_ppo.zip (after PPO, when it was not kept), policy.json (config, cloning and training logs, both evaluations,
-`kept`) and policy.png (commanded vs achieved velocity per command of the kept policy). The same as
+Both tables are printed; compare them. Measured on 2 CPU cores: return 6.01 -> 7.86, |dv_xy| 0.272 -> 0.233 m/s,
+falls 5 -> 3 of 18 (the +0.5 m/s command went from 0.11 to 0.37 m/s achieved). The budget is short on purpose:
+longer PPO on this model exploits its errors (1M imagined steps: the imagined reward kept rising while the policy
+fell in all 18 physics episodes). `--keep-best` is the safety net: if PPO made the policy worse in physics, the clone
+is kept as policy.zip and the output says so. Written to `quickstart/`: policy_bc.zip (the clone), policy.zip (the
+kept policy; load with `PPO.load`), policy_ppo.zip (after PPO, when it was not kept), policy.json (config, cloning and
+training logs, both evaluations, `kept`) and policy.png (commanded vs achieved velocity per command). The same as
 
-    rwm-gym ppo --in imagination --minutes 5 --num-envs 512 --n-steps 24 --episode-steps 250 --net-arch 512 256 128 \\
-        --learning-rate 1e-4 --bc-data <assets>/checkpoints/anymal_d_demos.h5 --bc-steps 6000 --bc-log-std -2.3 \\
+    rwm-gym ppo --in imagination --timesteps 150000 --critic-warmup-steps 50000 --num-envs 512 --n-steps 24 \\
+        --episode-steps 100 --net-arch 512 256 128 --learning-rate 1e-4 \\
+        --bc-data <assets>/checkpoints/anymal_d_demos.h5 --bc-steps 6000 --bc-log-std -2.3 \\
         --keep-best --threads 1 --out quickstart/policy.zip
 """
 
@@ -31,7 +34,7 @@ import sys
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--minutes", default="5", help="PPO budget in wall-clock minutes (default 5)")
+    parser.add_argument("--timesteps", default="150000", help="PPO budget in imagined steps (default 150000)")
     parser.add_argument("--threads", default="1", help="torch CPU threads (default 1: fastest on a small shared CPU)")
     parser.add_argument("--out", default="quickstart/policy.zip")
     args, rest = parser.parse_known_args()
@@ -39,7 +42,8 @@ if __name__ == "__main__":
     from rwm_gym.cli import main
     from rwm_gym.imagination.warm_start import default_demonstrations
 
-    sys.exit(main(["ppo", "--in", "imagination", "--minutes", args.minutes, "--num-envs", "512", "--n-steps", "24",
-                   "--episode-steps", "250", "--net-arch", "512", "256", "128", "--learning-rate", "1e-4",
+    sys.exit(main(["ppo", "--in", "imagination", "--timesteps", args.timesteps, "--critic-warmup-steps", "50000",
+                   "--num-envs", "512", "--n-steps", "24", "--episode-steps", "100",
+                   "--net-arch", "512", "256", "128", "--learning-rate", "1e-4",
                    "--bc-data", str(default_demonstrations()), "--bc-steps", "6000", "--bc-log-std", "-2.3",
                    "--keep-best", "--threads", args.threads, "--out", args.out, *rest]))

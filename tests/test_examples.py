@@ -30,3 +30,21 @@ def test_cleanrl_ppo_trains_on_the_imagined_vector_env(tmp_path):
     weights = torch.load(tmp_path / "actor.pt", weights_only=True)
     last = max(k for k in weights if k.endswith(".weight"))
     assert weights[last].shape == (12, 128)  # ANYmal D: 12 joint-position actions
+
+
+def test_quickstart_runs_clone_warmup_ppo_and_both_evaluations(tmp_path):
+    import json
+    import os
+    import subprocess
+
+    out = tmp_path / "policy.zip"
+    tiny = ["--timesteps", "64", "--critic-warmup-steps", "64", "--num-envs", "8", "--n-steps", "8",
+            "--net-arch", "32", "--bc-steps", "20", "--eval-seeds", "1", "--eval-steps", "20", "--out", str(out)]
+    run = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "physics evaluation of the cloned actor" in run.stdout and "critic warm-up: 64" in run.stdout
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["behaviour_cloning"]["evaluation"]["episodes"] == 6 and report["evaluation"]["episodes"] == 6
+    assert report["critic_warmup"]["timesteps"] == 64 and report["train"]["timesteps"] == 64
+    assert out.is_file() and out.with_name("policy_bc.zip").is_file()
