@@ -13,7 +13,8 @@
 4. The PPO policy is evaluated in physics on the same commands and seeds.
 
 Both tables are printed; compare them. Measured on 2 CPU cores: return 6.01 -> 7.86, |dv_xy| 0.272 -> 0.233 m/s,
-falls 5 -> 3 of 18 (the +0.5 m/s command went from 0.11 to 0.37 m/s achieved). The budget is short on purpose:
+falls 5 -> 3 of 18 (the +0.5 m/s command went from 0.11 to 0.37 m/s achieved); with `--seed 1` or `--seed 2` the same
+run ends below the clone (2.21, 3.45), and `--keep-best` hands the clone back. The budget is short on purpose:
 longer PPO on this model exploits its errors (1M imagined steps: the imagined reward kept rising while the policy
 fell in all 18 physics episodes). `--keep-best` is the safety net: if PPO made the policy worse in physics, the clone
 is kept as policy.zip and the output says so. Written to `quickstart/`: policy_bc.zip (the clone), policy.zip (the
