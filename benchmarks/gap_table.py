@@ -10,12 +10,12 @@ gap before, gap after (held-out, normalised state MSE averaged over horizons 1, 
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from rwm_gym.atomic import write_json
 from rwm_gym.gap.effects import EFFECT_NAMES, vocabulary
 from rwm_gym.gap.measured import make_measured
 from rwm_gym.gap.workflow import run_gap
@@ -60,7 +60,7 @@ def main() -> None:
             rows.append(row)
             print(f"{name:16s} {true:9.4g} {report['effect']:16s} {fitted:9.4g} {report['gap_before']:11.4g} "
                   f"{report['gap_after']:10.4g} {error:7.1%}", flush=True)
-    args.json.write_text(json.dumps(rows, indent=2))
+    write_json(args.json, rows)
 
 
 if __name__ == "__main__":

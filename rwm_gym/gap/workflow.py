@@ -110,6 +110,7 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
         "plots": plots,
         "sim": sim,
         "measured": str(measured),
+        "config": {"gap": dataclasses.asdict(config), "fit": dataclasses.asdict(fit_config)},
     }
     if world_model is not None:
         report["world_model"] = world_model_rows(sim, sim_kwargs, data, train_ids, held_ids, resim, base,
