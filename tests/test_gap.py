@@ -184,12 +184,15 @@ def test_backlash_workflow_and_world_model_rows(tmp_path):
     assert "world_model_corrected" in (tmp_path / "report" / "report.md").read_text()
 
 
-def test_cli_without_effect_says_none(tmp_path):
+def test_cli_without_effect_says_none(tmp_path, capsys):
     measured, out = tmp_path / "m.h5", tmp_path / "report"
     assert main(["make-measured", "--episodes", "6", "--max-steps", "150", "--out", str(measured)]) == 0
     assert main(["gap", "--sim", SIM, "--measured", str(measured), "--out", str(out), "--world-model", "none"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["effect"] == "none" and report["parameters"] == {}
+    missing = tmp_path / "missing.safetensors"
+    assert main(["gap", "--measured", str(measured), "--out", str(out), "--world-model", str(missing)]) == 2
+    assert "missing.safetensors not found" in capsys.readouterr().err
     assert (out / "report.md").is_file() and (out / "residual_channels.png").is_file()
 
 
@@ -204,4 +207,4 @@ _KNOWN_LIMITS = {
     pytest.param(n, s, marks=pytest.mark.xfail(reason=_KNOWN_LIMITS[n, s], strict=False)) if (n, s) in _KNOWN_LIMITS
     else (n, s) for s in (0.5, 2.0) for n in EFFECT_NAMES])
 def test_workflow_other_magnitudes(tmp_path, name, scale):
-    _hidden_and_check(tmp_path, name, scale)
+    _hidden_and_check(tmp_path, name, scale, episodes=EPISODES.get(name, 6))

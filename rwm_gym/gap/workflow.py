@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,6 +57,8 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
 
     world_model: checkpoint of the world model trained on nominal-sim data; adds the `world_model` section (None: skip).
     """
+    if world_model is not None and not Path(world_model).is_file():
+        raise FileNotFoundError(f"world model {world_model} not found (--world-model)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sim_kwargs = dict(sim_kwargs or {})
@@ -126,10 +129,9 @@ def world_model_rows(sim: str, sim_kwargs: dict, data: Dataset, train_ids: np.nd
                      resim: Resimulator, base, corrected, checkpoint: Path, out: Path, config: WorldModelGapConfig,
                      warmup: int, progress: bool) -> dict:
     """Regenerate, fine-tune and compare (see `gap.world_model`); the report's `world_model` section."""
-    if not checkpoint.is_file():
-        raise FileNotFoundError(f"world model {checkpoint} not found (--world-model)")
     checkpoints: dict[str, Path] = {"world_model_nominal": checkpoint}
-    runs = [("world_model_corrected", corrected)] + ([("world_model_control", base)] if config.control else [])
+    control = config.control and corrected != base  # with nothing corrected the control is the same run
+    runs = [("world_model_corrected", corrected)] + ([("world_model_control", base)] if control else [])
     for name, params in runs:
         sim_data = regenerate(sim, sim_kwargs, params, config, out / f"{name}_sim_data.h5")
         checkpoints[name] = fine_tune(checkpoint, sim_data, data, train_ids, out / f"{name}.safetensors", config,
@@ -175,9 +177,13 @@ def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
 def run(args: argparse.Namespace) -> int:
     sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
     wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes)
-    report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                     config=GapConfig(val_fraction=args.val_fraction),
-                     world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
+    try:
+        report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
+                         config=GapConfig(val_fraction=args.val_fraction),
+                         world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
+    except (ValueError, FileNotFoundError) as err:  # DatasetError and CheckpointError are ValueErrors
+        print(f"rwm-gym gap: {err}", file=sys.stderr)
+        return 2
     print(f"effect: {report['effect']} ({report['reason']})")
     for name, value in report["parameters"].items():
         print(f"  {name} = {value:.4g} ± {report['uncertainty'][name]:.2g} {report['units'][name]}")

@@ -138,10 +138,11 @@ def compare(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, no
     """
     normalizer = Normalizer.from_spec(resim.spec)
     result: dict = {"error": {}, "windows": {}, "curve": {}}
-    fitting = [n for n in sorted(config.horizons)
-               if held_out_windows(measured, held_episodes, config.history, n, config.stride, warmup) is not None]
+    sets = {n: held_out_windows(measured, held_episodes, config.history, n, config.stride, warmup)
+            for n in sorted(config.horizons)}
+    fitting = [n for n, windows in sets.items() if windows is not None]
     for n in fitting:
-        windows = held_out_windows(measured, held_episodes, config.history, n, config.stride, warmup)
+        windows = sets[n]
         rows = {"nominal_sim": sim_errors(resim, windows, nominal, normalizer),
                 "corrected_sim": sim_errors(resim, windows, corrected, normalizer)}
         for name, path in checkpoints.items():
