@@ -2,14 +2,18 @@
 
 `corrected_physics.json` holds the env kwargs `{"physics": {...}}` that make the physics env the corrected robot:
 `gym.make("AnymalD-MuJoCo-v0", **json.load(open(path)))` (or `rwm-gym collect --physics`). `corrected_model.xml` is the
-same robot written by `MjSpec.to_xml()`, with every effect in it (MuJoCo holds actuator delay natively), for use
-outside rwm-gym. Inside rwm-gym use the JSON: the env re-applies the task spec's PD gains to whatever MJCF it loads.
+same robot written by `MjSpec.to_xml()`, with every effect in it (MuJoCo holds actuator delay natively) except
+backlash, which no MJCF element can hold: it stays an env option (`physics.backlash`, applied by the simulators) and
+the MJCF says so in a comment. Inside rwm-gym use the JSON: the env re-applies the task spec's PD gains to whatever
+MJCF it loads.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+
+import numpy as np
 
 from rwm_gym.atomic import write_text
 from rwm_gym.physics.params import PhysicsParams, build_spec
@@ -23,5 +27,10 @@ def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: 
     physics_path, mjcf_path = out / "corrected_physics.json", out / "corrected_model.xml"
     kwargs = {k: v for k, v in (env_kwargs or {}).items() if k != "physics"}
     write_text(physics_path, json.dumps({**kwargs, "physics": params.to_dict()}, indent=2))
-    write_text(mjcf_path, build_spec(spec, xml_file, params).to_xml())
+    xml = build_spec(spec, xml_file, params).to_xml()
+    if np.any(np.asarray(params.backlash) > 0):
+        note = (f"<!-- Not in this file: gear backlash {params.backlash} rad (dead band of the position error), "
+                f"an env option only; use {physics_path.name} with rwm-gym. -->\n")
+        xml = xml.replace("<mujoco", note + "<mujoco", 1)
+    write_text(mjcf_path, xml)
     return {"physics": str(physics_path), "mjcf": str(mjcf_path)}

@@ -5,8 +5,8 @@ fits every effect of `vocabulary(spec)` to measured data and names the one that 
 one (or several) in a simulator. All effects act globally (the same value on all 12 joints); `PhysicsParams` itself also
 takes per-joint values, which `make-measured --physics` can hide but the workflow does not fit.
 
-Backlash is not in the vocabulary: a gearbox dead band needs a second body per joint (or an env-side hysteresis) that
-`PhysicsParams` cannot express yet, and a fake stand-in would make the workflow name the wrong thing.
+Backlash is a dead band of the position error at the physics rate (`rwm_gym.physics.backlash`); it is the one effect
+the corrected MJCF cannot hold, so it lives in the corrected env options.
 """
 
 from __future__ import annotations
@@ -117,12 +117,15 @@ def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, 
         Effect("ground_friction", "sliding friction coefficient of the floor",
                (Parameter("ground_friction", "1", mu, 0.05, max(mu, 1.0), 0.3 * mu),),
                lambda v: {"ground_friction": float(v[0])}),
+        Effect("backlash", "gear dead band of total width b between motor and link in every drive",
+               (Parameter("backlash", "rad", 0.0, 0.0, 0.08, 0.03),),
+               lambda v: {"backlash": float(v[0])}),
     )
     return {e.name: e for e in effects}
 
 
 EFFECT_NAMES: tuple[str, ...] = ("action_delay", "joint_friction", "joint_damping", "armature", "motor_strength",
-                                 "torque_limit", "pd_gains", "payload", "ground_friction")
+                                 "torque_limit", "pd_gains", "payload", "ground_friction", "backlash")
 """The vocabulary's names, in report order (`vocabulary(spec)` has the same keys)."""
 
 

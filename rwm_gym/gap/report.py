@@ -3,7 +3,8 @@
 report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `parameters` ({name: value}),
 `units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over
 horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
-`candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths).
+`candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths); with a world model,
+`world_model` (`error` {predictor: {N: relative error}}, `windows`, `checkpoints`, `metric`, `config`, `plot`).
 """
 
 from __future__ import annotations
@@ -92,7 +93,22 @@ def markdown(report: dict) -> str:
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
         lines.append(f"| {c['effect']} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
                      f"{c['p_value']:.2g} |")
+    if "world_model" in report:
+        lines.append("\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n")
+        lines.append(world_model_table(report["world_model"]) + "\n")
+        lines.append(f"Metric: {report['world_model']['metric']}.\n")
     lines.append("\n## Files\n")
     lines += [f"- {k}: `{v}`" for k, v in {**report["corrected"], **report["plots"]}.items()]
     lines += [f"\n![{k}]({Path(v).name})" for k, v in report["plots"].items()]
     return "\n".join(lines) + "\n"
+
+
+def world_model_table(section: dict) -> str:
+    """Markdown table of the four (or five) predictors' errors at each horizon N (open-loop rows)."""
+    horizons = list(section["windows"])
+    lines = ["| predictor | " + " | ".join(f"N={n}" for n in horizons) + " |",
+             "|---|" + "---|" * len(horizons),
+             "| windows | " + " | ".join(str(section["windows"][n]) for n in horizons) + " |"]
+    for name, errors in section["error"].items():
+        lines.append(f"| {name} | " + " | ".join(f"{errors[n]:.4f}" for n in horizons) + " |")
+    return "\n".join(lines)

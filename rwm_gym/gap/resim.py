@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
 from rwm_gym.physics.robot import RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator
 from rwm_gym.spec import TaskSpec
@@ -96,7 +96,7 @@ class Resimulator:
         layout = RobotLayout.from_model(model, spec)
         keyframe = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         n, k = len(windows), windows.warmup
-        sim = BatchSimulator(model, n, self.nthread)
+        sim = BatchSimulator(model, n, self.nthread, dead_band(spec, model, params))
         qpos, qvel = sim.batch.bind("qpos"), sim.batch.bind("qvel")
         ctrl = np.zeros((n, model.nu))
         act = spec.actuator

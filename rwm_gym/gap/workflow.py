@@ -2,7 +2,9 @@
 
 Steps: split the measured episodes into fitting and held-out ones; re-simulate held-out windows with the nominal
 simulator and rank channels and conditions (`diagnose`); fit every effect of the vocabulary on the fitting episodes
-and judge it on the held-out ones (`fit`); write the corrected simulator (`correct`) and the report (`report`).
+and judge it on the held-out ones (`fit`); write the corrected simulator (`correct`); with a world model, regenerate
+data from the corrected simulator, fine-tune the world model on it plus the measured fitting episodes and compare the
+four predictors on the held-out episodes (`world_model`); write the report (`report`).
 """
 
 from __future__ import annotations
@@ -10,19 +12,27 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from rwm_gym import atomic
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.diagnose import where
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, decide, fit_all
-from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, write_json
+from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table, write_json
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
+from rwm_gym.gap.world_model import WorldModelGapConfig, compare, config_dict, fine_tune, regenerate
+from rwm_gym.model.evaluate import plot_curves
+from rwm_gym.resources import assets_dir
+
+SHIPPED_WORLD_MODELS = {"AnymalD-MuJoCo-v0": "checkpoints/anymal_d_rwm.safetensors"}
+"""Nominal-sim world model used by `rwm-gym gap` when `--world-model` is not given (path under `assets/`)."""
 
 
 @dataclass(frozen=True)
@@ -41,8 +51,14 @@ class GapConfig:
 
 
 def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
-            config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(), progress: bool = True) -> dict:
-    """Run the workflow and write `out/report.json` (+ md, plots, corrected model); returns the report dict."""
+            config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(), progress: bool = True,
+            world_model: str | Path | None = None, wm_config: WorldModelGapConfig = WorldModelGapConfig()) -> dict:
+    """Run the workflow and write `out/report.json` (+ md, plots, corrected model); returns the report dict.
+
+    world_model: checkpoint of the world model trained on nominal-sim data; adds the `world_model` section (None: skip).
+    """
+    if world_model is not None and not Path(world_model).is_file():
+        raise FileNotFoundError(f"world model {world_model} not found (--world-model)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sim_kwargs = dict(sim_kwargs or {})
@@ -97,10 +113,40 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
         "plots": plots,
         "sim": sim,
         "measured": str(measured),
+        "config": {"gap": dataclasses.asdict(config), "fit": dataclasses.asdict(fit_config)},
     }
+    if world_model is not None:
+        report["world_model"] = world_model_rows(sim, sim_kwargs, data, train_ids, held_ids, resim, base,
+                                                 corrected_params, Path(world_model), out, wm_config, config.warmup,
+                                                 progress)
+        report["plots"]["world_model"] = report["world_model"]["plot"]
     write_json(out / "report.json", report)
-    (out / "report.md").write_text(markdown(report))
+    atomic.write_text(out / "report.md", markdown(report))
     return report
+
+
+def world_model_rows(sim: str, sim_kwargs: dict, data: Dataset, train_ids: np.ndarray, held_ids: np.ndarray,
+                     resim: Resimulator, base, corrected, checkpoint: Path, out: Path, config: WorldModelGapConfig,
+                     warmup: int, progress: bool) -> dict:
+    """Regenerate, fine-tune and compare (see `gap.world_model`); the report's `world_model` section."""
+    checkpoints: dict[str, Path] = {"world_model_nominal": checkpoint}
+    control = config.control and corrected != base  # with nothing corrected the control is the same run
+    runs = [("world_model_corrected", corrected)] + ([("world_model_control", base)] if control else [])
+    for name, params in runs:
+        sim_data = regenerate(sim, sim_kwargs, params, config, out / f"{name}_sim_data.h5")
+        checkpoints[name] = fine_tune(checkpoint, sim_data, data, train_ids, out / f"{name}.safetensors", config,
+                                      progress)
+        sim_data.unlink()
+    result = compare(resim, data, held_ids, base, corrected, checkpoints, config, warmup)
+    if not result["error"]:
+        raise ValueError(f"{data.path}: field 'episode_lengths': no held-out episode has {config.history} + "
+                         f"{min(config.horizons)} rows, needed for the world-model rows")
+    plot = out / "world_model_error.png"
+    plot_curves(result.pop("curve"), plot, title="held-out measured episodes: relative error vs open-loop steps")
+    return {**result, "checkpoints": {k: str(v) for k, v in checkpoints.items()}, "plot": str(plot),
+            "metric": "relative error sum|pred - true| / sum|true| of the normalised state, mean over the first N "
+                      "rows (rwm_gym.model.evaluate); sims re-simulated open loop from the measured state",
+            "config": config_dict(config)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -109,15 +155,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
     parser.add_argument("--out", type=Path, required=True, help="report folder")
     parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
+    parser.add_argument("--world-model", default="auto",
+                        help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
+                             "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
+    parser.add_argument("--finetune-iterations", type=int, default=WorldModelGapConfig.iterations,
+                        help="fine-tuning budget (gradient steps) of the world model after correction")
+    parser.add_argument("--regenerate-episodes", type=int, default=WorldModelGapConfig.episodes,
+                        help="episodes regenerated from the corrected simulator for the fine-tuning")
+
+
+def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
+    """The --world-model checkpoint: a path, `none`, or `auto` (the shipped one for a stock shipped simulator)."""
+    if choice == "none":
+        return None
+    if choice == "auto":
+        shipped = SHIPPED_WORLD_MODELS.get(sim)
+        return assets_dir() / shipped if shipped and not sim_kwargs.get("xml_file") else None
+    return Path(choice)
 
 
 def run(args: argparse.Namespace) -> int:
     sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
-    report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                     config=GapConfig(val_fraction=args.val_fraction))
+    wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes)
+    try:
+        report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
+                         config=GapConfig(val_fraction=args.val_fraction),
+                         world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
+    except (ValueError, FileNotFoundError) as err:  # DatasetError and CheckpointError are ValueErrors
+        print(f"rwm-gym gap: {err}", file=sys.stderr)
+        return 2
     print(f"effect: {report['effect']} ({report['reason']})")
     for name, value in report["parameters"].items():
         print(f"  {name} = {value:.4g} ± {report['uncertainty'][name]:.2g} {report['units'][name]}")
     print(f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
           f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}")
+    if "world_model" in report:
+        print(world_model_table(report["world_model"]))
     return 0

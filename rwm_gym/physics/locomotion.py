@@ -14,7 +14,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
@@ -51,7 +51,9 @@ class LocomotionCore:
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
         self.model = build_model(spec, xml_file, self.params)
         self.layout = RobotLayout.from_model(self.model, spec)
-        self.sim = SingleSimulator(self.model) if num_envs == 1 else BatchSimulator(self.model, num_envs, nthread)
+        band = dead_band(spec, self.model, self.params)
+        self.sim = (SingleSimulator(self.model, band) if num_envs == 1
+                    else BatchSimulator(self.model, num_envs, nthread, band))
         self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         if self.keyframe < 0:
             raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")

@@ -3,7 +3,8 @@
 `PhysicsParams` holds overrides on top of the MJCF and the task spec, each with a physical unit. Every field's neutral
 value leaves the model unchanged, so `PhysicsParams()` is the nominal robot. Per-joint fields take one value for all
 actuated joints or one value per joint (spec order). Everything here lands in the compiled `MjModel` (MuJoCo holds
-actuator delay natively), so the single env, the batched env and `mujoco.sysid` all see the same robot.
+actuator delay natively), so the single env, the batched env and `mujoco.sysid` all see the same robot, except
+`backlash`, which no MJCF element holds: the simulators apply it (`dead_band`, `rwm_gym.physics.backlash`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from rwm_gym.physics.backlash import DeadBand
 from rwm_gym.spec import TaskSpec
 
 PerJoint = float | tuple[float, ...]
@@ -47,6 +49,8 @@ class PhysicsParams:
     """Position of the payload in the base frame (m)."""
     ground_friction: float | None = None
     """Sliding friction coefficient of the floor (1); None keeps the model's."""
+    backlash: PerJoint = 0.0
+    """Total width of the gear dead band between motor and link (rad); an env option, not MJCF (see `backlash`)."""
 
     @classmethod
     def from_dict(cls, values: Mapping[str, object] | None) -> PhysicsParams:
@@ -129,3 +133,11 @@ def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: Physi
         floor.friction[0] = params.ground_friction
         floor.priority = 1  # MuJoCo mixes two geoms' friction by max; a higher priority makes the floor's count
     return mj
+
+
+def dead_band(spec: TaskSpec, model: mujoco.MjModel, params: PhysicsParams | None) -> DeadBand | None:
+    """The backlash of `params` on `model`'s actuated joints, for the simulators; None without backlash."""
+    if params is None:
+        return None
+    width = per_joint(params.backlash, len(spec.actuator.joints), "backlash")
+    return DeadBand.from_model(model, spec.actuator.joints, width)
