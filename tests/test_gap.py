@@ -16,6 +16,7 @@ from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import EFFECT_NAMES, combined_physics, parse_effects, vocabulary
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
+from rwm_gym.gap.scope import leg_groups, per_leg
 from rwm_gym.gap.workflow import run_gap
 from rwm_gym.gap.world_model import WorldModelGapConfig
 from rwm_gym.model.config import TrainConfig
@@ -149,6 +150,7 @@ def _hidden_and_check(tmp_path, name: str, scale: float = 1.0, episodes: int = 6
                          progress=False)
     report = run_gap(SIM, data, tmp_path / "report", progress=False, world_model=world_model, wm_config=TINY_WM)
     assert report["effect"] == name, report["reason"]
+    assert report["scope"] == "global"  # a global effect is not taken for a per-leg one
     fitted = report["parameters"][p.name]
     assert abs(fitted - true) <= 0.25 * abs(true - p.nominal), (fitted, true)
     assert report["gap_after"] <= 0.5 * report["gap_before"]
@@ -182,6 +184,30 @@ def test_backlash_workflow_and_world_model_rows(tmp_path):
         assert wm["error"]["world_model_corrected"][n] != wm["error"]["world_model_nominal"][n]
     assert wm["config"]["iterations"] == 20 and (tmp_path / "report" / "world_model_error.png").is_file()
     assert "world_model_corrected" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_per_leg_form_of_joint_effects():
+    assert leg_groups(SPEC) == {"LF": [0, 1, 2], "RF": [3, 4, 5], "LH": [6, 7, 8], "RH": [9, 10, 11]}
+    leg = per_leg(EFFECTS["joint_friction"], SPEC)
+    assert [p.name for p in leg.parameters] == ["joint_friction_LF", "joint_friction_RF", "joint_friction_LH",
+                                                "joint_friction_RH"]
+    assert leg.physics([1.0, 2.0, 3.0, 4.0]).joint_friction == (1.0,) * 3 + (2.0,) * 3 + (3.0,) * 3 + (4.0,) * 3
+    assert per_leg(EFFECTS["torque_limit"], SPEC).physics([10, 20, 30, 40]).torque_limit[3:6] == (20.0,) * 3
+    assert per_leg(EFFECTS["payload"], SPEC) is None and per_leg(EFFECTS["action_delay"], SPEC) is None
+
+
+def test_workflow_finds_friction_in_one_leg(tmp_path):
+    true = [6.0] * 3 + [0.0] * 9  # N·m, the LF leg only
+    data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true},
+                         progress=False)
+    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    assert (report["effect"], report["scope"]) == ("joint_friction", "leg"), report["reason"]
+    fitted = report["parameters"]
+    assert abs(fitted["joint_friction_LF"] - 6.0) <= 0.25 * 6.0
+    assert max(fitted[f"joint_friction_{leg}"] for leg in ("RF", "LH", "RH")) < 1.0
+    assert report["gap_after"] <= 0.5 * report["gap_before"]
+    corrected = json.loads(open(report["corrected"]["physics"]).read())["physics"]["joint_friction"]
+    assert corrected[:3] == [pytest.approx(fitted["joint_friction_LF"])] * 3
 
 
 def test_cli_without_effect_says_none(tmp_path, capsys):

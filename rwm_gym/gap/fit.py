@@ -77,6 +77,8 @@ class CandidateFit:
     explained_fraction: float = float("nan")
     score: float = float("nan")
     p_value: float = 1.0
+    scope: str = "global"
+    """"global" (one value for all joints) or "leg" (one per leg, `rwm_gym.gap.scope`)."""
 
 
 def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:
@@ -146,7 +148,7 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
     r_star = residual(values)
     return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
                         [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
-                        float(np.mean(r_star**2)))
+                        float(np.mean(r_star**2)), scope=effect.scope)
 
 
 def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarray) -> list[float]:
@@ -209,7 +211,8 @@ def decide(fits: list[CandidateFit], effects: dict[str, Effect], config: FitConf
             return Verdict("unexplained", reason, None)
         return Verdict("none", "no candidate reduces the held-out gap significantly", None)
     for other in ranked[1:]:
-        related = other.effect in effects[best.effect].nested_in or best.effect in effects[other.effect].nested_in
+        related = (other.effect == best.effect  # the same effect in another scope (global / per leg)
+                   or other.effect in effects[best.effect].nested_in or best.effect in effects[other.effect].nested_in)
         if not related and 1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
             reason = (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
                       f"({other.explained_fraction:.0%}) explain the gap alike")

@@ -1,7 +1,7 @@
 """The gap report: `report.json`, `report.md` and PNG plots (per-channel residuals before/after, rollout overlay).
 
-report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `parameters` ({name: value}),
-`units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over
+report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `scope` (`global`, `leg` or null),
+`parameters` ({name: value}), `units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over
 horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
 `candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths); with a world model,
 `world_model` (`error` {predictor: {N: relative error}}, `windows`, `checkpoints`, `metric`, `config`, `plot`).
@@ -66,7 +66,8 @@ def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corr
 
 def markdown(report: dict) -> str:
     """The human-readable report."""
-    lines = ["# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`** — {report['reason']}\n"]
+    scope = f" ({report['scope']})" if report.get("scope") else ""
+    lines = ["# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`{scope}** — {report['reason']}\n"]
     if report["parameters"]:
         lines.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
         for name, value in report["parameters"].items():
@@ -91,7 +92,7 @@ def markdown(report: dict) -> str:
     lines.append("| effect | parameters | explained | score | p |\n|---|---|---|---|---|")
     for c in report["candidates"]:
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
-        lines.append(f"| {c['effect']} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
+        lines.append(f"| {c['effect']}{' (per leg)' if c.get('scope') == 'leg' else ''} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
                      f"{c['p_value']:.2g} |")
     if "world_model" in report:
         lines.append("\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n")

@@ -27,6 +27,7 @@ from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, decide, fit_all
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table, write_json
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
+from rwm_gym.gap.scope import per_leg_candidate
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.resources import assets_dir
@@ -48,6 +49,8 @@ class GapConfig:
     """Rows between the starts of held-out windows."""
     warmup: int = 2
     """Measured steps replayed before each window (fills the actuator delay buffer)."""
+    per_leg: bool = True
+    """Refit a named joint effect with one value per leg; kept only if the held-out gap pays for it (`gap.scope`)."""
 
 
 def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
@@ -75,8 +78,12 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
     fits, before = fit_all(effects, resim, train, held, base, fit_config, progress)
+    leg = per_leg_candidate(fits, effects, spec, resim, train, held, base, before, fit_config) if config.per_leg else None
+    if leg is not None:
+        fits.append(leg[1])
     verdict = decide(fits, effects, fit_config)
-    corrected_params = effects[verdict.effect].physics(verdict.winner.values, base) if verdict.winner else base
+    named = verdict.winner and (leg[0] if verdict.winner.scope == "leg" else effects[verdict.effect])
+    corrected_params = named.physics(verdict.winner.values, base) if verdict.winner else base
     nominal_sim = resim.rollout(held, base)
     corrected_sim = resim.rollout(held, corrected_params) if verdict.winner else nominal_sim
     after = before if verdict.winner is None else np.stack(
@@ -95,6 +102,7 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     report = {
         "effect": verdict.effect,
         "reason": verdict.reason,
+        "scope": winner.scope if winner else None,
         "parameters": dict(zip(winner.names, winner.values)) if winner else {},
         "units": dict(zip(winner.names, winner.units)) if winner else {},
         "uncertainty": dict(zip(winner.names, winner.uncertainty)) if winner else {},
@@ -155,6 +163,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
     parser.add_argument("--out", type=Path, required=True, help="report folder")
     parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
+    parser.add_argument("--per-leg", action=argparse.BooleanOptionalAction, default=GapConfig.per_leg,
+                        help="try one value per leg for a named joint effect (kept only if held-out data pays for it)")
     parser.add_argument("--world-model", default="auto",
                         help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
                              "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
@@ -179,12 +189,13 @@ def run(args: argparse.Namespace) -> int:
     wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes)
     try:
         report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                         config=GapConfig(val_fraction=args.val_fraction),
+                         config=GapConfig(val_fraction=args.val_fraction, per_leg=args.per_leg),
                          world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
     except (ValueError, FileNotFoundError) as err:  # DatasetError and CheckpointError are ValueErrors
         print(f"rwm-gym gap: {err}", file=sys.stderr)
         return 2
-    print(f"effect: {report['effect']} ({report['reason']})")
+    scope = f", {report['scope']}" if report["scope"] else ""
+    print(f"effect: {report['effect']}{scope} ({report['reason']})")
     for name, value in report["parameters"].items():
         print(f"  {name} = {value:.4g} ± {report['uncertainty'][name]:.2g} {report['units'][name]}")
     print(f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
