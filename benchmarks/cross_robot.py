@@ -79,19 +79,20 @@ class Options:
                            val_every=self.iterations, checkpoint_every=self.iterations)
 
 
-def collect_mix(env_id: str, options: Options, folder: Path) -> Path:
-    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged."""
+def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
+    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged:
+    `folder/<env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists)."""
     out = folder / f"{env_id}.h5"
     if out.exists():
         return out
     spec = load_spec(DMC_SPECS[env_id])
     parts = []
     for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
-        policy = RandomPolicy(spec, options.episodes, correlation=rho, scale=sigma)
+        policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
         policy.name = f"random(rho={rho},sigma={sigma})"
         path = folder / f"{env_id}.part{k}.h5"
-        collect(env_id, policy, options.episodes, path, seed=options.seed + 10_000 * k, num_envs=options.episodes,
-                max_steps=options.episode_steps, overwrite=True, progress=False)
+        collect(env_id, policy, episodes, path, seed=seed + 10_000 * k, num_envs=episodes, max_steps=episode_steps,
+                overwrite=True, progress=False)
         parts.append(path)
     merge_datasets(parts, out)
     for path in parts:
@@ -117,7 +118,8 @@ def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Option
 
 def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
     start = time.perf_counter()
-    dataset = Dataset.load(collect_mix(env_id, options, options.out / "data"))
+    dataset = Dataset.load(collect_mix(env_id, options.out / "data", options.episodes, options.episode_steps,
+                                       options.seed))
     spec = dataset.spec()
     base = options.train_config
     _, val_ids = dataset.split_episodes(base.val_fraction, base.seed)
