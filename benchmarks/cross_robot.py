@@ -2,11 +2,12 @@
 
 For every `DMC-*` physics env: collect a data mix (correlated random actions plus slow, large, saturating noisy
 actions), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with the same budget and
-hyperparameters, plus the "no change" predictor. The recipe is the one `benchmarks/world_models.py` uses on ANYmal D:
-`model_config_for(kind, spec)` (only the sizes come from each task spec) and `TrainConfig`'s defaults (history 32,
-forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the budget (`--iterations`) differs. Each is scored on held-out
-episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from its own mean predictions, and
-take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised state) at steps 8, 32 and 100.
+hyperparameters, plus the "no change" predictor. The recipe is the one `benchmarks/world_models.py` uses on
+ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task spec) and `TrainConfig`'s defaults
+(history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the budget (`--iterations`) differs.
+Each is scored on held-out episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from
+its own mean predictions, and take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised
+state) at steps 8, 32 and 100.
 
 Writes `results.json`, `results.md` (table + mean rank over domains and horizons) and `error_vs_horizon.png` to `--out`.
 
@@ -157,12 +158,13 @@ def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s
     config = options.train_config
     collect_s = sum(domain["collect_wall_s"] for domain in results.values())
     head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | train s |"
-    lines = [f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
-             f"(lower is better). One recipe for every domain: {options.iterations} iterations x {config.batch_size} "
-             f"windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, device {options.device}"
-             f", {options.threads} thread(s). Data per domain: {2 * options.episodes} episodes x "
-             f"{options.episode_steps} steps (random + noisy actions). Total wall time {wall_s / 60:.1f} min "
-             f"(data collection {collect_s / 60:.1f} min).", "", head, "|" + "---|" * (len(horizons) + 3)]
+    lines = [(f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
+              f"(lower is better). One recipe for every domain: {options.iterations} iterations x "
+              f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
+              f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
+              f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
+              f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."),
+             "", head, "|" + "---|" * (len(horizons) + 3)]
     for env_id, domain in results.items():
         for name, r in domain["models"].items():
             cells = " | ".join(f"{r['errors'][h - 1]:.3f}" for h in horizons)

@@ -1,7 +1,8 @@
 """PPO in imagination against PPO in physics on a dm_control suite task, both scored in dm_control physics.
 
-Imagination: collect random + noisy episodes in physics (the cross-robot benchmark's mix), train RWM with the cross-robot recipe (`model_config_for("rwm", spec)`, `TrainConfig` defaults),
-then train SB3 PPO on `RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.imagination.ppo.make_ppo`, same config and
+Imagination: collect random + noisy episodes in physics (the cross-robot benchmark's mix), train RWM with the
+cross-robot recipe (`model_config_for("rwm", spec)`, `TrainConfig` defaults), then train SB3 PPO on
+`RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.imagination.ppo.make_ppo`, same config and
 seed) on `DMC-<Domain>-<Task>-v0` for the same PPO wall time. Both policies then act deterministically for a full
 suite episode (1000 steps) from fixed seeds in physics; the score is the suite's return (at most 1000).
 
@@ -9,7 +10,7 @@ Writes `results.json`, `results.md` and `training.png` (PPO's mean step reward p
 
     python benchmarks/dmc_imagination.py --env DMC-Cheetah-Run-v0
     python benchmarks/dmc_imagination.py --env DMC-Walker-Walk-v0 --ppo-minutes 5
-    python benchmarks/dmc_imagination.py --wm-iterations 5 --ppo-minutes 0.1 --episodes 2 --eval-seeds 1   # smoke
+    python benchmarks/dmc_imagination.py --wm-iterations 5 --ppo-minutes 0.1 --episodes 2 --eval-seeds 1  # smoke
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from rwm_gym.physics.dmc import DMCVecEnv, make_core
 from rwm_gym.registration import DMC_SPECS
 
 sys.path.insert(0, str(Path(__file__).parent))
-from cross_robot import collect_mix  # noqa: E402
+from cross_robot import collect_mix
 
 
 @dataclass(frozen=True)
@@ -97,15 +98,15 @@ def markdown(r: dict, options: Options) -> str:
     imagination, physics = r["imagination"], r["physics"]
     rows = [("imagination", imagination, r["data_rows"],
              r["collect_wall_s"] + r["wm_wall_s"] + imagination["ppo_wall_s"],
-             f"collect {r['collect_wall_s']:.0f} s + world model {r['wm_wall_s']:.0f} s + PPO "
-             f"{imagination['ppo_wall_s']:.0f} s ({imagination['ppo_steps']} imagined steps)"),
+             (f"collect {r['collect_wall_s']:.0f} s + world model {r['wm_wall_s']:.0f} s + PPO "
+              f"{imagination['ppo_wall_s']:.0f} s ({imagination['ppo_steps']} imagined steps)")),
             ("physics", physics, physics["ppo_steps"], physics["ppo_wall_s"],
              f"PPO {physics['ppo_wall_s']:.0f} s ({physics['ppo_steps']} physics steps)")]
-    lines = [f"{options.env}: PPO ({options.num_envs} envs x {options.n_steps} steps per update, seed "
-             f"{options.seed}) trained {options.ppo_minutes:g} min in imagination ({r['imagined_env']}, world model "
-             f"{options.wm_iterations} iterations, imagined episodes {options.imagined_episode_steps} steps) or in "
-             f"physics; return of the deterministic policy over {options.eval_seeds} full physics episodes "
-             f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000).", "",
+    lines = [(f"{options.env}: PPO ({options.num_envs} envs x {options.n_steps} steps per update, seed "
+              f"{options.seed}) trained {options.ppo_minutes:g} min in imagination ({r['imagined_env']}, world model "
+              f"{options.wm_iterations} iterations, imagined episodes {options.imagined_episode_steps} steps) or in "
+              f"physics; return of the deterministic policy over {options.eval_seeds} full physics episodes "
+              f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000)."), "",
              "| trained in | physics return (mean +- std) | physics samples | wall time | of which |",
              "|---|---|---|---|---|"]
     for name, arm, samples, wall, detail in rows:

@@ -59,7 +59,7 @@ def _rollout(env: gym.Env, seed: int, steps: int = 12) -> np.ndarray:
     obs, _ = env.reset(seed=seed)
     rng, rows = np.random.default_rng(seed), [obs]
     for _ in range(steps):
-        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        obs, reward, terminated, _, _ = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
         assert not terminated and np.isfinite(reward)
         rows.append(np.append(obs, reward))
     return np.concatenate(rows)
@@ -67,7 +67,9 @@ def _rollout(env: gym.Env, seed: int, steps: int = 12) -> np.ndarray:
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_same_seed_same_rollout_and_the_suite_reward_of_the_prediction(env_id: str, checkpoints) -> None:
-    make = lambda: ImaginedEnv(checkpoints[env_id], env_id=env_id, sample_predictions=True)  # noqa: E731
+    def make() -> ImaginedEnv:
+        return ImaginedEnv(checkpoints[env_id], env_id=env_id, sample_predictions=True)
+
     first = _rollout(make(), 3)
     np.testing.assert_array_equal(first, _rollout(make(), 3))
     assert not np.array_equal(first, _rollout(make(), 4))
