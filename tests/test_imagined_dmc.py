@@ -116,5 +116,7 @@ def test_a_missing_or_foreign_checkpoint_is_refused_in_one_line(checkpoints) -> 
     with pytest.raises(ValueError, match=r"RWM-Cheetah-v0.safetensors: a world model of DMC-Cheetah-Run .* not of "
                                          r"RWM-Walker-v0"):
         gym.make("RWM-Walker-v0", checkpoint=checkpoints["RWM-Cheetah-v0"])
+    with pytest.raises(ValueError, match="push_interval_s needs a base_lin_vel state group"):
+        gym.make("RWM-Finger-v0", checkpoint=checkpoints["RWM-Finger-v0"], push_interval_s=1.0)
     with pytest.raises(ValueError, match="no MJCF model of its own"):
         gym.make("RWM-Hopper-v0", checkpoint=checkpoints["RWM-Hopper-v0"], render_mode="rgb_array")

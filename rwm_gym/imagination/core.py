@@ -85,6 +85,9 @@ class ImaginedCore:
         self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
         self.task: ImaginedTask = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
+        if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
+            raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
+                             f"{self.spec.name} has not")
         n, s, a = num_envs, self.spec.state_dim, self.spec.action_dim
         self.rngs = [np.random.default_rng() for _ in range(n)]
         self.state = np.zeros((n, s), dtype=np.float32)
