@@ -81,8 +81,19 @@ def evaluate(model, env_id: str, seeds: int) -> dict:
     return {"returns": returns.tolist(), "mean": float(returns.mean()), "std": float(returns.std())}
 
 
+def ppo_config(options: Options) -> PPOConfig:
+    """RWM's PPO settings (`PPOConfig` defaults) sized by `num_envs` and `n_steps`; the same in both arms."""
+    return PPOConfig(num_envs=options.num_envs, n_steps=options.n_steps)
+
+
+def untrained(env, options: Options) -> dict:
+    """The physics return of the policy both arms start from (same seed, same initial weights)."""
+    model = make_ppo(env, ppo_config(options), seed=options.seed, device=options.device)
+    return {"evaluation": evaluate(model, options.env, options.eval_seeds)}
+
+
 def run_arm(where: str, env, options: Options, out: Path) -> dict:
-    config = PPOConfig(num_envs=options.num_envs, n_steps=options.n_steps)
+    config = ppo_config(options)
     model = make_ppo(env, config, seed=options.seed, device=options.device)
     stats = learn(model, minutes=options.ppo_minutes, target_kl=config.target_kl)
     save_policy(model, out / f"ppo_{where}.zip")
@@ -109,6 +120,8 @@ def markdown(r: dict, options: Options) -> str:
               f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000)."), "",
              "| trained in | physics return (mean +- std) | physics samples | wall time | of which |",
              "|---|---|---|---|---|"]
+    e = r["untrained"]["evaluation"]
+    lines.append(f"| (untrained: the initial policy of both) | {e['mean']:.1f} +- {e['std']:.1f} | 0 | - | - |")
     for name, arm, samples, wall, detail in rows:
         e = arm["evaluation"]
         lines.append(f"| {name} | {e['mean']:.1f} +- {e['std']:.1f} | {samples} | {wall / 60:.1f} min | {detail} |")
@@ -174,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     result["imagination"] = run_arm("imagination", imagined, options, out)
     physics = DMCVecEnv(num_envs=options.num_envs, spec=DMC_SPECS[options.env])
     physics.seed(options.seed)
+    result["untrained"] = untrained(physics, options)
     result["physics"] = run_arm("physics", physics, options, out)
 
     write_json(out / "results.json", result)

@@ -57,3 +57,4 @@ def test_dmc_imagination_trains_both_arms_and_scores_them_in_physics(tmp_path: P
     for arm in ("imagination", "physics"):
         assert result[arm]["ppo_steps"] > 0 and len(result[arm]["evaluation"]["returns"]) == 1
     assert (tmp_path / "DMC-Finger-Spin-v0" / "ppo_imagination.zip").is_file()
+    assert len(result["untrained"]["evaluation"]["returns"]) == 1
