@@ -42,6 +42,14 @@ def test_cross_robot_writes_table_plot_and_json(tmp_path: Path, capsys) -> None:
     table = (tmp_path / "results.md").read_text()
     assert "| h=8 | h=32 | h=100 |" in table and "mean rank" in table and table in capsys.readouterr().out
     assert (tmp_path / "error_vs_horizon.png").stat().st_size > 0
+    saved = json.loads((tmp_path / "domains" / "DMC-Hopper-Hop-v0.json").read_text())
+    assert saved["models"] == result["domains"]["DMC-Hopper-Hop-v0"]["models"]
+    assert result["wall_s"] == pytest.approx(sum(d["wall_s"] for d in result["domains"].values()))
+    saved["models"]["RWM"]["errors"][7] = 123.0  # a finished domain is reused, not recomputed
+    (tmp_path / "domains" / "DMC-Hopper-Hop-v0.json").write_text(json.dumps(saved))
+    assert cross_robot.main(["--iterations", "2", "--episodes", "2", "--episode-steps", "140", "--out", str(tmp_path),
+                             "--domains", "DMC-Hopper-Hop-v0", "--eval-windows", "8"]) == 0
+    assert "| 123.000 |" in (tmp_path / "results.md").read_text()
     with pytest.raises(SystemExit):
         cross_robot.main(["--domains", "DMC-Nope-v0", "--out", str(tmp_path)])
 
