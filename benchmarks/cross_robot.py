@@ -2,11 +2,17 @@
 
 For every `DMC-*` physics env: collect a data mix (correlated random actions plus slow, large, saturating noisy
 actions), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with the same budget and
-hyperparameters (only the sizes come from each task spec), plus the "no change" predictor. Each is scored on held-out
-episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from its own mean predictions, and
-take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised state) at steps 8, 32 and 100.
+hyperparameters, plus the "no change" predictor. The recipe is the one `benchmarks/world_models.py` uses on
+ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task spec) and `TrainConfig`'s defaults
+(history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the budget (`--iterations`) differs.
+Each is scored on held-out episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from
+its own mean predictions, and take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised
+state) at steps 8, 32 and 100.
 
 Writes `results.json`, `results.md` (table + mean rank over domains and horizons) and `error_vs_horizon.png` to `--out`.
+Each finished domain is also kept in `--out/domains/<env>.json` and reused by a later run with the same settings, so
+an interrupted run resumes and disjoint `--domains` sets can run as separate processes before one run assembles the
+table. The wall time reported is the sum of the domains' own wall times (collection, training, evaluation).
 
     python benchmarks/cross_robot.py                       # full budget on CPU (see --help)
     python benchmarks/cross_robot.py --device cuda         # same on a GPU
@@ -17,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -27,6 +31,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from rwm_gym.atomic import atomic_write, write_json, write_text
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.data.policies import RandomPolicy
@@ -56,20 +61,12 @@ class Options:
     """Comma-separated physics env ids."""
     models: str = ",".join(MODELS)
     """Comma-separated models to run (default all)."""
-    episodes: int = 32
+    episodes: int = 16
     """Episodes per policy (random and noisy) and domain."""
-    episode_steps: int = 500
-    """Length of each collected episode (policy steps)."""
-    iterations: int = 1000
-    """Gradient steps per model (the same for every model and domain)."""
-    minutes: float = 0.0
-    """Wall-clock cap per model (0: none)."""
-    history: int = 32
-    """True steps each model warms up on, in training and evaluation."""
-    forecast: int = 8
-    """Autoregressive forecast steps in training (RWM, MLP, RSSM, Transformer)."""
-    hidden_size: int = 256
-    """GRU / MLP width, the same for every domain."""
+    episode_steps: int = 400
+    """Length of each collected episode (policy steps); at least 32 + max(horizons)."""
+    iterations: int = 150
+    """Gradient steps per model (the same for every model and domain); 150 fits ~45 min on one CPU core."""
     horizons: str = "8,32,100"
     """Forecast steps at which the error is reported."""
     eval_windows: int = 256
@@ -77,21 +74,30 @@ class Options:
     seed: int = 0
     device: str = "cpu"
     """torch device: cpu or cuda."""
+    threads: int = 1
+    """torch CPU threads (1 is fastest on a busy machine)."""
+
+    @property
+    def train_config(self) -> TrainConfig:
+        """The shared recipe: TrainConfig's defaults with this budget, seed and device."""
+        return TrainConfig(iterations=self.iterations, seed=self.seed, device=self.device,
+                           val_every=self.iterations, checkpoint_every=self.iterations)
 
 
-def collect_mix(env_id: str, options: Options, folder: Path) -> Path:
-    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged."""
+def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
+    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged:
+    `folder/<env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists)."""
     out = folder / f"{env_id}.h5"
     if out.exists():
         return out
     spec = load_spec(DMC_SPECS[env_id])
     parts = []
     for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
-        policy = RandomPolicy(spec, options.episodes, correlation=rho, scale=sigma)
+        policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
         policy.name = f"random(rho={rho},sigma={sigma})"
         path = folder / f"{env_id}.part{k}.h5"
-        collect(env_id, policy, options.episodes, path, seed=options.seed + 10_000 * k, num_envs=options.episodes,
-                max_steps=options.episode_steps, overwrite=True, progress=False)
+        collect(env_id, policy, episodes, path, seed=seed + 10_000 * k, num_envs=episodes, max_steps=episode_steps,
+                overwrite=True, progress=False)
         parts.append(path)
     merge_datasets(parts, out)
     for path in parts:
@@ -102,8 +108,8 @@ def collect_mix(env_id: str, options: Options, folder: Path) -> Path:
 @torch.no_grad()
 def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Options) -> np.ndarray:
     """Mean relative error at every forecast step 1..max(horizons) over held-out windows, (max_horizon,)."""
-    horizon = max(int(h) for h in options.horizons.split(","))
-    rows = options.history + horizon
+    horizon, history = max(int(h) for h in options.horizons.split(",")), options.train_config.history
+    rows = history + horizon
     windows = WindowData(dataset, Normalizer.from_spec(dataset.spec()), options.device)
     starts = windows.window_starts(val_ids, rows)
     if len(starts) == 0:
@@ -111,30 +117,45 @@ def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Option
     pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[:options.eval_windows]
     batch = windows.gather(starts[pick.to(starts.device)], rows)
     model.eval()
-    prediction, _ = model.forecast(batch.states[:, :options.history], batch.actions[:, :rows - 1], horizon,
-                                   sample=False)
-    return relative_error(prediction.state_mean, batch.states[:, options.history:]).mean(0).cpu().numpy()
+    prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, :rows - 1], horizon, sample=False)
+    return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()
+
+
+SETTINGS = ("episodes", "episode_steps", "iterations", "horizons", "eval_windows", "seed", "device", "models")
+"""Options a saved domain result must share with the current run to be reused."""
 
 
 def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
-    dataset = Dataset.load(collect_mix(env_id, options, options.out / "data"))
+    path = options.out / "domains" / f"{env_id}.json"
+    settings = {k: str(getattr(options, k)) for k in SETTINGS}
+    if path.exists():
+        saved = json.loads(path.read_text())
+        if saved.get("settings") == settings:
+            bar.update(len(saved["models"]))
+            return saved
+    start_domain = start = time.perf_counter()
+    dataset = Dataset.load(collect_mix(env_id, options.out / "data", options.episodes, options.episode_steps,
+                                       options.seed))
     spec = dataset.spec()
-    base = TrainConfig(history=options.history, forecast=options.forecast, iterations=options.iterations,
-                       minutes=options.minutes, seed=options.seed, device=options.device)
+    base = options.train_config
     _, val_ids = dataset.split_episodes(base.val_fraction, base.seed)
-    results = {"state_dim": spec.state_dim, "action_dim": spec.action_dim, "rows": dataset.num_steps, "models": {}}
+    results = {"state_dim": spec.state_dim, "action_dim": spec.action_dim, "rows": dataset.num_steps,
+               "collect_wall_s": time.perf_counter() - start, "models": {}}
     for name in options.models.split(","):
         kind, forecast = MODELS[name]
         bar.set_postfix_str(f"{env_id} {name}")
         config = replace(base, forecast=forecast or base.forecast)
-        model_config = model_config_for(kind, spec, hidden_size=options.hidden_size)
+        model_config = model_config_for(kind, spec)
         start = time.perf_counter()
         trained = train(dataset, model_config, config, progress=False)
         wall = time.perf_counter() - start
         errors = horizon_errors(trained.model, dataset, val_ids, options)
-        results["models"][name] = {"errors": errors.tolist(), "train_wall_s": wall,
+        results["models"][name] = {"errors": errors.tolist(), "train_wall_s": wall, "kind": kind,
+                                   "forecast": config.forecast,
                                    "iterations": trained.stats["iterations"]}
         bar.update(1)
+    results.update(settings=settings, wall_s=time.perf_counter() - start_domain)
+    write_json(path, results)
     return results
 
 
@@ -151,15 +172,22 @@ def mean_ranks(results: dict, horizons: list[int]) -> dict[str, float]:
 
 
 def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s: float, options: Options) -> str:
+    config = options.train_config
+    collect_s = sum(domain["collect_wall_s"] for domain in results.values())
     head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | train s |"
-    lines = [f"Relative L1 error of open-loop forecasts after {options.history} true steps (lower is better); "
-             f"{options.iterations} iterations per model, device {options.device}, total wall time {wall_s / 60:.1f} "
-             "min.", "", head, "|" + "---|" * (len(horizons) + 3)]
+    lines = [(f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
+              f"(lower is better). One recipe for every domain: {options.iterations} iterations x "
+              f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
+              f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
+              f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
+              f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."),
+             "", head, "|" + "---|" * (len(horizons) + 3)]
     for env_id, domain in results.items():
         for name, r in domain["models"].items():
             cells = " | ".join(f"{r['errors'][h - 1]:.3f}" for h in horizons)
             lines.append(f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['train_wall_s']:.0f} |")
-    lines += ["", "| model | mean rank |", "|---|---|"]
+    lines += ["", f"Mean rank over {len(results)} domains x {len(horizons)} horizons (1 = lowest error):", "",
+              "| model | mean rank |", "|---|---|"]
     lines += [f"| {name} | {rank:.2f} |" for name, rank in sorted(ranks.items(), key=lambda item: item[1])]
     return "\n".join(lines) + "\n"
 
@@ -182,20 +210,8 @@ def plot(results: dict, path: Path) -> None:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
-    _atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
     plt.close(fig)
-
-
-def _atomic(path: Path, write) -> None:
-    """Write via a temp file in the same folder, then os.replace."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -205,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
                             help=docs.get(f.name, ""))
     options = Options(**vars(parser.parse_args(argv)))
+    torch.set_num_threads(options.threads)
     (options.out / "data").mkdir(parents=True, exist_ok=True)
     env_ids = options.domains.split(",")
     horizons = [int(h) for h in options.horizons.split(",")]
@@ -212,16 +229,20 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(options.models.split(",")) - set(MODELS))
     if unknown:
         parser.error(f"--models: unknown model {unknown[0]!r} (choose from {', '.join(MODELS)})")
+    unknown = sorted(set(env_ids) - set(DMC_SPECS))
+    if unknown:
+        parser.error(f"--domains: unknown env {unknown[0]!r} (choose from {', '.join(DMC_SPECS)})")
     with tqdm(total=len(env_ids) * len(options.models.split(",")), desc="cross-robot", unit="model") as bar:
         for env_id in env_ids:
             results[env_id] = run_domain(env_id, options, bar)
-    wall = time.perf_counter() - start
+    elapsed = time.perf_counter() - start
+    wall = sum(domain["wall_s"] for domain in results.values())
     ranks = mean_ranks(results, horizons)
-    summary = {"options": {k: str(v) for k, v in asdict(options).items()}, "wall_s": wall, "mean_rank": ranks,
-               "domains": results}
-    _atomic(options.out / "results.json", lambda tmp: Path(tmp).write_text(json.dumps(summary, indent=1)))
+    summary = {"options": {k: str(v) for k, v in asdict(options).items()}, "wall_s": wall, "elapsed_s": elapsed,
+               "mean_rank": ranks, "domains": results}
+    write_json(options.out / "results.json", summary)
     table = markdown(results, horizons, ranks, wall, options)
-    _atomic(options.out / "results.md", lambda tmp: Path(tmp).write_text(table))
+    write_text(options.out / "results.md", table)
     plot(results, options.out / "error_vs_horizon.png")
     print(table)
     return 0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
+from rwm_gym.spec import load_spec
+
 # id -> entry points of the single env, the Gymnasium VectorEnv, and the batched core the collectors drive.
 PHYSICS_ENVS: dict[str, dict] = {
     "AnymalD-MuJoCo-v0": {
@@ -33,14 +35,16 @@ for _env_id, _spec in DMC_SPECS.items():
     }
 
 
-# Imagined envs: id -> entry points; `checkpoint=None` loads the task's checkpoint shipped in assets/.
-IMAGINED_ENVS: dict[str, dict] = {
-    "RWM-AnymalD-v0": {
+# Imagined envs: id -> entry points. `checkpoint=None` loads the task's checkpoint shipped in assets/ (ANYmal D only:
+# the dm_control ids need checkpoint=PATH); a checkpoint of another task is refused. Ids come from the specs'
+# `imagined_env_id`.
+IMAGINED_ENVS: dict[str, dict] = {}
+for _env_id in ["RWM-AnymalD-v0"] + [load_spec(_spec).imagined_env_id for _spec in DMC_SPECS.values()]:
+    IMAGINED_ENVS[_env_id] = {
         "entry_point": "rwm_gym.imagination.env:ImaginedEnv",
-        "kwargs": {},
+        "kwargs": {"env_id": _env_id},
         "vector_entry_point": "rwm_gym.imagination.vec_env:ImaginedVectorEnv",
-    },
-}
+    }
 
 
 def register_all() -> None:

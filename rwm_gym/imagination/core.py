@@ -1,8 +1,10 @@
 """The imagined task: N rollouts of a trained world model stepped in one forward pass.
 
-`ImaginedCore` has the same interface as the physics core (`rwm_gym.physics.locomotion.LocomotionCore`): the same
-observation, command sampling, reward and termination code, fed with the model's predicted state and privileged
-signals instead of measured ones. Contacts are predicted logits > 0; termination is a predicted probability > 0.5.
+`ImaginedCore` has the same interface as the physics cores (`rwm_gym.physics.locomotion.LocomotionCore`,
+`rwm_gym.physics.dmc.DMCCore`): the same observation, and the task's commands, reward and termination
+(`rwm_gym.imagination.tasks`, chosen from the checkpoint's spec), fed with the model's predicted state and privileged
+signals instead of measured ones. Contacts are predicted logits > 0; a task that terminates (ANYmal D) ends an
+episode when the predicted termination probability is > 0.5.
 """
 
 from __future__ import annotations
@@ -17,22 +19,25 @@ import torch
 
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.reset_data import ResetWindows
+from rwm_gym.imagination.tasks import ImaginedTask, make_task
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.physics.locomotion import check_actions
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import TaskSpec
-from rwm_gym.task.commands import resample_period, sample_commands
 from rwm_gym.task.observation import build_observation
-from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
 
-DEFAULT_CHECKPOINTS = {"AnymalD": "checkpoints/anymal_d_rwm.safetensors"}
-"""Task name -> the checkpoint shipped in `assets/`."""
+DEFAULT_CHECKPOINTS = {"RWM-AnymalD-v0": "checkpoints/anymal_d_rwm.safetensors"}
+"""Imagined env id -> the checkpoint shipped in `assets/` (the dm_control ids have none)."""
 
 
-def default_checkpoint(task: str = "AnymalD") -> Path:
-    path = assets_dir() / DEFAULT_CHECKPOINTS[task]
+def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
+    """The checkpoint shipped for an imagined env id."""
+    if env_id not in DEFAULT_CHECKPOINTS:
+        raise ValueError(f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
+                         f"with `rwm-gym collect`, train one with `rwm-gym train`)")
+    path = assets_dir() / DEFAULT_CHECKPOINTS[env_id]
     if not path.is_file():
-        raise FileNotFoundError(f"the default {task} checkpoint {path} is not installed; pass checkpoint=PATH")
+        raise FileNotFoundError(f"the default {env_id} checkpoint {path} is not installed; pass checkpoint=PATH")
     return path
 
 
@@ -62,30 +67,36 @@ class ImaginedCore:
     """N imagined rollouts; arrays are (N, ...) numpy, the model runs on `device`."""
 
     def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                 reset_data: str | Path | None = None, options: ImaginationOptions | None = None, **kwargs):
+                 reset_data: str | Path | None = None, options: ImaginationOptions | None = None,
+                 env_id: str | None = None, **kwargs):
+        """env_id: the imagined env id this core serves (registration passes it): picks the shipped checkpoint when
+        `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides."""
         self.options = options or ImaginationOptions(**kwargs)
-        self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint()
+        self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
         self.spec: TaskSpec = self.meta.spec
+        if env_id is not None and self.spec.imagined_env_id != env_id:
+            raise ValueError(f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
+                             f"not of {env_id}")
         self.norm = self.meta.normalizer
         self.device = torch.device(device)
         self.num_envs = num_envs
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
         self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.period = resample_period(self.spec.command, self.spec.policy_dt) if self.options.resample_commands \
-            else np.iinfo(np.int64).max
+        self.task: ImaginedTask = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
+        if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
+            raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
+                             f"{self.spec.name} has not")
         n, s, a = num_envs, self.spec.state_dim, self.spec.action_dim
         self.rngs = [np.random.default_rng() for _ in range(n)]
         self.state = np.zeros((n, s), dtype=np.float32)
         self.contact = np.zeros((n, self.spec.contact_dim), dtype=bool)
         self.foot_height = np.zeros((n, self.spec.foot_dim), dtype=np.float32)
-        self.command = np.zeros((n, len(self.spec.command.names)), dtype=np.float32)
         self.last_action = np.zeros((n, a))
         self.steps = np.zeros(n, dtype=np.int64)
         self.uncertainty = np.zeros(n)
         self.member = torch.zeros(n, dtype=torch.long, device=self.device)
-        self.air_time = FeetAirTime(n, self.spec.foot_dim)
         self.hidden = self.model.initial_hidden(n, self.device)
         self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
@@ -101,6 +112,11 @@ class ImaginedCore:
             return Path(dataset)
         raise ValueError(f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
                          f"{dataset!r} is not here; pass reset_data=PATH")
+
+    @property
+    def command(self) -> np.ndarray:
+        """(N, K) the task's current commands (K = 0 for tasks without commands)."""
+        return self.task.command
 
     @property
     def ensemble_size(self) -> int:
@@ -130,10 +146,9 @@ class ImaginedCore:
         self.contact[ids] = np.stack([w.contact for w in windows])
         self.foot_height[ids] = np.stack([w.foot_height for w in windows])
         self.last_action[ids] = np.stack([w.actions[-1] for w in windows])
-        self.command[ids] = sample_commands(self.spec.command, [self.rngs[i] for i in ids])
+        self.task.reset(ids, [self.rngs[i] for i in ids])
         self.steps[ids] = 0
         self.uncertainty[ids] = 0.0
-        self.air_time.reset(ids)
         return self.observe(ids)
 
     @torch.no_grad()
@@ -154,13 +169,11 @@ class ImaginedCore:
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
         contact = (p.contact_logits > 0).cpu().numpy()
         foot_height = self.norm.denormalize_foot_height(p.foot_height.cpu().numpy()).astype(np.float32)
-        terminated = (p.termination_logit > 0).cpu().numpy() | diverged
+        terminated = self.task.terminated(p.termination_logit.cpu().numpy()) | diverged
         self.uncertainty = np.nan_to_num(p.uncertainty.cpu().numpy().astype(np.float64), nan=0.0)
 
-        feet = np.isin(self.spec.privileged.contact_bodies, self.spec.privileged.feet)
-        air = self.air_time.update(contact[:, feet], self.spec.policy_dt, self.spec.reward.feet_air_time_target)
-        terms = reward_terms(self.spec, next_state, self.state, contact, self.command, actions, self.last_action, air)
-        reward = total_reward(self.spec, terms) - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
+        reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)
+        reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
         reward = np.where(diverged, 0.0, reward)
         info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty": self.uncertainty.copy(),
                 **{f"reward/{k}": v for k, v in terms.items()}}
@@ -169,9 +182,7 @@ class ImaginedCore:
         self.steps += 1
         truncated = (self.steps >= self.episode_steps) & ~terminated
         self._push()
-        resample = np.flatnonzero(self.steps % self.period == 0)
-        if len(resample):
-            self.command[resample] = sample_commands(self.spec.command, [self.rngs[i] for i in resample])
+        self.task.advance(self.steps, self.rngs)
         return self.observe(), reward.astype(np.float64), terminated, truncated, info
 
     def _push(self) -> None:

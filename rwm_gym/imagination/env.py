@@ -1,8 +1,9 @@
-"""`RWM-AnymalD-v0`: a `gymnasium.Env` whose step queries the world model instead of physics.
+"""`RWM-AnymalD-v0`, `RWM-Cheetah-v0`, ...: a `gymnasium.Env` whose step queries the world model instead of physics.
 
-Same observation and action spaces, commands, reward and termination as the physics env (`AnymalD-MuJoCo-v0`).
-`render_mode="rgb_array"` draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the
-base position integrated from the predicted velocity.
+Same observation and action spaces, commands, reward and termination as the task's physics env (`AnymalD-MuJoCo-v0`,
+`DMC-Cheetah-Run-v0`, ...; see `rwm_gym.imagination.tasks`). `render_mode="rgb_array"` (tasks with their own MJCF
+model, i.e. ANYmal D) draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the base
+position integrated from the predicted velocity.
 """
 
 from __future__ import annotations
@@ -21,10 +22,14 @@ class ImaginedEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
-                 render_mode: str | None = None, width: int = 640, height: int = 480, **options):
+                 render_mode: str | None = None, width: int = 640, height: int = 480, env_id: str | None = None,
+                 **options):
         self.core = ImaginedCore(checkpoint, 1, device=device, reset_data=reset_data,
-                                 options=ImaginationOptions(**options))
+                                 options=ImaginationOptions(**options), env_id=env_id)
         self.task_spec = self.core.spec
+        if render_mode is not None and not self.task_spec.model:
+            raise ValueError(f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "
+                             "dream with; render its physics env instead")
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.render_mode = render_mode

@@ -1,6 +1,7 @@
 """The imagined env, batched: all N rollouts in one forward pass of the world model.
 
-`gym.make_vec("RWM-AnymalD-v0", num_envs=N, vectorization_mode="vector_entry_point")` gives `ImaginedVectorEnv`;
+`gym.make_vec("RWM-AnymalD-v0", num_envs=N, vectorization_mode="vector_entry_point")` (or any `RWM-*` id) gives
+`ImaginedVectorEnv`;
 SB3 takes `ImaginedVecEnv`. Both share the auto-reset rules of `rwm_gym.vector`; every reset replays a real warm-up.
 """
 
@@ -13,9 +14,9 @@ from rwm_gym.vector import CoreVecEnv, CoreVectorEnv
 
 
 def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                       reset_data: str | Path | None = None, **options) -> ImaginedCore:
+                       reset_data: str | Path | None = None, env_id: str | None = None, **options) -> ImaginedCore:
     return ImaginedCore(checkpoint, num_envs, device=device, reset_data=reset_data,
-                        options=ImaginationOptions(**options))
+                        options=ImaginationOptions(**options), env_id=env_id)
 
 
 class ImaginedVectorEnv(CoreVectorEnv):

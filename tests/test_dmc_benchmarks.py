@@ -1,0 +1,68 @@
+"""Smoke tests of the dm_control benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py), tiny budgets."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).parent.parent / "benchmarks"
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses resolve their annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cross_robot_trains_every_robot_with_the_anymal_recipe() -> None:
+    cross_robot = _script("cross_robot")
+    from rwm_gym.model.config import TrainConfig, config_difference
+
+    budget = ("iterations", "val_every", "checkpoint_every")
+    assert config_difference(cross_robot.Options().train_config, TrainConfig(), ignore=budget) is None
+    assert cross_robot.MODELS["RWM-TF"] == ("rwm", 1) and cross_robot.MODELS["RWM"] == ("rwm", None)
+
+
+@pytest.mark.slow
+def test_cross_robot_writes_table_plot_and_json(tmp_path: Path, capsys) -> None:
+    cross_robot = _script("cross_robot")
+    assert cross_robot.main(["--iterations", "2", "--episodes", "2", "--episode-steps", "140", "--out", str(tmp_path),
+                             "--domains", "DMC-Finger-Spin-v0,DMC-Hopper-Hop-v0", "--eval-windows", "8"]) == 0
+    result = json.loads((tmp_path / "results.json").read_text())
+    assert set(result["domains"]) == {"DMC-Finger-Spin-v0", "DMC-Hopper-Hop-v0"}
+    assert set(result["mean_rank"]) == set(cross_robot.MODELS)
+    for domain in result["domains"].values():
+        assert all(len(m["errors"]) == 100 and m["iterations"] in (0, 2) for m in domain["models"].values())
+    table = (tmp_path / "results.md").read_text()
+    assert "| h=8 | h=32 | h=100 |" in table and "mean rank" in table and table in capsys.readouterr().out
+    assert (tmp_path / "error_vs_horizon.png").stat().st_size > 0
+    saved = json.loads((tmp_path / "domains" / "DMC-Hopper-Hop-v0.json").read_text())
+    assert saved["models"] == result["domains"]["DMC-Hopper-Hop-v0"]["models"]
+    assert result["wall_s"] == pytest.approx(sum(d["wall_s"] for d in result["domains"].values()))
+    saved["models"]["RWM"]["errors"][7] = 123.0  # a finished domain is reused, not recomputed
+    (tmp_path / "domains" / "DMC-Hopper-Hop-v0.json").write_text(json.dumps(saved))
+    assert cross_robot.main(["--iterations", "2", "--episodes", "2", "--episode-steps", "140", "--out", str(tmp_path),
+                             "--domains", "DMC-Hopper-Hop-v0", "--eval-windows", "8"]) == 0
+    assert "| 123.000 |" in (tmp_path / "results.md").read_text()
+    with pytest.raises(SystemExit):
+        cross_robot.main(["--domains", "DMC-Nope-v0", "--out", str(tmp_path)])
+
+
+@pytest.mark.slow
+def test_dmc_imagination_trains_both_arms_and_scores_them_in_physics(tmp_path: Path) -> None:
+    dmc_imagination = _script("dmc_imagination")
+    assert dmc_imagination.main(["--env", "DMC-Finger-Spin-v0", "--wm-iterations", "2", "--ppo-minutes", "0.05",
+                                 "--episodes", "2", "--episode-steps", "60", "--num-envs", "4", "--n-steps", "16",
+                                 "--eval-seeds", "1", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "DMC-Finger-Spin-v0" / "results.json").read_text())
+    assert result["imagined_env"] == "RWM-Finger-v0" and result["data_rows"] == 4 * 61
+    for arm in ("imagination", "physics"):
+        assert result[arm]["ppo_steps"] > 0 and len(result[arm]["evaluation"]["returns"]) == 1
+    assert (tmp_path / "DMC-Finger-Spin-v0" / "ppo_imagination.zip").is_file()
+    assert len(result["untrained"]["evaluation"]["returns"]) == 1
