@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +36,7 @@ from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.data.policies import RandomPolicy
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import field_docs
+from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.losses import relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
@@ -215,11 +215,8 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    docs = field_docs(Options)
     parser = argparse.ArgumentParser(description=Options.__doc__)
-    for f in fields(Options):
-        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
-                            help=docs.get(f.name, ""))
+    add_dataclass_options(parser, Options)
     options = Options(**vars(parser.parse_args(argv)))
     torch.set_num_threads(options.threads)
     (options.out / "data").mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +29,7 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.ppo import PPOConfig, learn, make_ppo, save_policy
 from rwm_gym.imagination.vec_env import ImaginedVecEnv
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import field_docs
+from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.train import train
 from rwm_gym.physics.dmc import DMCVecEnv, make_core
 from rwm_gym.registration import DMC_SPECS
@@ -150,11 +150,8 @@ def plot(r: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    docs = field_docs(Options)
     parser = argparse.ArgumentParser(description=Options.__doc__)
-    for f in fields(Options):
-        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
-                            help=docs.get(f.name, ""))
+    add_dataclass_options(parser, Options)
     options = Options(**vars(parser.parse_args(argv)))
     if options.env not in DMC_SPECS:
         parser.error(f"--env: unknown env {options.env!r} (choose from {', '.join(DMC_SPECS)})")

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -26,7 +26,7 @@ from tqdm import tqdm
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import field_docs
+from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.evaluate import EvalConfig, atomic_write, evaluate_checkpoint, plot_curves, write_json
 from rwm_gym.model.train import train
 
@@ -118,11 +118,8 @@ def markdown(results: dict, data: Dataset, options: Options, wall_s: float) -> s
 
 
 def main(argv: list[str] | None = None) -> int:
-    docs = field_docs(Options)
     parser = argparse.ArgumentParser(description=Options.__doc__)
-    for f in fields(Options):
-        parser.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default,
-                            help=docs.get(f.name, ""))
+    add_dataclass_options(parser, Options)
     options = Options(**vars(parser.parse_args(argv)))
     torch.set_num_threads(options.threads)
     out = Path(options.out)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -23,7 +23,7 @@ from torch import nn
 
 import rwm_gym  # noqa: F401  (registers the environments)
 from rwm_gym.imagination.ppo import observation_scale
-from rwm_gym.model.config import field_docs
+from rwm_gym.model.config import add_dataclass_options
 
 
 @dataclass(frozen=True)
@@ -168,7 +168,8 @@ def main(args: Args) -> dict:
 
         mean_step_reward = float(rew_buf.mean())
         returns_log.append(mean_step_reward)
-        ended = f"{len(finished):4d} episodes ended, mean return {np.mean(finished):+.3f}" if finished else "no episode ended"
+        ended = (f"{len(finished):4d} episodes ended, mean return {np.mean(finished):+.3f}" if finished
+                 else "no episode ended")
         print(f"update {update:4d}  steps {step:9d}  mean step reward {mean_step_reward:+.5f}  {ended}  "
               f"{step / (time.monotonic() - started):6.0f} steps/s", flush=True)
 
@@ -179,10 +180,7 @@ def main(args: Args) -> dict:
 
 def parse_args(argv: list[str] | None = None) -> Args:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    docs = field_docs(Args)
-    for f in fields(Args):
-        kind = str if f.name == "checkpoint" else type(f.default)
-        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default, help=docs.get(f.name))
+    add_dataclass_options(parser, Args, types={"checkpoint": str})
     return Args(**vars(parser.parse_args(argv)))
 
 

@@ -171,3 +171,19 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
         assert read_meta(tmp_path / "mbpo" / f"model_{k}.safetensors").provenance["init_checkpoint"] == str(previous)
     assert (tmp_path / "mbpo" / "mbpo.png").stat().st_size > 0
     assert json.loads((tmp_path / "mbpo" / "mbpo.json").read_text())["log"] == json.loads(json.dumps(log))
+
+
+def test_mbpo_options_come_from_its_config_fields():
+    import argparse
+
+    from rwm_gym.imagination import mbpo
+
+    parser = argparse.ArgumentParser()
+    mbpo.add_arguments(parser)
+    args = parser.parse_args(["--data", "d.h5", "--out", "o", "--model-finetune", "--iterations", "2",
+                              "--model-lr", "3e-4"])
+    assert (args.model_finetune, args.iterations, args.model_lr) == (True, 2, 3e-4)
+    assert parser.parse_args(["--data", "d", "--out", "o", "--no-model-finetune"]).model_finetune is False
+    defaults = parser.parse_args(["--data", "d", "--out", "o"])
+    assert defaults.model_finetune is False and defaults.ppo_timesteps == mbpo.MBPOConfig.ppo_timesteps
+    assert "Fine-tune the current world model" in parser.format_help()

@@ -1,8 +1,8 @@
 """The gap report: `report.json`, `report.md` and PNG plots (per-channel residuals before/after, rollout overlay).
 
 report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `scope` (`global`, `leg` or null),
-`parameters` ({name: value}), `units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over
-horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
+`parameters` ({name: value}), `units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after`
+(normalised state MSE averaged over horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
 `candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths); with a world model,
 `world_model` (`error` {predictor: {N: relative error}}, `windows`, `checkpoints`, `metric`, `config`, `plot`).
 """
@@ -92,7 +92,8 @@ def markdown(report: dict) -> str:
     lines.append("| effect | parameters | explained | score | p |\n|---|---|---|---|---|")
     for c in report["candidates"]:
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
-        lines.append(f"| {c['effect']}{' (per leg)' if c.get('scope') == 'leg' else ''} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
+        name = c["effect"] + (" (per leg)" if c.get("scope") == "leg" else "")
+        lines.append(f"| {name} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
                      f"{c['p_value']:.2g} |")
     if "world_model" in report:
         lines.append("\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n")

@@ -78,7 +78,8 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
     fits, before = fit_all(effects, resim, train, held, base, fit_config, progress)
-    leg = per_leg_candidate(fits, effects, spec, resim, train, held, base, before, fit_config) if config.per_leg else None
+    leg = (per_leg_candidate(fits, effects, spec, resim, train, held, base, before, fit_config) if config.per_leg
+           else None)
     if leg is not None:
         fits.append(leg[1])
     verdict = decide(fits, effects, fit_config)

@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rwm_gym.atomic import atomic_write
-from rwm_gym.model.config import field_docs
+from rwm_gym.model.config import add_dataclass_options
 
 
 @dataclass(frozen=True)
@@ -194,13 +194,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    docs = field_docs(MBPOConfig)
-    for f in fields(MBPOConfig):
-        flag = "--" + f.name.replace("_", "-")
-        if isinstance(f.default, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs.get(f.name))
-        else:
-            parser.add_argument(flag, type=type(f.default), default=f.default, help=docs.get(f.name))
+    add_dataclass_options(parser, MBPOConfig)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,9 +6,10 @@ docstrings double as the `--help` text of `rwm-gym train`.
 
 from __future__ import annotations
 
+import argparse
 import ast
 import inspect
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, fields
 from functools import cache
 from typing import Any
@@ -172,3 +173,17 @@ def field_docs(cls: type) -> dict[str, str]:
         else:
             previous = None
     return docs
+
+
+def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
+                          types: Mapping[str, Callable[[str], object]] | None = None) -> None:
+    """One `--field-name` option per field of the dataclass `cls`: its default, its type (booleans as `--x/--no-x`;
+    `types` for fields whose default does not say it, e.g. None) and its field docstring as the help text."""
+    docs = field_docs(cls)
+    for f in fields(cls):
+        flag, default = "--" + f.name.replace("_", "-"), f.default
+        if isinstance(default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=docs.get(f.name))
+        else:
+            kind = (types or {}).get(f.name, type(default))
+            parser.add_argument(flag, type=kind, default=default, help=docs.get(f.name))
