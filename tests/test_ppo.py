@@ -166,6 +166,7 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
     rows = [row["physics_samples"] for row in log]
     assert rows[0] == Dataset.load(data).num_steps and rows[0] < rows[1] < rows[2]
     assert report["best_physics_return"] == max(row["physics_return"] for row in log)
+    assert report["ppo"] == {"init_policy": str(tmp_path / "start.zip")}  # settings from the zip, not defaults
     for k in (1, 2):  # each model is fine-tuned from the one before
         previous = tiny_checkpoint if k == 1 else tmp_path / "mbpo" / "model_1.safetensors"
         assert read_meta(tmp_path / "mbpo" / f"model_{k}.safetensors").provenance["init_checkpoint"] == str(previous)

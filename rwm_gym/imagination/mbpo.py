@@ -108,9 +108,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
         best = (0, evaluation.episode_return)
         save_policy(policy, out / "best_policy.zip")
-        log.append({"iteration": 0, "imagined_step_reward": None, "imagined_steps": 0,
-                    "physics_return": evaluation.episode_return, "lin_vel_error": evaluation.lin_vel_error,
-                    "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls,
+        log.append({"iteration": 0, "imagined_step_reward": None, "imagined_steps": 0, **_physics(evaluation),
                     "model_error_fresh": None, "physics_samples": physics_samples,
                     "wall_s": time.monotonic() - started})
         tqdm.write(f"iteration 0 ({init_policy}): physics return {evaluation.episode_return:.2f}")
@@ -141,19 +139,25 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         all_data = merged
         checkpoint = retrain(all_data, k, checkpoint)
         row = {"iteration": k, "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
-               "imagined_steps": stats.timesteps, "physics_return": evaluation.episode_return,
-               "lin_vel_error": evaluation.lin_vel_error, "yaw_rate_error": evaluation.yaw_rate_error,
-               "falls": evaluation.falls, "model_error_fresh": model_error, "physics_samples": physics_samples,
+               "imagined_steps": stats.timesteps, **_physics(evaluation), "model_error_fresh": model_error,
+               "physics_samples": physics_samples,
                "wall_s": time.monotonic() - started}
         log.append(row)
         tqdm.write(f"iteration {k}: physics return {row['physics_return']:.2f}, |dv_xy| {row['lin_vel_error']:.3f}, "
                    f"model error on fresh data {model_error}, imagined step reward {row['imagined_step_reward']:.4f}")
         tqdm.write(format_table(evaluation))
-        report = {"config": config.to_dict(), "ppo": ppo_config.to_dict(), "data": str(data), "log": log,
+        ppo = ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)}  # its zip's settings
+        report = {"config": config.to_dict(), "ppo": ppo, "data": str(data), "log": log,
                   "best_iteration": best[0], "best_physics_return": best[1]}
         write_json(report, out / "mbpo.json")
         plot_curve(log, out / "mbpo.png")
     return report
+
+
+def _physics(evaluation) -> dict:
+    """The log fields of a physics evaluation (`rwm_gym.imagination.evaluate_policy.Evaluation`)."""
+    return {"physics_return": evaluation.episode_return, "lin_vel_error": evaluation.lin_vel_error,
+            "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
 
 
 def plot_curve(log: list[dict], path: Path) -> None:
