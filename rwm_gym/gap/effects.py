@@ -16,9 +16,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 import mujoco
+import numpy as np
 
 from rwm_gym.physics.params import PhysicsParams, build_model
 from rwm_gym.spec import TaskSpec

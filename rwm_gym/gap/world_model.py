@@ -128,9 +128,9 @@ def model_errors(checkpoint: str | Path, measured: Dataset, windows: Windows, hi
     return relative_error(prediction.state_mean, batch.states[:, history:]).cpu().numpy().astype(np.float64)
 
 
-def compare(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, nominal: PhysicsParams,
-            corrected: PhysicsParams, checkpoints: dict[str, Path | str], config: WorldModelGapConfig,
-            warmup: int) -> dict:
+def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, nominal: PhysicsParams,
+                       corrected: PhysicsParams, checkpoints: dict[str, Path | str], config: WorldModelGapConfig,
+                       warmup: int) -> dict:
     """Error of every predictor at every horizon on the held-out measured episodes.
 
     checkpoints: {predictor name: checkpoint} of the world-model rows. Returns {"error": {name: {N: error}},
