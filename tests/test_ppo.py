@@ -10,8 +10,8 @@ import torch
 from stable_baselines3 import PPO
 
 from rwm_gym.cli import main
-from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, plot
-from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
+from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
+from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
 
 TINY = PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32))
 
@@ -147,7 +147,7 @@ def test_imagined_return_rises_on_the_shipped_model():
 def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkpoint, tmp_path):
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset
-    from rwm_gym.imagination.mbpo import MBPOConfig, mbpo
+    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
     from rwm_gym.model.checkpoint import read_meta
 
     data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60,
@@ -177,7 +177,7 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 
-    from rwm_gym.imagination import mbpo
+    from rwm_gym.rl import mbpo
 
     parser = argparse.ArgumentParser()
     mbpo.add_arguments(parser)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 import rwm_gym
 from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
-from rwm_gym.data.policies import Policy, make_policy
+from rwm_gym.policies.base import Policy, make_policy
 from rwm_gym.registration import PHYSICS_ENVS
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")

@@ -70,10 +70,10 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     """
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset, merge_datasets
-    from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, write_json
     from stable_baselines3 import PPO
 
-    from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
     from rwm_gym.model.config import TrainConfig
     from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
     from rwm_gym.model.checkpoint import read_meta
@@ -155,7 +155,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
 
 
 def _physics(evaluation) -> dict:
-    """The log fields of a physics evaluation (`rwm_gym.imagination.evaluate_policy.Evaluation`)."""
+    """The log fields of a physics evaluation (`rwm_gym.rl.evaluate_policy.Evaluation`)."""
     return {"physics_return": evaluation.episode_return, "lin_vel_error": evaluation.lin_vel_error,
             "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
 

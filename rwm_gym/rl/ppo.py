@@ -209,7 +209,7 @@ def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = N
 def warm_up_critic(model: PPO, timesteps: int, *, progress: bool = True) -> TrainStats:
     """Train only the value function for `timesteps` env steps: actor frozen, learning rate constant.
 
-    A cloned actor (`rwm_gym.imagination.warm_start`) beside a freshly initialised critic gets advantages that are
+    A cloned actor (`rwm_gym.rl.warm_start`) beside a freshly initialised critic gets advantages that are
     noise, and PPO's first updates would pull it off the demonstrations before anything is learnt. Fitting the clone's
     value first makes those updates point somewhere.
     """
@@ -292,7 +292,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
     parser.add_argument("--bc-data", type=Path, nargs="+", default=None,
                         help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
-                             "from before PPO (rwm_gym.imagination.warm_start)")
+                             "from before PPO (rwm_gym.rl.warm_start)")
     parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
     parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
     parser.add_argument("--keep-best", action="store_true",
@@ -313,7 +313,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, plot, write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot, write_json
 
     given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
     if "net_arch" in given:
@@ -331,7 +331,7 @@ def run(args: argparse.Namespace) -> int:
     model = make_ppo(env, config, seed=args.seed, device=args.device)
     cloned = None
     if args.bc_data:
-        from rwm_gym.imagination.warm_start import CloneConfig, behaviour_clone
+        from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
 
         cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
                                                                   seed=args.seed), progress=True)
