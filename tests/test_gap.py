@@ -215,7 +215,11 @@ def test_cli_without_effect_says_none(tmp_path, capsys):
     assert main(["make-measured", "--episodes", "6", "--max-steps", "150", "--out", str(measured)]) == 0
     assert main(["gap", "--sim", SIM, "--measured", str(measured), "--out", str(out), "--world-model", "none"]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["effect"] == "none" and report["parameters"] == {}
+    assert report["effect"] == "none" and report["parameters"] == {} and report["effects"] == []
+    floor = report["noise_floor"]  # no effect: the gap is not significantly above the sensor-noise floor
+    assert not floor["above_floor"] and floor["floor"] > 0 and "Wilcoxon" in floor["test"]
+    assert "not significantly above the sensor-noise floor" in report["reason"]
+    assert report["learned_correction"] is None and set(report["identifiability"]) == set(EFFECT_NAMES)
     missing = tmp_path / "missing.safetensors"
     assert main(["gap", "--measured", str(measured), "--out", str(out), "--world-model", str(missing)]) == 2
     assert "missing.safetensors not found" in capsys.readouterr().err

@@ -73,24 +73,47 @@ def _related(a: Effect, b: Effect) -> bool:
     return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
 
 
-def name_step(candidates: list[Candidate], config: FitConfig, first: bool) -> tuple[Candidate | None, str]:
-    """The candidate this step names, or None, and why (see the module docstring)."""
+def name_step(candidates: list[Candidate], config: FitConfig, first: bool
+              ) -> tuple[Candidate | None, str, Candidate | None]:
+    """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
+    pick is None)."""
     ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
     if not ranked:
-        return None, "every candidate blew up the simulation"
+        return None, "every candidate blew up the simulation", None
     effect, best = ranked[0]
     share, needed = ((best.explained_fraction, config.min_explained) if first else
                      (best.excess_explained, config.min_excess_explained))
     what = "of the gap" if first else "of the gap above the noise floor"
     if best.p_value >= config.significance or share < needed:
         return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} {what} "
-                      f"(p={best.p_value:.2g}; needs {needed:.0%} and p<{config.significance})")
+                      f"(p={best.p_value:.2g}; needs {needed:.0%} and p<{config.significance})"), None
     for other_effect, other in ranked[1:]:
         if not _related(effect, other_effect) and \
                 1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
             return None, (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
-                          f"({other.explained_fraction:.0%}) explain the gap alike")
-    return ranked[0], f"explains {share:.0%} {what} (p={best.p_value:.2g})"
+                          f"({other.explained_fraction:.0%}) explain the gap alike"), (other_effect, other)
+    return ranked[0], f"explains {share:.0%} {what} (p={best.p_value:.2g})", None
+
+
+def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
+                   params: PhysicsParams, current: np.ndarray, floor: np.ndarray, config: FitConfig
+                   ) -> tuple[Candidate, str] | None:
+    """Two unrelated effects explain the gap alike: both present (a pair), or confusable? Fit the rival on top of the
+    best; if it still explains `min_excess_explained` of the gap above the floor, significantly, the best is named
+    (the rival is fitted again at the next step); else None (confusable: `unexplained`)."""
+    effect, fit = rival
+    on_top = best[0].physics(best[1].values, params)
+    after_best = gap_per_window(resim.spec, resim.rollout(held, on_top), held)
+    values = np.asarray(fit.values)
+    p = effect.parameters[0]
+    refit = fit_effect(effect, resim, train, on_top, config, values, (p.low, p.high))
+    score_fit(refit, effect, resim, held, on_top, after_best, config)
+    excess = float(after_best.mean() - floor.mean())
+    share = (float(after_best.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
+    if refit.status == "ok" and refit.p_value < config.significance and share >= config.min_excess_explained:
+        return best, (f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
+                      f"{share:.0%} of the rest above the floor on top of {best[1].effect}: both are present")
+    return None
 
 
 def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows, held: Windows,
@@ -116,7 +139,12 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         for _, fit in candidates:
             fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
         step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]
-        pick, reason = name_step(candidates, config, first=k == 0)
+        pick, reason, rival = name_step(candidates, config, first=k == 0)
+        if rival is not None:
+            best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score)
+            resolved = resolve_rivals(best, rival, resim, train, held, params, current, floor, config)
+            if resolved is not None:
+                pick, reason = resolved
         step["decision"] = reason
         if pick is None:
             break
