@@ -25,7 +25,7 @@ import torch
 from safetensors.torch import save_file
 
 from rwm_gym.atomic import atomic_write
-from rwm_gym.gap.resim import Resimulator, Windows
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.physics.robot import RobotLayout
 
@@ -39,6 +39,8 @@ class LearnedCorrectionConfig:
 
     history: int = 3
     """Policy steps of joint history per input (the current one and history-1 before)."""
+    stride: int = 2
+    """Rows between the measured rows used for training (every row: 1)."""
     hidden: int = 32
     """Width of the two hidden layers."""
     iterations: int = 1500
@@ -169,7 +171,14 @@ def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsPa
                            config: LearnedCorrectionConfig = LearnedCorrectionConfig()
                            ) -> tuple[LearnedTorque, ResidualTorqueNet, dict]:
     """Train the residual torque network on one-step windows of the fitting episodes, on top of `params`."""
-    x, missing, response = training_targets(resim, train, params, config.history)
+    for _ in range(3):  # leave out rows where the simulator itself blows up (rare; the count is reported)
+        try:
+            x, missing, response = training_targets(resim, train, params, config.history)
+            break
+        except SimulationDiverged as err:
+            train = train.subset(~err.windows)
+    else:
+        raise SimulationDiverged("the simulator keeps blowing up on the training rows", np.zeros(0, bool))
     net, info = train_correction(x, missing, response, config)
     return LearnedTorque(net, np.asarray(resim.spec.actuator.default_pose), config.history), net, info
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from rwm_gym.gap.fit import GAP_HORIZONS, gap_per_window, paired_p_value
 from rwm_gym.gap.measured import SensorNoise, noisy_measurement
-from rwm_gym.gap.resim import Resimulator, Windows
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.physics.robot import RobotLayout
 
@@ -59,16 +59,27 @@ def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noi
                                          noise, rng)
         twin = dataclasses.replace(windows, qpos=qpos.reshape(n, k1, nq), qvel=qvel.reshape(n, k1, nv),
                                    target=target.reshape(n, h, -1))
-        gaps.append(gap_per_window(spec, resim.rollout(twin, params), twin))
-    return np.mean(gaps, axis=0)
+        gap = np.full((n, len(GAP_HORIZONS)), np.nan)  # NaN where the noisy twin blows up (left out of the test)
+        try:
+            gap[:] = gap_per_window(spec, resim.rollout(twin, params), twin)
+        except SimulationDiverged as err:
+            keep = ~err.windows
+            kept = twin.subset(keep)
+            gap[keep] = gap_per_window(spec, resim.rollout(kept, params), kept)
+        gaps.append(gap)
+    return np.nanmean(gaps, axis=0)
 
 
 def compare_with_floor(gap: np.ndarray, floor: np.ndarray, windows: Windows, block_rows: int,
                        config: FloorConfig = FloorConfig()) -> dict:
-    """Is the per-window gap (W, 3) significantly above the floor (W, 3)? The report's `noise_floor` section."""
+    """Is the per-window gap (W, 3) significantly above the floor (W, 3)? The report's `noise_floor` section.
+    Windows where every noise draw of the floor blew up (NaN) are left out of both."""
+    keep = np.isfinite(floor).all(1)
+    gap, floor, windows = gap[keep], floor[keep], windows.subset(keep)
     ratio = float(gap.mean() / floor.mean())
     p_value = paired_p_value(gap.mean(1) - floor.mean(1), windows, block_rows)
-    return {"gap": float(gap.mean()), "floor": float(floor.mean()),
+    return {"gap": float(gap.mean()), "floor": float(floor.mean()), "windows": int(keep.sum()),
+            "windows_left_out": int((~keep).sum()),
             "floor_per_horizon": {str(h): float(v) for h, v in zip(GAP_HORIZONS, floor.mean(0))},
             "ratio": ratio, "p_value": p_value,
             "above_floor": bool(p_value < config.significance and ratio >= config.min_ratio),

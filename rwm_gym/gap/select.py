@@ -108,7 +108,7 @@ def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train:
     p = effect.parameters[0]
     refit = fit_effect(effect, resim, train, on_top, config, values, (p.low, p.high))
     score_fit(refit, effect, resim, held, on_top, after_best, config)
-    excess = float(after_best.mean() - floor.mean())
+    excess = float(after_best.mean() - np.nanmean(floor))
     share = (float(after_best.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
     if refit.status == "ok" and refit.p_value < config.significance and share >= config.min_excess_explained:
         return best, (f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
@@ -135,7 +135,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         fits = fit_all(remaining, resim, train, held, params, current, config, progress)
         candidates = [(remaining[f.effect], f) for f in fits]
         candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
-        excess = float(current.mean() - floor.mean())
+        excess = float(current.mean() - np.nanmean(floor))
         for _, fit in candidates:
             fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
         step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]

@@ -87,11 +87,9 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     resim = Resimulator(spec, sim_kwargs.get("xml_file"))
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
-    try:
-        nominal_sim = resim.rollout(held, base)
-    except SimulationDiverged as err:
-        raise ValueError(f"{measured}: the nominal simulator blows up re-simulating the measured data "
-                         f"({err.reason})") from err
+    held, dropped_held = drop_diverged(resim, held, base, measured)
+    train, dropped_train = drop_diverged(resim, train, base, measured)
+    nominal_sim = resim.rollout(held, base)
     before = gap_per_window(spec, nominal_sim, held)
     floor = noise_floor(resim, held, base, sensor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
@@ -126,6 +124,7 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
                         "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
                                   f"model and re-simulated again, mean of {floor_config.draws} draws"},
         "residual": residual,
+        "dropped_windows": {"held_out": dropped_held, "fitting": dropped_train},
         "identifiability": identifiability(effects, resim, held, base, nominal_sim, floor_test["floor"]),
         "where": located,
         "selection_steps": selection.steps,
@@ -150,6 +149,19 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     write_json(out / "report.json", report)
     atomic.write_text(out / "report.md", markdown(report))
     return report
+
+
+def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object, str | None]:
+    """The windows without those where the nominal simulator itself blows up (said in the report, never silent);
+    a one-line error if it blows up in most of them."""
+    try:
+        resim.rollout(windows, params)
+        return windows, None
+    except SimulationDiverged as err:
+        if err.windows.mean() > 0.5:
+            raise ValueError(f"{measured}: the nominal simulator blows up re-simulating the measured data "
+                             f"({err.reason})") from err
+        return windows.subset(~err.windows), f"dropped: the nominal simulator blows up there ({err.reason})"
 
 
 def named_section(selection: Selection) -> dict:
@@ -182,8 +194,11 @@ def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, he
     """Fit the residual torque network on the fitting episodes and judge it on the held-out windows."""
     from rwm_gym.gap.fit import paired_p_value
 
-    one_step = make_windows(data, train_ids, 1, 1, config.history - 1)
-    correction, net, info = fit_learned_correction(resim, one_step, params, config)
+    one_step = make_windows(data, train_ids, 1, config.stride, config.history - 1)
+    try:
+        correction, net, info = fit_learned_correction(resim, one_step, params, config)
+    except SimulationDiverged as err:
+        return {"kind": "learned", "status": f"rejected: {err.reason}", "config": dataclasses.asdict(config)}
     path = out / "learned_correction.safetensors"
     save_correction(net, path, config, list(resim.spec.actuator.joints))
     try:
