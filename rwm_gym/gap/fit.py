@@ -182,6 +182,30 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
                         float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
 
 
+def fit_coordinatewise(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
+                       start: np.ndarray, brackets: list[tuple[float, float]], evaluations: int) -> CandidateFit:
+    """One sweep of bounded Brent searches, one parameter at a time (the others held), each within its bracket and
+    `evaluations` re-simulations: robust where least squares stalls on a non-smooth cost (Coulomb friction, dead
+    band) with one parameter per joint group."""
+    rejected: list[str] = []
+    residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
+    values = np.asarray(start, float).copy()
+    for i, (lo, hi) in enumerate(brackets):
+        def cost(x: float, i: int = i) -> float:
+            trial = values.copy()
+            trial[i] = x
+            return float(np.mean(residual(trial) ** 2))
+
+        p = effect.parameters[i]
+        found = optimize.minimize_scalar(cost, bounds=(lo, hi), method="bounded",
+                                         options={"xatol": 5e-3 * (p.high - p.low), "maxiter": evaluations})
+        values[i] = found.x
+    r_star = residual(values)
+    return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
+                        [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
+                        float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
+
+
 def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarray) -> list[float]:
     """1-sigma per parameter from a forward-difference Jacobian at the optimum (discrete: half a step)."""
     jac = np.zeros((len(r_star), len(values)))

@@ -3,7 +3,7 @@
 A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
 one-parameter joint effect (friction, damping, armature, motor strength, torque limit, backlash) of a selection step
-is also fitted per group (least squares from its global value, `fit.fit_effect`) and scored on the same held-out
+is also fitted per group (one bounded search per group value, `fit.fit_coordinatewise`) and scored on the same held-out
 windows with the same rule: every parameter beyond the first inflates the remaining gap by
 `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain that much more to win. Per joint (12
 parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.effects import Effect, Parameter
-from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_effect, score_fit
+from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_coordinatewise, score_fit
 from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
@@ -114,7 +114,8 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
         if form is None:
             continue
         start = np.full(len(form.parameters), best.values[0])
-        fit = fit_effect(form, resim, train, base, config, start, (p.low, p.high))
+        fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
+                                 config.max_evaluations)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, fit))
     grouped = [f for _, f in out if f.status == "ok"]
@@ -122,7 +123,9 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
     if form is not None and grouped and max(f.score for f in grouped) > best.score \
             and len(train) >= MIN_WINDOWS_PER_PARAMETER * len(form.parameters):
         start = per_joint_start(spec, max(grouped, key=lambda f: f.score))
-        fit = fit_effect(form, resim, train, base, config, start, (p.low, p.high))
+        width = 0.25 * (p.high - p.low)  # each joint near its group's value
+        brackets = [(max(p.low, v - width), min(p.high, v + width)) for v in start]
+        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, fit))
     return out
