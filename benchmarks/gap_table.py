@@ -66,14 +66,15 @@ def magnitude(name: str, scale: float) -> list[float]:
 
 def grid() -> list[Case]:
     """Every case, in run order: the most informative first, so a partial run covers every kind."""
-    first = [Case("none", "none"), Case("spring_KFE_30", "outside", spring=("KFE", 30.0))]
-    first += [Case(f"{n}_1x", "single", {n: magnitude(n, 1.0)}) for n in EFFECT_NAMES]
-    first += [Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
-              Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
-              Case("friction+payload", "pair", {"joint_friction": magnitude("joint_friction", 1.5),
-                                                "payload": magnitude("payload", 1.0)}),
-              Case("delay+armature", "pair", {"action_delay": magnitude("action_delay", 1.0),
-                                              "armature": magnitude("armature", 1.0)})]
+    first = [Case("none", "none"), Case("spring_KFE_30", "outside", spring=("KFE", 30.0)),
+             Case("action_delay_1x", "single", {"action_delay": magnitude("action_delay", 1.0)}),
+             Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
+             Case("friction+payload", "pair", {"joint_friction": magnitude("joint_friction", 1.5),
+                                               "payload": magnitude("payload", 1.0)}),
+             Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
+             Case("delay+armature", "pair", {"action_delay": magnitude("action_delay", 1.0),
+                                             "armature": magnitude("armature", 1.0)})]
+    first += [Case(f"{n}_1x", "single", {n: magnitude(n, 1.0)}) for n in EFFECT_NAMES if n != "action_delay"]
     rest = [Case(f"{n}_{s}x", "single", {n: magnitude(n, s)}) for s in (0.5, 2.0) for n in EFFECT_NAMES]
     rest += [Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
              Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),

@@ -98,7 +98,7 @@ def markdown(report: dict) -> str:
         if learned["status"] == "ok":
             lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
                          f"({learned['explained_fraction']:.1%} of what the named effects left, "
-                         f"p={learned['p_value']:.2g}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+                         f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
         else:
             lines.append(f"{learned['status']}\n")
     lines.append("## Identifiability from these data\n")

@@ -206,10 +206,11 @@ def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, he
     except SimulationDiverged as err:
         return {"kind": "learned", "status": f"rejected: the simulation blows up with it ({err.reason})",
                 "path": str(path), "training": info, "config": dataclasses.asdict(config)}
+    p_value = paired_p_value(after.mean(1) - corrected.mean(1), held, fit_config.block_rows)
     return {"kind": "learned residual joint torque (actuator-network style MLP), not a named effect",
             "status": "ok", "gap_before": float(after.mean()), "gap_after": float(corrected.mean()),
             "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
-            "p_value": paired_p_value(after.mean(1) - corrected.mean(1), held, fit_config.block_rows),
+            "p_value": p_value, "kept": bool(p_value < fit_config.significance and corrected.mean() < after.mean()),
             "residual": compare_with_floor(corrected, floor, held, fit_config.block_rows, floor_config),
             "path": str(path), "training": info, "config": dataclasses.asdict(config),
             "note": "applied in re-simulation as qfrc_applied; corrected_model.xml and corrected_physics.json do not "
