@@ -203,6 +203,30 @@ def markdown(rows: list[dict], summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def side_by_side(rows: list[dict]) -> str:
+    """One line per case, the data sources side by side (the README's table)."""
+    sources = sorted({r["source"] for r in rows})
+    by = {(r["case"], r["source"]): r for r in rows}
+    order = [c.name for c in grid()]
+    cases = sorted({r["case"] for r in rows}, key=lambda c: order.index(c) if c in order else len(order))
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "not run"
+        if "error" in r:
+            return "error"
+        named = ", ".join(f"{n}" + (f" ({s})" if s != "global" else "") for n, s in r["named"]) or r["verdict"]
+        err = "; ".join(f"err {v:.0%}" for v in r["magnitude_error"].values())
+        learned = (f"; learned {r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None
+                   else "")
+        mark = "✓" if r["correct"] else "✗"
+        return f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{learned}"
+
+    lines = ["| case | " + " | ".join(sources) + " |", "|---|" + "---|" * len(sources)]
+    lines += [f"| {c} | " + " | ".join(cell(by.get((c, s))) for s in sources) + " |" for c in cases]
+    return "\n".join(lines) + "\n"
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -265,6 +289,7 @@ def main() -> None:
     write_json(args.out / "summary.json", {"summary": summary, "cases_finished": len(rows),
                                            "cases_in_grid": len(grid()) * len(args.sources), "rows": rows})
     write_text(args.out / "gap_table.md", markdown(rows, summary))
+    write_text(args.out / "gap_table_side_by_side.md", side_by_side(rows))
     if rows:
         plot(rows, args.out / "gap_table.png")
     print(markdown(rows, summary))
