@@ -9,6 +9,7 @@ training statistics and the physics evaluation go beside it as JSON.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -18,7 +19,7 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
 from rwm_gym.model.config import field_docs
@@ -63,6 +64,9 @@ class PPOConfig:
     """Global gradient-norm clip."""
     critic_warmup_steps: int = 0
     """Env steps that train only the critic before the actor moves (for a warm-started actor; 0: none)."""
+    positive_reward_only: bool = False
+    """Clip each step's reward at 0 from below (legged_gym's only_positive_rewards): a young policy whose penalties
+    outweigh its tracking reward is not paid to end its episodes early."""
 
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
@@ -110,11 +114,24 @@ class ScaledObservation(BaseFeaturesExtractor):
         return (observations - self.mean) / self.std
 
 
+class PositiveReward(VecEnvWrapper):
+    """Rewards clipped at 0 from below (`PPOConfig.positive_reward_only`); the clipped reward is what PPO sees."""
+
+    def reset(self):
+        return self.venv.reset()
+
+    def step_wait(self):
+        obs, reward, done, infos = self.venv.step_wait()
+        return obs, np.maximum(reward, 0.0), done, infos
+
+
 def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cpu") -> PPO:
     """A fresh SB3 PPO on `env` with `config`'s settings; observations scaled by the env's task spec."""
     import torch
 
     mean, std = observation_scale(env.get_attr("spec")[0])
+    if config.positive_reward_only:
+        env = PositiveReward(env)
 
     activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
     arch = list(config.net_arch)
@@ -132,9 +149,10 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
 class _Progress(BaseCallback):
     """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate, and one log row per rollout."""
 
-    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool):
+    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool, on_rollout=None):
         super().__init__()
         self.total, self.minutes, self.target_kl, self.show = total, minutes, target_kl, bar
+        self.on_rollout = on_rollout
         self.log: list[dict] = []
 
     def _on_training_start(self) -> None:
@@ -171,6 +189,8 @@ class _Progress(BaseCallback):
                          "mean_step_reward": reward, "episodes": len(self.finished), "mean_episode_return": returns,
                          "lr": lr, "approx_kl": None if kl is None else float(kl),
                          "std": float(self.model.policy.log_std.detach().exp().mean())})
+        if self.on_rollout is not None:
+            self.on_rollout(self.log[-1])
         self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
         self.bar.update(self.num_timesteps - self.bar.n - self.start_steps)
         self.bar.set_postfix(reward=f"{reward:.4f}", lr=f"{lr:.1e}")
@@ -193,14 +213,17 @@ class TrainStats:
 
 
 def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
-          progress: bool = True) -> TrainStats:
-    """Continue training `model` on its env for `timesteps` and/or `minutes` (whichever ends first)."""
+          progress: bool = True, callbacks: tuple[BaseCallback, ...] = (), on_rollout=None) -> TrainStats:
+    """Continue training `model` on its env for `timesteps` more steps and/or `minutes` (whichever ends first).
+
+    `callbacks` run after the progress bar's; `on_rollout(row)` receives each rollout's log row.
+    """
     if not timesteps and not minutes:
         raise ValueError("set a budget: timesteps and/or minutes")
     total = int(timesteps) if timesteps else 10**12
-    callback = _Progress(total if timesteps else None, minutes, target_kl, progress)
+    callback = _Progress(total if timesteps else None, minutes, target_kl, progress, on_rollout)
     before, started = model.num_timesteps, time.monotonic()
-    model.learn(total, callback=CallbackList([callback]), reset_num_timesteps=False, progress_bar=False)
+    model.learn(total, callback=CallbackList([callback, *callbacks]), reset_num_timesteps=False, progress_bar=False)
     wall = time.monotonic() - started
     done = model.num_timesteps - before
     return TrainStats(done, wall, done / max(wall, 1e-9), callback.log)
@@ -296,16 +319,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
     parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
     parser.add_argument("--keep-best", action="store_true",
-                        help="with --bc-data: if the physics return after PPO is below the clone's, write the clone as "
-                             "--out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
+                        help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
+                             "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
     parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
     parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
     parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
+    parser.add_argument("--run-dir", type=Path, default=None,
+                        help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
+                             "experience; running the same command again continues to the same --timesteps total")
+    parser.add_argument("--save-every", type=int, default=10, help="with --run-dir: rollouts between resume points")
+    parser.add_argument("--snapshot-every", type=int, default=25, help="with --run-dir: rollouts between snapshots")
+    parser.add_argument("--record-every", type=int, default=0,
+                        help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
+                             "world-model data (0: none)")
     docs = field_docs(PPOConfig)
     for f in fields(PPOConfig):
         flag = "--" + f.name.replace("_", "-")
         if f.name == "net_arch":
             parser.add_argument(flag, type=int, nargs="+", default=None, help=docs.get(f.name))
+        elif isinstance(f.default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=docs.get(f.name))
         elif f.name != "activation":
             parser.add_argument(flag, type=type(f.default), default=None, help=docs.get(f.name))
         else:
@@ -328,6 +361,8 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {"episode_steps": args.episode_steps} if args.where == "imagination" and args.episode_steps else {}
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
+    if args.run_dir is not None:
+        return run_resumable(args, config, env)
     model = make_ppo(env, config, seed=args.seed, device=args.device)
     cloned = None
     if args.bc_data:
@@ -368,14 +403,56 @@ def run(args: argparse.Namespace) -> int:
         print("physics evaluation" + (" after PPO:" if cloned else ":"))
         print(format_table(evaluation))
         report["evaluation"] = evaluation.to_dict()
-        if args.keep_best and cloned is not None and cloned_eval.episode_return > evaluation.episode_return:
+        report["kept"] = "ppo"
+        if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
             os.replace(out, out.with_name(out.stem + "_ppo.zip"))
             save_policy(PPO.load(out_bc, device=args.device), out)
             evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
-            print(f"PPO in imagination made the policy worse in physics (return {cloned_eval.episode_return:.2f} -> "
-                  f"{report['evaluation']['episode_return']:.2f}, falls {cloned_eval.falls} -> "
+            print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
+                  f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
                   f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
                   f"{out.with_name(out.stem + '_ppo.zip')}")
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
     print(f"report: {write_json(report, out.with_suffix('.json'))}")
+    return 0
+
+
+def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv) -> int:
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
+    from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
+
+    if not args.timesteps:
+        raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
+    run = TrainingRun(args.run_dir)
+    state = run.state()
+    if run.resumable and state.get("ppo") != json.loads(json.dumps(config.to_dict())):
+        raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
+    recorder = None
+    if args.record_every:
+        if args.where != "physics":
+            raise SystemExit("rwm-gym ppo: --record-every records physics experience; use it with --in physics")
+        from rwm_gym.rl.experience import RecordingCore
+
+        env.core = recorder = RecordingCore(env.core, run.next_experience_file(), every=args.record_every,
+                                            policy=f"ppo ({args.run_dir})", seed=args.seed)
+    if run.resumable:
+        env.seed(args.seed + 7919 * (state["restarts"] + 1))  # fresh episodes, not a replay of the first start
+        model = resume_model(run, PositiveReward(env) if config.positive_reward_only else env, args.device)
+        print(f"resuming {run.folder} at {model.num_timesteps:,} steps (restart {state['restarts'] + 1})")
+    else:
+        model = make_ppo(env, config, seed=args.seed, device=args.device)
+    checkpoint = RunCheckpoint(run, config, save_every=args.save_every, snapshot_every=args.snapshot_every,
+                               recorder=recorder, prior_wall_s=state.get("wall_s", 0.0),
+                               restarts=state.get("restarts", -1) + 1)
+    remaining = args.timesteps - model.num_timesteps
+    try:
+        if remaining > 0:
+            learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
+                  on_rollout=checkpoint.log_row)
+        checkpoint.save()
+    finally:
+        if recorder is not None:
+            recorder.close()
+    out = save_policy(model, args.out)
+    print(f"{run.folder}: {model.num_timesteps:,} steps in all; wrote {out}")
     return 0
