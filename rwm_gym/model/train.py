@@ -28,9 +28,9 @@ from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
-from rwm_gym.model.losses import relative_error, window_loss
+from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.windows import WindowData
+from rwm_gym.model.windows import Window, WindowData
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
@@ -88,6 +88,41 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     return total / len(starts)
 
 
+@dataclass
+class SegmentBatch:
+    """One training batch: segments of `TrainConfig.segment_rows` rows, each the start of a window of H + F rows drawn
+    uniformly; rows past an episode's end repeat its last row and the branches reaching them do not count."""
+
+    window: Window
+    """(B, R, ...) normalised rows."""
+    member: torch.Tensor | None
+    """(B,) long ensemble head per segment (None: one head)."""
+    real_rows: torch.Tensor
+    """(B,) long rows of each segment inside its episode."""
+
+
+def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int) -> SegmentBatch:
+    """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
+    head per segment. Consumes torch's global RNG (a seeded run draws the same batches)."""
+    segments = config.batch_size // config.branches
+    index = torch.randint(len(starts), (segments,))
+    member = torch.randint(ensemble_size, (segments,)).to(starts.device) if ensemble_size > 1 else None
+    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+    return SegmentBatch(window, member, real_rows)
+
+
+def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
+               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+    """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, grad_clip)
+    optimizer.step()
+    return float(loss.detach()), parts
+
+
 def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
     state = {"rng_torch": torch.get_rng_state()}
     if device.type == "cuda":
@@ -116,7 +151,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     device, out = torch.device(config.device), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-    rows = config.history + config.forecast
+    rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
         model = build_model(model_config).to(device).train()
@@ -128,6 +163,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
         val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
+        loss_fn = SegmentLoss(model, config, pos_weight)
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
         provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
@@ -169,18 +205,10 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                index = torch.randint(len(train_starts), (config.batch_size,))
-                member = None
-                if model_config.ensemble_size > 1:
-                    member = torch.randint(model_config.ensemble_size, (config.batch_size,)).to(device)
-                batch = windows.gather(train_starts[index.to(device)], rows)
-                loss, parts = window_loss(model, batch, config, pos_weight, member)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-                optimizer.step()
+                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size)
+                loss, parts = train_step(loss_fn, optimizer, params, batch, config.grad_clip)
                 iteration += 1
-                running += float(loss.detach())
+                running += loss
                 for name, value in parts.items():
                     parts_sum[name] = parts_sum.get(name, 0.0) + value
                 stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
@@ -199,7 +227,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 if iteration % config.checkpoint_every == 0:
                     save()
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
         except KeyboardInterrupt:
