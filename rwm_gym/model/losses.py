@@ -28,7 +28,8 @@ def _mean(values: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
     """Mean of values (N, ...); with weight (N,), the weighted mean over N of each row's mean."""
     if weight is None:
         return values.mean()
-    return (values.flatten(1).mean(1) * weight).sum() / weight.sum()
+    per_row = values.reshape(len(values), -1).mean(1)
+    return (per_row * weight).sum() / weight.sum()
 
 
 def _state_loss(prediction: Prediction, target: torch.Tensor, kind: str,
