@@ -57,6 +57,10 @@ class ModelConfig:
     """Attention heads of the Transformer."""
     transformer_layers: int = 2
     """Encoder layers of the Transformer."""
+    unit_gravity: bool = False
+    """Renormalise the predicted projected gravity to a unit vector (physical units) when the spec has that group."""
+    joint_limits: bool = False
+    """Clamp predicted joint positions to the MJCF joint ranges (gradient passes straight through)."""
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -72,7 +76,12 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
-        return cls(**_checked(cls, data))
+        """Fields a file predates take the value that reproduces how it was built, not today's default."""
+        return cls(**{**_MODEL_LEGACY, **_checked(cls, data)})
+
+
+_MODEL_LEGACY = {"unit_gravity": False, "joint_limits": False}
+"""ModelConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 
 @dataclass(frozen=True)

@@ -156,7 +156,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
-        model = build_model(model_config).to(device).train()
+        model = build_model(model_config, spec).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
         if len(train_starts) == 0:
@@ -298,6 +298,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             if f.name == "ensemble_size":
                 continue
             flag = "--" + f.name.replace("_", "-")
+            if isinstance(f.default, bool):
+                group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, dest=f.name,
+                                   help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
+                continue
             group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
                                choices={"loss": LOSSES, "schedule": SCHEDULES}.get(f.name), help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
     parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
