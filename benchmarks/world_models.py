@@ -86,6 +86,8 @@ class Options:
     """torch device: cpu or cuda."""
     max_windows: int = 256
     """Held-out windows per horizon in the evaluation."""
+    noise: str = "0.1,0.2,0.4,0.8"
+    """Comma-separated stds of the noise on the history (robustness columns; empty: none)."""
     threads: int = 1
     """torch CPU threads (1 is fastest on a busy machine: more threads spin-wait on shared cores)."""
 
@@ -156,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     data = Dataset.load(dataset(options))
     spec = data.spec()
-    evaluation = EvalConfig(max_windows=options.max_windows, seed=options.seed, device=options.device)
+    evaluation = EvalConfig(max_windows=options.max_windows, seed=options.seed, device=options.device,
+                            noise_levels=tuple(float(s) for s in options.noise.split(",") if s))
     sources = options.test_data.split(",") if options.test_data else [str(data.path)]
     clock = time.process_time if options.cpu_clock else time.monotonic
     results: dict[str, dict] = {}
