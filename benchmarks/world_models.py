@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                                        checkpoint_every=options.iterations or 10 ** 9), **train_fields})
         tic = time.perf_counter()
         trained = train(data, model_config_for(kind, spec, **model_fields), config, out / f"{name}.safetensors",
-                        progress=False, clock=clock)
+                        progress=False, overwrite=True, clock=clock)
         wall = time.perf_counter() - tic
         results[name] = {}
         for source in sources:
