@@ -9,7 +9,7 @@ horizon, per state group, and with noise on the history. "No change" and "predic
 
 The budget is equal iterations (`--iterations`) or equal minutes (`--minutes`, counted in this process's CPU time
 with `--cpu-clock`, so other jobs on a shared machine do not count). `--models` picks rows of MODELS, which also holds
-the ablations of the trainer and of the state constraints (RWM-windows: the paper's windows; RWM+gravity, RWM+limits,
+the ablations of the trainer and of the state constraints (RWM-branches: 8 segments x 32 branches; RWM+gravity, RWM+limits,
 RWM+physics: `ModelConfig.unit_gravity` / `joint_limits`).
 
 Writes `results.json`, `results.md` and `error_vs_horizon_<source>.png` (+ data and checkpoints) to `--out`.
@@ -39,7 +39,7 @@ from rwm_gym.model.train import train
 MODELS: dict[str, tuple[str, dict, dict]] = {
     "RWM": ("rwm", {}, {}), "RWM-TF": ("rwm", {"forecast": 1}, {}), "MLP": ("mlp", {}, {}),
     "RSSM": ("rssm", {}, {}), "Transformer": ("transformer", {}, {}), "no-change": ("no_change", {}, {}),
-    "RWM-windows": ("rwm", {"batch_size": 64, "branches": 1}, {}),
+    "RWM-branches": ("rwm", {"batch_size": 256, "branches": 32}, {}),
     "RWM+gravity": ("rwm", {}, {"unit_gravity": True}), "RWM+limits": ("rwm", {}, {"joint_limits": True}),
     "RWM+physics": ("rwm", {}, {"unit_gravity": True, "joint_limits": True}),
 }
@@ -77,10 +77,11 @@ class Options:
     """Minutes per model (0: none); the run stops at whichever budget ends first."""
     cpu_clock: bool = False
     """Count `minutes` in this process's CPU time instead of wall-clock time (fair on a shared machine)."""
-    batch_size: int = 256
+    batch_size: int = 64
     """Forecast windows per gradient step."""
-    branches: int = 32
-    """Forecast branches per segment (1: the paper's windows)."""
+    branches: int = 1
+    """Forecast branches per segment (1: the paper's windows, measured better per CPU minute in benchmarks/trainer.py
+    than 8 segments x 32 branches; benchmarks/RESULTS.md)."""
     seed: int = 0
     device: str = "cpu"
     """torch device: cpu or cuda."""
