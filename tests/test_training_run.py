@@ -55,6 +55,17 @@ def test_a_killed_run_keeps_its_episodes_and_resumes_to_the_budget(tmp_path):
     with (run / "log.csv").open() as f:
         steps = [int(row["timesteps"]) for row in csv.DictReader(f)]
     assert steps[-1] == budget and steps == sorted(steps)
+    # the teacher-data example turns the run into world-model data: merged experience plus held-out episodes
+    data = tmp_path / "teacher"
+    example = subprocess.run([sys.executable, "examples/make_teacher_data.py", "--run-dir", str(run), "--out",
+                              str(data), "--episodes", "1", "--num-envs", "1"], capture_output=True, text=True,
+                             timeout=240, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert example.returncode == 0, example.stderr[-2000:]
+    manifest = json.loads((data / "manifest.json").read_text())
+    merged = Dataset.load(data / "experience.h5")
+    assert merged.num_episodes == manifest["experience"]["episodes"] >= killed.num_episodes
+    assert set(manifest["stages"]) == {"early", "middle", "final"}
+    assert all(Dataset.load(s["file"]).num_episodes == 1 for s in manifest["stages"].values())
 
 
 def test_a_run_folder_refuses_other_settings(tmp_path):
@@ -65,3 +76,4 @@ def test_a_run_folder_refuses_other_settings(tmp_path):
            "--timesteps", "2048"]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert result.returncode != 0 and "other PPO settings" in result.stderr
+
