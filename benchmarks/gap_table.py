@@ -158,6 +158,7 @@ def summarise(rows: list[dict]) -> dict:
         named_right = [r for r in effect if r["correct"]]
         errs = [e for r in named_right for e in r["magnitude_error"].values()]
         explained = [r["explained_fraction"] for r in named_right]
+        excess = [excess_explained(r) for r in named_right]
         unnamed = [r for r in rs if r["verdict"] == "unexplained" and r["learned_total_explained"] is not None]
         out[source] = {
             "cases": len(rs), "errors": len([r for r in rows if r["source"] == source and "error" in r]),
@@ -165,6 +166,7 @@ def summarise(rows: list[dict]) -> dict:
             "magnitude_within_25pct_of_named": frac([e <= 0.25 for e in errs]),
             "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
             "mean_explained_where_named": float(np.mean(explained)) if explained else None,
+            "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
             "learned_ge_50pct_where_unexplained": frac([r["learned_total_explained"] >= 0.5 for r in unnamed]),
             "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
             "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
@@ -173,6 +175,12 @@ def summarise(rows: list[dict]) -> dict:
             "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
         }
     return out
+
+
+def excess_explained(row: dict) -> float:
+    """Share of the gap above the noise floor that the named effects remove (the floor itself cannot be removed)."""
+    before, floor = row["gap_before"], row["floor"]
+    return row["explained_fraction"] * before / (before - floor) if before > floor else float("nan")
 
 
 def frac(flags: list[bool]) -> dict | None:
@@ -220,7 +228,9 @@ def side_by_side(rows: list[dict]) -> str:
         learned = (f"; learned {r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None
                    else "")
         mark = "✓" if r["correct"] else "✗"
-        return f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{learned}"
+        above = f" ({excess_explained(r):.0%} above floor)" if r["named"] else ""
+        return (f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{above}"
+                f"{learned}")
 
     lines = ["| case | " + " | ".join(sources) + " |", "|---|" + "---|" * len(sources)]
     lines += [f"| {c} | " + " | ".join(cell(by.get((c, s))) for s in sources) + " |" for c in cases]

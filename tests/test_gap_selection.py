@@ -116,16 +116,17 @@ def test_two_effects_are_named_in_order_with_their_shares(tmp_path):
 
 def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     """A knee spring is no effect of the vocabulary: the gap is far above the noise floor, nothing is named (not
-    `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned."""
+    `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned. Walking data:
+    on excitation data the learned torque explains less (13 % in the benchmark grid)."""
     xml = write_spring_model(SPEC, tmp_path / "spring.xml", "KFE", 30.0)
     data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, env_kwargs={"xml_file": str(xml)},
-                         progress=False)
+                         policy="gait", progress=False)
     report = run_gap(SIM, data, tmp_path / "report", progress=False)
     assert report["noise_floor"]["above_floor"] and report["noise_floor"]["ratio"] > 2
     assert report["effect"] == "unexplained" and report["effects"] == [], report["reason"]
     learned = report["learned_correction"]
     assert learned["status"] == "ok" and "not a named effect" in learned["kind"]
-    assert learned["gap_after"] <= 0.5 * learned["gap_before"]
+    assert learned["gap_after"] <= 0.5 * learned["gap_before"] and learned["kept"]
     assert (tmp_path / "report" / "learned_correction.safetensors").is_file()
     assert "Learned correction (not a named effect)" in (tmp_path / "report" / "report.md").read_text()
 
