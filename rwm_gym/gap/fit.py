@@ -183,14 +183,15 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
 
 
 def fit_coordinatewise(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
-                       start: np.ndarray, brackets: list[tuple[float, float]], evaluations: int) -> CandidateFit:
-    """One sweep of bounded Brent searches, one parameter at a time (the others held), each within its bracket and
-    `evaluations` re-simulations: robust where least squares stalls on a non-smooth cost (Coulomb friction, dead
+                       start: np.ndarray, brackets: list[tuple[float, float]], evaluations: int,
+                       sweeps: int = 2) -> CandidateFit:
+    """`sweeps` sweeps of bounded Brent searches, one parameter at a time (the others held), each within its bracket
+    and `evaluations` re-simulations: robust where least squares stalls on a non-smooth cost (Coulomb friction, dead
     band) with one parameter per joint group."""
     rejected: list[str] = []
     residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
     values = np.asarray(start, float).copy()
-    for i, (lo, hi) in enumerate(brackets):
+    for i, (lo, hi) in [(i, b) for _ in range(sweeps) for i, b in enumerate(brackets)]:
         def cost(x: float, i: int = i) -> float:
             trial = values.copy()
             trial[i] = x

@@ -3,7 +3,8 @@
 A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
 one-parameter joint effect (friction, damping, armature, motor strength, torque limit, backlash) of a selection step
-is also fitted per group (one bounded search per group value, `fit.fit_coordinatewise`) and scored on the same held-out
+is also fitted per group (from nominal, two sweeps of one bounded search per group value, `fit.fit_coordinatewise`)
+and scored on the same held-out
 windows with the same rule: every parameter beyond the first inflates the remaining gap by
 `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain that much more to win. Per joint (12
 parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
@@ -113,9 +114,9 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
         form = scoped(effect, spec, scope)
         if form is None:
             continue
-        start = np.full(len(form.parameters), best.values[0])
+        start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
         fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
-                                 config.max_evaluations)
+                                 config.max_evaluations // 2 + 2)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, fit))
     grouped = [f for _, f in out if f.status == "ok"]
@@ -125,7 +126,8 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
         start = per_joint_start(spec, max(grouped, key=lambda f: f.score))
         width = 0.25 * (p.high - p.low)  # each joint near its group's value
         brackets = [(max(p.low, v - width), min(p.high, v + width)) for v in start]
-        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2)
+        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2,
+                                 sweeps=1)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, fit))
     return out
