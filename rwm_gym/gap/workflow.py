@@ -26,7 +26,7 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_per_window
+from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_per_window, paired_p_value
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
@@ -192,8 +192,6 @@ def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, he
                     floor: np.ndarray, out: Path, config: LearnedCorrectionConfig, fit_config: FitConfig,
                     floor_config: FloorConfig) -> dict:
     """Fit the residual torque network on the fitting episodes and judge it on the held-out windows."""
-    from rwm_gym.gap.fit import paired_p_value
-
     one_step = make_windows(data, train_ids, 1, config.stride, config.history - 1)
     try:
         correction, net, info = fit_learned_correction(resim, one_step, params, config)
