@@ -96,6 +96,18 @@ def per_joint_start(spec: TaskSpec, fit: CandidateFit) -> np.ndarray:
     return out
 
 
+SCOPE_CHARGE = 0.05
+"""Score charged per parameter a scoped form has beyond the global one, as a fraction of the nominal gap: on top of
+`FitConfig.penalty_per_parameter`, which inflates only the remaining gap and so costs next to nothing when the global
+form already explains most of it (a global effect then looked per joint type by fitting noise)."""
+
+
+def _charge_scope(fit: CandidateFit) -> CandidateFit:
+    if fit.status == "ok":
+        fit.score -= SCOPE_CHARGE * (len(fit.values) - 1)
+    return fit
+
+
 def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator,
                      train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
                      config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
@@ -118,7 +130,7 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
         fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
                                  config.max_evaluations // 2 + 2)
         score_fit(fit, form, resim, heldout, base, before, config)
-        out.append((form, fit))
+        out.append((form, _charge_scope(fit)))
     grouped = [f for _, f in out if f.status == "ok"]
     form = scoped(effect, spec, "joint") if "joint" in config.scopes else None
     if form is not None and grouped and max(f.score for f in grouped) > best.score \
@@ -129,5 +141,5 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
         fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2,
                                  sweeps=1)
         score_fit(fit, form, resim, heldout, base, before, config)
-        out.append((form, fit))
+        out.append((form, _charge_scope(fit)))
     return out
