@@ -26,8 +26,9 @@ from tqdm import tqdm
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import add_dataclass_options
-from rwm_gym.model.evaluate import EvalConfig, atomic_write, evaluate_checkpoint, plot_curves, write_json
+from rwm_gym.options import add_dataclass_options
+from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint, plot_curves
 from rwm_gym.model.train import train
 
 # name -> (model kind, training forecast steps; 1 = teacher forcing)
@@ -141,8 +142,8 @@ def main(argv: list[str] | None = None) -> int:
                          "iterations": trained.stats["iterations"], "val_error": trained.stats["val_error"],
                          "log": trained.stats["log"]}
     wall = time.perf_counter() - started
-    write_json({"options": asdict(options), "rows": data.num_steps, "episodes": data.num_episodes, "wall_s": wall,
-                "models": results}, out / "results.json")
+    write_json(out / "results.json", {"options": asdict(options), "rows": data.num_steps,
+                                      "episodes": data.num_episodes, "wall_s": wall, "models": results})
     table = markdown(results, data, options, wall)
     atomic_write(out / "results.md", lambda tmp: Path(tmp).write_text(table))
     plot_curves({name: r["curve"] for name, r in results.items()}, out / "error_vs_horizon.png",

@@ -25,7 +25,8 @@ from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.diagnose import where
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, decide, fit_all
-from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table, write_json
+from rwm_gym.atomic import write_json
+from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
 from rwm_gym.gap.scope import per_leg_candidate
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare, config_dict, fine_tune, regenerate

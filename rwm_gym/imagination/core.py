@@ -82,7 +82,11 @@ class ImaginedCore:
         self.device = torch.device(device)
         self.num_envs = num_envs = check_num_envs(num_envs)
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
-        self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
+        reset_dataset = Dataset.load(self._reset_data_path(reset_data))
+        if reset_dataset.spec().name != self.spec.name:
+            raise ValueError(f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
+                             f"{self.checkpoint} of {self.spec.name}")
+        self.reset_windows = ResetWindows(reset_dataset, history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
         self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
@@ -106,7 +110,12 @@ class ImaginedCore:
             return Path(given)
         named = self.meta.extras.get("reset_data")
         if named:
-            return self.checkpoint.parent / named
+            # beside the checkpoint; a copy of a shipped checkpoint finds the shipped reset data
+            for folder in (self.checkpoint.parent, assets_dir() / "checkpoints"):
+                if (folder / named).is_file():
+                    return folder / named
+            raise FileNotFoundError(f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
+                                    f"copy it there or pass reset_data=PATH")
         dataset = self.meta.provenance.get("dataset")
         if dataset and Path(dataset).is_file():
             return Path(dataset)

@@ -10,7 +10,6 @@ with contact accuracy, and again with Gaussian noise added to the history's stat
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from dataclasses import asdict, dataclass
@@ -20,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
@@ -143,11 +142,6 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     plt.close(fig)
 
 
-def write_json(data: dict, path: str | os.PathLike) -> None:
-    """Atomic JSON write."""
-    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
-
-
 def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
                         config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True) -> dict:
     """Load a checkpoint and evaluate it on a dataset of the same task. When the dataset is the checkpoint's own
@@ -184,10 +178,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
-                        noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
-                        device=args.device)
     try:
+        config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
+                            noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
+                            device=args.device)
         result = evaluate_checkpoint(args.checkpoint, args.data, config, args.all_episodes, not args.quiet)
     except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
         print(f"rwm-gym evaluate: {err}", file=sys.stderr)
@@ -196,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(result))
     if args.out:
         out = Path(args.out)
-        write_json(result, out / "evaluation.json")
+        write_json(out / "evaluation.json", result)
         plot_curves({result["model"]: result["curve"]}, out / "error_vs_horizon.png")
         print(f"wrote {out / 'evaluation.json'} and {out / 'error_vs_horizon.png'}")
     return 0
