@@ -116,3 +116,45 @@ def test_reset_data_of_another_task_is_refused(tmp_path):
     other = collect("DMC-Cheetah-Run-v0", "random", 1, tmp_path / "cheetah.h5", max_steps=3, progress=False)
     with pytest.raises(ValueError, match="reset data .* is of task DMC-Cheetah-Run, the world model .* of AnymalD"):
         gym.make(IMAGINED, reset_data=other)
+
+
+def test_physics_dt_that_disagrees_with_the_mjcf_is_refused_in_one_line():
+    from rwm_gym.physics.locomotion import LocomotionCore
+    from rwm_gym.spec import load_spec, parse_spec
+
+    text = load_spec("anymal_d").text.replace("physics_dt = 0.005", "physics_dt = 0.004")
+    with pytest.raises(ValueError, match=r"physics_dt is 0.004 s but the MJCF .* steps 0.005 s"):
+        LocomotionCore(parse_spec(text))
+
+
+def test_render_fps_and_excitation_step_come_from_the_spec():
+    from rwm_gym.policies.excitation import ExcitationConfig, ExcitationPolicy
+    from rwm_gym.spec import load_spec, parse_spec
+
+    assert gym.make(IMAGINED).metadata["render_fps"] == gym.make(PHYSICS).metadata["render_fps"] == 50
+    spec = load_spec("anymal_d")
+    slow = parse_spec(spec.text.replace("policy_dt = 0.02", "policy_dt = 0.04"))
+    for task, dt in ((spec, 0.02), (slow, 0.04)):
+        policy = ExcitationPolicy(task, 1, ExcitationConfig())
+        policy.reset(np.array([0]), [np.random.default_rng(0)])
+        before = policy.phase.copy()
+        policy.act(np.zeros((1, 48)))
+        np.testing.assert_allclose(policy.phase - before, 2 * np.pi * policy.freq * dt)
+
+
+def test_record_video_writes_an_mp4_with_the_video_extra(tmp_path):
+    pytest.importorskip("moviepy", reason="the [video] extra (moviepy) is not installed")
+    env = gym.make(PHYSICS, render_mode="rgb_array", width=64, height=48)
+    try:
+        env.reset(seed=0)
+        env.render()
+    except Exception as err:  # no OpenGL backend on this machine
+        pytest.skip(f"offscreen rendering unavailable (set MUJOCO_GL=egl or osmesa): {err}")
+    env = gym.wrappers.RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda episode: True,
+                                   disable_logger=True)
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(np.zeros(12, np.float32))
+    env.close()
+    videos = list((tmp_path / "videos").glob("*.mp4"))
+    assert len(videos) == 1 and videos[0].stat().st_size > 0

@@ -21,21 +21,19 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.reset_data import ResetWindows
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.resources import assets_dir
-from rwm_gym.spec import TaskSpec
+from rwm_gym.spec import TaskSpec, shipped_spec
 from rwm_gym.task.observation import build_observation
 from rwm_gym.task.tasks import Task, make_task
 from rwm_gym.vector.core import check_actions, check_num_envs
 
-DEFAULT_CHECKPOINTS = {"RWM-AnymalD-v0": "checkpoints/anymal_d_rwm.safetensors"}
-"""Imagined env id -> the checkpoint shipped in `assets/` (the dm_control ids have none)."""
-
 
 def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
-    """The checkpoint shipped for an imagined env id."""
-    if env_id not in DEFAULT_CHECKPOINTS:
+    """The checkpoint shipped for an imagined env id (its spec's `task.default_checkpoint`)."""
+    spec = shipped_spec(env_id)
+    if spec is None or not spec.default_checkpoint:
         raise ValueError(f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
                          f"with `rwm-gym collect`, train one with `rwm-gym train`)")
-    path = assets_dir() / DEFAULT_CHECKPOINTS[env_id]
+    path = assets_dir() / spec.default_checkpoint
     if not path.is_file():
         raise FileNotFoundError(f"the default {env_id} checkpoint {path} is not installed; pass checkpoint=PATH")
     return path

@@ -45,6 +45,13 @@ class EvalConfig:
     seed: int = 0
     device: str = "cpu"
 
+    def __post_init__(self) -> None:
+        for name in ("history", "max_horizon", "max_windows", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.horizons or min(self.horizons) < 1:
+            raise ValueError(f"horizons must be >= 1, got {list(self.horizons)}")
+
 
 @torch.no_grad()
 def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, config: EvalConfig, horizon: int,

@@ -41,6 +41,9 @@ class LocomotionCore:
         self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
         self.model = build_model(spec, xml_file, self.params)
+        if not np.isclose(self.model.opt.timestep, spec.physics_dt):
+            raise ValueError(f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
+                             f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s")
         self.layout = RobotLayout.from_model(self.model, spec)
         band = dead_band(spec, self.model, self.params)
         self.sim = (SingleSimulator(self.model, band) if num_envs == 1
