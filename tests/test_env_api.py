@@ -158,3 +158,21 @@ def test_record_video_writes_an_mp4_with_the_video_extra(tmp_path):
     env.close()
     videos = list((tmp_path / "videos").glob("*.mp4"))
     assert len(videos) == 1 and videos[0].stat().st_size > 0
+
+
+@pytest.mark.parametrize("env_id", [PHYSICS, IMAGINED])
+def test_a_rendering_script_that_forgets_close_exits_without_a_traceback(env_id):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (f"import gymnasium as gym, rwm_gym\nenv = gym.make({env_id!r}, render_mode='rgb_array', width=64, "
+              f"height=48)\nenv.reset(seed=0)\nprint(env.render().shape)\n")
+    root = str(Path(rwm_gym.__file__).parents[1])
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": root})
+    if done.returncode != 0:
+        pytest.skip(f"offscreen rendering unavailable: {done.stderr.strip().splitlines()[-1:]}")
+    assert "(48, 64, 3)" in done.stdout
+    assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr

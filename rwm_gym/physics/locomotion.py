@@ -7,6 +7,7 @@ envs in `rwm_gym.physics.batched` are the same core with N > 1. So the three giv
 
 from __future__ import annotations
 
+import atexit
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -201,10 +202,12 @@ class LocomotionEnv(gym.Env):
         if self._renderer is None:
             height, width = self._render_size
             self._renderer = mujoco.Renderer(self.model, height=height, width=width)
+            atexit.register(self.close)  # an env left open at exit closes before EGL is torn down (no traceback)
         self._renderer.update_scene(self.data, camera=self._camera)
         return self._renderer.render()
 
     def close(self):
         if self._renderer is not None:
+            atexit.unregister(self.close)
             self._renderer.close()
             self._renderer = None
