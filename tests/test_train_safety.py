@@ -45,20 +45,20 @@ def test_ctrl_c_inside_an_iteration_then_resume_matches_the_uninterrupted_run(da
                       val_fraction=0.25)
     full = train(data, config, run, progress=False).model.state_dict()
 
-    calls, loss = [0], train_module.window_loss
+    calls, step = [0], train_module.train_step
 
-    def loss_then_ctrl_c(*args, **kwargs):
+    def ctrl_c_then_step(*args, **kwargs):
         """SIGINT arrives after the iteration drew its batch, as a Ctrl-C during a real run does."""
         calls[0] += 1
         if calls[0] == 5:
             signal.raise_signal(signal.SIGINT)
-        return loss(*args, **kwargs)
+        return step(*args, **kwargs)
 
     out = tmp_path / "stopped.safetensors"
-    monkeypatch.setattr(train_module, "window_loss", loss_then_ctrl_c)
+    monkeypatch.setattr(train_module, "train_step", ctrl_c_then_step)
     with pytest.raises(KeyboardInterrupt):
         train(data, config, run, out, progress=False)
-    monkeypatch.setattr(train_module, "window_loss", loss)
+    monkeypatch.setattr(train_module, "train_step", step)
     resumed = train(data, config, run, out, resume=True, progress=False).model.state_dict()
     assert all(torch.equal(full[k], resumed[k]) for k in full)
 

@@ -1,7 +1,8 @@
 """Dual-autoregressive training of a world model on a dataset (`rwm-gym train`).
 
 Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
-whole episode); the loss is in `losses.py`. Adam with gradient clipping and a learning-rate schedule over the budget
+whole episode); with `branches` > 1 each drawn window start begins a longer segment that carries that many forecasts
+(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a learning-rate schedule over the budget
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
@@ -31,9 +32,9 @@ from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model, model_config_for
-from rwm_gym.model.losses import relative_error, window_loss
+from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.windows import WindowData
+from rwm_gym.model.windows import Window, WindowData
 from rwm_gym.options import add_dataclass_options
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
@@ -92,6 +93,41 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     return total / len(starts)
 
 
+@dataclass
+class SegmentBatch:
+    """One training batch: segments of `TrainConfig.segment_rows` rows, each the start of a window of H + F rows drawn
+    uniformly; rows past an episode's end repeat its last row and the branches reaching them do not count."""
+
+    window: Window
+    """(B, R, ...) normalised rows."""
+    member: torch.Tensor | None
+    """(B,) long ensemble head per segment (None: one head)."""
+    real_rows: torch.Tensor
+    """(B,) long rows of each segment inside its episode."""
+
+
+def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int) -> SegmentBatch:
+    """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
+    head per segment. Consumes torch's global RNG (a seeded run draws the same batches)."""
+    segments = config.batch_size // config.branches
+    index = torch.randint(len(starts), (segments,))
+    member = torch.randint(ensemble_size, (segments,)).to(starts.device) if ensemble_size > 1 else None
+    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+    return SegmentBatch(window, member, real_rows)
+
+
+def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
+               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+    """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, grad_clip)
+    optimizer.step()
+    return float(loss.detach()), parts
+
+
 class _DeferredInterrupt:
     """Ctrl-C ends the run between two iterations, never inside one.
 
@@ -124,7 +160,8 @@ def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
 def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
           out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
           tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
-          init: str | os.PathLike | None = None, overwrite: bool = False) -> TrainResult:
+          init: str | os.PathLike | None = None, overwrite: bool = False,
+          clock: Callable[[], float] = time.monotonic) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
     init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
@@ -133,6 +170,8 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     overwrite: replace an existing `out`; without it (or `resume`) an existing `out` is refused.
     callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
     saves a resumable checkpoint first).
+    clock: seconds for the `minutes` budget and `wall_s` (e.g. `time.process_time` to count only this process's CPU
+    time on a shared machine).
     """
     if out is not None and Path(out).exists() and not (resume or overwrite):
         raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
@@ -148,10 +187,10 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     device, out = torch.device(config.device), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-    rows = config.history + config.forecast
+    rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
-        model = build_model(model_config).to(device).train()
+        model = build_model(model_config, spec).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
         if len(train_starts) == 0:
@@ -160,6 +199,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
         val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
+        loss_fn = SegmentLoss(model, config, pos_weight)
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
         provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
@@ -183,14 +223,14 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                                    stats=stats, optimizer=optimizer, training_state=_rng_state(device))
 
         writer = _tensorboard(tensorboard)
-        started = time.monotonic() - stats["wall_s"]
+        started = clock() - stats["wall_s"]
         iteration, running, parts_sum = stats["iterations"], 0.0, {}
 
         def finished() -> bool:
             if optimizer is None:
                 return True
             by_steps = config.iterations > 0 and iteration >= config.iterations
-            return by_steps or (config.minutes > 0 and time.monotonic() - started >= 60 * config.minutes)
+            return by_steps or (config.minutes > 0 and clock() - started >= 60 * config.minutes)
 
         bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
@@ -198,25 +238,17 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         try:
             while not finished():
                 by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
-                by_time = (time.monotonic() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
+                by_time = (clock() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                index = torch.randint(len(train_starts), (config.batch_size,))
-                member = None
-                if model_config.ensemble_size > 1:
-                    member = torch.randint(model_config.ensemble_size, (config.batch_size,)).to(device)
-                batch = windows.gather(train_starts[index.to(device)], rows)
-                loss, parts = window_loss(model, batch, config, pos_weight, member)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-                optimizer.step()
+                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size)
+                loss, parts = train_step(loss_fn, optimizer, params, batch, config.grad_clip)
                 iteration += 1
-                running += float(loss.detach())
+                running += loss
                 for name, value in parts.items():
                     parts_sum[name] = parts_sum.get(name, 0.0) + value
-                stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
+                stats["iterations"], stats["wall_s"] = iteration, clock() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
                     stats["train_loss"] = running / max(count, 1)
@@ -232,13 +264,13 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 if iteration % config.checkpoint_every == 0:
                     save()
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
                 if interrupt.requested:
                     raise KeyboardInterrupt
         except KeyboardInterrupt:
-            stats["wall_s"] = time.monotonic() - started
+            stats["wall_s"] = clock() - started
             if save() is not None:
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
@@ -249,7 +281,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 writer.close()
         if optimizer is None:
             stats["val_error"] = validation_error(model, windows, val_starts, config)
-        stats["wall_s"] = time.monotonic() - started
+        stats["wall_s"] = clock() - started
         return TrainResult(model, stats, save())
 
 
