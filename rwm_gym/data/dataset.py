@@ -85,7 +85,10 @@ class DatasetInfo:
 class DatasetWriter:
     """Append episodes to a new dataset file; use as a context manager (an exception leaves `complete` false)."""
 
-    def __init__(self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False,
+                 in_place: bool = False) -> None:
+        """in_place: write `path` itself instead of a partial file renamed onto it at the end, for a writer whose
+        killed run must leave its episodes at `path` (a resumable run's parts); plain h5py then needs `h5clear -s`."""
         from rwm_gym import __version__
 
         self.path = Path(path)
@@ -95,9 +98,10 @@ class DatasetWriter:
         self.info = info
         self.num_episodes = 0
         self._widths: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
-        self.partial_path = self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}")
+        self.partial_path = (self.path if in_place
+                             else self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}"))
         """Where the episodes go until `close` renames the file onto `path`."""
-        self._file = h5py.File(self.partial_path, "x", libver="latest")
+        self._file = h5py.File(self.partial_path, "w" if in_place else "x", libver="latest")
         attrs = {
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "env_id": info.env_id, "spec": info.spec_text,
             "dt": float(info.dt), "columns": json.dumps(info.columns), "policy": info.policy, "seed": int(info.seed),
@@ -182,7 +186,8 @@ class DatasetWriter:
             if complete:
                 with h5py.File(self.partial_path, "r+", libver="latest") as f:  # read-only while in SWMR mode
                     f.attrs["complete"] = True
-            os.replace(self.partial_path, self.path)
+            if self.partial_path != self.path:
+                os.replace(self.partial_path, self.path)
 
     def __enter__(self) -> DatasetWriter:
         return self
