@@ -36,7 +36,7 @@ from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.losses import relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train

@@ -29,7 +29,7 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
 from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.train import train
 from rwm_gym.physics.dmc import DMCSB3VecEnv, make_core
 from rwm_gym.registration import DMC_SPECS

@@ -31,8 +31,9 @@ from tqdm import tqdm
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.model.config import add_dataclass_options
-from rwm_gym.model.evaluate import EvalConfig, atomic_write, evaluate_checkpoint, plot_running_mean, write_json
+from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint, plot_running_mean
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.train import train
 
 # name -> (model kind, TrainConfig fields that differ from the common ones, ModelConfig fields)
@@ -184,8 +185,9 @@ def main(argv: list[str] | None = None) -> int:
                 "val_error": trained.stats["val_error"], "log": trained.stats["log"]}
         print(name, {s: [round(r["error"][h], 3) for h in r["error"]] for s, r in results[name].items()}, flush=True)
     wall = time.perf_counter() - started
-    write_json({"options": asdict(options), "rows": data.num_steps, "episodes": data.num_episodes, "wall_s": wall,
-                "loadavg_end": Path("/proc/loadavg").read_text().split()[0], "models": results}, out / "results.json")
+    write_json(out / "results.json", {"options": asdict(options), "rows": data.num_steps,
+                                      "episodes": data.num_episodes, "wall_s": wall,
+                                      "loadavg_end": Path("/proc/loadavg").read_text().split()[0], "models": results})
     table = "\n".join(markdown(results, Path(s).stem, data, options, wall) for s in sources)
     atomic_write(out / "results.md", lambda tmp: Path(tmp).write_text(table))
     for source in sources:

@@ -23,7 +23,7 @@ from torch import nn
 
 import rwm_gym  # noqa: F401  (registers the environments)
 from rwm_gym.rl.ppo import observation_scale
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 
 
 @dataclass(frozen=True)

@@ -22,12 +22,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """`--help` names every option's default, unless its help already does or there is none to name."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        unnamed = action.default is None or action.default is False or action.default == [] or action.default == ()
+        if "default" in text or unnamed or action.default == argparse.SUPPRESS or not action.option_strings:
+            return text
+        return f"{text} (default {action.default})".strip()
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The parser; only the `selected` subcommand's module is imported to add its options."""
     parser = argparse.ArgumentParser(prog="rwm-gym", description="Learned robot simulators as Gymnasium envs.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=DefaultsHelpFormatter)
         p.set_defaults(_module=module)
         if name != selected:
             continue

@@ -151,6 +151,8 @@ class TaskSpec:
     """The TOML source, stored in datasets and checkpoints."""
     extra: dict = field(default_factory=dict, repr=False, compare=False)
     """Tables of the TOML this class does not type (task-specific sections, e.g. dm_control's)."""
+    default_checkpoint: str = ""
+    """World-model checkpoint shipped for the imagined env, relative to `assets/` (empty: none ships)."""
 
     @property
     def substeps(self) -> int:
@@ -242,7 +244,8 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
         )
         if len(actuator.default_pose) != len(joints):
             raise ValueError(f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints")
-        # [privileged], [command] and [reward] may be left out (no contacts, no commands, the simulator's reward).
+        # [privileged], [command] and [reward] may be left out (no contacts, no commands, the simulator's reward);
+        # a table that is there gives its task's numbers (no robot's values stand in as defaults here).
         priv = raw.get("privileged", {})
         cmd = raw.get("command", {})
         rew = raw.get("reward", {})
@@ -258,6 +261,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             physics_dt=float(task["physics_dt"]),
             episode_steps=int(task["episode_steps"]),
             keyframe=task.get("keyframe", ""),
+            default_checkpoint=task.get("default_checkpoint", ""),
             base_body=task.get("base_body", ""),
             actuator=actuator,
             state=tuple(_group(g, joints, where) for g in raw["state"]),
@@ -267,7 +271,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 feet=tuple(priv.get("feet", ())),
                 thighs=tuple(priv.get("thighs", ())),
                 termination_bodies=tuple(priv.get("termination_bodies", ())),
-                foot_height_std=float(priv.get("foot_height_std", 0.1)),
+                foot_height_std=float(priv["foot_height_std"] if priv.get("feet") else priv.get("foot_height_std", 1.0)),
             ),
             observation=ObservationSpec(tuple(obs["groups"]), {k: float(v) for k, v in obs.get("noise", {}).items()}),
             command=CommandSpec(
@@ -276,12 +280,12 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 high=tuple(float(v) for v in cmd.get("high", ())),
                 resample_seconds=float(cmd.get("resample_seconds", "inf")),
                 standing_fraction=float(cmd.get("standing_fraction", 0.0)),
-                standing_threshold=float(cmd.get("standing_threshold", 0.1)),
+                standing_threshold=float(cmd["standing_threshold"] if cmd.get("names") else "nan"),
             ),
             reward=RewardSpec(
                 weights={k: float(v) for k, v in rew.get("weights", {}).items()},
-                tracking_sigma=float(rew.get("tracking_sigma", 0.25)),
-                feet_air_time_target=float(rew.get("feet_air_time_target", 0.5)),
+                tracking_sigma=float(rew["tracking_sigma"] if rew.get("weights") else "nan"),
+                feet_air_time_target=float(rew["feet_air_time_target"] if rew.get("weights") else "nan"),
             ),
             reset=ResetSpec(**reset),
             text=text,
@@ -300,3 +304,12 @@ def load_spec(name_or_path: str | Path) -> TaskSpec:
         available = sorted(p.stem for p in specs_dir().glob("*.toml"))
         raise FileNotFoundError(f"task spec {str(name_or_path)!r} not found (shipped specs: {', '.join(available)})")
     return parse_spec(path.read_text(), where=str(path))
+
+
+def shipped_spec(env_id: str) -> TaskSpec | None:
+    """The shipped spec (`envs/*.toml`) whose physics or imagined env id is `env_id`; None if none."""
+    for path in sorted(specs_dir().glob("*.toml")):
+        spec = parse_spec(path.read_text(), where=str(path))
+        if env_id in (spec.physics_env_id, spec.imagined_env_id):
+            return spec
+    return None

@@ -7,12 +7,9 @@ poor guess); the stored states are de-normalised with the spec's statistics, as 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from rwm_gym.data.dataset import DatasetInfo, write_dataset
 from rwm_gym.spec import TaskSpec, load_spec
@@ -66,14 +63,3 @@ def write_linear_dataset(path: Path, **kwargs) -> Path:
     spec = kwargs.get("spec", SPEC)
     write_dataset(path, info_for(spec), linear_episodes(**kwargs))
     return path
-
-
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """Run torch on one thread: tiny models are slower with more, and the test machine's cores are shared."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)

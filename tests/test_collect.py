@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from rwm_gym.cli import main
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.spec import load_spec
@@ -66,12 +67,38 @@ def test_killed_collection_keeps_finished_episodes(tmp_path):
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 60
-        while not out.exists() and time.time() < deadline:
+        while not list(tmp_path.glob("killed.h5.partial-*")) and time.time() < deadline:
             time.sleep(0.2)
         time.sleep(4.0)  # a few 20-step episodes get written (the writer holds the file lock meanwhile)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-    ds = Dataset.load(out)
+    assert not out.exists()  # --out only ever holds a whole file; the killed run's episodes are in the partial file
+    partial, = tmp_path.glob("killed.h5.partial-*")
+    ds = Dataset.load(partial)
     assert 1 <= ds.num_episodes < 1000 and not ds.info.complete
     assert np.all(ds.episode_lengths >= 2)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (["--episodes", "0"], "episodes must be a positive integer"),
+    (["--episodes", "-3"], "episodes must be a positive integer"),
+    (["--max-steps", "-5"], "max_steps must be a positive"),
+    (["--num-envs", "0"], "num_envs must be an integer"),
+    (["--env", "Nope-v0"], "unknown physics env 'Nope-v0'"),
+    (["--policy", "nope"], "unknown policy 'nope'"),
+    (["--physics", "{bad"], "--physics is not valid JSON"),
+])
+def test_bad_collect_options_give_one_line_errors_and_write_nothing(tmp_path, capsys, bad, message):
+    out = tmp_path / "d.h5"
+    assert main(["collect", "--out", str(out), "--episodes", "1", "--max-steps", "2", *bad]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_collect_refuses_an_existing_file_naming_the_overwrite_option(tmp_path, capsys):
+    out = tmp_path / "d.h5"
+    out.write_bytes(b"mine")
+    assert main(["collect", "--out", str(out), "--episodes", "1", "--max-steps", "2"]) == 2
+    assert "--overwrite" in capsys.readouterr().err and out.read_bytes() == b"mine"

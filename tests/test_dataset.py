@@ -256,9 +256,36 @@ def test_writer_killed_midway_keeps_finished_episodes(tmp_path: Path) -> None:
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
-    ds = Dataset.load(out)
+    assert not out.exists()  # the destination only ever holds a whole file that plain h5py opens
+    partial, = tmp_path.glob("killed.h5.partial-*")
+    ds = Dataset.load(partial)
     assert ds.num_episodes == 3 and not ds.info.complete and ds.num_steps == 15
     np.testing.assert_array_equal(ds.episode(2)["state"], _third_state())
+
+
+def test_two_writers_of_one_file_both_finish_and_leave_it_readable(tmp_path: Path, episodes) -> None:
+    """Two `collect --overwrite` runs on one file: each writes its own partial file, the last to finish wins."""
+    out = tmp_path / "shared.h5"
+    first, second = DatasetWriter(out, make_info(), overwrite=True), DatasetWriter(out, make_info(), overwrite=True)
+    first.append_episode(episodes[0])
+    second.append_episode(episodes[1])
+    second.append_episode(episodes[2])
+    first.close()
+    second.close()
+    with h5py.File(out, "r") as f:  # plain h5py, no SWMR flags
+        assert bool(f.attrs["complete"]) and len(f["episode_lengths"]) == 2
+    assert Dataset.load(out).num_episodes == 2 and not list(tmp_path.glob("*.partial-*"))
+
+
+def test_an_interrupted_writer_leaves_its_finished_episodes_at_the_destination(tmp_path: Path, episodes) -> None:
+    out = tmp_path / "stopped.h5"
+    with pytest.raises(KeyboardInterrupt):
+        with DatasetWriter(out, make_info()) as writer:
+            writer.append_episode(episodes[0])
+            raise KeyboardInterrupt
+    with h5py.File(out, "r") as f:
+        assert not bool(f.attrs["complete"])
+    assert Dataset.load(out).num_episodes == 1
 
 
 def _third_state() -> np.ndarray:

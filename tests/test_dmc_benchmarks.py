@@ -20,15 +20,6 @@ def _script(name: str):
     return module
 
 
-def test_cross_robot_trains_every_robot_with_the_anymal_recipe() -> None:
-    cross_robot = _script("cross_robot")
-    from rwm_gym.model.config import TrainConfig, config_difference
-
-    budget = ("iterations", "val_every", "checkpoint_every")
-    assert config_difference(cross_robot.Options().train_config, TrainConfig(), ignore=budget) is None
-    assert cross_robot.MODELS["RWM-TF"] == ("rwm", 1) and cross_robot.MODELS["RWM"] == ("rwm", None)
-
-
 @pytest.mark.slow
 def test_cross_robot_writes_table_plot_and_json(tmp_path: Path, capsys) -> None:
     cross_robot = _script("cross_robot")

@@ -16,13 +16,8 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.evaluate import EvalConfig, evaluate, evaluate_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, one_thread, write_linear_dataset
+from synthetic_dynamics import SPEC, write_linear_dataset
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    with one_thread():
-        yield
 
 
 @pytest.fixture(scope="module")

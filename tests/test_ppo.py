@@ -16,14 +16,6 @@ from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
 TINY = PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def test_config_refuses_bad_values():
     with pytest.raises(ValueError, match="activation"):
         PPOConfig(activation="gelu")

@@ -17,17 +17,12 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
-from synthetic_dynamics import SPEC, one_thread, write_linear_dataset
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 FAST = TrainConfig(history=6, forecast=3, batch_size=8, iterations=4, val_every=2, checkpoint_every=2,
                    val_fraction=0.25)
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    with one_thread():
-        yield
 
 
 @pytest.fixture(scope="module")

@@ -45,19 +45,43 @@ def test_ctrl_c_inside_an_iteration_then_resume_matches_the_uninterrupted_run(da
                       val_fraction=0.25)
     full = train(data, config, run, progress=False).model.state_dict()
 
-    calls, loss = [0], train_module.window_loss
+    calls, step = [0], train_module.train_step
 
-    def loss_then_ctrl_c(*args, **kwargs):
+    def ctrl_c_then_step(*args, **kwargs):
         """SIGINT arrives after the iteration drew its batch, as a Ctrl-C during a real run does."""
         calls[0] += 1
         if calls[0] == 5:
             signal.raise_signal(signal.SIGINT)
-        return loss(*args, **kwargs)
+        return step(*args, **kwargs)
 
     out = tmp_path / "stopped.safetensors"
-    monkeypatch.setattr(train_module, "window_loss", loss_then_ctrl_c)
+    monkeypatch.setattr(train_module, "train_step", ctrl_c_then_step)
     with pytest.raises(KeyboardInterrupt):
         train(data, config, run, out, progress=False)
-    monkeypatch.setattr(train_module, "window_loss", loss)
+    monkeypatch.setattr(train_module, "train_step", step)
     resumed = train(data, config, run, out, resume=True, progress=False).model.state_dict()
     assert all(torch.equal(full[k], resumed[k]) for k in full)
+
+
+def test_training_on_an_interrupted_collection_warns(data: Path, tmp_path: Path) -> None:
+    from rwm_gym.data.dataset import Dataset, DatasetWriter
+
+    source, cut = Dataset.load(data), tmp_path / "cut.h5"
+    with pytest.raises(KeyboardInterrupt):
+        with DatasetWriter(cut, source.info) as writer:
+            for i in range(4):
+                writer.append_episode(source.episode(i))
+            raise KeyboardInterrupt
+    run = TrainConfig(history=4, forecast=2, batch_size=4, iterations=1, val_every=1, val_fraction=0.25)
+    with pytest.warns(UserWarning, match="complete=false"):
+        train(cut, model_config_for("mlp", SPEC, hidden_size=8), run, progress=False)
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--model", "mlp", "--batch-size", "0", "--out", "{tmp}/m.safetensors"],
+    ["evaluate", "--checkpoint", "{tmp}/none.safetensors", "--horizons", "-3"],
+])
+def test_bad_numbers_give_one_line_errors(data: Path, tmp_path: Path, capsys, command) -> None:
+    assert main([c.format(tmp=tmp_path) for c in command] + ["--data", str(data), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "must be >= 1" in err

@@ -14,14 +14,6 @@ from rwm_gym.resources import assets_dir
 TINY = PPOConfig(num_envs=2, n_steps=16, num_minibatches=1, net_arch=(64, 64))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def trot() -> Dataset:
     return Dataset.load(assets_dir() / "checkpoints" / "anymal_d_reset.h5")

@@ -10,16 +10,11 @@ from rwm_gym.model import MODEL_KINDS, Prediction, WorldModel, build_model, mode
 from rwm_gym.model.config import ModelConfig, TrainConfig
 from rwm_gym.model.losses import window_loss
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC, one_thread
+from synthetic_dynamics import SPEC
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    with one_thread():
-        yield
 
 
 def tiny(kind: str, **options) -> WorldModel:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -16,9 +17,10 @@ import numpy as np
 from tqdm import tqdm
 
 import rwm_gym
-from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
+from rwm_gym.data.dataset import DatasetError, DatasetInfo, DatasetWriter
 from rwm_gym.policies.base import Policy, make_policy
 from rwm_gym.registration import PHYSICS_ENVS
+from rwm_gym.vector.core import check_num_envs
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
 
@@ -79,7 +81,13 @@ def collect(
     max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
     (e.g. `xml_file`, `physics`).
     """
-    num_envs = max(1, min(num_envs, episodes))
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
+    if Path(out).exists() and not overwrite:
+        raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
+    num_envs = min(check_num_envs(num_envs), episodes)
     core = make_physics_core(env_id, num_envs, **dict(env_kwargs or {}))
     spec = core.spec
     pol = make_policy(policy, spec, num_envs, action_noise=action_noise) if isinstance(policy, str) else policy
@@ -166,30 +174,41 @@ def _jsonable(value):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id")
     parser.add_argument("--policy", default="gait", help="'random', 'gait' or the path of an SB3 .zip")
-    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (mujoco.batch)")
+    parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")
+    parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (default 8)")
     parser.add_argument("--action-noise", type=float, default=0.0, help="Gaussian std added to the policy's actions")
     parser.add_argument("--max-steps", type=int, default=None, help="cap on episode length (policy steps)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
     parser.add_argument("--physics", default=None, help="JSON dict of physics parameters (see PhysicsParams)")
-    parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym collect`: 2 with a one-line error on bad input, 130 on Ctrl-C (finished episodes are kept)."""
     import json
+
+    from rwm_gym.data.dataset import Dataset
 
     env_kwargs: dict[str, object] = {}
     if args.xml_file:
         env_kwargs["xml_file"] = str(args.xml_file)
-    if args.physics:
-        env_kwargs["physics"] = json.loads(args.physics)
-    path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
-                   action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                   overwrite=args.overwrite)
-    from rwm_gym.data.dataset import Dataset
-
+    try:
+        if args.physics:
+            try:
+                env_kwargs["physics"] = json.loads(args.physics)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"--physics is not valid JSON ({err})") from None
+        path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
+                       action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
+                       overwrite=args.overwrite)
+    except KeyboardInterrupt:
+        print(f"rwm-gym collect: interrupted; the finished episodes are in {args.out} (complete=false)", file=sys.stderr)
+        return 130
+    except (ValueError, TypeError, FileNotFoundError) as err:
+        print(f"rwm-gym collect: {err}", file=sys.stderr)
+        return 2
     ds = Dataset.load(path)
     falls = int(ds["terminated"].sum())
     print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated (rwm-gym {rwm_gym.__version__})")

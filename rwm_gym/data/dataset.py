@@ -20,8 +20,11 @@ numeric dtype, first axis T) are allowed and round-trip. In the file, fields liv
 TOML text), `dt` (policy step, s), `columns` (JSON {field: [column names]}), `policy`, `seed`, `physics_params`
 (JSON), `complete` (false while being written), `created_by` (package version) and `metadata` (JSON).
 
-The writer flushes after each episode, data rows before `episode_lengths`, so a collection killed mid-way leaves a
-readable file (with `complete` false) holding every finished episode.
+The writer fills a partial file beside the destination (`NAME.partial-XXXXXXXX`) and renames it onto the destination
+when it closes (on an exception too, with `complete` false), so the destination is only ever a whole file that plain
+h5py opens, and two writers of one destination never share a file. It flushes after each episode, data rows before
+`episode_lengths`, so a writer killed mid-way leaves a partial file that `Dataset.load` reads (plain h5py needs
+`h5clear -s` first), holding every finished episode.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import secrets
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -81,17 +85,23 @@ class DatasetInfo:
 class DatasetWriter:
     """Append episodes to a new dataset file; use as a context manager (an exception leaves `complete` false)."""
 
-    def __init__(self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False,
+                 in_place: bool = False) -> None:
+        """in_place: write `path` itself instead of a partial file renamed onto it at the end, for a writer whose
+        killed run must leave its episodes at `path` (a resumable run's parts); plain h5py then needs `h5clear -s`."""
         from rwm_gym import __version__
 
         self.path = Path(path)
         if self.path.exists() and not overwrite:
-            raise DatasetError(f"{self.path}: file exists (pass overwrite=True to replace it)")
+            raise DatasetError(f"{self.path}: file exists (pass --overwrite, or overwrite=True, to replace it)")
         parse_spec(info.spec_text, where=f"{self.path}:spec")
         self.info = info
         self.num_episodes = 0
         self._widths: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
-        self._file = h5py.File(self.path, "w", libver="latest")
+        self.partial_path = (self.path if in_place
+                             else self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}"))
+        """Where the episodes go until `close` renames the file onto `path`."""
+        self._file = h5py.File(self.partial_path, "w" if in_place else "x", libver="latest")
         attrs = {
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "env_id": info.env_id, "spec": info.spec_text,
             "dt": float(info.dt), "columns": json.dumps(info.columns), "policy": info.policy, "seed": int(info.seed),
@@ -169,21 +179,21 @@ class DatasetWriter:
         self._file.flush()
         self.num_episodes += 1
 
-    def close(self) -> None:
-        """Mark the file complete and close it."""
+    def close(self, complete: bool = True) -> None:
+        """Close the file, mark it `complete` and move it onto `path`."""
         if self._file.id.valid:
             self._file.close()
-            with h5py.File(self.path, "r+", libver="latest") as f:  # attributes are read-only while in SWMR mode
-                f.attrs["complete"] = True
+            if complete:
+                with h5py.File(self.partial_path, "r+", libver="latest") as f:  # read-only while in SWMR mode
+                    f.attrs["complete"] = True
+            if self.partial_path != self.path:
+                os.replace(self.partial_path, self.path)
 
     def __enter__(self) -> DatasetWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self._file.close()
+        self.close(complete=exc_type is None)
 
 
 class Dataset:

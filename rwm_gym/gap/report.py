@@ -19,12 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rwm_gym import atomic
 from rwm_gym.spec import TaskSpec
-
-
-def write_json(path: Path, data: dict) -> None:
-    atomic.write_json(path, data)
 
 
 def plot_channels(spec: TaskSpec, before: np.ndarray, after: np.ndarray, path: Path, horizon: int) -> None:

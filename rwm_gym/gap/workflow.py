@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from rwm_gym import atomic
+from rwm_gym.atomic import write_json
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
@@ -31,16 +32,14 @@ from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
-from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table, write_json
+from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import SCOPES
 from rwm_gym.gap.select import Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.resources import assets_dir
-
-SHIPPED_WORLD_MODELS = {"AnymalD-MuJoCo-v0": "checkpoints/anymal_d_rwm.safetensors"}
-"""Nominal-sim world model used by `rwm-gym gap` when `--world-model` is not given (path under `assets/`)."""
+from rwm_gym.spec import shipped_spec
 
 
 @dataclass(frozen=True)
@@ -270,7 +269,8 @@ def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
     if choice == "none":
         return None
     if choice == "auto":
-        shipped = SHIPPED_WORLD_MODELS.get(sim)
+        spec = shipped_spec(sim)
+        shipped = spec.default_checkpoint if spec else ""
         return assets_dir() / shipped if shipped and not sim_kwargs.get("xml_file") else None
     return Path(choice)
 

@@ -21,21 +21,19 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.reset_data import ResetWindows
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.resources import assets_dir
-from rwm_gym.spec import TaskSpec
+from rwm_gym.spec import TaskSpec, shipped_spec
 from rwm_gym.task.observation import build_observation
 from rwm_gym.task.tasks import Task, make_task
 from rwm_gym.vector.core import check_actions, check_num_envs
 
-DEFAULT_CHECKPOINTS = {"RWM-AnymalD-v0": "checkpoints/anymal_d_rwm.safetensors"}
-"""Imagined env id -> the checkpoint shipped in `assets/` (the dm_control ids have none)."""
-
 
 def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
-    """The checkpoint shipped for an imagined env id."""
-    if env_id not in DEFAULT_CHECKPOINTS:
+    """The checkpoint shipped for an imagined env id (its spec's `task.default_checkpoint`)."""
+    spec = shipped_spec(env_id)
+    if spec is None or not spec.default_checkpoint:
         raise ValueError(f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
                          f"with `rwm-gym collect`, train one with `rwm-gym train`)")
-    path = assets_dir() / DEFAULT_CHECKPOINTS[env_id]
+    path = assets_dir() / spec.default_checkpoint
     if not path.is_file():
         raise FileNotFoundError(f"the default {env_id} checkpoint {path} is not installed; pass checkpoint=PATH")
     return path
@@ -82,7 +80,11 @@ class ImaginedCore:
         self.device = torch.device(device)
         self.num_envs = num_envs = check_num_envs(num_envs)
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
-        self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
+        reset_dataset = Dataset.load(self._reset_data_path(reset_data))
+        if reset_dataset.spec().name != self.spec.name:
+            raise ValueError(f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
+                             f"{self.checkpoint} of {self.spec.name}")
+        self.reset_windows = ResetWindows(reset_dataset, history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
         self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
@@ -106,7 +108,12 @@ class ImaginedCore:
             return Path(given)
         named = self.meta.extras.get("reset_data")
         if named:
-            return self.checkpoint.parent / named
+            # beside the checkpoint; a copy of a shipped checkpoint finds the shipped reset data
+            for folder in (self.checkpoint.parent, assets_dir() / "checkpoints"):
+                if (folder / named).is_file():
+                    return folder / named
+            raise FileNotFoundError(f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
+                                    f"copy it there or pass reset_data=PATH")
         dataset = self.meta.provenance.get("dataset")
         if dataset and Path(dataset).is_file():
             return Path(dataset)

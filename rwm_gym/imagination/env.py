@@ -8,6 +8,7 @@ position integrated from the predicted velocity.
 
 from __future__ import annotations
 
+import atexit
 from pathlib import Path
 
 import gymnasium as gym
@@ -60,10 +61,12 @@ class ImaginedEnv(gym.Env):
             from rwm_gym.imagination.dream import DreamRenderer
 
             self._dream = DreamRenderer(self.task_spec, *self._render_size)
+            atexit.register(self.close)  # an env left open at exit closes before EGL is torn down (no traceback)
             self._dream.advance(self.core.state[0], self.core.foot_height[0], dt=0.0)
         return self._dream.render()
 
     def close(self):
         if self._dream is not None:
+            atexit.unregister(self.close)
             self._dream.close()
             self._dream = None

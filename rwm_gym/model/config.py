@@ -6,12 +6,8 @@ docstrings double as the `--help` text of `rwm-gym train`.
 
 from __future__ import annotations
 
-import argparse
-import ast
-import inspect
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, fields
-from functools import cache
 from typing import Any
 
 MODEL_KINDS = ("rwm", "mlp", "rssm", "transformer", "no_change")
@@ -147,6 +143,11 @@ class TrainConfig:
             raise ValueError(f"schedule {self.schedule!r} unknown (choose from {', '.join(SCHEDULES)})")
         if self.iterations <= 0 and self.minutes <= 0:
             raise ValueError("set a budget: iterations > 0 or minutes > 0")
+        for name in ("batch_size", "val_every", "checkpoint_every", "val_windows"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.branches < 1 or self.branch_stride < 1 or self.batch_size % self.branches:
             raise ValueError(f"branches ({self.branches}) and branch_stride ({self.branch_stride}) must be >= 1 and "
                              f"divide batch_size ({self.batch_size}) into whole segments")
@@ -186,32 +187,3 @@ def config_difference(found: Any, expected: Any, ignore: Iterable[str] = ()) -> 
         if name not in ignore and a[name] != b[name]:
             return f"{name}: {a[name]!r} in the file, {b[name]!r} now"
     return None
-
-
-@cache
-def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a dataclass (read from its source), for `--help` texts."""
-    docs, previous = {}, None
-    for node in ast.parse(inspect.getsource(cls)).body[0].body:
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            previous = node.target.id
-        elif previous and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
-            docs[previous] = " ".join(str(node.value.value).split())
-            previous = None
-        else:
-            previous = None
-    return docs
-
-
-def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
-                          types: Mapping[str, Callable[[str], object]] | None = None) -> None:
-    """One `--field-name` option per field of the dataclass `cls`: its default, its type (booleans as `--x/--no-x`;
-    `types` for fields whose default does not say it, e.g. None) and its field docstring as the help text."""
-    docs = field_docs(cls)
-    for f in fields(cls):
-        flag, default = "--" + f.name.replace("_", "-"), f.default
-        if isinstance(default, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=docs.get(f.name))
-        else:
-            kind = (types or {}).get(f.name, type(default))
-            parser.add_argument(flag, type=kind, default=default, help=docs.get(f.name))

@@ -14,7 +14,6 @@ largest |predicted| and |true| normalised value per horizon say whether rollouts
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from dataclasses import asdict, dataclass
@@ -24,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
@@ -49,6 +48,13 @@ class EvalConfig:
     """Windows per forward pass."""
     seed: int = 0
     device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        for name in ("history", "max_horizon", "max_windows", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.horizons or min(self.horizons) < 1:
+            raise ValueError(f"horizons must be >= 1, got {list(self.horizons)}")
 
 
 @torch.no_grad()
@@ -195,11 +201,6 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     plt.close(fig)
 
 
-def write_json(data: dict, path: str | os.PathLike) -> None:
-    """Atomic JSON write."""
-    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2)))
-
-
 def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
                         config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True) -> dict:
     """Load a checkpoint and evaluate it on a dataset of the same task. When the dataset is the checkpoint's own
@@ -237,11 +238,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
-                        noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
-                        device=args.device)
     results = {}
     try:
+        config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
+                            noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
+                            device=args.device)
         for data in args.data:
             results[Path(data).stem] = evaluate_checkpoint(args.checkpoint, data, config, args.all_episodes,
                                                            not args.quiet)
@@ -254,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         first = next(iter(results.values()))
-        write_json(first if len(results) == 1 else {"sources": results}, out / "evaluation.json")
+        write_json(out / "evaluation.json", first if len(results) == 1 else {"sources": results})
         plot_running_mean(results if len(results) > 1 else {first["model"]: first}, out / "error_vs_horizon.png",
                     title=f"{first['model']}: error against the open-loop horizon")
         print(f"wrote {out / 'evaluation.json'} and {out / 'error_vs_horizon.png'}")

@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -29,11 +30,12 @@ from tqdm import tqdm
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
-from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
+from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
+from rwm_gym.options import add_dataclass_options
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
@@ -174,6 +176,9 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     if out is not None and Path(out).exists() and not (resume or overwrite):
         raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
+    if not dataset.info.complete:
+        warnings.warn(f"{dataset.path}: complete=false (its collection was interrupted); training on its "
+                      f"{dataset.num_episodes} finished episodes", stacklevel=2)
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
     if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
@@ -323,22 +328,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
-    parser.add_argument("--ensemble", type=int, dest="ensemble_size", help="same as --ensemble-size")
     parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    for title, cls, options in (("training", TrainConfig, fields(TrainConfig)), ("model", ModelConfig, _MODEL_OPTIONS)):
-        group, docs = parser.add_argument_group(f"{title} options"), field_docs(cls)
-        for f in options:
-            if f.name == "ensemble_size":
-                continue
-            flag = "--" + f.name.replace("_", "-")
-            if isinstance(f.default, bool):
-                group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, dest=f.name,
-                                   help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
-                continue
-            group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
-                               choices={"loss": LOSSES, "schedule": SCHEDULES}.get(f.name), help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
-    parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
+    add_dataclass_options(parser.add_argument_group("training options"), TrainConfig, defaults_none=True,
+                          choices={"loss": LOSSES, "schedule": SCHEDULES})
+    add_dataclass_options(parser.add_argument_group("model options"), ModelConfig, defaults_none=True,
+                          skip=("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
 
 
 def _given(args: argparse.Namespace, options) -> dict:

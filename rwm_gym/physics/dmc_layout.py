@@ -25,7 +25,7 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from rwm_gym.spec import SuiteTask, TaskSpec
+from rwm_gym.spec import TaskSpec
 
 _AXES = {"x": 0, "y": 1, "z": 2}
 

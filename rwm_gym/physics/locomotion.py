@@ -7,6 +7,7 @@ envs in `rwm_gym.physics.batched` are the same core with N > 1. So the three giv
 
 from __future__ import annotations
 
+import atexit
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -41,6 +42,9 @@ class LocomotionCore:
         self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
         self.model = build_model(spec, xml_file, self.params)
+        if not np.isclose(self.model.opt.timestep, spec.physics_dt):
+            raise ValueError(f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
+                             f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s")
         self.layout = RobotLayout.from_model(self.model, spec)
         band = dead_band(spec, self.model, self.params)
         self.sim = (SingleSimulator(self.model, band) if num_envs == 1
@@ -198,10 +202,12 @@ class LocomotionEnv(gym.Env):
         if self._renderer is None:
             height, width = self._render_size
             self._renderer = mujoco.Renderer(self.model, height=height, width=width)
+            atexit.register(self.close)  # an env left open at exit closes before EGL is torn down (no traceback)
         self._renderer.update_scene(self.data, camera=self._camera)
         return self._renderer.render()
 
     def close(self):
         if self._renderer is not None:
+            atexit.unregister(self.close)
             self._renderer.close()
             self._renderer = None

@@ -30,8 +30,7 @@ class ExcitationConfig:
     jump_probability: float = 0.01
     """Per step and joint, chance of a target jump (drives the torque to its limit)."""
     jump_scale: float = 1.0
-    dt: float = 0.02
-    """s, policy step (set from the spec)."""
+    """Size of a target jump, in action units."""
 
 
 class ExcitationPolicy:
@@ -40,7 +39,9 @@ class ExcitationPolicy:
     name = "excitation"
 
     def __init__(self, spec: TaskSpec, num_envs: int, config: ExcitationConfig | None = None):
-        self.config = config or ExcitationConfig(dt=spec.policy_dt)
+        self.config = config or ExcitationConfig()
+        self.dt = spec.policy_dt
+        """s, the task's policy step: the trot's phase advances by 2 pi f dt per action."""
         a = spec.action_dim
         legs = a // 3
         # Diagonal trot: LF+RH in phase, RF+LH opposite. Hind legs' HFE/KFE signs flip (default pose mirrors them).
@@ -63,7 +64,7 @@ class ExcitationPolicy:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         c = self.config
-        self.phase += 2 * np.pi * self.freq * c.dt
+        self.phase += 2 * np.pi * self.freq * self.dt
         phi = self.phase[:, None] + self.leg_phase[None]
         swing = np.maximum(np.sin(phi), 0.0)
         gait = np.where(self.joint_kind == 2, self.knee_sign * c.gait_amplitude * swing,

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from rwm_gym import atomic
 from rwm_gym.atomic import atomic_write
 from rwm_gym.spec import TaskSpec
 
@@ -235,6 +234,3 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
     return path
 
 
-def write_json(data: dict, path: str | os.PathLike) -> Path:
-    """Write `data` as indented JSON atomically (temp file in the same folder, then rename)."""
-    return atomic.write_json(path, data)

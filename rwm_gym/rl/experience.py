@@ -36,7 +36,7 @@ class RecordingCore:
                            columns=dataset_columns(core), policy=policy, seed=seed,
                            physics_params=core.params.to_dict(),
                            metadata={"source": "PPO training experience", "record_every_env": every})
-        self.writer = DatasetWriter(path, info, overwrite=overwrite)
+        self.writer = DatasetWriter(path, info, overwrite=overwrite, in_place=True)  # a killed run resumes from it
         self.iteration = 0
         self._rows: dict[int, list[dict]] = {}
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rwm_gym.atomic import atomic_write
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     """
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset, merge_datasets
-    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, write_json
+    from rwm_gym.atomic import write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
     from stable_baselines3 import PPO
 
     from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
@@ -151,7 +152,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         ppo = ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)}  # its zip's settings
         report = {"config": config.to_dict(), "ppo": ppo, "data": str(data), "log": log,
                   "best_iteration": best[0], "best_tracking": best[1]}
-        write_json(report, out / "mbpo.json")
+        write_json(out / "mbpo.json", report)
         plot_curve(log, out / "mbpo.png")
     return report
 

@@ -22,7 +22,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
-from rwm_gym.model.config import field_docs
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.spec import TaskSpec
 
 WHERE = ("imagination", "physics")
@@ -332,21 +332,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record-every", type=int, default=0,
                         help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
                              "world-model data (0: none)")
-    docs = field_docs(PPOConfig)
-    for f in fields(PPOConfig):
-        flag = "--" + f.name.replace("_", "-")
-        if f.name == "net_arch":
-            parser.add_argument(flag, type=int, nargs="+", default=None, help=docs.get(f.name))
-        elif isinstance(f.default, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=docs.get(f.name))
-        elif f.name != "activation":
-            parser.add_argument(flag, type=type(f.default), default=None, help=docs.get(f.name))
-        else:
-            parser.add_argument(flag, choices=ACTIVATIONS, default=None, help=docs.get(f.name))
+    add_dataclass_options(parser, PPOConfig, defaults_none=True, types={"net_arch": int}, nargs={"net_arch": "+"},
+                          choices={"activation": ACTIVATIONS})
 
 
 def run(args: argparse.Namespace) -> int:
-    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot, write_json
+    from rwm_gym.atomic import write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 
     given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
     if "net_arch" in given:
@@ -413,7 +405,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
                   f"{out.with_name(out.stem + '_ppo.zip')}")
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
-    print(f"report: {write_json(report, out.with_suffix('.json'))}")
+    print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
 
 

@@ -1,0 +1,54 @@
+"""Command-line options generated from typed config dataclasses: one helper for every `rwm-gym` command, benchmark
+and example, so a field's name, type, default and docstring are written once (in the dataclass)."""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import inspect
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import MISSING, fields
+from functools import cache
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (read from its source), for `--help` texts."""
+    docs, previous = {}, None
+    for node in ast.parse(inspect.getsource(cls)).body[0].body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            previous = node.target.id
+        elif previous and isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            docs[previous] = " ".join(str(node.value.value).split())
+            previous = None
+        else:
+            previous = None
+    return docs
+
+
+def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, *,
+                          types: Mapping[str, Callable[[str], object]] | None = None,
+                          choices: Mapping[str, Sequence[object]] | None = None,
+                          nargs: Mapping[str, str] | None = None, skip: Iterable[str] = (),
+                          defaults_none: bool = False) -> None:
+    """One `--field-name` option per field of the dataclass `cls`: its type (booleans as `--x/--no-x`; `types` for
+    fields whose default does not say it, e.g. None), its field docstring and default as the help text.
+
+    defaults_none: every option defaults to None (the help still names the field's default), so a caller can tell
+    the options given from those left out, e.g. to override only those on a resumed run.
+    """
+    docs, skip = field_docs(cls), set(skip)
+    for f in fields(cls):
+        if f.name in skip:
+            continue
+        default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
+        flag = "--" + f.name.replace("_", "-")
+        shown = list(default) if isinstance(default, tuple) else default
+        help_text = f"{docs.get(f.name, '')} (default {shown})".strip().replace("%", "%%")
+        value = None if defaults_none else default
+        if isinstance(default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value, help=help_text)
+            continue
+        kind = (types or {}).get(f.name, type(default) if default is not None else str)
+        parser.add_argument(flag, type=kind, default=value, help=help_text, choices=(choices or {}).get(f.name),
+                            nargs=(nargs or {}).get(f.name))
