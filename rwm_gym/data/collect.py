@@ -8,7 +8,6 @@ keeps every finished episode.
 from __future__ import annotations
 
 import argparse
-import importlib
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -18,18 +17,10 @@ from tqdm import tqdm
 import rwm_gym
 from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
 from rwm_gym.data.policies import Policy, make_policy
-from rwm_gym.registration import PHYSICS_ENVS
+from rwm_gym.registration import env_name, make_physics_core
+from rwm_gym.spec import TaskSpec
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
-
-
-def make_physics_core(env_id: str, num_envs: int, **kwargs):
-    """The batched core behind a registered physics env id (see `rwm_gym.registration.PHYSICS_ENVS`)."""
-    if env_id not in PHYSICS_ENVS:
-        raise ValueError(f"unknown physics env {env_id!r}; registered: {sorted(PHYSICS_ENVS)}")
-    entry = PHYSICS_ENVS[env_id]
-    module, name = entry["core_entry_point"].split(":")
-    return getattr(importlib.import_module(module), name)(num_envs=num_envs, **{**entry["kwargs"], **kwargs})
 
 
 def dataset_columns(core) -> dict[str, list[str]]:
@@ -61,7 +52,7 @@ def _coordinate_names(model, velocity: bool) -> list[str]:
 
 
 def collect(
-    env_id: str,
+    env_id: str | Path | TaskSpec,
     policy: str | Policy,
     episodes: int,
     out: str | Path,
@@ -74,7 +65,8 @@ def collect(
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
-    """Collect `episodes` episodes of `env_id` driven by `policy` into `out`; returns the path.
+    """Collect `episodes` episodes of `env_id` (a physics id, a spec path or a TaskSpec) driven by `policy` into `out`;
+    returns the path.
 
     max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
     (e.g. `xml_file`, `physics`).
@@ -85,7 +77,7 @@ def collect(
     pol = make_policy(policy, spec, num_envs, action_noise=action_noise) if isinstance(policy, str) else policy
     horizon = min(max_steps or spec.episode_steps, spec.episode_steps)
     info = DatasetInfo(
-        env_id=env_id, spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
+        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
         seed=seed, physics_params=core.params.to_dict(),
         metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
     )
@@ -109,7 +101,7 @@ def collect(
         return ids
 
     with DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
-        total=episodes, desc=f"collect {env_id}", unit="ep", disable=not progress
+        total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
     ) as bar:
         obs = np.zeros((num_envs, spec.observation_dim), dtype=np.float32)
         ids = start(np.arange(num_envs))
@@ -164,7 +156,7 @@ def _jsonable(value):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id")
+    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)")
     parser.add_argument("--policy", default="gait", help="'random', 'gait' or the path of an SB3 .zip")
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
@@ -179,16 +171,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import sys
 
-    env_kwargs: dict[str, object] = {}
-    if args.xml_file:
-        env_kwargs["xml_file"] = str(args.xml_file)
-    if args.physics:
-        env_kwargs["physics"] = json.loads(args.physics)
-    path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
-                   action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                   overwrite=args.overwrite)
-    from rwm_gym.data.dataset import Dataset
+    from rwm_gym.data.dataset import Dataset, DatasetError
+
+    try:
+        env_kwargs: dict[str, object] = {}
+        if args.xml_file:
+            env_kwargs["xml_file"] = str(args.xml_file)
+        if args.physics:
+            env_kwargs["physics"] = json.loads(args.physics)
+        path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
+                       action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
+                       overwrite=args.overwrite)
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, FileNotFoundError, DatasetError) as err:
+        print(f"rwm-gym collect: {err}", file=sys.stderr)
+        return 2
 
     ds = Dataset.load(path)
     falls = int(ds["terminated"].sum())
