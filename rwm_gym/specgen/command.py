@@ -22,7 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--from-dmc", metavar="DOMAIN-TASK", help="a dm_control suite task, e.g. acrobot-swingup")
     source.add_argument("--mjcf", type=Path, help="MJCF of a legged robot with a free-floating base")
-    parser.add_argument("--out", type=Path, required=True, help="spec to write (.toml); --mjcf also writes OUT.xml")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="spec to write (.toml); --mjcf also writes the model copy OUT.rwm.xml")
     parser.add_argument("--base", help="--mjcf: the floating base body (default: the body with the free joint)")
     parser.add_argument("--feet", nargs="+", help="foot bodies (default: --mjcf the leaf bodies of the legs, "
                                                   "--from-dmc the colliding bodies named like a foot)")
@@ -52,7 +53,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             from rwm_gym.specgen.from_mjcf import legged_draft
 
-            model_xml = out.with_suffix(".xml").resolve()
+            model_xml = out.with_suffix(".rwm.xml").resolve()
+            if model_xml == args.mjcf.resolve():
+                raise ValueError(f"--out {out}: its model copy {model_xml.name} would replace the --mjcf file")
             written.append(model_xml)
             draft = None
         for path in written:

@@ -2,7 +2,7 @@
 
 The physics env (`rwm_gym.physics.locomotion`) reads a robot through fixed names: a position actuator named after
 each joint, a touch sensor `contact_NAME` per contact body, a site and a geom named after each foot, a named
-keyframe. Few MJCF files have them, so the generator writes a copy of the model that does (`OUT.xml`, beside the
+keyframe. Few MJCF files have them, so the generator writes a copy of the model that does (`OUT.rwm.xml`, beside the
 spec) and leaves the user's file alone:
 
 - base: `--base`, else the body with the free joint; joints: every hinge below it, in model order;
@@ -126,9 +126,9 @@ def _gains(model: mujoco.MjModel, joints: list[int], mass: float, height: float,
         notes.append(f"kp {significant(kp)} N·m/rad, kd {significant(kd)} N·m·s/rad from the file's position servos")
     else:
         kp = significant(2.0 * mass * GRAVITY * height / n_feet)
-        kd = significant(kp / 40.0)
-        notes.append(f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp / 40 = {kd} N·m·s/rad "
-                     f"(ANYmal D's ratio); no position servos in the file")
+        kd = significant(kp / 10.0)  # kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
+        notes.append(f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp x 0.1 s = {kd} N·m·s/rad "
+                     f"(no position servos in the file)")
     if limits:
         limit = significant(max(limits))
         notes.append(f"effort limit {limit} N·m from the file's actuator ranges")
