@@ -58,3 +58,43 @@ def test_a_legged_mjcf_from_nothing_to_ppo_in_imagination(tmp_path: Path, capsys
     assert env.unwrapped.task_spec.imagined_env_id == "RWM-TinyQuad-v0"
     assert env.observation_space == gym.make("rwm_gym:Physics-v0", spec=str(spec)).observation_space
     _ppo_in_imagination(ckpt)
+
+
+def test_a_dm_control_domain_that_does_not_ship_from_nothing_to_ppo_in_imagination(tmp_path: Path, capsys) -> None:
+    spec = tmp_path / "acrobot.toml"
+    assert main(["spec", "--from-dmc", "acrobot-swingup", "--out", str(spec), "--episodes", "2", "--steps", "30"]) == 0
+    assert "[imagination] reward" in capsys.readouterr().out  # it says the reward needs a function
+    with spec.open("a") as f:
+        f.write('\n[imagination]\nreward = "tests.acrobot_reward:swingup"\n')
+    ckpt = _world_model(spec, tmp_path, capsys)
+    assert np.isfinite(_ppo_in_imagination(ckpt))
+
+
+def test_the_imagined_env_takes_reward_and_termination_functions_and_says_when_it_has_none(tmp_path: Path) -> None:
+    spec = tmp_path / "acrobot.toml"
+    assert main(["spec", "--from-dmc", "acrobot-swingup", "--out", str(spec), "--episodes", "1", "--steps", "10"]) == 0
+    data, ckpt = tmp_path / "data.h5", tmp_path / "model.safetensors"
+    assert main(["collect", "--env", str(spec), "--policy", "random", "--episodes", "2", "--max-steps", "20",
+                 "--out", str(data)]) == 0
+    assert main(["train", "--data", str(data), "--out", str(ckpt), *TINY_TRAIN]) == 0
+    try:
+        gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt))
+        raise AssertionError("an imagined acrobot without a reward function was made")
+    except ValueError as err:
+        assert "reward_fn=" in str(err) and "\n" not in str(err)
+
+    def upright(t):  # a reward of one's own: the cosine of the shoulder angle
+        return t.column("joint_cos/shoulder")
+
+    def after_five(t):
+        after_five.calls += 1
+        return np.full(len(t.next_state), after_five.calls >= 5)
+
+    after_five.calls = 0
+    env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt), reward_fn=upright, termination_fn=after_five,
+                   divergence_bound=1e9)  # a 4-iteration model may leave the normal range; score it anyway
+    obs, _ = env.reset(seed=0)
+    for step in range(1, 6):
+        obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert np.isclose(reward, obs[0], atol=1e-6)  # joint_cos/shoulder is the observation's first column
+        assert terminated == (step == 5)

@@ -68,9 +68,11 @@ class ImaginedCore:
 
     def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
                  reset_data: str | Path | None = None, options: ImaginationOptions | None = None,
-                 env_id: str | None = None, **kwargs):
+                 env_id: str | None = None, reward_fn=None, termination_fn=None, **kwargs):
         """env_id: the imagined env id this core serves (registration passes it): picks the shipped checkpoint when
-        `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides."""
+        `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides.
+        reward_fn, termination_fn: functions of the predicted `rwm_gym.task.entry_points.Transition` that replace the
+        task's reward / termination (default: the spec's `[imagination]` entry points, else the task's own)."""
         self.options = options or ImaginationOptions(**kwargs)
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
@@ -84,7 +86,8 @@ class ImaginedCore:
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
         self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.task: ImaginedTask = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
+        self.task: ImaginedTask = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
+                                            reward_fn=reward_fn, termination_fn=termination_fn)
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
             raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
                              f"{self.spec.name} has not")
@@ -169,10 +172,10 @@ class ImaginedCore:
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
         contact = (p.contact_logits > 0).cpu().numpy()
         foot_height = self.norm.denormalize_foot_height(p.foot_height.cpu().numpy()).astype(np.float32)
-        terminated = self.task.terminated(p.termination_logit.cpu().numpy()) | diverged
         self.uncertainty = np.nan_to_num(p.uncertainty.cpu().numpy().astype(np.float64), nan=0.0)
 
         reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)
+        terminated = self.task.terminated(p.termination_logit.cpu().numpy()) | diverged  # after reward: FunctionTask
         reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
         reward = np.where(diverged, 0.0, reward)
         info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty": self.uncertainty.copy(),
