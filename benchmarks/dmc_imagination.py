@@ -2,7 +2,7 @@
 
 Imagination: collect random + noisy episodes in physics (the cross-robot benchmark's mix), train RWM with the
 cross-robot recipe (`model_config_for("rwm", spec)`, `TrainConfig` defaults), then train SB3 PPO on
-`RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.imagination.ppo.make_ppo`, same config and
+`RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.rl.ppo.make_ppo`, same config and
 seed) on `DMC-<Domain>-<Task>-v0` for the same PPO wall time. Both policies then act deterministically for a full
 suite episode (1000 steps) from fixed seeds in physics; the score is the suite's return (at most 1000).
 
@@ -26,7 +26,7 @@ import torch
 
 from rwm_gym.atomic import atomic_write, write_json, write_text
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.imagination.ppo import PPOConfig, learn, make_ppo, save_policy
+from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
 from rwm_gym.imagination.vec_env import ImaginedVecEnv
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.config import add_dataclass_options

@@ -1,4 +1,4 @@
-"""Benchmark of the scripted trot (`rwm_gym.data.gait.GaitPolicy`) on the ANYmal D physics env.
+"""Benchmark of the scripted trot (`rwm_gym.policies.gait.GaitPolicy`) on the ANYmal D physics env.
 
 Three scenarios, 10 seeds each, full 20 s episodes: a fixed command vx = 1 m/s, a zero command, and the env's own
 random commands (resampled every 10 s). Prints one table per scenario (seed, forward distance, fell, tracking errors)
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from rwm_gym.data.gait import GaitPolicy
+from rwm_gym.policies.gait import GaitPolicy
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import observation_slices

@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from rwm_gym.data.gait import GaitPolicy  # noqa: E402
+from rwm_gym.policies.gait import GaitPolicy  # noqa: E402
 from rwm_gym.imagination.core import default_checkpoint  # noqa: E402
 from rwm_gym.imagination.dream import DreamRenderer  # noqa: E402
 from rwm_gym.model.checkpoint import load_checkpoint  # noqa: E402

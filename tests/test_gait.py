@@ -6,8 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from rwm_gym.data.gait import GaitPolicy
-from rwm_gym.data.leg_kinematics import LegKinematics
+from rwm_gym.policies.gait import GaitPolicy
+from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.physics.params import build_model
 from rwm_gym.spec import load_spec

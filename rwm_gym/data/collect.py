@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 import rwm_gym
 from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
-from rwm_gym.data.policies import Policy, make_policy
+from rwm_gym.policies.base import Policy, make_policy
 from rwm_gym.registration import env_name, make_physics_core
 from rwm_gym.spec import TaskSpec
 
@@ -120,7 +120,7 @@ def collect(
                 rows.append({f: record[f][i] for f in ROW_FIELDS})
                 if terminated[i] or truncated[i]:
                     rows[-1]["truncated"] = bool(truncated[i])
-                    writer.append_episode(_episode(rows, spec.action_dim))
+                    writer.append_episode(stack_episode(rows, spec.action_dim))
                     bar.update(1)
                     buffers[i] = None
                     finished.append(i)
@@ -131,7 +131,7 @@ def collect(
     return out
 
 
-def _episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
+def stack_episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
     """Stack buffered rows into dataset arrays; the last row carries no transition."""
     rows[-1]["action"], rows[-1]["reward"] = np.zeros(action_dim), 0.0
     n = len(rows)
