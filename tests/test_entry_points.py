@@ -39,7 +39,9 @@ def test_entry_points_come_from_the_spec_and_arguments_win() -> None:
     spec = parse_spec(base.text + '\n[imagination]\nreward = "tests.acrobot_reward:swingup"\n')
     reward, termination = step_functions(spec)
     assert reward.__name__ == "swingup" and termination is None
-    mine = lambda t: np.zeros(len(t.next_state))  # noqa: E731
+    def mine(t):
+        return np.zeros(len(t.next_state))
+
     assert step_functions(spec, reward_fn=mine)[0] is mine
 
 

@@ -95,6 +95,6 @@ def test_the_imagined_env_takes_reward_and_termination_functions_and_says_when_i
                    divergence_bound=1e9)  # a 4-iteration model may leave the normal range; score it anyway
     obs, _ = env.reset(seed=0)
     for step in range(1, 6):
-        obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        obs, reward, terminated, _, _ = env.step(env.action_space.sample())
         assert np.isclose(reward, obs[0], atol=1e-6)  # joint_cos/shoulder is the observation's first column
         assert terminated == (step == 5)

@@ -100,7 +100,7 @@ def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = Fals
         raise ValueError(f"{out} exists (pass --overwrite to replace it)")
     try:
         dataset = minari.MinariDataset(folder)
-    except Exception as err:  # Minari raises FileNotFoundError, KeyError, AssertionError, ... on a wrong folder
+    except (ValueError, OSError, KeyError, AssertionError) as err:  # what Minari raises for a folder it cannot read
         raise ValueError(f"{folder}: not a readable Minari dataset ({type(err).__name__}: {err})") from None
     raw = dataset.storage.metadata.get(METADATA_KEY)
     if raw is None:

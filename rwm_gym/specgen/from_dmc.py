@@ -138,8 +138,8 @@ def contacts(model: mujoco.MjModel, base_name: str, feet: list[str] | None) -> t
     unknown = sorted(set(feet) - set(names))
     if unknown:
         raise ValueError(f"--feet: {unknown[0]!r} is not a colliding body of the model (bodies: {', '.join(names)})")
-    return names, list(feet), [f"contact flags of {', '.join(names)} with the world's geoms; feet: "
-                               f"{', '.join(feet) or 'none'}"]
+    note = f"contact flags of {', '.join(names)} with the world's geoms; feet: {', '.join(feet) or 'none'}"
+    return names, list(feet), [note]
 
 
 def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraft:

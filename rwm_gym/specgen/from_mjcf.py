@@ -156,7 +156,7 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
     try:
         mj = mujoco.MjSpec.from_file(str(path))
         model = mj.compile()
-    except Exception as err:  # MuJoCo raises plain ValueError/Exception with multi-line XML context
+    except ValueError as err:  # MuJoCo's XML and compile errors, several lines long
         raise ValueError(f"{path}: MuJoCo cannot load it ({' '.join(str(err).split())[:200]})") from None
     for attr in ("meshdir", "texturedir"):  # the copy lives elsewhere: point it at the original's asset folders
         setattr(mj, attr, str((path.resolve().parent / (getattr(mj, attr) or "")).resolve()))
@@ -244,11 +244,11 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
         mj.add_sensor(name=site, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
     try:
         mj.compile()
-    except Exception as err:
+    except ValueError as err:
         raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
 
     dt = float(model.opt.timestep)
-    substeps = max(1, int(round(0.02 / dt)))
+    substeps = max(1, round(0.02 / dt))
     policy_dt = significant(substeps * dt, 9)
     notes.append(f"policy step {policy_dt} s = {substeps} x the model's timestep {dt} s; episodes of 1000 steps")
     anymal = load_spec("anymal_d")
@@ -290,7 +290,7 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
                          "feet_air_time_target": a.reward.feet_air_time_target}),
         Table("reward.weights", dict(a.reward.weights)),
     ]
-    header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.",
-              f"Robot: {mass:.3g} kg, {len(joints)} joints, {len(foot_names)} feet, base {base_name!r} standing at "
-              f"{height:.3f} m. Units: SI (m, s, rad, N, N·m, kg)."]
+    robot_line = (f"Robot: {mass:.3g} kg, {len(joints)} joints, {len(foot_names)} feet, base {base_name!r} standing at "
+                  f"{height:.3f} m. Units: SI (m, s, rad, N, N·m, kg).")
+    header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
     return SpecDraft(header, tables, notes), mj.to_xml()
