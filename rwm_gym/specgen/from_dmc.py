@@ -95,7 +95,8 @@ def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]]
     groups, base_joints = base_groups(model, base) if base is not None else ([], [])
     base_name = _name(model, mujoco.mjtObj.mjOBJ_BODY, base) if base is not None else ""
     if base is not None:
-        notes.append(f"floating base {base_name!r}: state groups {', '.join(g[0] for g in groups)}")
+        notes.append(f"floating base {base_name!r}: state groups {', '.join(g[0] for g in groups)}; its horizontal "
+                     f"position is not in the state (add it by hand if the reward needs it)")
     positions, angles, velocities = [], [], []
     for j in range(model.njnt):
         if j in base_joints:
