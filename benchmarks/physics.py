@@ -7,7 +7,7 @@ elliptic friction cone with impratio 100, MuJoCo's default 100 Newton / 50 line-
 cylinders where the shipped model has capsules. Masses, inertias, joints and actuators are the same file.
 
 Each row times env-steps/s (policy steps of 4 physics substeps) through the package's SB3 vector env
-(`BatchedLocomotionVecEnv`, auto-reset included) under two action streams: zero actions (standing) and uniform random
+(`LocomotionSB3VecEnv`, auto-reset included) under two action streams: zero actions (standing) and uniform random
 actions in [-1, 1], resampled every step. Both models are timed alternately in the same process, so a ratio is
 measured under the same load. Also prints how many of `--stand-seeds` robots stand 20 s with zero action and how far
 the base sinks, per model. Writes `<out>.json` and `<out>.md`.
@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.atomic import write_text
-from rwm_gym.physics.batched import BatchedLocomotionVecEnv
+from rwm_gym.physics.batched import LocomotionSB3VecEnv
 from rwm_gym.physics.locomotion import LocomotionEnv
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import load_spec
@@ -50,7 +50,7 @@ def previous_model_xml(folder: Path) -> Path:
     return path
 
 
-def timed_rate(env: BatchedLocomotionVecEnv, actions: np.ndarray, seconds: float) -> float:
+def timed_rate(env: LocomotionSB3VecEnv, actions: np.ndarray, seconds: float) -> float:
     """Env-steps/s of `env` stepping `actions` (k, n, 12) in turn for about `seconds`."""
     env.step(actions[0])  # warm-up
     steps, start = 0, time.perf_counter()
@@ -89,7 +89,7 @@ def main() -> None:
             rng = np.random.default_rng(0)
             streams = {"standing": np.zeros((1, n, 12)), "random": rng.uniform(-1, 1, (16, n, 12))}
             for threads in args.threads:
-                envs = {name: BatchedLocomotionVecEnv(n, xml_file=xml, nthread=threads) for name, xml in models.items()}
+                envs = {name: LocomotionSB3VecEnv(n, xml_file=xml, nthread=threads) for name, xml in models.items()}
                 for env in envs.values():
                     env.seed(0)
                     env.reset()

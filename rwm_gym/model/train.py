@@ -1,7 +1,8 @@
 """Dual-autoregressive training of a world model on a dataset (`rwm-gym train`).
 
 Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
-whole episode); the loss is in `losses.py`. Adam with gradient clipping and a learning-rate schedule over the budget
+whole episode); with `branches` > 1 each drawn window start begins a longer segment that carries that many forecasts
+(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a learning-rate schedule over the budget
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
@@ -13,7 +14,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -28,9 +31,9 @@ from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
-from rwm_gym.model.losses import relative_error, window_loss
+from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.windows import WindowData
+from rwm_gym.model.windows import Window, WindowData
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
@@ -88,6 +91,63 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     return total / len(starts)
 
 
+@dataclass
+class SegmentBatch:
+    """One training batch: segments of `TrainConfig.segment_rows` rows, each the start of a window of H + F rows drawn
+    uniformly; rows past an episode's end repeat its last row and the branches reaching them do not count."""
+
+    window: Window
+    """(B, R, ...) normalised rows."""
+    member: torch.Tensor | None
+    """(B,) long ensemble head per segment (None: one head)."""
+    real_rows: torch.Tensor
+    """(B,) long rows of each segment inside its episode."""
+
+
+def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int) -> SegmentBatch:
+    """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
+    head per segment. Consumes torch's global RNG (a seeded run draws the same batches)."""
+    segments = config.batch_size // config.branches
+    index = torch.randint(len(starts), (segments,))
+    member = torch.randint(ensemble_size, (segments,)).to(starts.device) if ensemble_size > 1 else None
+    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+    return SegmentBatch(window, member, real_rows)
+
+
+def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
+               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+    """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, grad_clip)
+    optimizer.step()
+    return float(loss.detach()), parts
+
+
+class _DeferredInterrupt:
+    """Ctrl-C ends the run between two iterations, never inside one.
+
+    An interrupt inside an iteration would save the RNG state after the iteration's draws beside the iteration count
+    from before them, and `--resume` would then diverge from the uninterrupted run. A second Ctrl-C stops at once.
+    """
+
+    def __init__(self):
+        self.requested, self._previous = False, None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def restore(self) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
 def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
     state = {"rng_torch": torch.get_rng_state()}
     if device.type == "cuda":
@@ -98,15 +158,21 @@ def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
 def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
           out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
           tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
-          init: str | os.PathLike | None = None) -> TrainResult:
+          init: str | os.PathLike | None = None, overwrite: bool = False,
+          clock: Callable[[], float] = time.monotonic) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
     init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
     the optimizer starts fresh.
     resume: continue from the checkpoint at `out` if it exists (same data file, same config except the budget).
+    overwrite: replace an existing `out`; without it (or `resume`) an existing `out` is refused.
     callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
     saves a resumable checkpoint first).
+    clock: seconds for the `minutes` budget and `wall_s` (e.g. `time.process_time` to count only this process's CPU
+    time on a shared machine).
     """
+    if out is not None and Path(out).exists() and not (resume or overwrite):
+        raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
@@ -116,10 +182,10 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     device, out = torch.device(config.device), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-    rows = config.history + config.forecast
+    rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
-        model = build_model(model_config).to(device).train()
+        model = build_model(model_config, spec).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
         if len(train_starts) == 0:
@@ -128,6 +194,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
         val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
+        loss_fn = SegmentLoss(model, config, pos_weight)
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
         provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
@@ -151,39 +218,32 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                                    stats=stats, optimizer=optimizer, training_state=_rng_state(device))
 
         writer = _tensorboard(tensorboard)
-        started = time.monotonic() - stats["wall_s"]
+        started = clock() - stats["wall_s"]
         iteration, running, parts_sum = stats["iterations"], 0.0, {}
 
         def finished() -> bool:
             if optimizer is None:
                 return True
             by_steps = config.iterations > 0 and iteration >= config.iterations
-            return by_steps or (config.minutes > 0 and time.monotonic() - started >= 60 * config.minutes)
+            return by_steps or (config.minutes > 0 and clock() - started >= 60 * config.minutes)
 
         bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
+        interrupt = _DeferredInterrupt()
         try:
             while not finished():
                 by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
-                by_time = (time.monotonic() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
+                by_time = (clock() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                index = torch.randint(len(train_starts), (config.batch_size,))
-                member = None
-                if model_config.ensemble_size > 1:
-                    member = torch.randint(model_config.ensemble_size, (config.batch_size,)).to(device)
-                batch = windows.gather(train_starts[index.to(device)], rows)
-                loss, parts = window_loss(model, batch, config, pos_weight, member)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-                optimizer.step()
+                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size)
+                loss, parts = train_step(loss_fn, optimizer, params, batch, config.grad_clip)
                 iteration += 1
-                running += float(loss.detach())
+                running += loss
                 for name, value in parts.items():
                     parts_sum[name] = parts_sum.get(name, 0.0) + value
-                stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
+                stats["iterations"], stats["wall_s"] = iteration, clock() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
                     stats["train_loss"] = running / max(count, 1)
@@ -199,21 +259,24 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 if iteration % config.checkpoint_every == 0:
                     save()
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
+                if interrupt.requested:
+                    raise KeyboardInterrupt
         except KeyboardInterrupt:
-            stats["wall_s"] = time.monotonic() - started
+            stats["wall_s"] = clock() - started
             if save() is not None:
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
         finally:
+            interrupt.restore()
             bar.close()
             if writer is not None:
                 writer.close()
         if optimizer is None:
             stats["val_error"] = validation_error(model, windows, val_starts, config)
-        stats["wall_s"] = time.monotonic() - started
+        stats["wall_s"] = clock() - started
         return TrainResult(model, stats, save())
 
 
@@ -257,6 +320,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
     parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
     parser.add_argument("--ensemble", type=int, dest="ensemble_size", help="same as --ensemble-size")
@@ -268,6 +332,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             if f.name == "ensemble_size":
                 continue
             flag = "--" + f.name.replace("_", "-")
+            if isinstance(f.default, bool):
+                group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, dest=f.name,
+                                   help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
+                continue
             group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
                                choices={"loss": LOSSES, "schedule": SCHEDULES}.get(f.name), help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
     parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])
@@ -289,10 +357,10 @@ def run(args: argparse.Namespace) -> int:
         dataset = Dataset.load(args.data)
         model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
         result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                       tensorboard=args.tensorboard, init=args.init)
+                       tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError, DatasetError, CheckpointError) as err:
         print(f"rwm-gym train: {err}", file=sys.stderr)
         return 2
     summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}

@@ -147,11 +147,7 @@ def evaluate_policy(
     if len(commands[0]) != len(task.command.names):
         raise ValueError(f"commands have {len(commands[0])} entries, the task's {task.name} has {task.command.names}")
     n, dt = len(pairs), task.policy_dt
-    core.reset(np.arange(n), [s for _, s in pairs])
-    core.command[:] = np.asarray([c for c, _ in pairs], dtype=np.float32)
-    if hasattr(core, "period"):
-        core.period = steps + task.episode_steps + 1  # never resample within the evaluation
-    obs = core.observe()
+    obs = core.reset(np.arange(n), [s for _, s in pairs], np.asarray([c for c, _ in pairs], dtype=np.float32))
     lin, ang = task.state_slices["base_lin_vel"], task.state_slices["base_ang_vel"]
     alive = np.ones(n, dtype=bool)
     returns, counted, tracking = np.zeros(n), np.zeros(n), np.zeros(n)

@@ -52,8 +52,9 @@ class RecordingCore:
         for i in np.intersect1d(ids, self.recorded):
             self._rows[int(i)] = [{f: record[f][i] for f in ROW_FIELDS}]
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
-        obs = self.core.reset(ids, seeds)
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
+              commands: np.ndarray | None = None) -> np.ndarray:
+        obs = self.core.reset(ids, seeds, commands)
         self._start(np.asarray(ids))
         return obs
 

@@ -252,13 +252,13 @@ def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None 
              seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
     """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
     if where == "imagination":
-        from rwm_gym.imagination.vec_env import ImaginedVecEnv
+        from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 
-        env = ImaginedVecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
+        env = ImaginedSB3VecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
     elif where == "physics":
-        from rwm_gym.physics.batched import BatchedLocomotionVecEnv
+        from rwm_gym.physics.batched import LocomotionSB3VecEnv
 
-        env = BatchedLocomotionVecEnv(num_envs=num_envs, **(env_kwargs or {}))
+        env = LocomotionSB3VecEnv(num_envs=num_envs, **(env_kwargs or {}))
     else:
         raise ValueError(f"--in {where!r} unknown (choose from {', '.join(WHERE)})")
     env.seed(seed)
