@@ -1,66 +1,308 @@
-"""The closing-note table of the gap workflow: every effect of the vocabulary hidden in measured data, named or not.
+"""The gap workflow over a grid of hidden cases, on excitation data and on an ordinary walking policy's data.
 
-For each effect (at its realistic default magnitude, or at `--scale` times it) and for no effect, make measured data
-with the effect hidden, run `rwm-gym gap` on it, and print: effect, true magnitude, named effect, fitted magnitude,
-gap before, gap after (held-out, normalised state MSE averaged over horizons 1, 5, 25). Also written as JSON.
+The grid: every effect of the vocabulary at 0.5x, 1x and 2x its realistic default; per-leg and per-joint-type
+variants (values in some joints only, hidden through per-joint `PhysicsParams`); pairs of effects; effects outside the
+vocabulary (a torsion spring in one joint type, edited into the MJCF directly, `measured.write_spring_model`); and
+no effect. Every case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait`
+or an SB3 `.zip` for the walking policy) and run through `rwm-gym gap --world-model none`.
 
-    python benchmarks/gap_table.py [--episodes 9] [--steps 150] [--scale 1.0] [--effects joint_friction armature]
+Per case: the named effects (order, scope), the fitted magnitude's error relative to the true distance from nominal,
+the explained fraction of the held-out gap (and the learned correction's where one was fitted), false namings.
+Each finished case is kept in `<out>/cases/<source>__<case>.json` and reused when its settings match (resume; run
+disjoint `--shard i/n` processes in parallel). The summary (`summary.json`, `gap_table.md`, `gap_table.png`) covers
+whatever cases have finished.
+
+    python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
+        [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.atomic import write_json
+from rwm_gym.atomic import write_json, write_text
 from rwm_gym.gap.effects import EFFECT_NAMES, vocabulary
-from rwm_gym.gap.measured import make_measured
+from rwm_gym.gap.measured import make_measured, write_spring_model
+from rwm_gym.gap.scope import joint_groups
 from rwm_gym.gap.workflow import run_gap
 from rwm_gym.spec import load_spec
+
+SPEC = load_spec("anymal_d")
+EFFECTS = vocabulary(SPEC)
+SIM = "AnymalD-MuJoCo-v0"
+
+
+@dataclass(frozen=True)
+class Case:
+    """One hidden configuration. `truth`: {effect: full parameter vector} of the vocabulary's global effects;
+    `per_joint`: (effect, scope, group, value): the effect in one joint group only, nominal elsewhere;
+    `spring`: (joint type, N·m/rad)."""
+
+    name: str
+    kind: str
+    """single, leg, joint_type, pair, outside, none."""
+    truth: dict[str, list[float]] = field(default_factory=dict)
+    per_joint: tuple[str, str, str, float] | None = None
+    spring: tuple[str, float] | None = None
+
+    def true_names(self) -> set[str]:
+        return set(self.truth) | ({self.per_joint[0]} if self.per_joint else set())
+
+
+def magnitude(name: str, scale: float) -> list[float]:
+    """The effect at `scale` x its default distance from nominal (first parameter; clipped, on its step)."""
+    p = EFFECTS[name].parameters[0]
+    value = float(np.clip(p.nominal + scale * (p.default - p.nominal), p.low, p.high))
+    value = round(value / p.step) * p.step if p.step else value
+    return EFFECTS[name].values_from_magnitude(value).tolist()
+
+
+def grid() -> list[Case]:
+    """Every case, in run order: the most informative first, so a partial run covers every kind."""
+    first = [Case("none", "none"), Case("spring_KFE_30", "outside", spring=("KFE", 30.0)),
+             Case("action_delay_1x", "single", {"action_delay": magnitude("action_delay", 1.0)}),
+             Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
+             Case("friction+payload", "pair", {"joint_friction": magnitude("joint_friction", 1.5),
+                                               "payload": magnitude("payload", 1.0)}),
+             Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
+             Case("delay+armature", "pair", {"action_delay": magnitude("action_delay", 1.0),
+                                             "armature": magnitude("armature", 1.0)})]
+    first += [Case(f"{n}_1x", "single", {n: magnitude(n, 1.0)}) for n in EFFECT_NAMES if n != "action_delay"]
+    rest = [Case(f"{n}_{s}x", "single", {n: magnitude(n, s)}) for s in (0.5, 2.0) for n in EFFECT_NAMES]
+    rest += [Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
+             Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),
+             Case("strength+ground", "pair", {"motor_strength": magnitude("motor_strength", 1.0),
+                                              "ground_friction": magnitude("ground_friction", 1.0)}),
+             Case("damping+backlash", "pair", {"joint_damping": magnitude("joint_damping", 1.5),
+                                               "backlash": magnitude("backlash", 1.0)}),
+             Case("spring_HFE_20", "outside", spring=("HFE", 20.0)), Case("none_seed1", "none")]
+    return first + rest
+
+
+def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
+    """Measure the case from `source`, run the workflow, score the verdict."""
+    env_kwargs, extra = {}, {}
+    if case.spring:
+        env_kwargs["xml_file"] = str(write_spring_model(SPEC, tmp / f"{case.name}.xml", *case.spring))
+    if case.per_joint:
+        name, scope, group, value = case.per_joint
+        p = EFFECTS[name].parameters[0]
+        values = np.full(12, p.nominal)
+        values[joint_groups(SPEC, scope)[group]] = value
+        extra[EFFECTS[name].apply(np.array([p.default])).popitem()[0]] = values.tolist()
+    seed = args.seed + (1 if case.name.endswith("seed1") else 0)
+    start = time.time()
+    data = make_measured(case.truth, args.episodes, tmp / f"{source}_{case.name}.h5", max_steps=args.steps,
+                         seed=seed, policy=source, env_kwargs=env_kwargs, extra_physics=extra, progress=False,
+                         overwrite=True)
+    try:
+        report = run_gap(SIM, data, tmp / f"{source}_{case.name}", progress=False)
+    except ValueError as err:  # e.g. a robot that falls at once: no episode long enough for held-out windows
+        return {"case": case.name, "kind": case.kind, "source": source, "error": str(err), "settings": settings(args)}
+    named = [(e["effect"], e["scope"]) for e in report["effects"]]
+    true = case.true_names()
+    errors = {}
+    for item in report["effects"]:
+        name = item["effect"]
+        if name in case.truth:
+            p = EFFECTS[name].parameters[0]
+            fitted = item["parameters"].get(p.name)
+            if fitted is not None:
+                errors[name] = abs(fitted - case.truth[name][0]) / abs(case.truth[name][0] - p.nominal)
+        elif case.per_joint and name == case.per_joint[0] and item["scope"] == case.per_joint[1]:
+            _, _, group, value = case.per_joint
+            p = EFFECTS[name].parameters[0]
+            fitted = item["parameters"][f"{p.name}_{group}"]
+            errors[name] = abs(fitted - value) / abs(value - p.nominal)
+    learned = report["learned_correction"]
+    return {
+        "case": case.name, "kind": case.kind, "source": source, "true": sorted(true),
+        "truth": case.truth, "per_joint": case.per_joint, "spring": case.spring,
+        "verdict": report["effect"], "named": named, "reason": report["reason"],
+        "correct": (sorted({n for n, _ in named}) == sorted(true) if case.kind not in ("outside", "none") else
+                    report["effect"] == ("unexplained" if case.kind == "outside" else "none")),
+        "scope_correct": (any(n == case.per_joint[0] and s == case.per_joint[1] for n, s in named)
+                          if case.per_joint else None),
+        "false_namings": sorted({n for n, _ in named} - true),
+        "magnitude_error": errors,
+        "explained_fraction": report["explained_fraction"],
+        "learned_explained_fraction": learned["explained_fraction"] if learned and learned["status"] == "ok"
+        else None,
+        "learned_total_explained": (1.0 - learned["gap_after"] / report["gap_before"])
+        if learned and learned["status"] == "ok" else None,
+        "gap_before": report["gap_before"], "floor": report["noise_floor"]["floor"],
+        "floor_ratio": report["noise_floor"]["ratio"], "above_floor": report["noise_floor"]["above_floor"],
+        "identifiable": {k: v["identifiable"] for k, v in report["identifiability"].items()},
+        "rejected_points": len(report["rejected"]), "wall_s": time.time() - start,
+        "settings": settings(args),
+    }
+
+
+def settings(args: argparse.Namespace) -> dict:
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 1}
+
+
+def summarise(rows: list[dict]) -> dict:
+    """The must-reach figures per data source over the finished cases."""
+    out = {}
+    for source in sorted({r["source"] for r in rows}):
+        rs = [r for r in rows if r["source"] == source and "error" not in r]
+        effect = [r for r in rs if r["kind"] in ("single", "leg", "joint_type", "pair")]
+        named_right = [r for r in effect if r["correct"]]
+        errs = [e for r in named_right for e in r["magnitude_error"].values()]
+        explained = [r["explained_fraction"] for r in named_right]
+        excess = [excess_explained(r) for r in named_right]
+        unnamed = [r for r in rs if r["verdict"] == "unexplained" and r["learned_total_explained"] is not None]
+        out[source] = {
+            "cases": len(rs), "errors": len([r for r in rows if r["source"] == source and "error" in r]),
+            "named_correctly": frac([r["correct"] for r in effect]),
+            "magnitude_within_25pct_of_named": frac([e <= 0.25 for e in errs]),
+            "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
+            "mean_explained_where_named": float(np.mean(explained)) if explained else None,
+            "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
+            "learned_ge_50pct_where_unexplained": frac([r["learned_total_explained"] >= 0.5 for r in unnamed]),
+            "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
+            "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
+            "both_named_in_pairs": frac([r["correct"] for r in rs if r["kind"] == "pair"]),
+            "false_namings": sum(len(r["false_namings"]) for r in rs),
+            "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
+        }
+    return out
+
+
+def excess_explained(row: dict) -> float:
+    """Share of the gap above the noise floor that the named effects remove (the floor itself cannot be removed)."""
+    before, floor = row["gap_before"], row["floor"]
+    return row["explained_fraction"] * before / (before - floor) if before > floor else float("nan")
+
+
+def frac(flags: list[bool]) -> dict | None:
+    return {"fraction": float(np.mean(flags)), "n": len(flags)} if flags else None
+
+
+def markdown(rows: list[dict], summary: dict) -> str:
+    header = "| source | case | kind | named (scope) | correct | magnitude error | explained | learned | gap / floor |"
+    lines = [header, "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["source"], r["kind"], r["case"])):
+        if "error" in r:
+            lines.append(f"| {r['source']} | {r['case']} | {r['kind']} | error: {r['error'][:60]} | | | | | |")
+            continue
+        named = ", ".join(f"{n} ({s})" for n, s in r["named"]) or r["verdict"]
+        err = ", ".join(f"{v:.0%}" for v in r["magnitude_error"].values()) or "-"
+        learned = f"{r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None else "-"
+        lines.append(f"| {r['source']} | {r['case']} | {r['kind']} | {named} | {'yes' if r['correct'] else 'no'} | "
+                     f"{err} | {r['explained_fraction']:.0%} | {learned} | {r['floor_ratio']:.2f} |")
+    lines += ["", "| figure | " + " | ".join(summary) + " |", "|---|" + "---|" * len(summary)]
+    keys = next(iter(summary.values()), {}).keys()
+    for key in keys:
+        cells = []
+        for s in summary.values():
+            v = s[key]
+            cells.append(f"{v['fraction']:.0%} (n={v['n']})" if isinstance(v, dict) else
+                         "-" if v is None else f"{v:.2f}" if isinstance(v, float) else str(v))
+        lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def side_by_side(rows: list[dict]) -> str:
+    """One line per case, the data sources side by side (the README's table)."""
+    sources = sorted({r["source"] for r in rows})
+    by = {(r["case"], r["source"]): r for r in rows}
+    order = [c.name for c in grid()]
+    cases = sorted({r["case"] for r in rows}, key=lambda c: order.index(c) if c in order else len(order))
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "not run"
+        if "error" in r:
+            return "error"
+        named = ", ".join(f"{n}" + (f" ({s})" if s != "global" else "") for n, s in r["named"]) or r["verdict"]
+        err = "; ".join(f"err {v:.0%}" for v in r["magnitude_error"].values())
+        learned = (f"; learned {r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None
+                   else "")
+        mark = "✓" if r["correct"] else "✗"
+        above = f" ({excess_explained(r):.0%} above floor)" if r["named"] else ""
+        return (f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{above}"
+                f"{learned}")
+
+    lines = ["| case | " + " | ".join(sources) + " |", "|---|" + "---|" * len(sources)]
+    lines += [f"| {c} | " + " | ".join(cell(by.get((c, s))) for s in sources) + " |" for c in cases]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kinds = ["single", "leg", "joint_type", "pair", "outside", "none"]
+    sources = sorted({r["source"] for r in rows})
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    for i, source in enumerate(sources):
+        acc = [np.mean([r["correct"] for r in rows if r["source"] == source and r["kind"] == k and "error" not in r]
+                       or [np.nan]) for k in kinds]
+        axes[0].bar(np.arange(len(kinds)) + 0.4 * i - 0.2, acc, 0.4, label=source)
+        pts = [(r["explained_fraction"], r["learned_total_explained"] or r["explained_fraction"]) for r in rows
+               if r["source"] == source and "error" not in r and r["kind"] != "none"]
+        if pts:
+            axes[1].scatter(*zip(*pts), label=source, alpha=0.7)
+    axes[0].set_xticks(range(len(kinds)), kinds)
+    axes[0].set_ylabel("verdict correct (fraction of cases)")
+    axes[0].legend()
+    axes[1].set_xlabel("explained by named effects")
+    axes[1].set_ylabel("explained with the learned correction")
+    axes[1].plot([0, 1], [0, 1], "k:", lw=0.8)
+    axes[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=9, help="measured episodes (6 leave backlash untested: p > 0.01)")
-    parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--scale", type=float, default=1.0,
-                        help="magnitude = nominal + scale * (default - nominal), clipped to the effect's range")
-    parser.add_argument("--effects", nargs="*", default=[*EFFECT_NAMES, "none"])
+    parser.add_argument("--out", type=Path, default=Path("results/gap_table"))
+    parser.add_argument("--episodes", type=int, default=9, help="measured episodes per case")
+    parser.add_argument("--steps", type=int, default=150, help="policy steps per episode")
+    parser.add_argument("--sources", nargs="*", default=["excitation", "gait"],
+                        help="policies that produce the measured data (excitation, gait, random, an SB3 .zip)")
+    parser.add_argument("--cases", nargs="*", default=None, help="case names (default: the whole grid)")
+    parser.add_argument("--shard", default="0/1", help="i/n: run every n-th case starting at i")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", type=Path, default=Path("gap_table.json"))
+    parser.add_argument("--summary-only", action="store_true", help="only rebuild the summary from finished cases")
     args = parser.parse_args()
-    effects = vocabulary(load_spec("anymal_d"))
-    rows = []
-    header = ("effect", "true", "named", "fitted", "gap before", "gap after", "error")
-    print(f"{header[0]:16s} {header[1]:>9s} {header[2]:16s} {header[3]:>9s} {header[4]:>11s} {header[5]:>10s} "
-          f"{header[6]:>7s}")
+    cases = [c for c in grid() if args.cases is None or c.name in args.cases]
+    shard, shards = (int(x) for x in args.shard.split("/"))
+    folder = args.out / "cases"
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [(c, s) for c in cases for s in args.sources][shard::shards]
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.effects:
-            hidden, true = {}, float("nan")
-            if name != "none":
-                p = effects[name].parameters[0]
-                true = float(np.clip(p.nominal + args.scale * (p.default - p.nominal), p.low, p.high))
-                true = round(true / p.step) * p.step if p.step else true  # what the simulator can hold
-                hidden = {name: effects[name].values_from_magnitude(true)}
-            data = make_measured(hidden, args.episodes, Path(tmp) / f"{name}.h5", max_steps=args.steps,
-                                 seed=args.seed, progress=False)
-            try:
-                report = run_gap("AnymalD-MuJoCo-v0", data, Path(tmp) / name, progress=False)
-            except ValueError as err:  # e.g. a magnitude at which the robot falls at once: no windows
-                print(f"{name:16s} {true:9.4g} error: {err}", flush=True)
+        for case, source in ([] if args.summary_only else jobs):
+            path = folder / f"{Path(source).stem}__{case.name}.json"
+            if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
                 continue
-            fitted = next(iter(report["parameters"].values()), float("nan"))
-            error = abs(fitted - true) / abs(true - effects[name].parameters[0].nominal) if name != "none" else 0.0
-            row = {"effect": name, "true": true, "named": report["effect"], "fitted": fitted,
-                   "gap_before": report["gap_before"], "gap_after": report["gap_after"],
-                   "relative_error": error, "parameters": report["parameters"]}
-            rows.append(row)
-            print(f"{name:16s} {true:9.4g} {report['effect']:16s} {fitted:9.4g} {report['gap_before']:11.4g} "
-                  f"{report['gap_after']:10.4g} {error:7.1%}", flush=True)
-    write_json(args.json, rows)
+            row = run_case(case, source, args, Path(tmp))
+            row["source"] = Path(source).stem
+            write_json(path, row)
+            print(f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
+                  f"{row.get('named', row.get('error'))} {row.get('wall_s', 0):.0f}s", flush=True)
+    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    rows = [r for r in rows if r.get("settings") == settings(args) or "error" in r]
+    summary = summarise(rows)
+    write_json(args.out / "summary.json", {"summary": summary, "cases_finished": len(rows),
+                                           "cases_in_grid": len(grid()) * len(args.sources), "rows": rows})
+    write_text(args.out / "gap_table.md", markdown(rows, summary))
+    write_text(args.out / "gap_table_side_by_side.md", side_by_side(rows))
+    if rows:
+        plot(rows, args.out / "gap_table.png")
+    print(markdown(rows, summary))
 
 
 if __name__ == "__main__":

@@ -64,8 +64,8 @@ def response_lag(spec: TaskSpec, states: np.ndarray, windows: Windows, max_lag: 
     return float((i + offset) * spec.policy_dt)
 
 
-def where(spec: TaskSpec, simulated: np.ndarray, windows: Windows, top: int = 8) -> dict:
-    """The `where` section of the report: top channels at horizons 1 and 5, ranked conditions, response lags."""
+def locate_gap(spec: TaskSpec, simulated: np.ndarray, windows: Windows, top: int = 8) -> dict:
+    """The report's `where` section: top channels at horizons 1 and 5, ranked conditions, response lags."""
     return {
         "channels_h1": channel_ranking(spec, simulated, windows, 1)[:top],
         "channels_h5": channel_ranking(spec, simulated, windows, min(5, windows.horizon))[:top],

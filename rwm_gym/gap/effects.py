@@ -1,10 +1,10 @@
 """The vocabulary of physical effects a simulator may miss, each a parametric change of `PhysicsParams` with units.
 
 An `Effect` maps a small parameter vector (1-3 numbers, physical units) to `PhysicsParams` overrides. The gap workflow
-fits every effect of `vocabulary(spec)` to measured data and names the one that explains the gap; `make-measured` hides
+fits every effect of `vocabulary(spec)` to measured data and names those that explain the gap; `make-measured` hides
 one (or several) in a simulator. The effects here act globally (the same value on all 12 joints); `rwm_gym.gap.scope`
-derives per-leg forms of the joint effects. `PhysicsParams` itself takes per-joint values, which `make-measured
---physics` can hide.
+derives per-leg, per-joint-type and per-joint forms of the joint effects. `PhysicsParams` itself takes per-joint
+values, which `make-measured --physics` can hide.
 
 Backlash is a dead band of the position error at the physics rate (`rwm_gym.physics.backlash`); it is the one effect
 the corrected MJCF cannot hold, so it lives in the corrected env options.
@@ -16,9 +16,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 import mujoco
+import numpy as np
 
 from rwm_gym.physics.params import PhysicsParams, build_model
 from rwm_gym.spec import TaskSpec

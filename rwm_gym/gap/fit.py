@@ -11,10 +11,11 @@ step; the explained fraction is 1 - gap_after / gap_before; the score charges `p
 parameter: score = 1 - (gap_after / gap_before) x (1 + penalty x extra parameters). Significance: one-sided Wilcoxon
 signed-rank test on per-block (`block_rows` rows of an episode) mean error reductions.
 
-Decision: the best-scoring effect is named when it is significant, explains at least `min_explained`, and no
-different effect (one that does not nest it, see `Effect.nested_in`) leaves a remaining gap within `ambiguity_ratio`
-of the best's; a significant (or, with too little held-out data to test, a clearly moved) but unexplained or ambiguous
-gap gives `unexplained`; otherwise `none`.
+Blow-ups: parameters at which MuJoCo's integration diverges (`resim.SimulationDiverged`) are rejected, never silently:
+the grid point or search step costs infinity, and the candidate's `rejected` lists each rejected point with MuJoCo's
+reason; a candidate whose fitted values blow up on held-out windows is itself rejected (score -inf).
+
+Which candidates are named, and in which order, is `rwm_gym.gap.select`'s call.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from scipy import optimize, stats
 from tqdm import tqdm
 
 from rwm_gym.gap.effects import Effect
-from rwm_gym.gap.resim import Resimulator, Windows, normalised_residual
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.physics.params import PhysicsParams
 
 GAP_HORIZONS: tuple[int, ...] = (1, 5, 25)
@@ -58,6 +59,12 @@ class FitConfig:
     """Rows of an episode pooled into one sample of the significance test."""
     refine_top: int = 3
     """Effects (best on the coarse grid) whose parameters are refined; the rest keep their best grid point."""
+    max_effects: int = 3
+    """Forward selection names at most this many effects."""
+    min_excess_explained: float = 0.3
+    """An effect added after the first must explain this share of the gap still above the noise floor."""
+    scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
+    """Joint-group scopes tried for the best joint effect of each selection step (`gap.scope`)."""
 
 
 @dataclass
@@ -75,10 +82,16 @@ class CandidateFit:
     """Held-out normalised MSE at each horizon."""
     gap_mean: float = float("nan")
     explained_fraction: float = float("nan")
+    excess_explained: float = float("nan")
+    """Share of the gap above the noise floor that this candidate removes (set by `select`)."""
     score: float = float("nan")
     p_value: float = 1.0
     scope: str = "global"
-    """"global" (one value for all joints) or "leg" (one per leg, `rwm_gym.gap.scope`)."""
+    """"global" (one value for all joints), "leg", "joint_type" or "joint" (`rwm_gym.gap.scope`)."""
+    rejected: list[str] = field(default_factory=list)
+    """Parameter points rejected because the simulation blew up there, each with MuJoCo's reason."""
+    status: str = "ok"
+    """"ok", or "rejected: <reason>" when the fitted values blow up on held-out windows."""
 
 
 def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:
@@ -87,9 +100,22 @@ def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:
     return np.stack([(res[:, h - 1] ** 2).mean(-1) for h in GAP_HORIZONS], axis=1)
 
 
-def _objective(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, horizon: int):
+BLOW_UP_RESIDUAL = 1e3
+"""Normalised residual given to every sample at parameters where the simulation blew up (cost 1e6 >> any real one)."""
+
+
+def _objective(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, horizon: int,
+               rejected: list[str]):
+    """Residual vector of `effect` at values; at a blow-up, a huge constant and a line in `rejected`."""
+    size = len(train) * horizon * resim.spec.state_dim
+
     def residual(values: np.ndarray) -> np.ndarray:
-        sim = resim.rollout(train, effect.physics(values, base), horizon=horizon)
+        try:
+            sim = resim.rollout(train, effect.physics(values, base), horizon=horizon)
+        except SimulationDiverged as err:
+            point = ", ".join(f"{p.name}={v:.4g}" for p, v in zip(effect.parameters, values))
+            rejected.append(f"{point}: {err.reason}")
+            return np.full(size, BLOW_UP_RESIDUAL)
         return normalised_residual(resim.spec, sim, train.target[:, :horizon]).ravel()
     return residual
 
@@ -105,12 +131,14 @@ def screen_grid(effect: Effect, fractions: tuple[float, ...]) -> np.ndarray:
 
 
 def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams,
-                  config: FitConfig, nominal_cost: float) -> tuple[np.ndarray, float, tuple[float, float]]:
+                  config: FitConfig, nominal_cost: float, rejected: list[str]
+                  ) -> tuple[np.ndarray, float, tuple[float, float]]:
     """Coarse grid over the effect's first parameter (the others nominal, `nominal_cost` at the nominal point).
 
-    Returns the best values, their training cost and the bracket (the best point's neighbours on the grid).
+    Returns the best values, their training cost and the bracket (the best point's neighbours on the grid); blown-up
+    points are appended to `rejected`.
     """
-    residual = _objective(effect, resim, train, base, config.fit_horizon)
+    residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
     first = effect.parameters[0]
     grid = screen_grid(effect, config.grid_fractions)
     costs = np.array([nominal_cost if np.isclose(g, first.nominal) else
@@ -121,9 +149,12 @@ def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: Phys
 
 
 def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
-               start: np.ndarray, bracket: tuple[float, float]) -> CandidateFit:
+               start: np.ndarray, bracket: tuple[float, float], rejected: list[str] | None = None,
+               max_evaluations: int | None = None) -> CandidateFit:
     """Refine `effect`'s parameters (on top of `base`) from `start`, the first within `bracket`, on training windows."""
-    residual = _objective(effect, resim, train, base, config.fit_horizon)
+    rejected = [] if rejected is None else rejected
+    residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
+    budget = max_evaluations or config.max_evaluations
 
     def cost(values: np.ndarray) -> float:
         return float(np.mean(residual(values) ** 2))
@@ -131,24 +162,49 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
     first = effect.parameters[0]
     lo, hi = bracket
     values = start.copy()
-    if first.step > 0:
+    if first.step > 0 and len(effect.parameters) == 1:
         steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
     elif len(effect.parameters) == 1:
         found = optimize.minimize_scalar(lambda x: cost(np.array([x])), bounds=(lo, hi), method="bounded",
                                          options={"xatol": 5e-3 * min(hi - lo, 0.2 * (first.high - first.low)),
-                                                  "maxiter": config.max_evaluations})
+                                                  "maxiter": budget})
         values = np.array([found.x])
     else:
         lows = np.array([p.low for p in effect.parameters])
         highs = np.array([p.high for p in effect.parameters])
         found = optimize.least_squares(residual, np.clip(start, lows, highs), bounds=(lows, highs),
-                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=config.max_evaluations // 2)
+                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=max(budget // 2, 1))
         values = found.x
     r_star = residual(values)
     return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
                         [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
-                        float(np.mean(r_star**2)), scope=effect.scope)
+                        float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
+
+
+def fit_coordinatewise(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
+                       start: np.ndarray, brackets: list[tuple[float, float]], evaluations: int,
+                       sweeps: int = 2) -> CandidateFit:
+    """`sweeps` sweeps of bounded Brent searches, one parameter at a time (the others held), each within its bracket
+    and `evaluations` re-simulations: robust where least squares stalls on a non-smooth cost (Coulomb friction, dead
+    band) with one parameter per joint group."""
+    rejected: list[str] = []
+    residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
+    values = np.asarray(start, float).copy()
+    for i, (lo, hi) in [(i, b) for _ in range(sweeps) for i, b in enumerate(brackets)]:
+        def cost(x: float, i: int = i) -> float:
+            trial = values.copy()
+            trial[i] = x
+            return float(np.mean(residual(trial) ** 2))
+
+        p = effect.parameters[i]
+        found = optimize.minimize_scalar(cost, bounds=(lo, hi), method="bounded",
+                                         options={"xatol": 5e-3 * (p.high - p.low), "maxiter": evaluations})
+        values[i] = found.x
+    r_star = residual(values)
+    return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
+                        [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
+                        float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
 
 
 def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarray) -> list[float]:
@@ -169,8 +225,15 @@ def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarra
 
 def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Windows, base: PhysicsParams,
               before: np.ndarray, config: FitConfig) -> np.ndarray:
-    """Fill the held-out gap, explained fraction, score and p-value of `fit`; return its per-window gap (W, 3)."""
-    after = gap_per_window(resim.spec, resim.rollout(heldout, effect.physics(fit.values, base)), heldout)
+    """Fill the held-out gap, explained fraction (of the gap `before` (W, 3)), score and p-value of `fit`; return its
+    per-window gap (W, 3), or `before` for a candidate rejected because its values blow up."""
+    try:
+        after = gap_per_window(resim.spec, resim.rollout(heldout, effect.physics(fit.values, base)), heldout)
+    except SimulationDiverged as err:
+        fit.status = f"rejected: the simulation blows up on held-out windows at the fitted values ({err.reason})"
+        fit.gap, fit.gap_mean, fit.explained_fraction, fit.score, fit.p_value = {}, float("nan"), float("nan"), \
+            -float("inf"), 1.0
+        return before
     fit.gap = {h: float(v) for h, v in zip(GAP_HORIZONS, after.mean(0))}
     fit.gap_mean = float(after.mean())
     fit.explained_fraction = 1.0 - fit.gap_mean / float(before.mean())
@@ -191,63 +254,32 @@ def paired_p_value(reduction: np.ndarray, windows: Windows, block_rows: int) -> 
     return float(stats.wilcoxon(means, alternative="greater").pvalue)
 
 
-@dataclass
-class Verdict:
-    effect: str
-    """A vocabulary name, `unexplained` or `none`."""
-    reason: str
-    winner: CandidateFit | None
-
-
-def decide(fits: list[CandidateFit], effects: dict[str, Effect], config: FitConfig) -> Verdict:
-    """Name the effect, or say `unexplained` / `none` (see the module docstring)."""
-    ranked = sorted(fits, key=lambda f: f.score, reverse=True)
-    best = ranked[0]
-    significant = [f for f in ranked if f.p_value < config.significance and f.explained_fraction > 0.05]
-    if best.p_value >= config.significance or best.explained_fraction < config.min_explained:
-        if significant or best.explained_fraction >= config.min_moved:
-            reason = (f"best candidate {best.effect} explains {best.explained_fraction:.0%} (p={best.p_value:.2g}): "
-                      "a real gap that no candidate explains significantly")
-            return Verdict("unexplained", reason, None)
-        return Verdict("none", "no candidate reduces the held-out gap significantly", None)
-    for other in ranked[1:]:
-        related = (other.effect == best.effect  # the same effect in another scope (global / per leg)
-                   or other.effect in effects[best.effect].nested_in or best.effect in effects[other.effect].nested_in)
-        if not related and 1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
-            reason = (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
-                      f"({other.explained_fraction:.0%}) explain the gap alike")
-            return Verdict("unexplained", reason, None)
-    return Verdict(best.effect, f"explains {best.explained_fraction:.0%} of the held-out gap (p={best.p_value:.2g})",
-                   best)
-
-
 def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams,
-            config: FitConfig, progress: bool = True) -> tuple[list[CandidateFit], np.ndarray]:
-    """Screen every effect on a coarse grid, refine the `refine_top` best, score all on held-out windows.
+            before: np.ndarray, config: FitConfig, progress: bool = True) -> list[CandidateFit]:
+    """Screen every effect (on top of `base`) on a coarse grid, refine the `refine_top` best, score all on held-out
+    windows against the per-window gap `before` (W, len(GAP_HORIZONS)) of `base`.
 
-    Returns the fits (unrefined ones at their best grid point, uncertainty NaN) and the nominal per-window held-out
-    gap (W, len(GAP_HORIZONS)).
+    Returns the fits; unrefined ones sit at their best grid point with uncertainty NaN.
     """
-    before = gap_per_window(resim.spec, resim.rollout(heldout, base), heldout)
     bar = tqdm(total=2 * len(effects) + config.refine_top, desc="fit effects", unit="step", disable=not progress)
     h = config.fit_horizon
     nominal_cost = float(np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h),
                                                      train.target[:, :h]) ** 2))
-    screened = {}
+    screened, rejected = {}, {name: [] for name in effects}
     for name, effect in effects.items():
-        screened[name] = screen_effect(effect, resim, train, base, config, nominal_cost)
+        screened[name] = screen_effect(effect, resim, train, base, config, nominal_cost, rejected[name])
         bar.update(1)
     order = sorted(screened, key=lambda n: screened[n][1])
     fits = []
     for name in order:
         effect, (start, cost, bracket) = effects[name], screened[name]
         if len(fits) < config.refine_top and cost < nominal_cost:
-            fit = fit_effect(effect, resim, train, base, config, start, bracket)
+            fit = fit_effect(effect, resim, train, base, config, start, bracket, rejected[name])
         else:
             fit = CandidateFit(name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
-                               [float(v) for v in start], [float("nan")] * len(start), cost)
+                               [float(v) for v in start], [float("nan")] * len(start), cost, rejected=rejected[name])
         score_fit(fit, effect, resim, heldout, base, before, config)
         fits.append(fit)
         bar.update(2 if len(fits) <= config.refine_top else 1)
     bar.close()
-    return fits, before
+    return fits

@@ -1,7 +1,9 @@
 """`rwm-gym make-measured`: "measured" data from a simulator with hidden physical effects, for demos and tests.
 
 The data is collected from the nominal robot with one or more effects of the vocabulary (`rwm_gym.gap.effects`)
-added, then given small sensor noise and written in exactly the dataset format a converted robot log has: the env id
+added, driven by `--policy` (the excitation policy made for identification, or an ordinary one: the scripted gait,
+random actions, or a trained SB3 policy walking on commands, as a real robot's log would be), then given small sensor
+noise and written in exactly the dataset format a converted robot log has: the env id
 is the nominal simulator's, `physics_params` is empty (unknown), the policy is "unknown" and the metadata is empty.
 Nothing in the file names the effect; the workflow has to find it.
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -21,8 +24,9 @@ import numpy as np
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics, parse_effects
-from rwm_gym.policies.excitation import ExcitationPolicy
 from rwm_gym.physics.robot import measure
+from rwm_gym.policies.base import make_policy
+from rwm_gym.policies.excitation import ExcitationPolicy
 
 
 @dataclass(frozen=True)
@@ -48,9 +52,17 @@ def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, r
     """Perturb qpos/qvel/torque of one episode in place and rebuild its state from them (so the two agree)."""
     if noise.scale == 0:
         return
-    layout, spec, s = core.layout, core.spec, noise.scale
-    qpos, qvel = episode["qpos"].copy(), episode["qvel"].copy()
-    rows = len(qpos)
+    torque = episode["state"][:, core.spec.state_slices["joint_torque"]]
+    episode["qpos"], episode["qvel"], episode["state"] = noisy_measurement(
+        core.layout, core.spec, core.model, episode["qpos"], episode["qvel"], torque, noise, rng)
+
+
+def noisy_measurement(layout, spec, model, qpos: np.ndarray, qvel: np.ndarray, joint_torque: np.ndarray,
+                      noise: SensorNoise, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sensor readings of true rows: noisy copies of qpos (N, nq), qvel (N, nv) and the state (N, S) built from them
+    and the noisy joint torque (N, A). The noise floor of the gap workflow draws its noise here too."""
+    qpos, qvel = np.array(qpos, float), np.array(qvel, float)
+    rows, s = len(qpos), noise.scale
     qpos[:, layout.qpos_adr] += rng.normal(0, s * noise.joint_pos, (rows, len(layout.qpos_adr)))
     qvel[:, layout.dof_adr] += rng.normal(0, s * noise.joint_vel, (rows, len(layout.dof_adr)))
     qvel[:, 0:3] += rng.normal(0, s * noise.base_lin_vel, (rows, 3))
@@ -59,12 +71,11 @@ def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, r
         quat = qpos[t, 3:7].copy()
         mujoco.mju_quatIntegrate(quat, rng.normal(0, s * noise.base_orientation, 3), 1.0)
         qpos[t, 3:7] = quat
-    torque = np.zeros((rows, core.model.nu))
-    torque[:, layout.actuator_ids] = episode["state"][:, spec.state_slices["joint_torque"]]
+    torque = np.zeros((rows, model.nu))
+    torque[:, layout.actuator_ids] = joint_torque
     torque[:, layout.actuator_ids] += rng.normal(0, s * noise.joint_torque, (rows, len(layout.actuator_ids)))
-    sensors, sites = np.zeros((rows, core.model.nsensordata)), np.zeros((rows, core.model.nsite, 3))
-    episode["state"] = measure(layout, spec, qpos, qvel, torque, sensors, sites).state
-    episode["qpos"], episode["qvel"] = qpos, qvel
+    sensors, sites = np.zeros((rows, model.nsensordata)), np.zeros((rows, model.nsite, 3))
+    return qpos, qvel, measure(layout, spec, qpos, qvel, torque, sensors, sites).state
 
 
 def make_measured(
@@ -79,12 +90,14 @@ def make_measured(
     max_steps: int = 250,
     num_envs: int = 8,
     noise: SensorNoise = SensorNoise(),
+    policy: str = "excitation",
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
     """Write `episodes` episodes of `env_id` with `effects` ({name: parameter values}) hidden in the robot.
 
-    `extra_physics` (PhysicsParams fields, e.g. per-joint values) is hidden too. The excitation policy drives the robot.
+    `extra_physics` (PhysicsParams fields, e.g. per-joint values) is hidden too. `policy` drives the robot:
+    `excitation` (default), `gait`, `random` or the path of an SB3 `.zip`.
     """
     out = Path(out)
     if out.exists() and not overwrite:
@@ -96,8 +109,10 @@ def make_measured(
     fd, raw = tempfile.mkstemp(suffix=".h5", dir=out.parent)
     os.close(fd)
     try:
-        policy = ExcitationPolicy(nominal.spec, max(1, min(num_envs, episodes)))
-        collect(env_id, policy, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
+        n = max(1, min(num_envs, episodes))
+        driver = (ExcitationPolicy(nominal.spec, n) if policy == "excitation" else
+                  make_policy(policy, nominal.spec, n))
+        collect(env_id, driver, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
                 env_kwargs={**env_kwargs, "physics": hidden}, overwrite=True, progress=progress)
         source = Dataset.load(raw)
         info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
@@ -116,11 +131,34 @@ def make_measured(
     return out
 
 
+def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float, xml_file: str | Path | None = None
+                       ) -> Path:
+    """An effect outside the vocabulary, for benchmarks and tests: the robot's MJCF with a torsion spring
+    (`stiffness` N·m/rad, rest at the default pose) in every actuated joint whose name ends in `joint_type`, edited
+    into the MuJoCo model directly (no `PhysicsParams` field can express it). Writes a standalone MJCF at `out`."""
+    mj = mujoco.MjSpec.from_file(str(xml_file or spec.model_path))
+    hit = 0
+    for name, rest in zip(spec.actuator.joints, spec.actuator.default_pose):
+        if name.endswith(joint_type):
+            joint = mj.joint(name)
+            joint.stiffness = [float(stiffness), 0.0, 0.0]  # linear spring: polynomial coefficients
+            joint.springref = float(rest)
+            hit += 1
+    if not hit:
+        raise ValueError(f"no actuated joint name ends in {joint_type!r}")
+    from rwm_gym.atomic import write_text
+
+    return write_text(out, mj.to_xml())
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--effect", action="append", default=[], help="effect of the vocabulary to hide (repeatable)")
     parser.add_argument("--magnitude", action="append", default=[],
                         help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)")
     parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
+    parser.add_argument("--policy", default="excitation",
+                        help="what drives the robot: excitation (made for identification), gait, random, or the path "
+                             "of an SB3 .zip (an ordinary walking policy, as in a real robot's log)")
     parser.add_argument("--episodes", type=int, default=16)
     parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
     parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="physics env id or spec path (the nominal simulator)")
@@ -137,10 +175,15 @@ def run(args: argparse.Namespace) -> int:
 
     env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}
     spec = make_physics_core(args.env, 1, **env_kwargs).spec
-    effects = parse_effects(spec, args.effect, args.magnitude)
-    path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
-                         extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,
-                         max_steps=args.max_steps, noise=SensorNoise(scale=args.noise_scale), overwrite=args.overwrite)
+    try:
+        effects = parse_effects(spec, args.effect, args.magnitude)
+        path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
+                             extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,
+                             max_steps=args.max_steps, noise=SensorNoise(scale=args.noise_scale), policy=args.policy,
+                             overwrite=args.overwrite)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"rwm-gym make-measured: {err}", file=sys.stderr)
+        return 2
     ds = Dataset.load(path)
     print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (effects hidden: "
           f"{', '.join(args.effect) or 'none'})")

@@ -1,10 +1,16 @@
 """The gap report: `report.json`, `report.md` and PNG plots (per-channel residuals before/after, rollout overlay).
 
-report.json keys: `effect` (vocabulary name, `none` or `unexplained`), `reason`, `scope` (`global`, `leg` or null),
-`parameters` ({name: value}), `units`, `uncertainty` (1-sigma), `explained_fraction`, `gap_before`, `gap_after`
-(normalised state MSE averaged over horizons 1, 5, 25 steps on held-out episodes), `gap_before_per_horizon`, `gap_after_per_horizon`, `where`,
-`candidates` (every fitted effect), `held_out_episodes`, `corrected` (paths) and `plots` (paths); with a world model,
-`world_model` (`error` {predictor: {N: relative error}}, `windows`, `checkpoints`, `metric`, `config`, `plot`).
+report.json keys: `effect` (the first named effect, `none` or `unexplained`), `reason`, `scope` (of the first:
+`global`, `leg`, `joint_type`, `joint`, or null), `effects` (every named effect in order: scope, parameters, units,
+uncertainty, `share_of_explained_gap`), `parameters` / `units` / `uncertainty` (all named parameters, flat),
+`joint_refit`, `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over horizons 1, 5, 25
+steps on held-out episodes, after the named effects), `gap_before_per_horizon`, `gap_after_per_horizon`,
+`noise_floor` (the floor, the test of the nominal gap against it, the sensor-noise model), `residual` (the same test
+after the named effects), `identifiability` (per effect: signal at its default magnitude / floor), `where`,
+`selection_steps` (per step: floor test, candidates, decision), `candidates` (step 1's), `rejected` (parameter points
+where the simulation blew up, with MuJoCo's reason), `learned_correction` (null, or the learned residual torque's
+held-out gap), `held_out_episodes`, `corrected` (paths) and `plots` (paths); with a world model, `world_model`
+(`error` {predictor: {N: relative error}}, `windows`, `checkpoints`, `metric`, `config`, `plot`).
 """
 
 from __future__ import annotations
@@ -66,19 +72,42 @@ def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corr
 
 def markdown(report: dict) -> str:
     """The human-readable report."""
-    scope = f" ({report['scope']})" if report.get("scope") else ""
-    lines = ["# Sim-to-real gap report\n", f"**Effect: `{report['effect']}`{scope}** — {report['reason']}\n"]
-    if report["parameters"]:
-        lines.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
-        for name, value in report["parameters"].items():
-            lines.append(f"| {name} | {value:.4g} | {report['uncertainty'][name]:.2g} | {report['units'][name]} |")
+    floor = report["noise_floor"]
+    lines = ["# Sim-to-real gap report\n", f"**Verdict: `{report['effect']}`** — {report['reason']}\n",
+             (f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
+              f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n")]
+    if report["effects"]:
+        lines.append("| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
+                     "|---|---|---|---|---|---|---|---|")
+        for i, item in enumerate(report["effects"], 1):
+            for name, value in item["parameters"].items():
+                lines.append(f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
+                             f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |")
         lines.append("")
     lines.append(f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n")
     lines.append("| horizon (steps) | gap before | gap after |\n|---|---|---|")
     for h, before in report["gap_before_per_horizon"].items():
         lines.append(f"| {h} | {before:.4g} | {report['gap_after_per_horizon'][h]:.4g} |")
     lines.append(f"| mean | {report['gap_before']:.4g} | {report['gap_after']:.4g} |\n")
-    lines.append(f"Explained fraction: {report['explained_fraction']:.1%}\n")
+    lines.append(f"Explained fraction: {report['explained_fraction']:.1%}; what remains is "
+                 f"{report['residual']['ratio']:.2f} x the noise floor"
+                 f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n")
+    learned = report.get("learned_correction")
+    if learned:
+        lines.append("## Learned correction (not a named effect)\n")
+        if learned["status"] == "ok":
+            lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
+                         f"({learned['explained_fraction']:.1%} of what the named effects left, "
+                         f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+        else:
+            lines.append(f"{learned['status']}\n")
+    lines.append("## Identifiability from these data\n")
+    lines.append("| effect | magnitude | signal / noise floor | identifiable |\n|---|---|---|---|")
+    for name, item in report["identifiability"].items():
+        magnitude = ", ".join(f"{v:.3g}" for v in item["magnitude"])
+        lines.append(f"| {name} | {magnitude} | {item['signal_to_floor']:.2f} | "
+                     f"{'yes' if item['identifiable'] else 'no'} |")
+    lines.append("")
     lines.append("## Where the gap lives (nominal simulator, held-out)\n")
     lines.append("| channel | MSE at 5 steps | share |\n|---|---|---|")
     lines += [f"| {c['channel']} | {c['mse']:.3g} | {c['share']:.1%} |" for c in report["where"]["channels_h5"]]
@@ -88,13 +117,19 @@ def markdown(report: dict) -> str:
     lag = report["where"]["response_lag_s"]
     lines.append(f"\nResponse lag of joint velocity to target changes: measured {lag['measured'] * 1e3:.1f} ms, "
                  f"nominal simulator {lag['simulated'] * 1e3:.1f} ms.\n")
-    lines.append("## Candidates (held-out)\n")
-    lines.append("| effect | parameters | explained | score | p |\n|---|---|---|---|---|")
-    for c in report["candidates"]:
-        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
-        name = c["effect"] + (" (per leg)" if c.get("scope") == "leg" else "")
-        lines.append(f"| {name} | {values} | {c['explained_fraction']:.1%} | {c['score']:.3f} | "
-                     f"{c['p_value']:.2g} |")
+    for k, step in enumerate(report["selection_steps"], 1):
+        if not step["candidates"]:
+            continue
+        lines.append(f"## Candidates of selection step {k} (held-out; {step.get('decision', '')})\n")
+        lines.append("| effect | scope | parameters | explained | score | p |\n|---|---|---|---|---|---|")
+        for c in step["candidates"]:
+            values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
+            lines.append(f"| {c['effect']} | {c['scope']} | {values} | {c['explained_fraction']:.1%} | "
+                         f"{c['score']:.3f} | {c['p_value']:.2g} |" if c["status"] == "ok" else
+                         f"| {c['effect']} | {c['scope']} | {values} | {c['status']} | | |")
+    if report["rejected"]:
+        lines.append("\n## Parameters rejected because the simulation blew up\n")
+        lines += [f"- step {r['step']}, {r['effect']} ({r['scope']}): {r['point']}" for r in report["rejected"]]
     if "world_model" in report:
         lines.append("\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n")
         lines.append(world_model_table(report["world_model"]) + "\n")

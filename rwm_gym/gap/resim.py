@@ -4,12 +4,18 @@ A `Windows` holds many short stretches of measured episodes; `Resimulator.rollou
 `mujoco.batch` and returns the simulated states, so the residual simulated - measured can be taken per channel, step
 and window. Each window first replays `warmup` measured steps (state overwritten with the measured one after each), so
 state that is not in qpos/qvel, such as the actuator's delay buffer, holds the measured commands when the window starts.
+
+A candidate parameter can make MuJoCo's integration blow up; MuJoCo then counts a warning in `mjData.warning`, prints
+it once and resets the simulation, which would pass unnoticed as a plausible state. `rollout` reads the batch's warning
+counters (and checks the states are finite) and raises `SimulationDiverged` with the reason, so the fit can reject the
+parameters and say why.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import mujoco
 import numpy as np
@@ -19,6 +25,22 @@ from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
 from rwm_gym.physics.robot import RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator
 from rwm_gym.spec import TaskSpec
+
+DIVERGENCE_WARNINGS: dict[int, str] = {
+    int(mujoco.mjtWarning.mjWARN_BADQACC): "Nan, Inf or huge value in QACC",
+    int(mujoco.mjtWarning.mjWARN_BADQVEL): "Nan, Inf or huge value in QVEL",
+    int(mujoco.mjtWarning.mjWARN_BADQPOS): "Nan, Inf or huge value in QPOS",
+    int(mujoco.mjtWarning.mjWARN_BADCTRL): "Nan, Inf or huge value in CTRL",
+}
+"""MuJoCo warnings that mean the simulation blew up (and was reset by MuJoCo)."""
+
+
+class SimulationDiverged(RuntimeError):
+    """A re-simulation blew up in some windows; `reason` says how, `windows` (W,) marks them."""
+
+    def __init__(self, reason: str, windows: np.ndarray):
+        super().__init__(reason)
+        self.reason, self.windows = reason, windows
 
 
 @dataclass(frozen=True)
@@ -89,8 +111,15 @@ class Resimulator:
     def model(self, params: PhysicsParams) -> mujoco.MjModel:
         return build_model(self.spec, self.xml_file, params)
 
-    def rollout(self, windows: Windows, params: PhysicsParams, horizon: int | None = None) -> np.ndarray:
+    def rollout(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
+                correction: TorqueCorrection | None = None) -> np.ndarray:
         """Simulated states (W, H, S) at rows start+1 .. start+H of every window (H = horizon, default all)."""
+        return self.simulate(windows, params, horizon, correction)["state"]
+
+    def simulate(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
+                 correction: TorqueCorrection | None = None) -> dict[str, np.ndarray]:
+        """`rollout` with the raw arrays too: {"state" (W, H, S), "qpos" (W, H, nq), "qvel" (W, H, nv),
+        "joint_torque" (W, H, A)}; `correction` adds a learned joint torque at every policy step."""
         spec, horizon = self.spec, horizon or windows.horizon
         model = self.model(params)
         layout = RobotLayout.from_model(model, spec)
@@ -98,15 +127,23 @@ class Resimulator:
         n, k = len(windows), windows.warmup
         sim = BatchSimulator(model, n, self.nthread, dead_band(spec, model, params))
         qpos, qvel = sim.batch.bind("qpos"), sim.batch.bind("qvel")
+        applied = sim.batch.bind("qfrc_applied") if correction is not None else None
         ctrl = np.zeros((n, model.nu))
         act = spec.actuator
         default, scale = np.asarray(act.default_pose), act.action_scale
+        if correction is not None:
+            correction.start(n)
 
         def step(action: np.ndarray) -> None:
-            ctrl[:, layout.actuator_ids] = default + scale * np.clip(action, -1.0, 1.0)
+            target = default + scale * np.clip(action, -1.0, 1.0)
+            if correction is not None:
+                applied[:, layout.dof_adr] = correction.torque(np.asarray(qpos)[:, layout.qpos_adr],
+                                                               np.asarray(qvel)[:, layout.dof_adr], target)
+            ctrl[:, layout.actuator_ids] = target
             sim.step(ctrl, spec.substeps)
 
         sim.reset(np.arange(n), keyframe, windows.qpos[:, 0], windows.qvel[:, 0])
+        warnings_before = np.array(sim.batch.warning[:, :, 1])
         for i in range(k):
             if i > 0:
                 qpos[:], qvel[:] = windows.qpos[:, i], windows.qvel[:, i]
@@ -115,11 +152,43 @@ class Resimulator:
         if k > 0:
             qpos[:], qvel[:] = windows.qpos[:, k], windows.qvel[:, k]
             sim.batch.forward()
-        out = np.empty((n, horizon, spec.state_dim))
+        out = {"state": np.empty((n, horizon, spec.state_dim)), "qpos": np.empty((n, horizon, model.nq)),
+               "qvel": np.empty((n, horizon, model.nv)), "joint_torque": np.empty((n, horizon, spec.action_dim))}
         for h in range(horizon):
             step(windows.actions[:, k + h])
-            out[:, h] = measure(layout, spec, **sim.arrays()).state
+            arrays = sim.arrays()
+            out["state"][:, h] = measure(layout, spec, **arrays).state
+            out["qpos"][:, h], out["qvel"][:, h] = arrays["qpos"], arrays["qvel"]
+            out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]
+        check_diverged(np.array(sim.batch.warning[:, :, 1]) - warnings_before, out["state"])
         return out
+
+
+class TorqueCorrection(Protocol):
+    """A learned joint torque added by `Resimulator.simulate` at every policy step (`rwm_gym.gap.learned`)."""
+
+    def start(self, n: int) -> None:
+        """Forget the history of n new simulations."""
+
+    def torque(self, joint_pos: np.ndarray, joint_vel: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """(n, A) N·m from the current joint positions (rad), velocities (rad/s) and position targets (rad)."""
+
+
+def check_diverged(new_warnings: np.ndarray, states: np.ndarray) -> None:
+    """Raise `SimulationDiverged` if any simulation counted a divergence warning (new_warnings (W, mjNWARNING)) or
+    produced a non-finite or huge state (W, H, S)."""
+    warned = np.zeros(len(states), bool)
+    reasons = []
+    for code, text in DIVERGENCE_WARNINGS.items():
+        hit = new_warnings[:, code] > 0
+        if hit.any():
+            reasons.append(f"MuJoCo warning '{text}' in {int(hit.sum())} of {len(hit)} windows")
+            warned |= hit
+    bad = ~np.isfinite(states).all(axis=(1, 2)) | (np.abs(np.nan_to_num(states)) > 1e6).any(axis=(1, 2))
+    if bad.any():
+        reasons.append(f"non-finite or huge state in {int(bad.sum())} of {len(bad)} windows")
+    if reasons:
+        raise SimulationDiverged("; ".join(reasons), warned | bad)
 
 
 def normalised_residual(spec: TaskSpec, simulated: np.ndarray, measured: np.ndarray) -> np.ndarray:

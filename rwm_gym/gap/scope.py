@@ -1,15 +1,18 @@
-"""Per-leg scope: a joint effect with one value per leg, one more candidate for the decision.
+"""Scopes of a joint effect: one value for all joints, per leg, per joint type, or per joint.
 
-A worn gearbox or a stiff seal sits in one leg, not in all twelve joints; fitted globally, such an effect may explain
-too little to be named. So the best-scoring one-parameter joint effect (friction, damping, armature, motor strength,
-torque limit, backlash) is also fitted with one value per leg (least squares from its global value, `fit.fit_effect`)
-and scored on the same held-out windows with the same rule: every parameter beyond the first inflates the remaining gap
-by `FitConfig.penalty_per_parameter`. `fit.decide` names the per-leg form only when its penalised score beats every
-other candidate's, its own global form included, so a global effect stays global.
+A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
+such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
+one-parameter joint effect (friction, damping, armature, motor strength, torque limit, backlash) of a selection step
+is also fitted per group (from nominal, two sweeps of one bounded search per group value, `fit.fit_coordinatewise`)
+and scored on the same held-out
+windows with the same rule: every parameter beyond the first inflates the remaining gap by
+`FitConfig.penalty_per_parameter`, so a scope with more parameters must explain that much more to win. Per joint (12
+parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
+scope beat the global form) and the fitting windows outnumber its parameters `MIN_WINDOWS_PER_PARAMETER` times.
 
-Legs are read from the actuated joints' names in the task spec: the prefix before the first "_" (ANYmal D: LF, RF, LH,
-RH, three joints each). A spec without such a grouping (fewer than two groups, or a group of one joint) has no per-leg
-scope.
+Groups come from the actuated joints' names in the task spec, "<leg>_<type>": the leg is the part before the first
+"_", the joint type the rest (ANYmal D: legs LF, RF, LH, RH; types HAA, HFE, KFE). A grouping with fewer than two
+groups, or a group of one joint, is not offered; names without "_" offer only the per-joint scope.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.effects import Effect, Parameter
-from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_effect, score_fit
+from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_coordinatewise, score_fit
 from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
@@ -26,22 +29,39 @@ JOINT_EFFECTS: tuple[str, ...] = ("joint_friction", "joint_damping", "armature",
                                   "backlash")
 """Effects of one number applied to every actuated joint (a per-joint `PhysicsParams` field)."""
 
+SCOPES: tuple[str, ...] = ("global", "leg", "joint_type", "joint")
+"""Every scope, fewest parameters first."""
 
-def leg_groups(spec: TaskSpec) -> dict[str, list[int]]:
-    """Leg name -> indices of its actuated joints (spec order); {} when the joint names do not group into legs."""
+MIN_WINDOWS_PER_PARAMETER = 10
+"""Fitting windows needed per parameter before the per-joint scope is tried."""
+
+
+def joint_groups(spec: TaskSpec, scope: str) -> dict[str, list[int]]:
+    """Group name -> indices of its actuated joints (spec order) for `scope`; {} when the names do not group."""
+    joints = spec.actuator.joints
+    if scope == "joint":
+        return {name: [i] for i, name in enumerate(joints)} if len(joints) > 1 else {}
+    if scope not in ("leg", "joint_type"):
+        raise ValueError(f"unknown scope {scope!r}; scopes: {', '.join(SCOPES)}")
     groups: dict[str, list[int]] = {}
-    for i, joint in enumerate(spec.actuator.joints):
+    for i, joint in enumerate(joints):
         if "_" not in joint:
             return {}
-        groups.setdefault(joint.split("_", 1)[0], []).append(i)
+        leg, kind = joint.split("_", 1)
+        groups.setdefault(leg if scope == "leg" else kind, []).append(i)
     if len(groups) < 2 or min(len(g) for g in groups.values()) < 2:
         return {}
     return groups
 
 
-def per_leg(effect: Effect, spec: TaskSpec) -> Effect | None:
-    """`effect` with one parameter per leg (named `<parameter>_<leg>`), or None if it has no per-leg form."""
-    groups = leg_groups(spec)
+def leg_groups(spec: TaskSpec) -> dict[str, list[int]]:
+    """Leg name -> indices of its actuated joints; {} when the joint names do not group into legs."""
+    return joint_groups(spec, "leg")
+
+
+def scoped(effect: Effect, spec: TaskSpec, scope: str) -> Effect | None:
+    """`effect` with one parameter per group of `scope` (named `<parameter>_<group>`), or None if it has none."""
+    groups = joint_groups(spec, scope)
     if effect.name not in JOINT_EFFECTS or len(effect.parameters) != 1 or not groups:
         return None
     p = effect.parameters[0]
@@ -54,27 +74,60 @@ def per_leg(effect: Effect, spec: TaskSpec) -> Effect | None:
             per_joint[ids] = value
         return {field: tuple(float(v) for v in per_joint)}
 
-    parameters = tuple(Parameter(f"{p.name}_{leg}", p.unit, p.nominal, p.low, p.high, p.default, p.step)
-                       for leg in groups)
-    return Effect(effect.name, f"{effect.description} (one value per leg)", parameters, apply, scope="leg",
+    parameters = tuple(Parameter(f"{p.name}_{group}", p.unit, p.nominal, p.low, p.high, p.default, p.step)
+                       for group in groups)
+    label = {"leg": "per leg", "joint_type": "per joint type", "joint": "per joint"}[scope]
+    return Effect(effect.name, f"{effect.description} ({label})", parameters, apply, scope=scope,
                   nested_in=effect.nested_in)
 
 
-def per_leg_candidate(fits: list[CandidateFit], effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator,
-                      train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
-                      config: FitConfig) -> tuple[Effect, CandidateFit] | None:
-    """The per-leg form of the best-scoring global joint effect among `fits`, fitted from its global value on every
-    leg and scored on the held-out windows; None if no candidate has a per-leg form or none reduces the gap.
+def per_leg(effect: Effect, spec: TaskSpec) -> Effect | None:
+    """`effect` with one parameter per leg, or None."""
+    return scoped(effect, spec, "leg")
 
-    Whether it is named is `fit.decide`'s call, with the penalty for its extra parameters."""
-    ranked = sorted((f for f in fits if f.scope == "global" and f.explained_fraction > 0), key=lambda f: -f.score)
-    for fit in ranked:
-        leg_effect = per_leg(effects[fit.effect], spec)
-        if leg_effect is None:
+
+def per_joint_start(spec: TaskSpec, fit: CandidateFit) -> np.ndarray:
+    """Per-joint start values from a fit in any scope (its group values spread over the group's joints)."""
+    if fit.scope == "global":
+        return np.full(len(spec.actuator.joints), fit.values[0])
+    out = np.empty(len(spec.actuator.joints))
+    for value, ids in zip(fit.values, joint_groups(spec, fit.scope).values()):
+        out[ids] = value
+    return out
+
+
+def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator,
+                     train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
+                     config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+    """The scoped forms (`config.scopes`) of the best-scoring global joint effect among `fits`, each fitted from the
+    global value and scored on the held-out windows; [] if no candidate has a scoped form or none reduces the gap.
+
+    Whether one is named is `select`'s call, with the penalty for its extra parameters."""
+    ranked = sorted((f for f in fits if f.scope == "global" and f.status == "ok" and f.explained_fraction > 0),
+                    key=lambda f: -f.score)
+    best = next((f for f in ranked if f.effect in JOINT_EFFECTS), None)
+    if best is None:
+        return []
+    effect, p = effects[best.effect], effects[best.effect].parameters[0]
+    out: list[tuple[Effect, CandidateFit]] = []
+    for scope in (s for s in config.scopes if s != "joint"):
+        form = scoped(effect, spec, scope)
+        if form is None:
             continue
-        p = effects[fit.effect].parameters[0]
-        start = np.full(len(leg_effect.parameters), fit.values[0])
-        leg_fit = fit_effect(leg_effect, resim, train, base, config, start, (p.low, p.high))
-        score_fit(leg_fit, leg_effect, resim, heldout, base, before, config)
-        return leg_effect, leg_fit
-    return None
+        start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
+        fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
+                                 config.max_evaluations // 2 + 2)
+        score_fit(fit, form, resim, heldout, base, before, config)
+        out.append((form, fit))
+    grouped = [f for _, f in out if f.status == "ok"]
+    form = scoped(effect, spec, "joint") if "joint" in config.scopes else None
+    if form is not None and grouped and max(f.score for f in grouped) > best.score \
+            and len(train) >= MIN_WINDOWS_PER_PARAMETER * len(form.parameters):
+        start = per_joint_start(spec, max(grouped, key=lambda f: f.score))
+        width = 0.25 * (p.high - p.low)  # each joint near its group's value
+        brackets = [(max(p.low, v - width), min(p.high, v + width)) for v in start]
+        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2,
+                                 sweeps=1)
+        score_fit(fit, form, resim, heldout, base, before, config)
+        out.append((form, fit))
+    return out

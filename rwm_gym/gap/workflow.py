@@ -1,10 +1,12 @@
-"""`rwm-gym gap`: find where a simulator and measured data disagree, name the missing effect, correct, show the gap.
+"""`rwm-gym gap`: find where a simulator and measured data disagree, name the missing effects, correct, show the gap.
 
 Steps: split the measured episodes into fitting and held-out ones; re-simulate held-out windows with the nominal
-simulator and rank channels and conditions (`diagnose`); fit every effect of the vocabulary on the fitting episodes
-and judge it on the held-out ones (`fit`); write the corrected simulator (`correct`); with a world model, regenerate
-data from the corrected simulator, fine-tune the world model on it plus the measured fitting episodes and compare the
-four predictors on the held-out episodes (`world_model`); write the report (`report`).
+simulator, rank channels and conditions (`diagnose`), compute the sensor-noise floor of the gap (`noise_floor`) and
+which effects these data can reveal (`identifiability`); if the gap is above the floor, name effects by forward
+selection over the vocabulary and its scopes (`select`, `fit`, `scope`); if a gap above the floor remains, learn a
+residual torque for it (`learned`); write the corrected simulator (`correct`); with a world model, regenerate data
+from the corrected simulator, fine-tune the world model on it plus the measured fitting episodes and compare the
+predictors on the held-out episodes (`world_model`); write the report (`report`).
 """
 
 from __future__ import annotations
@@ -22,13 +24,18 @@ from rwm_gym import atomic
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
-from rwm_gym.gap.diagnose import where
+from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, decide, fit_all
+from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_per_window, paired_p_value
+from rwm_gym.gap.identifiability import identifiability
+from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
+from rwm_gym.gap.measured import SensorNoise
+from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table, write_json
-from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
-from rwm_gym.gap.scope import per_leg_candidate
-from rwm_gym.gap.world_model import WorldModelGapConfig, compare, config_dict, fine_tune, regenerate
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
+from rwm_gym.gap.scope import SCOPES
+from rwm_gym.gap.select import Selection, select_effects
+from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.resources import assets_dir
 
@@ -38,7 +45,7 @@ SHIPPED_WORLD_MODELS = {"AnymalD-MuJoCo-v0": "checkpoints/anymal_d_rwm.safetenso
 
 @dataclass(frozen=True)
 class GapConfig:
-    """Data handling of the workflow (the fit's own options are `FitConfig`)."""
+    """Data handling of the workflow (the fit's own options are `FitConfig`, the floor's `FloorConfig`)."""
 
     val_fraction: float = 0.34
     """Share of measured episodes held out (never fitted); at least one."""
@@ -49,15 +56,18 @@ class GapConfig:
     """Rows between the starts of held-out windows."""
     warmup: int = 2
     """Measured steps replayed before each window (fills the actuator delay buffer)."""
-    per_leg: bool = True
-    """Refit a named joint effect with one value per leg; kept only if the held-out gap pays for it (`gap.scope`)."""
+    learned_correction: bool = True
+    """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
 
 
 def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
-            config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(), progress: bool = True,
+            config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(),
+            floor_config: FloorConfig = FloorConfig(), sensor_noise: SensorNoise = SensorNoise(),
+            learned_config: LearnedCorrectionConfig = LearnedCorrectionConfig(), progress: bool = True,
             world_model: str | Path | None = None, wm_config: WorldModelGapConfig = WorldModelGapConfig()) -> dict:
     """Run the workflow and write `out/report.json` (+ md, plots, corrected model); returns the report dict.
 
+    sensor_noise: the measured data's sensor noise (data-sheet values for a real robot), for the noise floor.
     world_model: checkpoint of the world model trained on nominal-sim data; adds the `world_model` section (None: skip).
     """
     if world_model is not None and not Path(world_model).is_file():
@@ -77,44 +87,50 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     resim = Resimulator(spec, sim_kwargs.get("xml_file"))
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
-    fits, before = fit_all(effects, resim, train, held, base, fit_config, progress)
-    leg = (per_leg_candidate(fits, effects, spec, resim, train, held, base, before, fit_config) if config.per_leg
-           else None)
-    if leg is not None:
-        fits.append(leg[1])
-    verdict = decide(fits, effects, fit_config)
-    named = verdict.winner and (leg[0] if verdict.winner.scope == "leg" else effects[verdict.effect])
-    corrected_params = named.physics(verdict.winner.values, base) if verdict.winner else base
+    held, dropped_held = drop_diverged(resim, held, base, measured)
+    train, dropped_train = drop_diverged(resim, train, base, measured)
     nominal_sim = resim.rollout(held, base)
-    corrected_sim = resim.rollout(held, corrected_params) if verdict.winner else nominal_sim
-    after = before if verdict.winner is None else np.stack(
-        [(normalised_residual(spec, corrected_sim[:, h - 1], held.target[:, h - 1]) ** 2).mean(-1)
-         for h in GAP_HORIZONS], axis=1)
+    before = gap_per_window(spec, nominal_sim, held)
+    floor = noise_floor(resim, held, base, sensor_noise, floor_config)
+    floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
+    selection = select_effects(effects, spec, resim, train, held, base, before, floor, fit_config, floor_config,
+                               progress)
+    corrected_params, after = selection.params, selection.gap_after
+    residual = compare_with_floor(after, floor, held, fit_config.block_rows, floor_config)
+    learned = None
+    if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
+        learned = learned_section(resim, data, train_ids, held, corrected_params, after, floor, out, learned_config,
+                                  fit_config, floor_config)
+    corrected_sim = resim.rollout(held, corrected_params) if selection.named else nominal_sim
 
     plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
     h5 = min(5, horizon) - 1
     per_channel = [(normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0)
                    for s in (nominal_sim, corrected_sim)]
     plot_channels(spec, *per_channel, Path(plots["channels"]), 5)
-    top = [c["channel"] for c in where(spec, nominal_sim, held)["channels_h5"][:3]]
+    located = locate_gap(spec, nominal_sim, held)
+    top = [c["channel"] for c in located["channels_h5"][:3]]
     worst = int(np.argmax(before.mean(1)))
     plot_rollout(spec, held.target[worst], nominal_sim[worst], corrected_sim[worst], top, Path(plots["rollout"]))
-    winner = verdict.winner
     report = {
-        "effect": verdict.effect,
-        "reason": verdict.reason,
-        "scope": winner.scope if winner else None,
-        "parameters": dict(zip(winner.names, winner.values)) if winner else {},
-        "units": dict(zip(winner.names, winner.units)) if winner else {},
-        "uncertainty": dict(zip(winner.names, winner.uncertainty)) if winner else {},
+        **named_section(selection),
         "explained_fraction": float(1.0 - after.mean() / before.mean()),
         "gap_before": float(before.mean()),
         "gap_after": float(after.mean()),
         "gap_before_per_horizon": {str(h): float(v) for h, v in zip(GAP_HORIZONS, before.mean(0))},
         "gap_after_per_horizon": {str(h): float(v) for h, v in zip(GAP_HORIZONS, after.mean(0))},
         "gap_metric": "normalised state MSE ((sim - measured) / spec state std)^2 at each horizon, held-out windows",
-        "where": where(spec, nominal_sim, held),
-        "candidates": [dataclasses.asdict(f) for f in sorted(fits, key=lambda f: f.score, reverse=True)],
+        "noise_floor": {**floor_test, "sensor_noise": dataclasses.asdict(sensor_noise),
+                        "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
+                                  f"model and re-simulated again, mean of {floor_config.draws} draws"},
+        "residual": residual,
+        "dropped_windows": {"held_out": dropped_held, "fitting": dropped_train},
+        "identifiability": identifiability(effects, resim, held, base, nominal_sim, floor_test["floor"]),
+        "where": located,
+        "selection_steps": selection.steps,
+        "candidates": selection.steps[0]["candidates"],
+        "rejected": rejections(selection),
+        "learned_correction": learned,
         "held_out_episodes": [int(e) for e in held_ids],
         "fit_episodes": [int(e) for e in train_ids],
         "corrected_physics": corrected_params.to_dict(),
@@ -122,7 +138,8 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
         "plots": plots,
         "sim": sim,
         "measured": str(measured),
-        "config": {"gap": dataclasses.asdict(config), "fit": dataclasses.asdict(fit_config)},
+        "config": {"gap": dataclasses.asdict(config), "fit": dataclasses.asdict(fit_config),
+                   "floor": dataclasses.asdict(floor_config)},
     }
     if world_model is not None:
         report["world_model"] = world_model_rows(sim, sim_kwargs, data, train_ids, held_ids, resim, base,
@@ -132,6 +149,70 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     write_json(out / "report.json", report)
     atomic.write_text(out / "report.md", markdown(report))
     return report
+
+
+def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object, str | None]:
+    """The windows without those where the nominal simulator itself blows up (said in the report, never silent);
+    a one-line error if it blows up in most of them."""
+    try:
+        resim.rollout(windows, params)
+        return windows, None
+    except SimulationDiverged as err:
+        if err.windows.mean() > 0.5:
+            raise ValueError(f"{measured}: the nominal simulator blows up re-simulating the measured data "
+                             f"({err.reason})") from err
+        return windows.subset(~err.windows), f"dropped: the nominal simulator blows up there ({err.reason})"
+
+
+def named_section(selection: Selection) -> dict:
+    """The report's verdict: `effect` (the first named, `unexplained` or `none`), `effects` in order with their
+    share of the explained gap, and every named parameter flat in `parameters` / `units` / `uncertainty`."""
+    named = [{"effect": e.name, "scope": f.scope, "parameters": dict(zip(f.names, f.values)),
+              "units": dict(zip(f.names, f.units)), "uncertainty": dict(zip(f.names, f.uncertainty)),
+              "share_of_explained_gap": share}
+             for (e, f), share in zip(selection.named, selection.shares)]
+    flat = {key: {k: v for item in named for k, v in item[key].items()} for key in ("parameters", "units",
+                                                                                 "uncertainty")}
+    return {"effect": selection.verdict, "reason": selection.reason, "scope": named[0]["scope"] if named else None,
+            "effects": named, **flat, "joint_refit": selection.joint_refit}
+
+
+def rejections(selection: Selection) -> list[dict]:
+    """Every parameter point or candidate rejected because the simulation blew up, with the reason."""
+    out = []
+    for k, step in enumerate(selection.steps):
+        for c in step["candidates"]:
+            out += [{"step": k + 1, "effect": c["effect"], "scope": c["scope"], "point": r} for r in c["rejected"]]
+            if c["status"] != "ok":
+                out.append({"step": k + 1, "effect": c["effect"], "scope": c["scope"], "point": c["status"]})
+    return out
+
+
+def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, held, params, after: np.ndarray,
+                    floor: np.ndarray, out: Path, config: LearnedCorrectionConfig, fit_config: FitConfig,
+                    floor_config: FloorConfig) -> dict:
+    """Fit the residual torque network on the fitting episodes and judge it on the held-out windows."""
+    one_step = make_windows(data, train_ids, 1, config.stride, config.history - 1)
+    try:
+        correction, net, info = fit_learned_correction(resim, one_step, params, config)
+    except SimulationDiverged as err:
+        return {"kind": "learned", "status": f"rejected: {err.reason}", "config": dataclasses.asdict(config)}
+    path = out / "learned_correction.safetensors"
+    save_correction(net, path, config, list(resim.spec.actuator.joints))
+    try:
+        corrected = gap_per_window(resim.spec, resim.rollout(held, params, correction=correction), held)
+    except SimulationDiverged as err:
+        return {"kind": "learned", "status": f"rejected: the simulation blows up with it ({err.reason})",
+                "path": str(path), "training": info, "config": dataclasses.asdict(config)}
+    p_value = paired_p_value(after.mean(1) - corrected.mean(1), held, fit_config.block_rows)
+    return {"kind": "learned residual joint torque (actuator-network style MLP), not a named effect",
+            "status": "ok", "gap_before": float(after.mean()), "gap_after": float(corrected.mean()),
+            "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
+            "p_value": p_value, "kept": bool(p_value < fit_config.significance and corrected.mean() < after.mean()),
+            "residual": compare_with_floor(corrected, floor, held, fit_config.block_rows, floor_config),
+            "path": str(path), "training": info, "config": dataclasses.asdict(config),
+            "note": "applied in re-simulation as qfrc_applied; corrected_model.xml and corrected_physics.json do not "
+                    "hold it"}
 
 
 def world_model_rows(sim: str, sim_kwargs: dict, data: Dataset, train_ids: np.ndarray, held_ids: np.ndarray,
@@ -146,7 +227,7 @@ def world_model_rows(sim: str, sim_kwargs: dict, data: Dataset, train_ids: np.nd
         checkpoints[name] = fine_tune(checkpoint, sim_data, data, train_ids, out / f"{name}.safetensors", config,
                                       progress)
         sim_data.unlink()
-    result = compare(resim, data, held_ids, base, corrected, checkpoints, config, warmup)
+    result = compare_predictors(resim, data, held_ids, base, corrected, checkpoints, config, warmup)
     if not result["error"]:
         raise ValueError(f"{data.path}: field 'episode_lengths': no held-out episode has {config.history} + "
                          f"{min(config.horizons)} rows, needed for the world-model rows")
@@ -164,8 +245,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
     parser.add_argument("--out", type=Path, required=True, help="report folder")
     parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
-    parser.add_argument("--per-leg", action=argparse.BooleanOptionalAction, default=GapConfig.per_leg,
-                        help="try one value per leg for a named joint effect (kept only if held-out data pays for it)")
+    parser.add_argument("--scopes", default=",".join(FitConfig.scopes),
+                        help=f"joint-group scopes tried for the best joint effect, comma-separated from "
+                             f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)")
+    parser.add_argument("--max-effects", type=int, default=FitConfig.max_effects,
+                        help="forward selection names at most this many effects")
+    parser.add_argument("--learned-correction", action=argparse.BooleanOptionalAction,
+                        default=GapConfig.learned_correction,
+                        help="learn a residual joint torque when a gap above the noise floor remains")
+    parser.add_argument("--sensor-noise", default=None,
+                        help="JSON SensorNoise of the measured data (SI units, e.g. {\"joint_vel\": 0.05}); "
+                             "default: make-measured's")
     parser.add_argument("--world-model", default="auto",
                         help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
                              "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
@@ -186,21 +276,36 @@ def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
     wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes)
     try:
+        sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
+        noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
+        scopes = tuple(s for s in args.scopes.split(",") if s and s != "none")
+        unknown = sorted(set(scopes) - set(SCOPES[1:]))
+        if unknown:
+            raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
         report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                         config=GapConfig(val_fraction=args.val_fraction, per_leg=args.per_leg),
+                         config=GapConfig(val_fraction=args.val_fraction,
+                                          learned_correction=args.learned_correction),
+                         fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects), sensor_noise=noise,
                          world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
-    except (ValueError, FileNotFoundError) as err:  # DatasetError and CheckpointError are ValueErrors
+    except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors
         print(f"rwm-gym gap: {err}", file=sys.stderr)
         return 2
-    scope = f", {report['scope']}" if report["scope"] else ""
-    print(f"effect: {report['effect']}{scope} ({report['reason']})")
-    for name, value in report["parameters"].items():
-        print(f"  {name} = {value:.4g} ± {report['uncertainty'][name]:.2g} {report['units'][name]}")
+    floor = report["noise_floor"]
+    print(f"gap {floor['gap']:.4g} vs sensor-noise floor {floor['floor']:.4g} (ratio {floor['ratio']:.2f}, "
+          f"p={floor['p_value']:.2g})")
+    print(f"effect: {report['effect']} ({report['reason']})")
+    for item in report["effects"]:
+        print(f"  {item['effect']} ({item['scope']}), {item['share_of_explained_gap']:.0%} of the explained gap")
+        for name, value in item["parameters"].items():
+            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}")
     print(f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
           f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}")
+    learned = report["learned_correction"]
+    if learned and learned["status"] == "ok":
+        print(f"learned residual torque (not a named effect): gap {learned['gap_before']:.4g} -> "
+              f"{learned['gap_after']:.4g} (explained {learned['explained_fraction']:.1%})")
     if "world_model" in report:
         print(world_model_table(report["world_model"]))
     return 0

@@ -27,7 +27,6 @@ import torch
 
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, merge_datasets, write_dataset
-from rwm_gym.policies.excitation import ExcitationPolicy
 from rwm_gym.gap.resim import Resimulator, Windows, make_windows
 from rwm_gym.model.checkpoint import load_checkpoint, read_meta
 from rwm_gym.model.config import TrainConfig
@@ -36,6 +35,7 @@ from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
 from rwm_gym.physics.params import PhysicsParams
+from rwm_gym.policies.excitation import ExcitationPolicy
 
 PREDICTORS = ("nominal_sim", "corrected_sim", "world_model_nominal", "world_model_corrected", "world_model_control")
 """Row names of the comparison, in report order (the control row only with `control`)."""
@@ -128,9 +128,9 @@ def model_errors(checkpoint: str | Path, measured: Dataset, windows: Windows, hi
     return relative_error(prediction.state_mean, batch.states[:, history:]).cpu().numpy().astype(np.float64)
 
 
-def compare(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, nominal: PhysicsParams,
-            corrected: PhysicsParams, checkpoints: dict[str, Path | str], config: WorldModelGapConfig,
-            warmup: int) -> dict:
+def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, nominal: PhysicsParams,
+                       corrected: PhysicsParams, checkpoints: dict[str, Path | str], config: WorldModelGapConfig,
+                       warmup: int) -> dict:
     """Error of every predictor at every horizon on the held-out measured episodes.
 
     checkpoints: {predictor name: checkpoint} of the world-model rows. Returns {"error": {name: {N: error}},

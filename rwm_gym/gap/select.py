@@ -1,0 +1,202 @@
+"""Name the effects behind a gap: forward selection over the vocabulary and its scopes, then a joint refit.
+
+Step k starts from the simulator with the k-1 effects named so far. If its held-out gap is not significantly above the
+sensor-noise floor (`noise_floor`), selection stops: at step 1 the verdict is `none`. Otherwise every effect not yet
+named is fitted and scored on top of it (`fit.fit_all`), the best joint effect also in its scopes
+(`scope.scope_candidates`), and the best-scoring candidate is named when
+
+- its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
+- it explains enough: at step 1, `min_explained` of the gap; later, `min_excess_explained` of the gap still above
+  the floor (a second effect only has the rest to explain),
+- no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
+  within `ambiguity_ratio` of the best's.
+
+A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, all their
+parameters are refitted together (least squares from the sequential values), kept if the held-out gap does not grow.
+Each named effect's share of the explained gap is its held-out gap reduction when the effects are added in order at
+their final values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from rwm_gym.gap.effects import Effect
+from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_all, fit_effect, gap_per_window, score_fit
+from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
+from rwm_gym.gap.scope import scope_candidates
+from rwm_gym.physics.params import PhysicsParams
+from rwm_gym.spec import TaskSpec
+
+Candidate = tuple[Effect, CandidateFit]
+
+
+@dataclass
+class Selection:
+    """What forward selection found."""
+
+    verdict: str
+    """The first named effect, `unexplained` or `none`."""
+    reason: str
+    named: list[Candidate]
+    """Named effects in order, at their final (jointly refitted) values."""
+    params: PhysicsParams
+    """The corrected simulator: every named effect on top of the nominal one."""
+    gap_after: np.ndarray
+    """(W, len(GAP_HORIZONS)) held-out gap of `params`."""
+    shares: list[float] = field(default_factory=list)
+    """Share of the explained gap per named effect."""
+    steps: list[dict] = field(default_factory=list)
+    """Per step: the floor test of the gap it started from, its candidates and what it decided."""
+    joint_refit: dict | None = None
+
+
+def combine(named: list[Candidate]) -> Effect:
+    """One effect whose parameters are all of `named`'s, in order (for the joint refit)."""
+    sizes = [len(e.parameters) for e, _ in named]
+    cuts = np.cumsum([0] + sizes)
+
+    def apply(values: np.ndarray) -> dict[str, object]:
+        out: dict[str, object] = {}
+        for (effect, _), lo, hi in zip(named, cuts[:-1], cuts[1:]):
+            out.update(effect.apply(values[lo:hi]))
+        return out
+
+    parameters = tuple(p for e, _ in named for p in e.parameters)
+    return Effect("+".join(e.name for e, _ in named), "jointly refitted named effects", parameters, apply)
+
+
+def _related(a: Effect, b: Effect) -> bool:
+    return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
+
+
+def name_step(candidates: list[Candidate], config: FitConfig, first: bool
+              ) -> tuple[Candidate | None, str, Candidate | None]:
+    """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
+    pick is None)."""
+    ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
+    if not ranked:
+        return None, "every candidate blew up the simulation", None
+    effect, best = ranked[0]
+    share, needed = ((best.explained_fraction, config.min_explained) if first else
+                     (best.excess_explained, config.min_excess_explained))
+    what = "of the gap" if first else "of the gap above the noise floor"
+    if best.p_value >= config.significance or share < needed:
+        return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} {what} "
+                      f"(p={best.p_value:.2g}; needs {needed:.0%} and p<{config.significance})"), None
+    for other_effect, other in ranked[1:]:
+        if not _related(effect, other_effect) and \
+                1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
+            return None, (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
+                          f"({other.explained_fraction:.0%}) explain the gap alike"), (other_effect, other)
+    return ranked[0], f"explains {share:.0%} {what} (p={best.p_value:.2g})", None
+
+
+def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
+                   params: PhysicsParams, current: np.ndarray, floor: np.ndarray, config: FitConfig
+                   ) -> tuple[Candidate, str] | None:
+    """Two unrelated effects explain the gap alike: both present (a pair), or confusable? Fit the rival on top of the
+    best; if it still explains `min_excess_explained` of the gap above the floor, significantly, the best is named
+    (the rival is fitted again at the next step); else None (confusable: `unexplained`)."""
+    effect, fit = rival
+    on_top = best[0].physics(best[1].values, params)
+    after_best = gap_per_window(resim.spec, resim.rollout(held, on_top), held)
+    values = np.asarray(fit.values)
+    p = effect.parameters[0]
+    refit = fit_effect(effect, resim, train, on_top, config, values, (p.low, p.high))
+    score_fit(refit, effect, resim, held, on_top, after_best, config)
+    excess = float(after_best.mean() - np.nanmean(floor))
+    share = (float(after_best.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
+    if refit.status == "ok" and refit.p_value < config.significance and share >= config.min_excess_explained:
+        return best, (f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
+                      f"{share:.0%} of the rest above the floor on top of {best[1].effect}: both are present")
+    return None
+
+
+def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows, held: Windows,
+                   base: PhysicsParams, before: np.ndarray, floor: np.ndarray, config: FitConfig,
+                   floor_config: FloorConfig = FloorConfig(), progress: bool = True) -> Selection:
+    """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
+    nominal held-out gap and its noise floor per window."""
+    named: list[Candidate] = []
+    params, current, steps, reason = base, before, [], ""
+    for k in range(config.max_effects):
+        test = compare_with_floor(current, floor, held, config.block_rows, floor_config)
+        step: dict = {"gap": float(current.mean()), "floor_test": test, "candidates": [], "named": None}
+        steps.append(step)
+        if not test["above_floor"]:
+            reason = (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
+                      f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
+            break
+        remaining = {n: e for n, e in effects.items() if n not in {e.name for e, _ in named}}
+        fits = fit_all(remaining, resim, train, held, params, current, config, progress)
+        candidates = [(remaining[f.effect], f) for f in fits]
+        candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
+        excess = float(current.mean() - np.nanmean(floor))
+        for _, fit in candidates:
+            fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
+        step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]
+        pick, reason, rival = name_step(candidates, config, first=k == 0)
+        if rival is not None:
+            best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score)
+            resolved = resolve_rivals(best, rival, resim, train, held, params, current, floor, config)
+            if resolved is not None:
+                pick, reason = resolved
+        step["decision"] = reason
+        if pick is None:
+            break
+        step["named"] = f"{pick[0].name} ({pick[0].scope})"
+        named.append(pick)
+        params = pick[0].physics(pick[1].values, params)
+        current = gap_per_window(spec, resim.rollout(held, params), held)
+    if not named:
+        verdict = "none" if not steps[0]["floor_test"]["above_floor"] else "unexplained"
+        return Selection(verdict, reason, [], base, before, steps=steps)
+    refit = None
+    if len(named) > 1:
+        named, params, current, refit = joint_refit(named, resim, train, held, base, current, config)
+    shares = effect_shares(named, resim, held, base, before)
+    summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
+    return Selection(named[0][0].name, f"named in order: {summary}; {reason}" if len(named) > 1 else
+                     steps[0]["decision"], named, params, current, shares, steps, refit)
+
+
+def joint_refit(named: list[Candidate], resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams,
+                sequential_gap: np.ndarray, config: FitConfig
+                ) -> tuple[list[Candidate], PhysicsParams, np.ndarray, dict]:
+    """Refit every parameter of `named` together; keep the result if the held-out gap does not grow."""
+    combined = combine(named)
+    start = np.concatenate([fit.values for _, fit in named])
+    fit = fit_effect(combined, resim, train, base, config, start, (0.0, 0.0),
+                     max_evaluations=2 * config.max_evaluations)
+    score_fit(fit, combined, resim, held, base, sequential_gap, config)
+    kept = fit.status == "ok" and fit.gap_mean <= float(sequential_gap.mean())
+    info = {"kept": bool(kept), "gap_sequential": float(sequential_gap.mean()), "gap_joint": fit.gap_mean,
+            "rejected_points": fit.rejected}
+    if not kept:
+        return named, combined.physics(start, base), sequential_gap, info
+    out, i = [], 0
+    for effect, old in named:
+        n = len(effect.parameters)
+        old.values, old.uncertainty = fit.values[i:i + n], fit.uncertainty[i:i + n]
+        out.append((effect, old))
+        i += n
+    params = combined.physics(fit.values, base)
+    return out, params, gap_per_window(resim.spec, resim.rollout(held, params), held), info
+
+
+def effect_shares(named: list[Candidate], resim: Resimulator, held: Windows, base: PhysicsParams,
+                  before: np.ndarray) -> list[float]:
+    """Held-out gap reduction of each named effect, added in order at its final values, over the total reduction."""
+    gaps, params = [float(before.mean())], base
+    for effect, fit in named:
+        params = effect.physics(fit.values, params)
+        try:
+            gaps.append(float(gap_per_window(resim.spec, resim.rollout(held, params), held).mean()))
+        except SimulationDiverged:
+            gaps.append(gaps[-1])
+    total = gaps[0] - gaps[-1]
+    return [float((gaps[i] - gaps[i + 1]) / total) if total > 0 else float("nan") for i in range(len(named))]
