@@ -1,7 +1,8 @@
 """The `rwm-gym` command: one subcommand per job, each implemented in the module that owns the job.
 
-Each module listed in `COMMANDS` defines `add_arguments(parser)` and `run(args) -> int | None`; it is imported only
-when its subcommand runs, so `rwm-gym --help` stays fast.
+Each module listed in `COMMANDS` defines `add_arguments(parser)` and `run(args) -> int | None` (a module serving
+several commands, named "module:NAME", defines `add_NAME_arguments` and `run_NAME`); it is imported only when its
+subcommand runs, so `rwm-gym --help` stays fast.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import importlib
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
+    "spec": ("rwm_gym.specgen.command", "write a task spec for a dm_control task or a legged robot's MJCF"),
     "collect": ("rwm_gym.data.collect", "collect episodes from a physics env into an HDF5 dataset"),
     "train": ("rwm_gym.model.train", "train a world model (RWM or a baseline) on a dataset"),
     "evaluate": ("rwm_gym.model.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
@@ -19,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "mbpo": ("rwm_gym.rl.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
     "make-measured": ("rwm_gym.gap.measured", "make 'measured' data from a simulator with a hidden physical effect"),
     "gap": ("rwm_gym.gap.workflow", "find, name and correct the gap between a simulator and measured data"),
+    "export": ("rwm_gym.data.minari_io:export", "write a dataset as a Minari dataset (needs rwm-gym[minari])"),
+    "import": ("rwm_gym.data.minari_io:import", "read a Minari dataset written by `export` back into a dataset"),
 }
 
 
@@ -33,6 +37,13 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         return f"{text} (default {action.default})".strip()
 
 
+def _entry(target: str, what: str):
+    """The `add_arguments` / `run` function ("what") of a COMMANDS target."""
+    module, _, name = target.partition(":")
+    attr = (f"add_{name}_arguments" if what == "add_arguments" else f"run_{name}") if name else what
+    return getattr(importlib.import_module(module), attr)
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The parser; only the `selected` subcommand's module is imported to add its options."""
     parser = argparse.ArgumentParser(prog="rwm-gym", description="Learned robot simulators as Gymnasium envs.")
@@ -43,7 +54,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
         if name != selected:
             continue
         try:
-            importlib.import_module(module).add_arguments(p)
+            _entry(module, "add_arguments")(p)
         except ModuleNotFoundError as err:
             if err.name is None or not module.startswith(err.name):
                 raise
@@ -58,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_missing", None):
         print(f"rwm-gym {args.command}: not available in this build ({args._missing} missing)", file=sys.stderr)
         return 2
-    return int(importlib.import_module(args._module).run(args) or 0)
+    return int(_entry(args._module, "run")(args) or 0)
 
 
 if __name__ == "__main__":

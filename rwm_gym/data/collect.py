@@ -8,7 +8,6 @@ keeps every finished episode.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,19 +18,11 @@ from tqdm import tqdm
 import rwm_gym
 from rwm_gym.data.dataset import DatasetError, DatasetInfo, DatasetWriter
 from rwm_gym.policies.base import Policy, make_policy
-from rwm_gym.registration import PHYSICS_ENVS
+from rwm_gym.registration import env_name, make_physics_core
+from rwm_gym.spec import TaskSpec
 from rwm_gym.vector.core import check_num_envs
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
-
-
-def make_physics_core(env_id: str, num_envs: int, **kwargs):
-    """The batched core behind a registered physics env id (see `rwm_gym.registration.PHYSICS_ENVS`)."""
-    if env_id not in PHYSICS_ENVS:
-        raise ValueError(f"unknown physics env {env_id!r}; registered: {sorted(PHYSICS_ENVS)}")
-    entry = PHYSICS_ENVS[env_id]
-    module, name = entry["core_entry_point"].split(":")
-    return getattr(importlib.import_module(module), name)(num_envs=num_envs, **{**entry["kwargs"], **kwargs})
 
 
 def dataset_columns(core) -> dict[str, list[str]]:
@@ -63,7 +54,7 @@ def _coordinate_names(model, velocity: bool) -> list[str]:
 
 
 def collect(
-    env_id: str,
+    env_id: str | Path | TaskSpec,
     policy: str | Policy,
     episodes: int,
     out: str | Path,
@@ -76,7 +67,8 @@ def collect(
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
-    """Collect `episodes` episodes of `env_id` driven by `policy` into `out`; returns the path.
+    """Collect `episodes` episodes of `env_id` (a physics id, a spec path or a TaskSpec) driven by `policy` into `out`;
+    returns the path.
 
     max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
     (e.g. `xml_file`, `physics`).
@@ -93,7 +85,7 @@ def collect(
     pol = make_policy(policy, spec, num_envs, action_noise=action_noise) if isinstance(policy, str) else policy
     horizon = min(max_steps or spec.episode_steps, spec.episode_steps)
     info = DatasetInfo(
-        env_id=env_id, spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
+        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
         seed=seed, physics_params=core.params.to_dict(),
         metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
     )
@@ -117,7 +109,7 @@ def collect(
         return ids
 
     with DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
-        total=episodes, desc=f"collect {env_id}", unit="ep", disable=not progress
+        total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
     ) as bar:
         obs = np.zeros((num_envs, spec.observation_dim), dtype=np.float32)
         ids = start(np.arange(num_envs))
@@ -172,7 +164,7 @@ def _jsonable(value):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id")
+    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)")
     parser.add_argument("--policy", default="gait", help="'random', 'gait' or the path of an SB3 .zip")
     parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
@@ -188,8 +180,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym collect`: 2 with a one-line error on bad input, 130 on Ctrl-C (finished episodes are kept)."""
     import json
+    import sys
 
-    from rwm_gym.data.dataset import Dataset
+    from rwm_gym.data.dataset import Dataset, DatasetError
 
     env_kwargs: dict[str, object] = {}
     if args.xml_file:
@@ -206,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"rwm-gym collect: interrupted; the finished episodes are in {args.out} (complete=false)", file=sys.stderr)
         return 130
-    except (ValueError, TypeError, FileNotFoundError) as err:
+    except (ValueError, TypeError, FileNotFoundError, DatasetError) as err:
         print(f"rwm-gym collect: {err}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)

@@ -161,7 +161,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "of an SB3 .zip (an ordinary walking policy, as in a real robot's log)")
     parser.add_argument("--episodes", type=int, default=16)
     parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
-    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id (the nominal simulator)")
+    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="physics env id or spec path (the nominal simulator)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
     parser.add_argument("--noise-scale", type=float, default=1.0,
                         help="multiplier on the default sensor noise (0: none)")

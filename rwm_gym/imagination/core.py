@@ -66,9 +66,11 @@ class ImaginedCore:
 
     def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
                  reset_data: str | Path | None = None, options: ImaginationOptions | None = None,
-                 env_id: str | None = None, **kwargs):
+                 env_id: str | None = None, reward_fn=None, termination_fn=None, **kwargs):
         """env_id: the imagined env id this core serves (registration passes it): picks the shipped checkpoint when
-        `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides."""
+        `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides.
+        reward_fn, termination_fn: functions of the predicted `rwm_gym.task.entry_points.Transition` that replace the
+        task's reward / termination (default: the spec's `[imagination]` entry points, else the task's own)."""
         self.options = options or ImaginationOptions(**kwargs)
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
@@ -86,7 +88,8 @@ class ImaginedCore:
                              f"{self.checkpoint} of {self.spec.name}")
         self.reset_windows = ResetWindows(reset_dataset, history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
+        self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
+                                    reward_fn=reward_fn, termination_fn=termination_fn)
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
             raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
                              f"{self.spec.name} has not")
@@ -184,6 +187,9 @@ class ImaginedCore:
         self.uncertainty = np.nan_to_num(p.uncertainty.cpu().numpy().astype(np.float64), nan=0.0)
 
         reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)
+        ended = getattr(self.task, "ended", None)  # a termination function's verdict on this step (FunctionTask)
+        if ended is not None:
+            terminated |= ended
         reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
         reward = np.where(diverged, 0.0, reward)
         info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty": self.uncertainty.copy(),

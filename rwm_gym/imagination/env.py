@@ -20,15 +20,20 @@ from rwm_gym.vector.core import commands_from_options
 
 class ImaginedEnv(gym.Env):
     """One imagined rollout. kwargs: the fields of `ImaginationOptions` (sample_predictions, uncertainty_penalty,
-    resample_commands, ...). `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode."""
+    resample_commands, ...). `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode.
+
+    reward_fn / termination_fn: functions of the predicted `rwm_gym.task.entry_points.Transition` returning (N,)
+    rewards / bools, replacing the task's (default: the spec's `[imagination]` entry points, else the task's own).
+    """
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
     def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
                  render_mode: str | None = None, width: int = 640, height: int = 480, env_id: str | None = None,
-                 **options):
+                 reward_fn=None, termination_fn=None, **options):
         self.core = ImaginedCore(checkpoint, 1, device=device, reset_data=reset_data,
-                                 options=ImaginationOptions(**options), env_id=env_id)
+                                 options=ImaginationOptions(**options), env_id=env_id, reward_fn=reward_fn,
+                                 termination_fn=termination_fn)
         self.task_spec = self.core.spec
         if render_mode is not None and not self.task_spec.model:
             raise ValueError(f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "

@@ -15,9 +15,11 @@ from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
 
 
 def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                       reset_data: str | Path | None = None, env_id: str | None = None, **options) -> ImaginedCore:
+                       reset_data: str | Path | None = None, env_id: str | None = None, reward_fn=None,
+                       termination_fn=None, **options) -> ImaginedCore:
     return ImaginedCore(checkpoint, num_envs, device=device, reset_data=reset_data,
-                        options=ImaginationOptions(**options), env_id=env_id)
+                        options=ImaginationOptions(**options), env_id=env_id, reward_fn=reward_fn,
+                        termination_fn=termination_fn)
 
 
 class ImaginedGymVectorEnv(CoreGymVectorEnv):

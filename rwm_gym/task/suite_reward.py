@@ -99,7 +99,8 @@ class SuiteReward:
         if key not in SUPPORTED:
             raise ValueError(f"task spec {spec.name}: the reward of dm_control {key[0]}-{key[1]} cannot be computed "
                              f"from the world-model state (supported: "
-                             f"{', '.join(f'{d}-{t}' for d, t in sorted(SUPPORTED))})")
+                             f"{', '.join(f'{d}-{t}' for d, t in sorted(SUPPORTED))}); name a reward function in the "
+                             f"spec ([imagination] reward = \"module:function\") or pass reward_fn=")
         env = suite.load(*key, task_kwargs={"random": 0})
         self.task = env.task
         model = env.physics.model.ptr

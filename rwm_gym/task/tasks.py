@@ -9,6 +9,9 @@ samples the commands, runs the feet-air-time timers and composes the reward, so 
 - `SuiteRewardTask` (specs with a `[dm_control]` table): no commands, never terminates (suite tasks only hit their
   time limit), the suite's reward as a pure function of the state, foot heights and action
   (`rwm_gym.task.suite_reward`). The dm_control physics env scores with the suite's own `get_reward` instead.
+- `FunctionTask` (`rwm_gym.task.function_task`): either of the above, or no commands for a dm_control task, with
+  reward and/or termination from functions of the transition, named by the spec's `[imagination]` entry points or
+  given as `reward_fn=` / `termination_fn=` (`rwm_gym.task.entry_points`; the imagined env uses them).
 
 Arrays are (N, ...) over the core's envs; `ids` index them.
 """
@@ -105,8 +108,18 @@ class SuiteRewardTask:
         pass
 
 
-def make_task(spec: TaskSpec, num_envs: int, *, resample_commands: bool = True) -> Task:
-    """The task of a spec: a dm_control suite task if it has a `[dm_control]` table, else velocity tracking."""
+def make_task(spec: TaskSpec, num_envs: int, *, resample_commands: bool = True, reward_fn=None,
+              termination_fn=None) -> Task:
+    """The task of a spec: a dm_control suite task if it has a `[dm_control]` table, else velocity tracking; reward and
+    termination functions (arguments, else the spec's entry points) replace theirs."""
+    from rwm_gym.task.entry_points import step_functions
+    from rwm_gym.task.function_task import CommandlessTask, FunctionTask
+
+    reward_fn, termination_fn = step_functions(spec, reward_fn, termination_fn)
     if "dm_control" in spec.extra:
-        return SuiteRewardTask(spec, num_envs)
-    return VelocityTrackingTask(spec, num_envs, resample_commands)
+        base = SuiteRewardTask(spec, num_envs) if reward_fn is None else CommandlessTask(num_envs)
+    else:
+        base = VelocityTrackingTask(spec, num_envs, resample_commands)
+    if reward_fn is None and termination_fn is None:
+        return base
+    return FunctionTask(spec, base, reward_fn, termination_fn)

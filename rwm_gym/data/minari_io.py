@@ -1,0 +1,163 @@
+"""Datasets to and from Minari (the Farama offline-RL format), so collections travel to offline-RL code.
+
+    rwm-gym export --minari DATA.h5 --out DIR      # DIR holds a Minari dataset (`minari.MinariDataset(DIR)`)
+    rwm-gym import --minari DIR --out DATA.h5
+
+An episode of L transitions maps onto Minari's fields as Minari expects: `observations` (L+1, O) the policy
+observation (the spec's `[observation]` groups built from state, command and the previous action; no noise),
+`actions` (L, A), `rewards`, `terminations` and `truncations` (L,); every per-row field of the dataset (`state`,
+`contact`, `foot_height`, `qpos`, `qvel`, `command` and any extra field) goes into `infos` with its L+1 rows. The
+dataset's file attributes (the spec text, columns, policy, seed, ...) are kept under the metadata key `rwm_gym`, so
+import rebuilds the file field for field (tested). Needs the optional extra `rwm-gym[minari]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, write_dataset
+from rwm_gym.task.observation import build_observation
+
+METADATA_KEY = "rwm_gym"
+_TRANSITION_FIELDS = ("action", "reward", "terminated", "truncated")
+
+
+def _minari():
+    try:
+        import minari
+    except ImportError:
+        raise ValueError("Minari is not installed: pip install 'rwm-gym[minari]'") from None
+    return minari
+
+
+def _observations(spec, episode: dict[str, np.ndarray]) -> np.ndarray:
+    previous = np.concatenate([np.zeros_like(episode["action"][:1]), episode["action"][:-1]])
+    return build_observation(spec, episode["state"], episode["command"], previous).astype(np.float32)
+
+
+def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None = None,
+                  overwrite: bool = False) -> Path:
+    """Write dataset `data` as a Minari dataset in folder `out` (built beside it, then moved into place)."""
+    minari = _minari()
+    import gymnasium as gym
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+    from minari.dataset.minari_storage import MinariStorage
+
+    ds, out = Dataset.load(data), Path(out)
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out} exists (pass --overwrite to replace it)")
+    spec = ds.spec()
+    row_fields = [f for f in ds.fields if f not in _TRANSITION_FIELDS]
+    shapes = {f: [str(ds[f].dtype), list(ds[f].shape[1:])] for f in row_fields}
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (spec.observation_dim,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (spec.action_dim,), np.float32)
+    name = dataset_id or f"rwm-gym/{spec.name.lower()}/{Path(data).stem.replace('_', '-')}-v0"
+    info = ds.info
+    meta = {"env_id": info.env_id, "spec_text": info.spec_text, "dt": info.dt, "columns": info.columns,
+            "policy": info.policy, "seed": info.seed, "physics_params": info.physics_params,
+            "metadata": info.metadata, "complete": info.complete, "format_version": info.format_version,
+            "created_by": info.created_by, "fields": shapes}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    try:
+        storage = MinariStorage.new(tmp, observation_space=observation_space, action_space=action_space,
+                                    data_format="hdf5", jpeg_encoding=False)
+        storage.update_metadata({"dataset_id": name, "minari_version": minari.__version__,
+                                 "algorithm_name": info.policy, "description": f"rwm-gym dataset of {spec.name}",
+                                 METADATA_KEY: json.dumps(meta)})
+        buffers = []
+        for i in range(ds.num_episodes):
+            ep = ds.episode(i)
+            terminations = np.zeros(len(ep["state"]) - 1, dtype=bool)
+            truncations = terminations.copy()
+            terminations[-1:], truncations[-1:] = ep["terminated"][-1], ep["truncated"][-1]
+            buffers.append(EpisodeBuffer(
+                id=i, observations=_observations(spec, ep), actions=ep["action"][:-1], rewards=ep["reward"][:-1],
+                terminations=terminations, truncations=truncations,
+                infos={f: ep[f] for f in row_fields if ep[f].size}))  # h5py cannot chunk zero-width arrays
+        storage.update_episodes(buffers)
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return out
+
+
+def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = False) -> Path:
+    """Rebuild the rwm-gym dataset that `export_minari` wrote into `folder` (atomic write of `out`)."""
+    minari = _minari()
+    folder, out = Path(folder), Path(out)
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out} exists (pass --overwrite to replace it)")
+    try:
+        dataset = minari.MinariDataset(folder)
+    except (ValueError, OSError, KeyError, AssertionError) as err:  # what Minari raises for a folder it cannot read
+        raise ValueError(f"{folder}: not a readable Minari dataset ({type(err).__name__}: {err})") from None
+    raw = dataset.storage.metadata.get(METADATA_KEY)
+    if raw is None:
+        raise ValueError(f"{folder}: a Minari dataset not exported by rwm-gym (no '{METADATA_KEY}' metadata), "
+                         "so its task spec is unknown")
+    meta = json.loads(raw)
+    shapes = meta.pop("fields")
+    info = DatasetInfo(**{k: meta[k] for k in ("env_id", "dt", "columns", "policy", "seed", "physics_params",
+                                                  "metadata", "complete", "format_version", "created_by")},
+                       spec_text=meta["spec_text"])
+
+    def episodes():
+        for ep in dataset.iterate_episodes():
+            rows = len(ep.rewards) + 1
+            out_ep = {}
+            for name, (dtype, tail) in shapes.items():
+                value = (ep.infos or {}).get(name)
+                out_ep[name] = np.zeros((rows, *tail), dtype=dtype) if value is None else np.asarray(value, dtype)
+            out_ep["action"] = np.concatenate([ep.actions, np.zeros_like(ep.actions[:1])]).astype(np.float32)
+            out_ep["reward"] = np.append(ep.rewards, 0.0).astype(np.float32)
+            for name, flags in (("terminated", ep.terminations), ("truncated", ep.truncations)):
+                column = np.zeros(rows, dtype=bool)
+                column[-1] = bool(flags[-1]) if len(flags) else False
+                out_ep[name] = column
+            yield out_ep
+
+    write_dataset(out, info, episodes())
+    return out
+
+
+def add_export_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--minari", required=True, type=Path, metavar="DATA.h5", help="rwm-gym dataset to export")
+    parser.add_argument("--out", required=True, type=Path, help="folder to write the Minari dataset into")
+    parser.add_argument("--dataset-id", help="Minari dataset id (default rwm-gym/TASK/FILE-v0)")
+    parser.add_argument("--overwrite", action="store_true")
+
+
+def add_import_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--minari", required=True, type=Path, metavar="DIR", help="Minari dataset folder")
+    parser.add_argument("--out", required=True, type=Path, help="rwm-gym dataset (.h5) to write")
+    parser.add_argument("--overwrite", action="store_true")
+
+
+def _run(command: str, job) -> int:
+    try:
+        path = job()
+    except (ValueError, FileNotFoundError, DatasetError) as err:
+        print(f"rwm-gym {command}: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    return _run("export", lambda: export_minari(args.minari, args.out, dataset_id=args.dataset_id,
+                                                overwrite=args.overwrite))
+
+
+def run_import(args: argparse.Namespace) -> int:
+    return _run("import", lambda: import_minari(args.minari, args.out, overwrite=args.overwrite))

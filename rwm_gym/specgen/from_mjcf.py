@@ -1,0 +1,296 @@
+"""A velocity-tracking task spec for a legged robot of one's own, from its MJCF (`rwm-gym spec --mjcf robot.xml`).
+
+The physics env (`rwm_gym.physics.locomotion`) reads a robot through fixed names: a position actuator named after
+each joint, a touch sensor `contact_NAME` per contact body, a site and a geom named after each foot, a named
+keyframe. Few MJCF files have them, so the generator writes a copy of the model that does (`OUT.rwm.xml`, beside the
+spec) and leaves the user's file alone:
+
+- base: `--base`, else the body with the free joint; joints: every hinge below it, in model order;
+- feet: `--feet`, else the leaf bodies of the legs; each foot is its body's lowest sphere or capsule geom (the
+  capsule's lower end), given a site of the same name; thighs are the feet's parent bodies;
+- touch sensors: a sphere around each foot, a box around the base's and each thigh's geoms;
+- actuators: the joints' actuators are replaced by position servos; kp, kd and the effort limit come from
+  existing position servos or force ranges where the file has them, else from the robot's weight (printed);
+- default pose: the first keyframe, else qpos0 lowered until the feet touch the floor (a plane is added if the world
+  has none).
+
+Commands, reward weights and reset noise are ANYmal D's (`envs/anymal_d.toml`), the command speeds scaled to the
+robot's standing height; every such choice is listed in the spec's header.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from rwm_gym.spec import load_spec
+from rwm_gym.specgen.draft import SpecDraft, Table
+from rwm_gym.specgen.toml_text import significant
+
+_BODY, _GEOM, _SITE = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE
+GRAVITY = 9.81  # m/s²
+
+
+def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, i: int) -> str:
+    return mujoco.mj_id2name(model, kind, i) or ""
+
+
+def _subtree(model: mujoco.MjModel, body: int) -> list[int]:
+    return [b for b in range(model.nbody) if b == body or _is_below(model, b, body)]
+
+
+def _is_below(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
+    while body > 0:
+        body = int(model.body_parentid[body])
+        if body == ancestor:
+            return True
+    return False
+
+
+def _colliding_geoms(model: mujoco.MjModel, body: int) -> list[int]:
+    return [g for g in range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
+            if model.geom_contype[g] or model.geom_conaffinity[g]]
+
+
+def _find_base(model: mujoco.MjModel, base: str | None) -> int:
+    if base:
+        b = mujoco.mj_name2id(model, _BODY, base)
+        if b < 0:
+            raise ValueError(f"--base {base!r}: no such body")
+    else:
+        free = [j for j in range(model.njnt) if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)]
+        if not free:
+            raise ValueError("no body has a free joint: a legged robot needs a free-floating base (<freejoint/>)")
+        b = int(model.jnt_bodyid[free[0]])
+    j = int(model.body_jntadr[b])
+    if model.body_jntnum[b] != 1 or int(model.jnt_type[j]) != int(mujoco.mjtJoint.mjJNT_FREE) or model.jnt_qposadr[j]:
+        raise ValueError(f"base {_name(model, _BODY, b)!r} must have exactly one joint, the model's first, a free one")
+    return b
+
+
+def _foot_point(model: mujoco.MjModel, data: mujoco.MjData, body: int) -> tuple[int, np.ndarray, float]:
+    """(geom index, foot centre in the body frame, radius) of the body's lowest sphere or capsule geom."""
+    best = None
+    for g in _colliding_geoms(model, body):
+        kind, radius = int(model.geom_type[g]), float(model.geom_size[g, 0])
+        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+            ends = [model.geom_pos[g].copy()]
+        elif kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE):
+            axis = np.zeros(9)
+            mujoco.mju_quat2Mat(axis, model.geom_quat[g])
+            half = model.geom_size[g, 1] * axis.reshape(3, 3)[:, 2]
+            ends = [model.geom_pos[g] + half, model.geom_pos[g] - half]
+        else:
+            continue
+        rot = data.xmat[body].reshape(3, 3)
+        for end in ends:
+            z = float((data.xpos[body] + rot @ end)[2]) - radius
+            if best is None or z < best[0]:
+                best = (z, g, end, radius)
+    if best is None:
+        raise ValueError(f"foot body {_name(model, _BODY, body)!r} has no colliding sphere or capsule geom")
+    return best[1], best[2], best[3]
+
+
+def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half sizes) in the body frame of a box around the body's colliding geoms, 10 % larger."""
+    geoms = _colliding_geoms(model, body) or list(range(model.body_geomadr[body],
+                                                        model.body_geomadr[body] + model.body_geomnum[body]))
+    if not geoms:
+        raise ValueError(f"body {_name(model, _BODY, body)!r} has no geom to sense contacts with")
+    low = np.min([model.geom_pos[g] - model.geom_rbound[g] for g in geoms], axis=0)
+    high = np.max([model.geom_pos[g] + model.geom_rbound[g] for g in geoms], axis=0)
+    return (low + high) / 2, 1.1 * (high - low) / 2
+
+
+def _gains(model: mujoco.MjModel, joints: list[int], mass: float, height: float, n_feet: int,
+           notes: list[str]) -> tuple[float, float, float]:
+    """(kp N·m/rad, kd N·m·s/rad, effort limit N·m) from the file's actuators where it has them, else from weight."""
+    kps, kds, limits = [], [], []
+    for a in range(model.nu):
+        if int(model.actuator_trntype[a]) != int(mujoco.mjtTrn.mjTRN_JOINT) or model.actuator_trnid[a, 0] not in joints:
+            continue
+        gear = abs(float(model.actuator_gear[a, 0]))
+        if int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_AFFINE) and model.actuator_gainprm[a, 0] > 0:
+            kps.append(float(model.actuator_gainprm[a, 0]) * gear)
+            kds.append(-float(model.actuator_biasprm[a, 2]) * gear)
+        if model.actuator_forcelimited[a]:
+            limits.append(float(np.abs(model.actuator_forcerange[a]).max()) * gear)
+        elif model.actuator_ctrllimited[a] and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE):
+            limits.append(float(np.abs(model.actuator_ctrlrange[a]).max()) * gear * float(model.actuator_gainprm[a, 0]))
+    if kps:
+        kp, kd = max(kps), max(max(kds), 0.0)
+        notes.append(f"kp {significant(kp)} N·m/rad, kd {significant(kd)} N·m·s/rad from the file's position servos")
+    else:
+        kp = significant(2.0 * mass * GRAVITY * height / n_feet)
+        kd = significant(kp / 10.0)  # kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
+        notes.append(f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp x 0.1 s = {kd} N·m·s/rad "
+                     f"(no position servos in the file)")
+    if limits:
+        limit = significant(max(limits))
+        notes.append(f"effort limit {limit} N·m from the file's actuator ranges")
+    else:
+        limit = significant(kp * 1.0)
+        notes.append(f"effort limit = kp x 1 rad = {limit} N·m (no force range in the file)")
+    return float(kp), float(kd), float(limit)
+
+
+def _task_name(name: str | None, model_name: str) -> str:
+    raw = name or model_name or "MyRobot"
+    parts = [p for p in re.split(r"[^0-9A-Za-z]+", raw) if p]
+    out = "".join(p[0].upper() + p[1:] for p in parts)
+    if not out or not out[0].isalpha():
+        raise ValueError(f"task name {raw!r}: needs a letter first (pass --name)")
+    return out
+
+
+def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] | None = None,
+                 name: str | None = None) -> tuple[SpecDraft, str]:
+    """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller."""
+    path = Path(mjcf)
+    if not path.is_file():
+        raise FileNotFoundError(f"MJCF {path} not found")
+    try:
+        mj = mujoco.MjSpec.from_file(str(path))
+        model = mj.compile()
+    except ValueError as err:  # MuJoCo's XML and compile errors, several lines long
+        raise ValueError(f"{path}: MuJoCo cannot load it ({' '.join(str(err).split())[:200]})") from None
+    for attr in ("meshdir", "texturedir"):  # the copy lives elsewhere: point it at the original's asset folders
+        setattr(mj, attr, str((path.resolve().parent / (getattr(mj, attr) or "")).resolve()))
+    notes: list[str] = []
+    b = _find_base(model, base)
+    base_name = _name(model, _BODY, b)
+    robot = _subtree(model, b)
+    joint_ids = [j for j in range(model.njnt) if model.jnt_bodyid[j] in robot and j != model.body_jntadr[b]]
+    if any(int(model.jnt_type[j]) != int(mujoco.mjtJoint.mjJNT_HINGE) for j in joint_ids) or not joint_ids:
+        raise ValueError(f"the robot below {base_name!r} must move by hinge joints only (and have some)")
+    joints = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in joint_ids]
+    if not all(joints):
+        raise ValueError("every hinge joint needs a name (the spec lists them)")
+
+    if feet:
+        foot_bodies = [mujoco.mj_name2id(model, _BODY, f) for f in feet]
+        missing = [f for f, i in zip(feet, foot_bodies) if i < 0 or i not in robot]
+        if missing:
+            raise ValueError(f"--feet: {missing[0]!r} is not a body of the robot below {base_name!r}")
+    else:
+        foot_bodies = [c for c in robot if c != b and not any(model.body_parentid[k] == c for k in robot)
+                       and _colliding_geoms(model, c)]
+        notes.append(f"feet: the leaf bodies {', '.join(_name(model, _BODY, f) for f in foot_bodies)}")
+    thighs = [int(model.body_parentid[f]) for f in foot_bodies if model.body_parentid[f] != b]
+
+    data = mujoco.MjData(model)
+    if model.nkey:
+        keyframe = _name(model, mujoco.mjtObj.mjOBJ_KEY, 0) or "home"
+        mj.keys[0].name = keyframe
+        qpos = model.key_qpos[0].copy()
+        notes.append(f"default pose: keyframe {keyframe!r}")
+    else:
+        keyframe, qpos = "home", model.qpos0.copy()
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    points = [_foot_point(model, data, f) for f in foot_bodies]
+    if not model.nkey:
+        lowest = min(float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p)[2]) - r
+                     for f, (_, p, r) in zip(foot_bodies, points))
+        qpos[2] -= lowest
+        data.qpos[:] = qpos
+        mujoco.mj_forward(model, data)
+        notes.append(f"default pose: qpos0 with the base at {qpos[2]:.3f} m so the feet touch the floor "
+                     f"(keyframe 'home' added)")
+    default_pose = [significant(float(qpos[model.jnt_qposadr[j]]), 6) for j in joint_ids]
+    height = float(data.xpos[b, 2])
+    mass = float(model.body_subtreemass[b])
+    kp, kd, limit = _gains(model, joint_ids, mass, height, len(foot_bodies), notes)
+
+    if not any(model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
+               for g in range(model.ngeom)):
+        mj.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05])
+        notes.append("no floor plane in the world: a plane 'floor' added at z = 0")
+    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "track") < 0:  # the physics env renders from "track"
+        scale = 4.0 * height
+        mj.body(base_name).add_camera(name="track", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
+                                      pos=[0.5 * scale, -scale, 0.5 * scale], xyaxes=[0.894, 0.447, 0, -0.128, 0.255, 0.958])
+    for actuator in [a for a in mj.actuators if a.target in joints]:
+        mj.delete(actuator)
+    for j in joints:
+        act = mj.add_actuator(name=j, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=kp, kv=kd)
+        act.forcelimited, act.forcerange = True, [-limit, limit]
+    if not model.nkey:
+        mj.add_key(name=keyframe, qpos=list(qpos), ctrl=default_pose)
+
+    foot_names = []
+    for f, (g, point, radius) in zip(foot_bodies, points):
+        body = mj.body(_name(model, _BODY, f))
+        geom = body.geoms[g - model.body_geomadr[f]]
+        geom.name = geom.name or f"{_name(model, _BODY, f)}_foot"
+        if mujoco.mj_name2id(model, _SITE, geom.name) >= 0:
+            raise ValueError(f"a site named {geom.name!r} exists already; rename it (feet get sites of their name)")
+        body.add_site(name=geom.name, type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0],
+                      group=4)
+        mj.add_sensor(name=f"contact_{geom.name}", type=mujoco.mjtSensor.mjSENS_TOUCH,
+                      objtype=mujoco.mjtObj.mjOBJ_SITE, objname=geom.name)
+        foot_names.append(geom.name)
+    sensed = [b, *thighs]
+    for s in sensed:
+        centre, half = _enclosing_box(model, s)
+        site = f"contact_{_name(model, _BODY, s)}"
+        mj.body(_name(model, _BODY, s)).add_site(name=site, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre),
+                                                  size=list(half), group=4)
+        mj.add_sensor(name=site, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
+    try:
+        mj.compile()
+    except ValueError as err:
+        raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
+
+    dt = float(model.opt.timestep)
+    substeps = max(1, round(0.02 / dt))
+    policy_dt = significant(substeps * dt, 9)
+    notes.append(f"policy step {policy_dt} s = {substeps} x the model's timestep {dt} s; episodes of 1000 steps")
+    anymal = load_spec("anymal_d")
+    speed = significant(min(1.0, height / 0.6), 2)  # ANYmal D stands 0.6 m tall and is commanded up to 1 m/s
+    notes.append(f"commands up to {speed} m/s and rad/s (ANYmal D's 1 m/s x standing height {height:.3f} m / 0.6 m); "
+                 f"reward weights, reset noise and action scale are ANYmal D's")
+    thigh_names = [_name(model, _BODY, t) for t in thighs]
+    task_name = _task_name(name, mj.modelname)
+    a = anymal
+    tables = [
+        Table("task", {"name": task_name, "physics_env_id": f"{task_name}-MuJoCo-v0",
+                       "imagined_env_id": f"RWM-{task_name}-v0", "model": "", "policy_dt": policy_dt,
+                       "physics_dt": dt, "episode_steps": 1000, "keyframe": keyframe, "base_body": base_name},
+              {"model": "the rwm-ready copy written beside this spec", "policy_dt": "s", "physics_dt": "s"}),
+        Table("reset", {"joint_pos_noise": a.reset.joint_pos_noise, "base_lin_vel_noise": a.reset.base_lin_vel_noise,
+                        "base_ang_vel_noise": a.reset.base_ang_vel_noise},
+              {"joint_pos_noise": "rad", "base_lin_vel_noise": "m/s", "base_ang_vel_noise": "rad/s"}),
+        Table("actuator", {"joints": joints, "default_pose": default_pose, "action_scale": a.actuator.action_scale,
+                           "kp": kp, "kd": kd, "effort_limit": limit},
+              {"default_pose": "rad", "action_scale": "rad per unit action", "kp": "N·m/rad", "kd": "N·m·s/rad",
+               "effort_limit": "N·m"}),
+    ]
+    groups = [("base_lin_vel", ["x", "y", "z"], "m/s"), ("base_ang_vel", ["x", "y", "z"], "rad/s"),
+              ("projected_gravity", ["x", "y", "z"], "1"), ("joint_pos", joints, "rad"),
+              ("joint_vel", joints, "rad/s"), ("joint_torque", joints, "N·m")]
+    for group, columns, unit in groups:
+        tables.append(Table("state", {"name": group, "columns": columns, "unit": unit, "mean": [0.0] * len(columns),
+                                      "std": [1.0] * len(columns)}, array=True))
+    tables += [
+        Table("privileged", {"contact_bodies": thigh_names + foot_names, "contact_threshold": 1.0, "feet": foot_names,
+                             "thighs": thigh_names, "termination_bodies": [base_name], "foot_height_std": 0.1},
+              {"contact_threshold": "N", "foot_height_std": "m"}),
+        Table("observation", {"groups": list(a.observation.groups)}),
+        Table("command", {"names": list(a.command.names), "low": [-speed] * 3, "high": [speed] * 3,
+                          "resample_seconds": a.command.resample_seconds,
+                          "standing_fraction": a.command.standing_fraction,
+                          "standing_threshold": a.command.standing_threshold}),
+        Table("reward", {"tracking_sigma": a.reward.tracking_sigma,
+                         "feet_air_time_target": a.reward.feet_air_time_target}),
+        Table("reward.weights", dict(a.reward.weights)),
+    ]
+    robot_line = (f"Robot: {mass:.3g} kg, {len(joints)} joints, {len(foot_names)} feet, base {base_name!r} standing at "
+                  f"{height:.3f} m. Units: SI (m, s, rad, N, N·m, kg).")
+    header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
+    return SpecDraft(header, tables, notes), mj.to_xml()
