@@ -23,6 +23,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
 from rwm_gym.options import add_dataclass_options
+from rwm_gym.rl.policy_file import save_policy
 from rwm_gym.spec import TaskSpec
 
 WHERE = ("imagination", "physics")
@@ -288,16 +289,6 @@ def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_st
 
         return int(Dataset.load(dataset).num_steps)
     return None
-
-
-def save_policy(model: PPO, path: str | os.PathLike) -> Path:
-    """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.zip")
-    model.save(tmp)
-    os.replace(tmp, path)
-    return path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
