@@ -5,6 +5,9 @@ whole episode); the loss is in `losses.py`. Adam with gradient clipping and a le
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
+
+Under `torchrun --nproc_per_node=N` the same call trains data-parallel (DDP): the global batch is split over the
+ranks and only rank 0 validates and writes; see `rwm_gym.model.distributed` for what each rank does and its seeds.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from tqdm import tqdm
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
+from rwm_gym.model import distributed
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.losses import relative_error, window_loss
@@ -88,8 +92,9 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     return total / len(starts)
 
 
-def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
-    state = {"rng_torch": torch.get_rng_state()}
+def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torch.Tensor]:
+    """Rank 0's RNG states: the shared window sampler and its own noise stream (other ranks derive theirs)."""
+    state = {"rng_torch": torch.get_rng_state(), "rng_sampler": sampler.get_state()}
     if device.type == "cuda":
         state["rng_cuda"] = torch.cuda.get_rng_state(device)
     return state
@@ -113,12 +118,15 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
         raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
                          f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
-    device, out = torch.device(config.device), out and Path(out)
+    world = distributed.init_world(config.device)
+    distributed.check_batch(config.batch_size, world)
+    device, out = distributed.rank_device(config.device, world), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
     rows = config.history + config.forecast
     with _deterministic(device):
         torch.manual_seed(config.seed)
+        sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
         model = build_model(model_config).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
@@ -142,15 +150,17 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
             model.load_state_dict(loaded.state_dict())
             provenance["init_checkpoint"] = str(init)
         if resume and out is not None and out.exists():
-            stats = _resume(out, model, optimizer, config, provenance["sha256"], device)
+            stats = _resume(out, model, optimizer, config, provenance["sha256"], device, sampler)
+        distributed.reseed_rank(config.seed, world, stats["iterations"])
+        compute_loss = distributed.data_parallel(model, window_loss, world)
 
         def save() -> Path | None:
-            if out is None:
+            if out is None or not world.is_main:
                 return None
             return save_checkpoint(out, model, spec, normalizer=normalizer, train_config=config, provenance=provenance,
-                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device))
+                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device, sampler))
 
-        writer = _tensorboard(tensorboard)
+        writer = _tensorboard(tensorboard) if world.is_main else None
         started = time.monotonic() - stats["wall_s"]
         iteration, running, parts_sum = stats["iterations"], 0.0, {}
 
@@ -158,9 +168,14 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
             if optimizer is None:
                 return True
             by_steps = config.iterations > 0 and iteration >= config.iterations
-            return by_steps or (config.minutes > 0 and time.monotonic() - started >= 60 * config.minutes)
+            if by_steps or config.minutes <= 0:
+                return by_steps
+            if world.distributed and iteration % 10:  # ranks agree on the time budget every 10 iterations
+                return False
+            late = time.monotonic() - started >= 60 * config.minutes
+            return distributed.any_rank(late, device, world)
 
-        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress,
+        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress or not world.is_main,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
         try:
             while not finished():
@@ -169,12 +184,14 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                index = torch.randint(len(train_starts), (config.batch_size,))
+                index = distributed.shard(torch.randint(len(train_starts), (config.batch_size,), generator=sampler),
+                                          world)
                 member = None
                 if model_config.ensemble_size > 1:
-                    member = torch.randint(model_config.ensemble_size, (config.batch_size,)).to(device)
+                    member = distributed.shard(torch.randint(model_config.ensemble_size, (config.batch_size,),
+                                                             generator=sampler), world).to(device)
                 batch = windows.gather(train_starts[index.to(device)], rows)
-                loss, parts = window_loss(model, batch, config, pos_weight, member)
+                loss, parts = compute_loss(batch, config, pos_weight, member)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
@@ -186,9 +203,12 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
+                    running = float(distributed.mean_over_ranks(torch.tensor(running, dtype=torch.float64,
+                                                                             device=device), world))
                     stats["train_loss"] = running / max(count, 1)
                     stats["train_parts"] = {k: v / max(count, 1) for k, v in parts_sum.items()}
-                    stats["val_error"] = validation_error(model, windows, val_starts, config)
+                    stats["val_error"] = (validation_error(model, windows, val_starts, config) if world.is_main
+                                          else None)
                     stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
                                          "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
                     running, parts_sum = 0.0, {}
@@ -198,27 +218,28 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                                 writer.add_scalar(name, value, iteration)
                 if iteration % config.checkpoint_every == 0:
                     save()
+                    distributed.reseed_rank(config.seed, world, iteration)
                 bar.update(1)
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
         except KeyboardInterrupt:
             stats["wall_s"] = time.monotonic() - started
-            if save() is not None:
+            if save() is not None:  # rank 0 only
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
         finally:
             bar.close()
             if writer is not None:
                 writer.close()
-        if optimizer is None:
+        if optimizer is None and world.is_main:
             stats["val_error"] = validation_error(model, windows, val_starts, config)
         stats["wall_s"] = time.monotonic() - started
         return TrainResult(model, stats, save())
 
 
 def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | None, config: TrainConfig,
-            sha256: str, device: torch.device) -> dict:
+            sha256: str, device: torch.device, sampler: torch.Generator) -> dict:
     """Load the state of an interrupted run into model and optimizer; return its stats."""
     meta, state = load_training_state(path, model, optimizer)
     if meta.train_config is None:
@@ -230,6 +251,10 @@ def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | No
     if "rng_torch" not in state:
         raise CheckpointError(f"{path}: no RNG state saved, cannot resume")
     torch.set_rng_state(state["rng_torch"])
+    if "rng_sampler" in state:
+        sampler.set_state(state["rng_sampler"])
+    else:  # a checkpoint from before the shared sampler: its draws continue from a stream derived from the iteration
+        sampler.manual_seed(distributed.rank_seed(config.seed, 0, int(meta.stats.get("iterations", 0))))
     if device.type == "cuda" and "rng_cuda" in state:
         torch.cuda.set_rng_state(state["rng_cuda"], device)
     return meta.stats
@@ -293,8 +318,12 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
-        print(f"rwm-gym train: {err}", file=sys.stderr)
+        if distributed.current_world().is_main:
+            print(f"rwm-gym train: {err}", file=sys.stderr)
         return 2
-    summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
-    print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
+    finally:
+        distributed.close_world()
+    if result.path is not None:  # rank 0
+        summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
+        print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
     return 0
