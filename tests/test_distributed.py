@@ -36,8 +36,9 @@ def torchrun(*args: str, nproc: int = 2) -> subprocess.CompletedProcess:
     return done
 
 
-def train_cli(data: Path, out: Path, iterations: int, *, ranks: int, resume: bool = False) -> None:
-    args = ["train", "--data", str(data), "--out", str(out), "--iterations", str(iterations), *RUN]
+def train_cli(data: Path, out: Path, iterations: int, *, ranks: int, resume: bool = False,
+              extra: list[str] | None = None) -> None:
+    args = ["train", "--data", str(data), "--out", str(out), "--iterations", str(iterations), *RUN, *(extra or [])]
     args += ["--resume"] if resume else []
     if ranks == 1:
         with one_thread():
@@ -51,12 +52,12 @@ def tensors(path: Path) -> dict[str, torch.Tensor]:
         return {name: f.get_tensor(name) for name in f.keys()}
 
 
-def assert_same_weights(a: Path, b: Path) -> None:
+def assert_same_weights(a: Path, b: Path, rtol: float = 1e-4, atol: float = 1e-5) -> None:
     ta, tb = tensors(a), tensors(b)
     model = [k for k in ta if k.startswith("model/")]
     assert model and set(ta) == set(tb)
     for name in model:
-        torch.testing.assert_close(ta[name], tb[name], rtol=1e-4, atol=1e-5, msg=name)
+        torch.testing.assert_close(ta[name], tb[name], rtol=rtol, atol=atol, msg=name)
 
 
 @pytest.fixture(scope="module")
