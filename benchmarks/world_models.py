@@ -11,6 +11,7 @@ Writes `results.json`, `results.md` and `error_vs_horizon.png` (+ data and check
 
     python benchmarks/world_models.py --device cuda                    # full budget
     python benchmarks/world_models.py --gait-episodes 4 --random-episodes 2 --episode-steps 200 --iterations 20
+    torchrun --nproc_per_node=2 benchmarks/world_models.py ...   # data-parallel training (rank 0 collects and scores)
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from tqdm import tqdm
 
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
-from rwm_gym.model import TrainConfig, model_config_for
+from rwm_gym.model import TrainConfig, distributed, model_config_for
 from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.evaluate import EvalConfig, atomic_write, evaluate_checkpoint, plot_curves, write_json
 from rwm_gym.model.train import train
@@ -57,6 +58,8 @@ class Options:
     """Cap on the length of collected episodes (policy steps)."""
     num_envs: int = 32
     """Simulations stepped together while collecting."""
+    workers: int = 1
+    """Collection processes (each with num_envs simulations); the data is the same whatever the number."""
     iterations: int = 5000
     """Gradient steps per model (the same for every model)."""
     minutes: float = 0.0
@@ -83,10 +86,10 @@ def dataset(options: Options) -> Path:
     else:
         parts = [collect(options.env, "gait", options.gait_episodes, out / "data" / "gait.h5", seed=options.seed,
                          num_envs=options.num_envs, action_noise=options.action_noise,
-                         max_steps=options.episode_steps, overwrite=True),
+                         max_steps=options.episode_steps, overwrite=True, workers=options.workers),
                  collect(options.env, "random", options.random_episodes, out / "data" / "random.h5",
                          seed=options.seed + 1, num_envs=options.num_envs, max_steps=options.episode_steps,
-                         overwrite=True)]
+                         overwrite=True, workers=options.workers)]
     if len(parts) == 1:
         return parts[0]
     merge_datasets(parts, merged)
@@ -122,27 +125,36 @@ def main(argv: list[str] | None = None) -> int:
     add_dataclass_options(parser, Options)
     options = Options(**vars(parser.parse_args(argv)))
     torch.set_num_threads(options.threads)
+    world = distributed.init_world(options.device)  # under torchrun: rank 0 collects, writes and scores
     out = Path(options.out)
-    (out / "data").mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
+    if world.is_main:
+        (out / "data").mkdir(parents=True, exist_ok=True)
+        dataset(options)
+    distributed.barrier(world)
     data = Dataset.load(dataset(options))
     spec = data.spec()
     evaluation = EvalConfig(max_windows=options.max_windows, seed=options.seed, device=options.device)
     results = {}
-    for name, (kind, forecast) in tqdm(MODELS.items(), desc="models", unit="model"):
+    for name, (kind, forecast) in tqdm(MODELS.items(), desc="models", unit="model", disable=not world.is_main):
         config = TrainConfig(forecast=forecast, batch_size=options.batch_size, iterations=options.iterations,
                              minutes=options.minutes, seed=options.seed, device=options.device,
                              val_every=max(1, options.iterations // 10), checkpoint_every=options.iterations)
         tic = time.perf_counter()
         trained = train(data, model_config_for(kind, spec), config, out / f"{name}.safetensors")
         wall, tic = time.perf_counter() - tic, time.perf_counter()
+        if not world.is_main:
+            continue
         scores = evaluate_checkpoint(trained.path, data, evaluation)
         results[name] = {**scores, "train_wall_s": wall, "eval_wall_s": time.perf_counter() - tic,
                          "iterations": trained.stats["iterations"], "val_error": trained.stats["val_error"],
                          "log": trained.stats["log"]}
+    distributed.close_world()
+    if not world.is_main:
+        return 0
     wall = time.perf_counter() - started
-    write_json({"options": asdict(options), "rows": data.num_steps, "episodes": data.num_episodes, "wall_s": wall,
-                "models": results}, out / "results.json")
+    write_json({"options": asdict(options), "world_size": world.size, "rows": data.num_steps,
+                "episodes": data.num_episodes, "wall_s": wall, "models": results}, out / "results.json")
     table = markdown(results, data, options, wall)
     atomic_write(out / "results.md", lambda tmp: Path(tmp).write_text(table))
     plot_curves({name: r["curve"] for name, r in results.items()}, out / "error_vs_horizon.png",

@@ -79,6 +79,12 @@ def current_world() -> World:
     return SINGLE
 
 
+def barrier(world: World) -> None:
+    """Wait until every rank gets here (e.g. until rank 0 has written a file the others read)."""
+    if world.distributed:
+        dist.barrier()
+
+
 def close_world() -> None:
     """Leave the process group (after the last collective)."""
     if dist.is_available() and dist.is_initialized():
