@@ -23,4 +23,11 @@ for kind in MODEL_KINDS:
             checksum = sum(float(p.double().sum()) for p in result.model.parameters())
         print(json.dumps({"rank": distributed.current_world().rank, "kind": kind, "ensemble": ensemble,
                           "weights": checksum, "train_loss": result.stats["train_loss"]}), flush=True)
+# A time budget: the ranks must agree on the learning rate and on when to stop.
+timed = TrainConfig(history=6, forecast=3, batch_size=8, iterations=0, minutes=0.01, val_every=5, val_fraction=0.25)
+result = train(data, model_config_for("rwm", data.spec(), **TINY), timed, progress=False)
+with torch.no_grad():
+    checksum = sum(float(p.double().sum()) for p in result.model.parameters())
+print(json.dumps({"rank": distributed.current_world().rank, "kind": "rwm-minutes", "ensemble": 1, "weights": checksum,
+                  "train_loss": result.stats["train_loss"], "iterations": result.stats["iterations"]}), flush=True)
 distributed.close_world()

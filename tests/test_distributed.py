@@ -108,10 +108,11 @@ def test_every_model_kind_keeps_its_ranks_in_sync_with_forecast_noise(data: Path
     done = torchrun(str(TESTS / "ddp_every_kind.py"), str(data))
     lines = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
     by_rank = {rank: {(r["kind"], r["ensemble"]): r for r in lines if r["rank"] == rank} for rank in (0, 1)}
-    assert len(by_rank[0]) == 9 and by_rank[0].keys() == by_rank[1].keys()
+    assert len(by_rank[0]) == 10 and by_rank[0].keys() == by_rank[1].keys()  # 9 kinds x heads + a timed run
     for key, result in by_rank[0].items():
         assert by_rank[1][key]["weights"] == result["weights"], key  # identical parameters on both ranks
         assert by_rank[1][key]["train_loss"] == result["train_loss"], key  # the logged loss is the global mean
+        assert by_rank[1][key].get("iterations") == result.get("iterations"), key  # a time budget ends together
 
 
 def test_a_batch_that_does_not_split_over_the_ranks_is_refused() -> None:

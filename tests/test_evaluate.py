@@ -36,14 +36,20 @@ def test_no_change_error_matches_a_hand_computation(data: Path) -> None:
     config = EvalConfig(history=10, horizons=(5,), max_horizon=5, noise_levels=(), max_windows=10_000)
     result = evaluate(build_model(model_config_for("no_change", SPEC)), ds, norm, SPEC, config, progress=False)
     assert result["horizons"] == [5] and result["longest"] == 5
-    errors = []
+    errors, mean_errors = [], []
+    data_mean = norm.normalize_state(ds["state"].astype(np.float64)).mean(0)
     for e in range(ds.num_episodes):
         z = norm.normalize_state(ds.episode(e)["state"].astype(np.float64))
         for start in range(len(z) - 15 + 1):
             last, future = z[start + 9], z[start + 10:start + 15]  # prediction = the last history row, 5 steps on
             errors.append((np.abs(future - last).sum(-1) / np.abs(future).sum(-1)).mean())
+            mean_errors.append((np.abs(future - data_mean).sum(-1) / np.abs(future).sum(-1)).mean())
     assert result["windows"]["5"] == len(errors)
     assert result["error"]["5"] == pytest.approx(np.mean(errors), rel=1e-4)
+    # the floors come without a model: the no-change row is this model's error, the mean row a constant's
+    assert result["floors"]["no change"]["5"] == pytest.approx(np.mean(errors), rel=1e-4)
+    assert result["floors"]["predict the mean"]["5"] == pytest.approx(np.mean(mean_errors), rel=1e-4)
+    assert result["max_abs"]["5"]["prediction"] <= result["max_abs"]["5"]["data"] + 1e-6  # no change stays in range
     assert result["contact_accuracy"]["5"] == pytest.approx(float((~ds["contact"]).mean()), abs=0.05)
 
 
@@ -68,7 +74,15 @@ def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, c
     assert code == 0
     printed = capsys.readouterr().out
     assert "no_change" in printed and "joint_torque" in printed and "noise std" in printed
+    assert "no change | predict the mean" in printed
     saved = json.loads((tmp_path / "ev" / "evaluation.json").read_text())
     assert saved["model"] == "no_change" and saved["error"]["4"] > 0
     assert (tmp_path / "ev" / "error_vs_horizon.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["evaluate", "--checkpoint", str(tmp_path / "nope.safetensors"), "--data", str(data)]) == 2
+    other = write_linear_dataset(tmp_path / "other.h5", num_episodes=3, seed=7)  # several sources, one table each
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), str(other), "--out", str(tmp_path / "two"),
+                 "--history", "8", "--horizons", "4", "--noise", "--quiet"]) == 0
+    assert capsys.readouterr().out.count("no_change on") == 2
+    saved = json.loads((tmp_path / "two" / "evaluation.json").read_text())
+    assert set(saved["sources"]) == {"linear", "other"}
+    assert all(len(r["running_mean"]) == r["longest"] for r in saved["sources"].values())

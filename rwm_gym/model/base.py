@@ -30,6 +30,9 @@ class WorldModel(nn.Module):
     history-then-open-loop rollouts used by training, evaluation and the imagined environment.
     """
 
+    filters_with_next_state = False
+    """True when `step` uses the true next state (a posterior); then its predictions on known steps are no forecasts."""
+
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
@@ -62,6 +65,26 @@ class WorldModel(nn.Module):
                                   None if next_states is None else next_states[:, t])
             predictions.append(p)
         return hidden, Prediction.stack(predictions)
+
+    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
+                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
+                          ) -> tuple[Hidden, Prediction | None]:
+        """Run T known steps like `observe`, keeping the hidden state after every step: each tensor (B, T, ...).
+
+        Also returns the predictions (B, T, ...) of the steps, or None where they would cost extra (the Transformer).
+        They are forecasts (a branch may start from them) unless the model filters with `next_states`
+        (`filters_with_next_state`). The default steps one row at a time; models with a sequence kernel or a history
+        buffer override it.
+        """
+        trajectory, predictions = [], []
+        for t in range(states.shape[1]):
+            hidden, p = self.step(hidden, states[:, t], actions[:, t], member,
+                                  None if next_states is None else next_states[:, t])
+            trajectory.append(hidden)
+            predictions.append(p)
+        if not trajectory:  # no step: empty (B, 0, ...) trajectories
+            return tuple(h.unsqueeze(1)[:, :0] for h in hidden), None
+        return tuple(torch.stack(h, 1) for h in zip(*trajectory)), Prediction.stack(predictions)
 
     def warm_up(self, states: torch.Tensor, actions: torch.Tensor,
                 member: torch.Tensor | None = None) -> tuple[Hidden, Prediction | None]:

@@ -17,6 +17,12 @@ from rwm_gym.model.heads import Heads
 from rwm_gym.model.prediction import Prediction
 
 
+def _history_trajectory(buffer: torch.Tensor, tokens: torch.Tensor) -> torch.Tensor:
+    """The buffer after each of T pushes: buffer (B, K, ...), tokens (B, T, ...) -> (B, T, K, ...)."""
+    windows = torch.cat([buffer, tokens], dim=1).unfold(1, buffer.shape[1], 1)[:, 1:]  # (B, T, ..., K)
+    return windows.permute(0, 1, windows.dim() - 1, *range(2, windows.dim() - 1))
+
+
 def _push(buffer: torch.Tensor, token: torch.Tensor) -> torch.Tensor:
     """Drop the oldest entry of (B, K, ...) and append token (B, ...) as the newest (last) one."""
     return torch.cat([buffer[:, 1:], token.unsqueeze(1)], dim=1)
@@ -48,6 +54,14 @@ class MLPModel(WorldModel):
         history = _push(hidden[0], torch.cat([state, action], dim=-1))
         features = self.trunk(history.flatten(1))
         return (history,), self.heads(features, features, state, member)
+
+    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
+                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
+                          ) -> tuple[Hidden, Prediction]:
+        """The stacked histories of all T steps at once, and the trunk over all of them in one batch."""
+        histories = _history_trajectory(hidden[0], torch.cat([states, actions], dim=-1))  # (B, T, K, S + A)
+        features = self.trunk(histories.flatten(2))
+        return (histories,), self.heads(features, features, states, member)
 
 
 class TransformerModel(WorldModel):
@@ -118,6 +132,15 @@ class TransformerModel(WorldModel):
         valid = _push(hidden[1], torch.ones_like(hidden[1][:, 0]))
         features = self._encode(tokens, valid)[:, -1]
         return (tokens, valid), self.heads(features, features, state, member)
+
+    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
+                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
+                          ) -> tuple[Hidden, None]:
+        """The token windows after each of T steps, without encoding them (a forecast re-encodes its own window, so
+        predictions on a long sequence would cost one encoding per step: None)."""
+        tokens = _history_trajectory(hidden[0], torch.cat([states, actions], dim=-1))
+        valid = _history_trajectory(hidden[1], hidden[1].new_ones(states.shape[:2]))
+        return (tokens, valid), None
 
 
 class NoChangeModel(WorldModel):

@@ -167,7 +167,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
     meta = _meta(path, header, tensors)
     if expect_spec is not None and (difference := spec_difference(meta.spec, expect_spec)):
         raise CheckpointError(f"{path}: checkpoint is for another task layout: {difference}")
-    model = build_model(meta.model_config).to(device)
+    model = build_model(meta.model_config, meta.spec).to(device)
     expected = model.state_dict()
     stored = {name[len("model/"):]: t for name, t in tensors.items() if name.startswith("model/")}
     for name, tensor in expected.items():

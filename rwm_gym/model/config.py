@@ -57,6 +57,10 @@ class ModelConfig:
     """Attention heads of the Transformer."""
     transformer_layers: int = 2
     """Encoder layers of the Transformer."""
+    unit_gravity: bool = False
+    """Renormalise the predicted projected gravity to a unit vector (physical units) when the spec has that group."""
+    joint_limits: bool = False
+    """Clamp predicted joint positions to the MJCF joint ranges (gradient passes straight through)."""
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -72,7 +76,12 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
-        return cls(**_checked(cls, data))
+        """Fields a file predates take the value that reproduces how it was built, not today's default."""
+        return cls(**{**_MODEL_LEGACY, **_checked(cls, data)})
+
+
+_MODEL_LEGACY = {"unit_gravity": False, "joint_limits": False}
+"""ModelConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 
 @dataclass(frozen=True)
@@ -84,7 +93,12 @@ class TrainConfig:
     forecast: int = 8
     """F: steps predicted autoregressively from the model's own samples (1 = teacher forcing)."""
     batch_size: int = 64
-    """Windows per gradient step."""
+    """Forecast windows per gradient step (segments x branches)."""
+    branches: int = 1
+    """Forecast branches per sampled segment: one teacher-forced pass over the segment, then this many F-step
+    forecasts from its hidden states, batched (1: one window of H + F rows, the paper's recipe)."""
+    branch_stride: int = 1
+    """Rows between the starts of consecutive branches of a segment."""
     lr: float = 1e-3
     """Adam learning rate at the start of the schedule."""
     weight_decay: float = 0.0
@@ -133,13 +147,27 @@ class TrainConfig:
             raise ValueError(f"schedule {self.schedule!r} unknown (choose from {', '.join(SCHEDULES)})")
         if self.iterations <= 0 and self.minutes <= 0:
             raise ValueError("set a budget: iterations > 0 or minutes > 0")
+        if self.branches < 1 or self.branch_stride < 1 or self.batch_size % self.branches:
+            raise ValueError(f"branches ({self.branches}) and branch_stride ({self.branch_stride}) must be >= 1 and "
+                             f"divide batch_size ({self.batch_size}) into whole segments")
+
+    @property
+    def segment_rows(self) -> int:
+        """Rows of one training segment: H history rows, then a branch start every `branch_stride` rows, F after the
+        last."""
+        return self.history + (self.branches - 1) * self.branch_stride + self.forecast
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
-        return cls(**_checked(cls, data))
+        """Fields a file predates take the value that reproduces how it was trained, not today's default."""
+        return cls(**{**_TRAIN_LEGACY, **_checked(cls, data)})
+
+
+_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1}
+"""TrainConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 
 def _checked(cls: type, data: dict[str, Any]) -> dict[str, Any]:

@@ -5,10 +5,12 @@ LOCAL_RANK, MASTER_ADDR and MASTER_PORT, and `init_world` joins the process grou
 cuda (rank r then trains on cuda:LOCAL_RANK). Without those variables the world is one process and nothing changes.
 
 What each rank does (see `rwm_gym.model.train`):
-- The global batch (`--batch-size`) is split over the ranks: every rank draws the same window indices (and ensemble
-  heads) of the whole batch from a shared sampler generator seeded by the run's seed, and keeps its own slice, so the
-  windows of an iteration do not depend on the world size.
-- Gradients are averaged by DistributedDataParallel, so one iteration is one optimizer step on the global batch.
+- The global batch (`--batch-size`, i.e. batch size / branches segments) is split over the ranks: every rank draws
+  the same segment starts (and ensemble heads) of the whole batch from a shared sampler generator seeded by the run's
+  seed, and keeps its own slice, so the windows of an iteration do not depend on the world size.
+- Gradients are averaged by DistributedDataParallel, so one iteration is one optimizer step on the global batch. The
+  average is of the ranks' mean losses: the single-process gradient exactly when every rank counts as many forecast
+  branches (branches reaching past an episode's end are not counted, so a rank with more of them weighs more).
 - Seeds per rank: all ranks build the model with `torch.manual_seed(seed)` (identical weights; DDP also broadcasts
   rank 0's). Afterwards rank 0 keeps that stream for its forecast noise (the single-process run is rank 0 of a world
   of one); rank r > 0 reseeds with `rank_seed(seed, r, iteration)` at the start and after every checkpoint, so a
@@ -19,7 +21,6 @@ What each rank does (see `rwm_gym.model.train`):
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,32 +120,21 @@ def shard(batch: torch.Tensor, world: World) -> torch.Tensor:
 
 
 def check_batch(batch_size: int, world: World) -> None:
+    """Refuse a global batch (in segments: batch size / branches) that does not split evenly over the ranks."""
     if batch_size % world.size:
-        raise ValueError(f"batch size {batch_size} does not split over {world.size} processes; "
-                         f"choose a multiple of {world.size}")
+        raise ValueError(f"a batch of {batch_size} segments (batch size / branches) does not split over "
+                         f"{world.size} processes; choose a multiple of {world.size}")
 
 
-class _Loss(torch.nn.Module):
-    """A model with its loss as `forward`, so DistributedDataParallel sees the call that builds the graph."""
-
-    def __init__(self, model: torch.nn.Module, loss: Callable) -> None:
-        super().__init__()
-        self.model, self.loss = model, loss
-
-    def forward(self, *args, **kwargs):
-        return self.loss(self.model, *args, **kwargs)
-
-
-def data_parallel(model: torch.nn.Module, loss: Callable, world: World) -> Callable:
-    """`loss(model, *args)` as a callable whose backward averages gradients over the ranks (DDP); the plain
-    function in a world of one, so the single-process path is unchanged."""
-    if not world.distributed or not any(p.requires_grad for p in model.parameters()):
-        return lambda *args, **kwargs: loss(model, *args, **kwargs)
-    device = next(model.parameters()).device
-    ids = [device.index] if device.type == "cuda" else None
+def data_parallel(loss: torch.nn.Module, world: World) -> torch.nn.Module:
+    """A loss module (its model a submodule; forward -> (loss, parts)) whose backward averages gradients over the
+    ranks (DistributedDataParallel); the module itself in a world of one, so the single-process path is unchanged."""
+    if not world.distributed or not any(p.requires_grad for p in loss.parameters()):
+        return loss
+    device = next(loss.parameters()).device
     # Every model kind uses all its parameters in every loss (ensemble heads run batched), checked per kind in
     # tests/test_distributed.py, so DDP need not search the graph for unused ones.
-    return torch.nn.parallel.DistributedDataParallel(_Loss(model, loss), device_ids=ids)
+    return torch.nn.parallel.DistributedDataParallel(loss, device_ids=[device.index] if device.type == "cuda" else None)
 
 
 def mean_over_ranks(value: torch.Tensor, world: World) -> torch.Tensor:
@@ -156,10 +146,10 @@ def mean_over_ranks(value: torch.Tensor, world: World) -> torch.Tensor:
     return value / world.size
 
 
-def any_rank(flag: bool, device: torch.device, world: World) -> bool:
-    """True on every rank if `flag` is true on any (a stop decision all ranks must share)."""
+def max_over_ranks(value: float, device: torch.device, world: World) -> float:
+    """The largest of the ranks' values, on every rank (e.g. the elapsed time, so all ranks stop together)."""
     if not world.distributed:
-        return flag
-    value = torch.tensor([1.0 if flag else 0.0], device=device)
-    dist.all_reduce(value, op=dist.ReduceOp.MAX)
-    return bool(value.item() > 0)
+        return value
+    tensor = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.all_reduce(tensor, op=dist.ReduceOp.MAX)
+    return float(tensor.item())

@@ -5,6 +5,10 @@ mean predictions, with the true actions (causal: state[t], action[t] -> state[t+
 sum |pred - true| / sum |true| over the normalised state dims; the error at horizon N is its mean over the N rows and
 all windows. Reported for N = 8, 32, 100 and the longest the episodes allow (capped), per state group of the spec,
 with contact accuracy, and again with Gaussian noise added to the history's states and actions (robustness).
+
+Two floors come with every table, on the same windows and without training anything: "no change" (the last history
+row predicted for ever) and "predict the mean" (the mean normalised state of the evaluated file, a constant). The
+largest |predicted| and |true| normalised value per horizon say whether rollouts stay in the data's range.
 """
 
 from __future__ import annotations
@@ -49,9 +53,12 @@ class EvalConfig:
 
 @torch.no_grad()
 def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, config: EvalConfig, horizon: int,
-             noise: float, generator: torch.Generator) -> dict[str, torch.Tensor]:
-    """Per-window, per-step errors (W, N, S) of |pred - true|, |true|, and contact hits (W, N, C)."""
-    h, out = config.history, {"abs_error": [], "abs_true": [], "contact_hit": []}
+             noise: float, generator: torch.Generator, data_mean: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-window, per-step errors (W, N, S) of |pred - true|, |true|, and contact hits (W, N, C); without noise
+    also the floors' |pred - true| and the largest |pred| and |true|."""
+    h = config.history
+    out: dict[str, list] = {"abs_error": [], "abs_true": [], "contact_hit": [], "no_change": [], "mean": [],
+                            "max_prediction": [], "max_true": []}
     for chunk in starts.split(config.batch_size):
         batch = windows.gather(chunk, h + horizon)
         states, actions = batch.states[:, :h], batch.actions[:, :h + horizon - 1]
@@ -64,7 +71,12 @@ def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, confi
         out["abs_error"].append((prediction.state_mean - true).abs().cpu())
         out["abs_true"].append(true.abs().cpu())
         out["contact_hit"].append(((prediction.contact_logits > 0) == (batch.contacts[:, h:] > 0.5)).cpu())
-    return {k: torch.cat(v) for k, v in out.items()}
+        if noise == 0:
+            out["no_change"].append((batch.states[:, h - 1:h] - true).abs().cpu())
+            out["mean"].append((data_mean.to(true.device) - true).abs().cpu())
+            out["max_prediction"].append(prediction.state_mean.abs().max().reshape(1).cpu())
+            out["max_true"].append(true.abs().max().reshape(1).cpu())
+    return {k: torch.cat(v) for k, v in out.items() if v}
 
 
 def _ratio(abs_error: torch.Tensor, abs_true: torch.Tensor) -> torch.Tensor:
@@ -83,15 +95,17 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
         raise ValueError(f"{dataset.path}: no evaluated episode is longer than the history ({config.history} rows)")
     horizons = sorted({n for n in config.horizons if n <= longest} | {longest})
     generator = torch.Generator().manual_seed(config.seed)
+    data_mean = windows.states.mean(0)
     result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
                     "episodes": len(episodes), "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
+                    "floors": {"no change": {}, "predict the mean": {}}, "max_abs": {},
                     "noise": {str(s): {} for s in config.noise_levels}}
     jobs = [(n, s) for n in horizons for s in (0.0, *config.noise_levels)]
     for horizon, noise in tqdm(jobs, desc="evaluate", disable=not progress, dynamic_ncols=True):
         starts = windows.window_starts(episodes, config.history + horizon)
         pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(config.seed + horizon))
         starts = starts[pick[:config.max_windows].to(starts.device)].sort().values
-        run = _rollout(model, windows, starts, config, horizon, noise, generator)
+        run = _rollout(model, windows, starts, config, horizon, noise, generator, data_mean)
         error = float(_ratio(run["abs_error"], run["abs_true"]).mean())
         key = str(horizon)
         if noise > 0:
@@ -100,29 +114,67 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
         result["windows"][key], result["error"][key] = len(starts), error
         result["group_error"][key] = {name: float(_ratio(run["abs_error"][..., s], run["abs_true"][..., s]).mean())
                                       for name, s in spec.state_slices.items()}
+        result["floors"]["no change"][key] = float(_ratio(run["no_change"], run["abs_true"]).mean())
+        result["floors"]["predict the mean"][key] = float(_ratio(run["mean"], run["abs_true"]).mean())
+        result["max_abs"][key] = {"prediction": float(run["max_prediction"].max()), "data": float(run["max_true"].max())}
         hits = run["contact_hit"]
         result["contact_accuracy"][key] = float(hits.float().mean()) if hits.shape[-1] else None
         if horizon == longest:
-            result["curve"] = _ratio(run["abs_error"], run["abs_true"]).mean(0).tolist()
+            curve = _ratio(run["abs_error"], run["abs_true"]).mean(0)
+            result["curve"] = curve.tolist()  # per-step error at step n, over the longest horizon's windows
+            result["running_mean"] = (curve.cumsum(0) / torch.arange(1, len(curve) + 1)).tolist()
     return result
 
 
 def format_table(result: dict) -> str:
-    """The error table: one row per horizon (error, per-group errors, contact accuracy), then robustness."""
+    """The error table: one row per horizon (error, the floors, per-group errors, contact accuracy, largest |x|),
+    then robustness."""
     groups = list(next(iter(result["group_error"].values())))
-    head = ["N", "windows", "error", *groups, "contact acc"]
+    floors = list(result.get("floors", {}))
+    head = ["N", "windows", "error", *floors, *groups, "contact acc", "max|pred| / max|true|"]
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for key in result["error"]:
-        acc = result["contact_accuracy"][key]
+        acc, span = result["contact_accuracy"][key], result.get("max_abs", {}).get(key)
         lines.append(" | ".join([key, str(result["windows"][key]), f"{result['error'][key]:.4f}",
+                                 *(f"{result['floors'][f][key]:.4f}" for f in floors),
                                  *(f"{result['group_error'][key][g]:.4f}" for g in groups),
-                                 "-" if acc is None else f"{acc:.3f}"]))
+                                 "-" if acc is None else f"{acc:.3f}",
+                                 "-" if span is None else f"{span['prediction']:.1f} / {span['data']:.1f}"]))
     if result["noise"]:
         lines += ["", " | ".join(["noise std", *(f"N={k}" for k in result["error"])]),
                   " | ".join("---" for _ in range(len(result["error"]) + 1))]
         for level, errors in result["noise"].items():
             lines.append(" | ".join([level, *(f"{errors[k]:.4f}" for k in result["error"])]))
     return "\n".join(lines)
+
+
+def plot_running_mean(results: dict[str, dict], path: str | os.PathLike, title: str = "") -> None:
+    """The error the table reports against the open-loop horizon N, one line per result (model or data source):
+    the running mean over steps 1..N of the longest horizon's windows, and the table's own values as markers
+    (each horizon has its own windows; their count is written beside the marker). PNG, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    for name, result in results.items():
+        running = result.get("running_mean") or list(np.cumsum(result["curve"]) / np.arange(1, len(result["curve"]) + 1))
+        line, = ax.plot(np.arange(1, len(running) + 1), running,
+                        label=f"{name} (running mean, {result['windows'][str(result['longest'])]} windows)")
+        keys = list(result["error"])
+        ax.plot([int(k) for k in keys], [result["error"][k] for k in keys], "o", color=line.get_color())
+        for k in keys:
+            ax.annotate(f"{result['windows'][k]}", (int(k), result["error"][k]), fontsize=7,
+                        textcoords="offset points", xytext=(3, 3), color=line.get_color())
+    ax.set(xlabel="open-loop horizon N (steps after the true history)",
+           ylabel="relative error, mean over steps 1..N", yscale="log",
+           title=title or "markers: the table's values (number: windows)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    plt.close(fig)
 
 
 def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: str = "") -> None:
@@ -168,7 +220,8 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike |
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = EvalConfig()
     parser.add_argument("--checkpoint", required=True, help="world-model checkpoint (.safetensors)")
-    parser.add_argument("--data", required=True, help="HDF5 dataset of the same task (held-out episodes)")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="HDF5 datasets of the same task (held-out episodes), each evaluated on its own")
     parser.add_argument("--out", help="folder for evaluation.json and error_vs_horizon.png")
     parser.add_argument("--history", type=int, default=d.history, help=f"warm-up rows (default {d.history})")
     parser.add_argument("--horizons", type=int, nargs="+", default=list(d.horizons), help="horizons to report")
@@ -187,16 +240,22 @@ def run(args: argparse.Namespace) -> int:
     config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
                         noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
                         device=args.device)
+    results = {}
     try:
-        result = evaluate_checkpoint(args.checkpoint, args.data, config, args.all_episodes, not args.quiet)
+        for data in args.data:
+            results[Path(data).stem] = evaluate_checkpoint(args.checkpoint, data, config, args.all_episodes,
+                                                           not args.quiet)
     except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
         print(f"rwm-gym evaluate: {err}", file=sys.stderr)
         return 2
-    print(f"{result['model']} on {result['data']} ({result['episode_set']}, {result['episodes']} episodes)")
-    print(format_table(result))
+    for result in results.values():
+        print(f"{result['model']} on {result['data']} ({result['episode_set']}, {result['episodes']} episodes)")
+        print(format_table(result) + "\n")
     if args.out:
         out = Path(args.out)
-        write_json(result, out / "evaluation.json")
-        plot_curves({result["model"]: result["curve"]}, out / "error_vs_horizon.png")
+        first = next(iter(results.values()))
+        write_json(first if len(results) == 1 else {"sources": results}, out / "evaluation.json")
+        plot_running_mean(results if len(results) > 1 else {first["model"]: first}, out / "error_vs_horizon.png",
+                    title=f"{first['model']}: error against the open-loop horizon")
         print(f"wrote {out / 'evaluation.json'} and {out / 'error_vs_horizon.png'}")
     return 0

@@ -7,6 +7,7 @@ from typing import Any
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.baselines import MLPModel, NoChangeModel, TransformerModel
 from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.constraints import StateConstraints
 from rwm_gym.model.rssm import RSSM
 from rwm_gym.model.rwm import RWM
 from rwm_gym.spec import TaskSpec
@@ -22,6 +23,12 @@ def model_config_for(kind: str, spec: TaskSpec, **options: Any) -> ModelConfig:
                        contact_dim=spec.contact_dim, foot_dim=spec.foot_dim, **options)
 
 
-def build_model(config: ModelConfig) -> WorldModel:
-    """A freshly initialised model (parameters drawn from torch's global RNG)."""
-    return MODEL_CLASSES[config.kind](config)
+def build_model(config: ModelConfig, spec: TaskSpec | None = None) -> WorldModel:
+    """A freshly initialised model (parameters drawn from torch's global RNG). The task spec is needed when the
+    config switches on state constraints (`constraints.py`): their numbers come from it."""
+    model = MODEL_CLASSES[config.kind](config)
+    if (config.unit_gravity or config.joint_limits) and hasattr(model, "heads"):
+        if spec is None:
+            raise ValueError("unit_gravity / joint_limits need the task spec: build_model(config, spec)")
+        model.heads.constraints = StateConstraints(config, spec)
+    return model

@@ -96,6 +96,8 @@ class Heads(nn.Module):
         self.state = StateHead(state_features, config.state_dim, config.head_hidden, config.ensemble_size,
                                config.log_std_min_init, config.log_std_max_init)
         self.privileged = PrivilegedHead(privileged_features, config.contact_dim, config.foot_dim, config.head_hidden)
+        # physics of the predicted mean (`constraints.StateConstraints`), attached by `build_model` when switched on
+        self.constraints: nn.Module | None = None
 
     def forward(self, state_features: torch.Tensor, privileged_features: torch.Tensor, last_state: torch.Tensor,
                 member: torch.Tensor | None = None) -> Prediction:
@@ -104,6 +106,8 @@ class Heads(nn.Module):
             member = member.repeat_interleave(lead[1])
         mean, std, uncertainty = self.state(state_features.reshape(-1, state_features.shape[-1]),
                                             last_state.reshape(-1, last_state.shape[-1]), member)
+        if self.constraints is not None:
+            mean = self.constraints(mean)
         contact, foot, termination = self.privileged(privileged_features.reshape(-1, privileged_features.shape[-1]))
         return Prediction(
             state_mean=mean.reshape(*lead, -1), state_std=std.reshape(*lead, -1),

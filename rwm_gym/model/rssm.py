@@ -29,6 +29,8 @@ def _gaussian(net: nn.Module, x: torch.Tensor) -> Normal:
 class RSSM(WorldModel):
     """Hidden = (deterministic h (B, hidden_size), latent z (B, rssm_latent))."""
 
+    filters_with_next_state = True
+
     def __init__(self, config: ModelConfig) -> None:
         super().__init__(config)
         h, z, s = config.hidden_size, config.rssm_latent, config.state_dim

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.func import functional_call
 
 from rwm_gym.model.base import Hidden, Prediction, WorldModel
 from rwm_gym.model.config import ModelConfig
@@ -24,6 +25,10 @@ class RWM(WorldModel):
         self.state_gru = nn.GRU(inputs, config.hidden_size, config.num_layers, batch_first=True)
         self.privileged_gru = nn.GRU(inputs, config.hidden_size, config.num_layers, batch_first=True)
         self.heads = Heads(config.hidden_size, config.hidden_size, config)
+        # Parameterless one-layer GRUs (meta device: no memory, no RNG draws) that run one layer of a stacked GRU
+        # with its weights, so the hidden state of every layer at every step can be kept (a tuple: not submodules).
+        self._one_layer = tuple(nn.GRU(inputs if layer == 0 else config.hidden_size, config.hidden_size, 1,
+                                       batch_first=True, device="meta") for layer in range(config.num_layers))
 
     def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
         shape = (batch_size, self.config.num_layers, self.config.hidden_size)
@@ -44,3 +49,24 @@ class RWM(WorldModel):
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
         hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
         return hidden, prediction.map(lambda t: t.squeeze(1))
+
+    def _layer_by_layer(self, gru: nn.GRU, x: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+        """Every layer's hidden state after every step: x (B, T, in), hidden (B, L, H) -> (B, T, L, H). Same kernel
+        and numbers as the stacked call (which also runs layer after layer over the whole sequence)."""
+        layers = []
+        for layer, template in enumerate(self._one_layer):
+            weights = {f"{name}_l0": getattr(gru, f"{name}_l{layer}")
+                       for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")}
+            x, _ = functional_call(template, weights, (x, hidden[:, layer].unsqueeze(0).contiguous()))
+            layers.append(x)
+        return torch.stack(layers, dim=2)
+
+    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
+                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
+                          ) -> tuple[Hidden, Prediction]:
+        """One sequence pass per layer of both GRUs; the predictions are forecasts (`next_states` is not used)."""
+        x = torch.cat([states, actions], dim=-1)
+        h_state = self._layer_by_layer(self.state_gru, x, hidden[0])
+        h_privileged = self._layer_by_layer(self.privileged_gru, x, hidden[1])
+        prediction = self.heads(h_state[:, :, -1], h_privileged[:, :, -1], states, member)
+        return (h_state, h_privileged), prediction

@@ -32,9 +32,9 @@ from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_trai
 from rwm_gym.model import distributed
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference, field_docs
 from rwm_gym.model.factory import build_model, model_config_for
-from rwm_gym.model.losses import relative_error, window_loss
+from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.windows import WindowData
+from rwm_gym.model.windows import Window, WindowData
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
@@ -92,6 +92,47 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     return total / len(starts)
 
 
+@dataclass
+class SegmentBatch:
+    """One training batch: segments of `TrainConfig.segment_rows` rows, each the start of a window of H + F rows drawn
+    uniformly; rows past an episode's end repeat its last row and the branches reaching them do not count."""
+
+    window: Window
+    """(B, R, ...) normalised rows."""
+    member: torch.Tensor | None
+    """(B,) long ensemble head per segment (None: one head)."""
+    real_rows: torch.Tensor
+    """(B,) long rows of each segment inside its episode."""
+
+
+def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int,
+                 generator: torch.Generator | None = None,
+                 world: distributed.World = distributed.SINGLE) -> SegmentBatch:
+    """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
+    head per segment, from `generator` (torch's global RNG if None; a seeded run draws the same batches). In a
+    distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`)."""
+    segments = config.batch_size // config.branches
+    index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
+    member = None
+    if ensemble_size > 1:
+        member = distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world)
+        member = member.to(starts.device)
+    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+    return SegmentBatch(window, member, real_rows)
+
+
+def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
+               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+    """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, grad_clip)
+    optimizer.step()
+    return float(loss.detach()), parts
+
+
 def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torch.Tensor]:
     """Rank 0's RNG states: the shared window sampler and its own noise stream (other ranks derive theirs)."""
     state = {"rng_torch": torch.get_rng_state(), "rng_sampler": sampler.get_state()}
@@ -103,7 +144,7 @@ def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torc
 def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
           out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
           tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
-          init: str | os.PathLike | None = None) -> TrainResult:
+          init: str | os.PathLike | None = None, clock: Callable[[], float] = time.monotonic) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
     init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
@@ -111,6 +152,8 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     resume: continue from the checkpoint at `out` if it exists (same data file, same config except the budget).
     callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
     saves a resumable checkpoint first).
+    clock: seconds for the `minutes` budget and `wall_s` (e.g. `time.process_time` to count only this process's CPU
+    time on a shared machine).
     """
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     spec = dataset.spec()
@@ -119,15 +162,15 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
                          f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
     world = distributed.init_world(config.device)
-    distributed.check_batch(config.batch_size, world)
+    distributed.check_batch(config.batch_size // config.branches, world)
     device, out = distributed.rank_device(config.device, world), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-    rows = config.history + config.forecast
+    rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
         sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
-        model = build_model(model_config).to(device).train()
+        model = build_model(model_config, spec).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
         if len(train_starts) == 0:
@@ -136,6 +179,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
         val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
+        loss_fn = SegmentLoss(model, config, pos_weight)
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
         provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
@@ -152,7 +196,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         if resume and out is not None and out.exists():
             stats = _resume(out, model, optimizer, config, provenance["sha256"], device, sampler)
         distributed.reseed_rank(config.seed, world, stats["iterations"])
-        compute_loss = distributed.data_parallel(model, window_loss, world)
+        compute_loss = distributed.data_parallel(loss_fn, world)
 
         def save() -> Path | None:
             if out is None or not world.is_main:
@@ -161,46 +205,43 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                                    stats=stats, optimizer=optimizer, training_state=_rng_state(device, sampler))
 
         writer = _tensorboard(tensorboard) if world.is_main else None
-        started = time.monotonic() - stats["wall_s"]
+        started = clock() - stats["wall_s"]
         iteration, running, parts_sum = stats["iterations"], 0.0, {}
+
+        agreed = {"iteration": -1, "seconds": 0.0}
+
+        def elapsed() -> float:
+            """Seconds into the run. Ranks must share the learning rate and the stop: with several, the slowest
+            rank's time, agreed every 10 iterations."""
+            if not world.distributed:
+                return clock() - started
+            if iteration % 10 == 0 and agreed["iteration"] != iteration:
+                agreed["iteration"] = iteration
+                agreed["seconds"] = distributed.max_over_ranks(clock() - started, device, world)
+            return agreed["seconds"]
 
         def finished() -> bool:
             if optimizer is None:
                 return True
             by_steps = config.iterations > 0 and iteration >= config.iterations
-            if by_steps or config.minutes <= 0:
-                return by_steps
-            if world.distributed and iteration % 10:  # ranks agree on the time budget every 10 iterations
-                return False
-            late = time.monotonic() - started >= 60 * config.minutes
-            return distributed.any_rank(late, device, world)
+            return by_steps or (config.minutes > 0 and elapsed() >= 60 * config.minutes)
 
         bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress or not world.is_main,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
         try:
             while not finished():
                 by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
-                by_time = (time.monotonic() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
+                by_time = elapsed() / (60 * config.minutes) if config.minutes > 0 else 0.0
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                index = distributed.shard(torch.randint(len(train_starts), (config.batch_size,), generator=sampler),
-                                          world)
-                member = None
-                if model_config.ensemble_size > 1:
-                    member = distributed.shard(torch.randint(model_config.ensemble_size, (config.batch_size,),
-                                                             generator=sampler), world).to(device)
-                batch = windows.gather(train_starts[index.to(device)], rows)
-                loss, parts = compute_loss(batch, config, pos_weight, member)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-                optimizer.step()
+                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size, sampler, world)
+                loss, parts = train_step(compute_loss, optimizer, params, batch, config.grad_clip)
                 iteration += 1
-                running += float(loss.detach())
+                running += loss
                 for name, value in parts.items():
                     parts_sum[name] = parts_sum.get(name, 0.0) + value
-                stats["iterations"], stats["wall_s"] = iteration, time.monotonic() - started
+                stats["iterations"], stats["wall_s"] = iteration, clock() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
                     running = float(distributed.mean_over_ranks(torch.tensor(running, dtype=torch.float64,
@@ -220,11 +261,11 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                     save()
                     distributed.reseed_rank(config.seed, world, iteration)
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
         except KeyboardInterrupt:
-            stats["wall_s"] = time.monotonic() - started
+            stats["wall_s"] = clock() - started
             if save() is not None:  # rank 0 only
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
@@ -234,7 +275,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 writer.close()
         if optimizer is None and world.is_main:
             stats["val_error"] = validation_error(model, windows, val_starts, config)
-        stats["wall_s"] = time.monotonic() - started
+        stats["wall_s"] = clock() - started
         return TrainResult(model, stats, save())
 
 
@@ -293,6 +334,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             if f.name == "ensemble_size":
                 continue
             flag = "--" + f.name.replace("_", "-")
+            if isinstance(f.default, bool):
+                group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, dest=f.name,
+                                   help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
+                continue
             group.add_argument(flag, type=type(f.default), default=None, dest=f.name,
                                choices={"loss": LOSSES, "schedule": SCHEDULES}.get(f.name), help=f"{docs.get(f.name, '')} (default {f.default})".replace("%", "%%"))
     parser.add_argument("--ensemble-size", type=int, dest="ensemble_size", help=field_docs(ModelConfig)["ensemble_size"])

@@ -8,8 +8,8 @@ with actions 0..H+F-2 (the last row's action is never used).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -33,6 +33,10 @@ class Window:
     terminated: torch.Tensor
     """(B, R) 1 where the row is a terminal state."""
 
+    def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> Window:
+        """A Window with `fn` applied to every tensor (e.g. picking rows)."""
+        return Window(*(fn(getattr(self, f.name)) for f in fields(self)))
+
 
 class WindowData:
     """All rows of a dataset as normalised tensors on one device, indexed by episode."""
@@ -49,6 +53,11 @@ class WindowData:
         self.terminated = tensor(dataset["terminated"])
         self.episode_starts = np.asarray(dataset.episode_starts, dtype=np.int64)
         self.episode_rows = np.asarray(dataset.episode_lengths, dtype=np.int64)
+        last_rows = np.zeros(len(self.states), dtype=np.int64)
+        for start, count in zip(self.episode_starts, self.episode_rows):
+            last_rows[start:start + count] = start + count - 1
+        self.last_row = torch.as_tensor(last_rows, device=device)
+        """(N,) long: the last row of the episode each row belongs to."""
 
     def window_starts(self, episodes: Sequence[int] | np.ndarray, rows: int) -> torch.Tensor:
         """Global first rows (n,) long of every window of `rows` rows lying wholly inside one of `episodes`."""
@@ -61,6 +70,16 @@ class WindowData:
         index = starts.to(self.states.device).unsqueeze(1) + torch.arange(rows, device=self.states.device)
         return Window(self.states[index], self.actions[index], self.contacts[index], self.foot_heights[index],
                       self.terminated[index])
+
+    def gather_clipped(self, starts: torch.Tensor, rows: int) -> tuple[Window, torch.Tensor]:
+        """Segments of `rows` rows beginning at `starts` (B,) long that may run past their episode's end: rows beyond
+        it repeat the episode's last row. Returns the windows and (B,) long the number of real rows of each."""
+        starts = starts.to(self.states.device)
+        last = self.last_row[starts]
+        index = torch.minimum(starts.unsqueeze(1) + torch.arange(rows, device=starts.device), last.unsqueeze(1))
+        real = (last - starts + 1).clamp(max=rows)
+        return Window(self.states[index], self.actions[index], self.contacts[index], self.foot_heights[index],
+                      self.terminated[index]), real
 
     def termination_pos_weight(self, episodes: Sequence[int] | np.ndarray) -> float:
         """Negatives per positive of the termination flag over the rows of `episodes` that can be predicted (all
