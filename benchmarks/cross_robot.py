@@ -34,7 +34,7 @@ from tqdm import tqdm
 from rwm_gym.atomic import atomic_write, write_json, write_text
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
-from rwm_gym.data.policies import RandomPolicy
+from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.losses import relative_error

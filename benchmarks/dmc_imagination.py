@@ -2,7 +2,7 @@
 
 Imagination: collect random + noisy episodes in physics (the cross-robot benchmark's mix), train RWM with the
 cross-robot recipe (`model_config_for("rwm", spec)`, `TrainConfig` defaults), then train SB3 PPO on
-`RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.imagination.ppo.make_ppo`, same config and
+`RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.rl.ppo.make_ppo`, same config and
 seed) on `DMC-<Domain>-<Task>-v0` for the same PPO wall time. Both policies then act deterministically for a full
 suite episode (1000 steps) from fixed seeds in physics; the score is the suite's return (at most 1000).
 
@@ -26,12 +26,12 @@ import torch
 
 from rwm_gym.atomic import atomic_write, write_json, write_text
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.imagination.ppo import PPOConfig, learn, make_ppo, save_policy
-from rwm_gym.imagination.vec_env import ImaginedVecEnv
+from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
+from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.config import add_dataclass_options
 from rwm_gym.model.train import train
-from rwm_gym.physics.dmc import DMCVecEnv, make_core
+from rwm_gym.physics.dmc import DMCSB3VecEnv, make_core
 from rwm_gym.registration import DMC_SPECS
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -178,11 +178,11 @@ def main(argv: list[str] | None = None) -> int:
                                                                                    asdict(options).items()},
               "data": str(data.path), "data_rows": int(data.num_steps),
               "collect_wall_s": collect_s, "wm_wall_s": wm_s, "wm_val_error": trained.stats["val_error"]}
-    imagined = ImaginedVecEnv(trained.path, num_envs=options.num_envs, env_id=spec.imagined_env_id,
+    imagined = ImaginedSB3VecEnv(trained.path, num_envs=options.num_envs, env_id=spec.imagined_env_id,
                               device=options.device, episode_steps=options.imagined_episode_steps)
     imagined.seed(options.seed)
     result["imagination"] = run_arm("imagination", imagined, options, out)
-    physics = DMCVecEnv(num_envs=options.num_envs, spec=DMC_SPECS[options.env])
+    physics = DMCSB3VecEnv(num_envs=options.num_envs, spec=DMC_SPECS[options.env])
     physics.seed(options.seed)
     result["untrained"] = untrained(physics, options)
     result["physics"] = run_arm("physics", physics, options, out)

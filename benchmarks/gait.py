@@ -1,4 +1,4 @@
-"""Benchmark of the scripted trot (`rwm_gym.data.gait.GaitPolicy`) on the ANYmal D physics env.
+"""Benchmark of the scripted trot (`rwm_gym.policies.gait.GaitPolicy`) on the ANYmal D physics env.
 
 Three scenarios, 10 seeds each, full 20 s episodes: a fixed command vx = 1 m/s, a zero command, and the env's own
 random commands (resampled every 10 s). Prints one table per scenario (seed, forward distance, fell, tracking errors)
@@ -18,12 +18,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from rwm_gym.data.gait import GaitPolicy
+from rwm_gym.policies.gait import GaitPolicy
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import observation_slices
 
-NEVER = 1 << 40  # policy steps: a command period that never comes
 
 
 def rollout(spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, float, float] | None,
@@ -35,11 +34,7 @@ def rollout(spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, 
     """
     n = len(seeds)
     core = LocomotionCore(spec, n, nthread=min(n, os.cpu_count() or 1))
-    obs = core.reset(np.arange(n), seeds)
-    if command is not None:
-        core.command[:] = command
-        core.period = NEVER
-        obs = core.observe()
+    obs = core.reset(np.arange(n), seeds, None if command is None else np.tile(np.float32(command), (n, 1)))
     policy = GaitPolicy(spec, n, **gait)
     policy.reset(np.arange(n), [np.random.default_rng([seed, 1]) for seed in seeds])
     s = observation_slices(spec)

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 import rwm_gym  # noqa: F401  (registers the environments)
-from rwm_gym.imagination.ppo import observation_scale
+from rwm_gym.rl.ppo import observation_scale
 from rwm_gym.model.config import add_dataclass_options
 
 

@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from rwm_gym.data.gait import GaitPolicy  # noqa: E402
+from rwm_gym.policies.gait import GaitPolicy  # noqa: E402
 from rwm_gym.imagination.core import default_checkpoint  # noqa: E402
 from rwm_gym.imagination.dream import DreamRenderer  # noqa: E402
 from rwm_gym.model.checkpoint import load_checkpoint  # noqa: E402
@@ -29,10 +29,8 @@ from rwm_gym.physics.locomotion import LocomotionEnv  # noqa: E402
 
 def physics_rollout(steps: int, seed: int, command: tuple[float, float, float]):
     env = LocomotionEnv(render_mode="rgb_array", width=320, height=240)
-    env.reset(seed=seed)
+    env.reset(seed=seed, options={"command": command})
     core = env.core
-    core.command[:] = command
-    core.period = 1 << 40
     policy = GaitPolicy(env.task_spec, 1)
     policy.reset(np.array([0]), [np.random.default_rng(seed)])
     obs, states, actions, frames = core.observe(), [env.record()["state"]], [], [env.render()]

@@ -3,7 +3,7 @@
     pip install . && python examples/quickstart.py
 
 1. Behaviour cloning (warm start): the PPO actor's mean action is regressed onto the actions of the shipped
-   demonstrations (`assets/checkpoints/anymal_d_demos.h5`: 64 episodes of the scripted trot, `rwm_gym.data.gait`, the
+   demonstrations (`assets/checkpoints/anymal_d_demos.h5`: 64 episodes of the scripted trot, `rwm_gym.policies.gait`, the
    data the world model was trained on). PPO from scratch does not find a walk in the few million imagined steps a
    small CPU affords; the clone starts from one.
 2. The cloned actor is evaluated in physics (MuJoCo, `AnymalD-MuJoCo-v0`) on fixed commands.
@@ -41,7 +41,7 @@ if __name__ == "__main__":
     args, rest = parser.parse_known_args()
     os.environ.setdefault("OMP_NUM_THREADS", args.threads)  # before torch is imported
     from rwm_gym.cli import main
-    from rwm_gym.imagination.warm_start import default_demonstrations
+    from rwm_gym.rl.warm_start import default_demonstrations
 
     sys.exit(main(["ppo", "--in", "imagination", "--timesteps", args.timesteps, "--critic-warmup-steps", "50000",
                    "--num-envs", "512", "--n-steps", "24", "--episode-steps", "100",

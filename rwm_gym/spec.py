@@ -8,8 +8,9 @@ the task it came from.
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from functools import cached_property
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +95,35 @@ class ResetSpec:
     """m/s."""
     base_ang_vel_noise: float = 0.0
     """rad/s."""
+
+
+@dataclass(frozen=True)
+class SuiteTask:
+    """The `[dm_control]` table of a spec: which suite task runs, and which body counts as the contact partner."""
+
+    domain: str
+    """dm_control suite domain, e.g. "cheetah"."""
+    task: str
+    """Task of the domain, e.g. "run"."""
+    contact_partner: str = "world"
+    """Body whose contacts with `privileged.contact_bodies` set the contact flags ("world" holds the floor)."""
+
+    @classmethod
+    def from_spec(cls, spec: TaskSpec) -> SuiteTask:
+        table = spec.extra.get("dm_control")
+        if not isinstance(table, dict):
+            raise ValueError(f"task spec {spec.name}: missing table [dm_control] (domain, task)")
+        for key in ("domain", "task"):
+            if not isinstance(table.get(key), str):
+                raise ValueError(f"task spec {spec.name}: [dm_control] field {key!r} missing or not a string")
+        unknown = sorted(set(table) - {"domain", "task", "contact_partner"})
+        if unknown:
+            raise ValueError(f"task spec {spec.name}: [dm_control] unknown field {unknown[0]!r}")
+        return cls(**table)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable description stored with datasets as their `physics_params`."""
+        return {**asdict(self), "dm_control_version": version("dm-control")}
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
 
 
 def test_workers_need_a_policy_by_name(tmp_path):
-    from rwm_gym.data.policies import make_policy
+    from rwm_gym.policies.base import make_policy
 
     with pytest.raises(ValueError, match="workers must be >= 1"):
         collect(ENV_ID, "random", 2, tmp_path / "a.h5", workers=0, progress=False)

@@ -6,8 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from rwm_gym.data.gait import GaitPolicy
-from rwm_gym.data.leg_kinematics import LegKinematics
+from rwm_gym.policies.gait import GaitPolicy
+from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.physics.params import build_model
 from rwm_gym.spec import load_spec
@@ -18,10 +18,7 @@ SPEC = load_spec("anymal_d")
 def run(command: tuple[float, float, float], steps: int, seed: int = 0, **gait) -> tuple[float, bool, GaitPolicy]:
     """One episode with a fixed command: (base x displacement in m, fell, policy)."""
     core = LocomotionCore(SPEC, 1)
-    core.reset(np.array([0]), [seed])
-    core.command[:] = command
-    core.period = 1 << 40  # never resample
-    obs = core.observe()
+    obs = core.reset(np.array([0]), [seed], np.float32([command]))
     policy = GaitPolicy(SPEC, 1, **gait)
     policy.reset(np.array([0]), [np.random.default_rng(seed)])
     start = core.sim.arrays()["qpos"][0, 0]

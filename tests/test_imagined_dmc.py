@@ -13,7 +13,7 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.data.collect import collect
 from rwm_gym.imagination.env import ImaginedEnv
-from rwm_gym.imagination.vec_env import ImaginedVecEnv
+from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
@@ -101,7 +101,7 @@ def test_batched_env_matches_single_envs(env_id: str, checkpoints) -> None:
 
 def test_sb3_vecenv_truncates_at_the_time_limit_and_never_terminates(checkpoints) -> None:
     env_id = "RWM-Cheetah-v0"
-    venv = ImaginedVecEnv(checkpoints[env_id], num_envs=2, env_id=env_id, episode_steps=4)
+    venv = ImaginedSB3VecEnv(checkpoints[env_id], num_envs=2, env_id=env_id, episode_steps=4)
     venv.seed(0)
     assert venv.reset().shape == (2, 30)
     for t in range(4):

@@ -13,7 +13,7 @@ import rwm_gym  # noqa: F401
 from rwm_gym.data.collect import collect
 from rwm_gym.imagination.env import ImaginedEnv
 from rwm_gym.imagination.reset_data import make_reset_data
-from rwm_gym.imagination.vec_env import ImaginedVecEnv
+from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
@@ -130,13 +130,13 @@ def test_divergence_guard_ends_the_episode_without_nan(checkpoint, tmp_path):
 
 
 def test_sb3_vecenv_and_uncertainty_penalty(checkpoint):
-    venv = ImaginedVecEnv(checkpoint, num_envs=4, uncertainty_penalty=10.0)
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=4, uncertainty_penalty=10.0)
     venv.seed(0)
     obs = venv.reset()
     assert obs.shape == (4, 48)
     _, rewards, dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
     assert all(info["uncertainty"] >= 0 for info in infos)
-    plain = ImaginedVecEnv(checkpoint, num_envs=4)
+    plain = ImaginedSB3VecEnv(checkpoint, num_envs=4)
     plain.seed(0)
     plain.reset()
     _, plain_rewards, _, _ = plain.step(np.zeros((4, 12), dtype=np.float32))

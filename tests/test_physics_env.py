@@ -9,7 +9,7 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import rwm_gym  # noqa: F401  (registers the envs)
-from rwm_gym.physics.batched import BatchedLocomotionVecEnv
+from rwm_gym.physics.batched import LocomotionSB3VecEnv
 from rwm_gym.physics.locomotion import LocomotionEnv
 from rwm_gym.spec import load_spec
 
@@ -118,7 +118,7 @@ def test_batched_env_matches_single_envs_step_for_step():
 
 
 def test_sb3_vecenv_autoreset_follows_sb3_rules():
-    venv = BatchedLocomotionVecEnv(num_envs=2, nthread=1)
+    venv = LocomotionSB3VecEnv(num_envs=2, nthread=1)
     venv.seed(0)
     venv.reset()
     venv.core.steps[:] = venv.core.spec.episode_steps - 1

@@ -10,8 +10,8 @@ import torch
 from stable_baselines3 import PPO
 
 from rwm_gym.cli import main
-from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, plot
-from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
+from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
+from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
 
 TINY = PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32))
 
@@ -50,7 +50,7 @@ def test_cli_ppo_in_physics_writes_zip_and_report(tmp_path):
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["where"] == "physics" and report["ppo"]["net_arch"] == [32, 32]
     assert report["physics_samples"] == report["train"]["timesteps"] >= 256
-    assert report["evaluation"]["episodes"] == 6 and len(report["evaluation"]["commands"]) == 6
+    assert report["evaluation"]["episodes"] == 18 and len(report["evaluation"]["commands"]) == 18  # the scoring set
     model = PPO.load(out, device="cpu")
     action, _ = model.predict(np.zeros(48, np.float32), deterministic=True)
     assert action.shape == (12,)
@@ -147,7 +147,7 @@ def test_imagined_return_rises_on_the_shipped_model():
 def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkpoint, tmp_path):
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset
-    from rwm_gym.imagination.mbpo import MBPOConfig, mbpo
+    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
     from rwm_gym.model.checkpoint import read_meta
 
     data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60,
@@ -165,7 +165,7 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
     assert log[0]["model_error_fresh"] is None and all(row["model_error_fresh"] for row in log[1:])
     rows = [row["physics_samples"] for row in log]
     assert rows[0] == Dataset.load(data).num_steps and rows[0] < rows[1] < rows[2]
-    assert report["best_physics_return"] == max(row["physics_return"] for row in log)
+    assert report["best_tracking"] == max(row["tracking"] for row in log)
     assert report["ppo"] == {"init_policy": str(tmp_path / "start.zip")}  # settings from the zip, not defaults
     for k in (1, 2):  # each model is fine-tuned from the one before
         previous = tiny_checkpoint if k == 1 else tmp_path / "mbpo" / "model_1.safetensors"
@@ -177,7 +177,7 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 
-    from rwm_gym.imagination import mbpo
+    from rwm_gym.rl import mbpo
 
     parser = argparse.ArgumentParser()
     mbpo.add_arguments(parser)

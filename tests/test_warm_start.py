@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.imagination.ppo import PPOConfig, make_env, make_ppo
-from rwm_gym.imagination.warm_start import CloneConfig, action_mse, behaviour_clone, demonstrations
+from rwm_gym.rl.ppo import PPOConfig, make_env, make_ppo
+from rwm_gym.rl.warm_start import CloneConfig, action_mse, behaviour_clone, demonstrations
 from rwm_gym.resources import assets_dir
 
 TINY = PPOConfig(num_envs=2, n_steps=16, num_minibatches=1, net_arch=(64, 64))

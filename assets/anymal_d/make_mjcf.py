@@ -13,8 +13,8 @@ What it does:
   parallel-axis theorem) into one `<inertial>` per body.
 - writes every body frame aligned with the base frame at the zero pose (the URDF's 90-degree frame twists are
   folded into the joint axes), so positions and axes read directly in base coordinates.
-- keeps the URDF's collision primitives (boxes, cylinders, spheres) as geoms; the sphere of each foot link becomes
-  the `L_FOOT` geom on the shank.
+- keeps the URDF's collision primitives as geoms (boxes, spheres; cylinders become capsules on the same axis segment
+  and radius, cheaper to collide); the sphere of each foot link becomes the `L_FOOT` geom on the shank.
 Numbers are rounded: lengths to 0.01 mm, masses to 0.01 g, inertias to 1e-7 kg·m².
 """
 
@@ -66,8 +66,10 @@ class Geom:
 
     def attrs(self) -> str:
         if self.kind == "cylinder":
+            # A capsule on the cylinder's axis segment and radius: capsule-plane contacts are analytic and
+            # cheaper, and these shapes touch the floor only when the robot kneels or falls.
             ends = f"{_fv(self.pos - self.axis)}  {_fv(self.pos + self.axis)}"
-            return f'type="cylinder" fromto="{ends}" size="{_fv(self.size, 6)}"'
+            return f'type="capsule" fromto="{ends}" size="{_fv(self.size, 6)}"'
         return f'type="{self.kind}" pos="{_fv(self.pos)}" size="{_fv(self.size, 6)}"'
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -253,10 +255,13 @@ TEMPLATE = """<!--
 -->
 <mujoco model="anymal_d">
   <compiler angle="radian" autolimits="true"/>
-  <!-- Elliptic friction cone with a high impratio makes static friction hold: with the default pyramidal
-       cone and impratio 1 the feet, 0.2 m outboard of the HAA axes, creep outward and the standing base
-       sinks by about 2 cm/s. -->
-  <option timestep="0.005" integrator="implicitfast" cone="elliptic" impratio="100"/>
+  <!-- Solver settings of legged-RL MuJoCo models (MuJoCo Playground's quadrupeds): a pyramidal friction
+       cone and a few Newton and line-search iterations; two no-slip iterations make static friction hold
+       (without them the feet, 0.2 m outboard of the HAA axes, creep outward and the standing base sinks
+       by about 1 cm/s). benchmarks/physics.py times this against the previous elliptic cone, impratio 100
+       and 100 solver iterations, which stood and walked the same but stepped about 2x slower. -->
+  <option timestep="0.005" integrator="implicitfast" cone="pyramidal" iterations="4" ls_iterations="8"
+          noslip_iterations="2"/>
 
   <default>
     <default class="anymal">
@@ -266,9 +271,9 @@ TEMPLATE = """<!--
       <!-- Robot geoms (contype 2, conaffinity 1) touch the floor (contype 1) but never each other. -->
       <geom contype="2" conaffinity="1" condim="3" friction="1 0.005 0.0001" solref="0.02 1"
             solimp="0.9 0.95 0.001 0.5 2"/>
-      <!-- Placeholder PD gains and torque limit (N·m/rad, N·m·s/rad, N·m); the env overwrites
-           them from envs/anymal_d.toml when it loads the model. -->
-      <position kp="40" kv="5" forcelimited="true" forcerange="-80 80" ctrllimited="false"/>
+      <!-- PD gains and torque limit (N·m/rad, N·m·s/rad, N·m) of envs/anymal_d.toml, so the bare model stands
+           as the env does; the env sets them from the spec (and PhysicsParams) when it loads the model. -->
+      <position kp="80" kv="2" forcelimited="true" forcerange="-80 80" ctrllimited="false"/>
       <site group="4" rgba="0.9 0.2 0.2 0.3"/>
       <default class="body">
         <geom rgba="0.75 0.75 0.75 1"/>

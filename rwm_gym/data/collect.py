@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 import rwm_gym
 from rwm_gym.data.dataset import DatasetInfo, DatasetWriter
-from rwm_gym.data.policies import Policy, make_policy
+from rwm_gym.policies.base import Policy, make_policy
 from rwm_gym.registration import PHYSICS_ENVS
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
@@ -182,7 +182,7 @@ class _Runner:
                 rows.append({f: record[f][i] for f in ROW_FIELDS})
                 if terminated[i] or truncated[i]:
                     rows[-1]["truncated"] = bool(truncated[i])
-                    yield int(episode_of[i]), _episode(rows, spec.action_dim)
+                    yield int(episode_of[i]), stack_episode(rows, spec.action_dim)
                     buffers[i] = None
                     finished.append(i)
             if finished:
@@ -228,7 +228,7 @@ def _fan_out(job: _Job, episodes: int, workers: int) -> Iterator[tuple[int, dict
             yield from result
 
 
-def _episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
+def stack_episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
     """Stack buffered rows into dataset arrays; the last row carries no transition."""
     rows[-1]["action"], rows[-1]["reward"] = np.zeros(action_dim), 0.0
     n = len(rows)

@@ -21,7 +21,7 @@ import numpy as np
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics, parse_effects
-from rwm_gym.gap.excitation import ExcitationPolicy
+from rwm_gym.policies.excitation import ExcitationPolicy
 from rwm_gym.physics.robot import measure
 
 

@@ -27,7 +27,7 @@ import torch
 
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, merge_datasets, write_dataset
-from rwm_gym.gap.excitation import ExcitationPolicy
+from rwm_gym.policies.excitation import ExcitationPolicy
 from rwm_gym.gap.resim import Resimulator, Windows, make_windows
 from rwm_gym.model.checkpoint import load_checkpoint, read_meta
 from rwm_gym.model.config import TrainConfig

@@ -2,7 +2,7 @@
 
 `ImaginedCore` has the same interface as the physics cores (`rwm_gym.physics.locomotion.LocomotionCore`,
 `rwm_gym.physics.dmc.DMCCore`): the same observation, and the task's commands, reward and termination
-(`rwm_gym.imagination.tasks`, chosen from the checkpoint's spec), fed with the model's predicted state and privileged
+(the task object of `rwm_gym.task.tasks`, chosen from the checkpoint's spec, the same the physics env uses), fed with the model's predicted state and privileged
 signals instead of measured ones. Contacts are predicted logits > 0; a task that terminates (ANYmal D) ends an
 episode when the predicted termination probability is > 0.5.
 """
@@ -19,12 +19,12 @@ import torch
 
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.reset_data import ResetWindows
-from rwm_gym.imagination.tasks import ImaginedTask, make_task
 from rwm_gym.model.checkpoint import load_checkpoint
-from rwm_gym.physics.locomotion import check_actions
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import TaskSpec
 from rwm_gym.task.observation import build_observation
+from rwm_gym.task.tasks import Task, make_task
+from rwm_gym.vector.core import check_actions, check_num_envs
 
 DEFAULT_CHECKPOINTS = {"RWM-AnymalD-v0": "checkpoints/anymal_d_rwm.safetensors"}
 """Imagined env id -> the checkpoint shipped in `assets/` (the dm_control ids have none)."""
@@ -80,11 +80,11 @@ class ImaginedCore:
                              f"not of {env_id}")
         self.norm = self.meta.normalizer
         self.device = torch.device(device)
-        self.num_envs = num_envs
+        self.num_envs = num_envs = check_num_envs(num_envs)
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
         self.reset_windows = ResetWindows(Dataset.load(self._reset_data_path(reset_data)), history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.task: ImaginedTask = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
+        self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands)
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
             raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
                              f"{self.spec.name} has not")
@@ -126,8 +126,10 @@ class ImaginedCore:
         return build_observation(self.spec, self.state[ids], self.command[ids], self.last_action[ids])
 
     @torch.no_grad()
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
-        """Start envs `ids` from real history windows, replaying the full warm-up through the model."""
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
+              commands: np.ndarray | None = None) -> np.ndarray:
+        """Start envs `ids` from real history windows, replaying the full warm-up through the model; hold `commands`
+        (len(ids), K) for the episode if given."""
         ids = np.asarray(ids, dtype=int)
         for i, seed in zip(ids, seeds or [None] * len(ids)):
             if seed is not None:
@@ -146,7 +148,7 @@ class ImaginedCore:
         self.contact[ids] = np.stack([w.contact for w in windows])
         self.foot_height[ids] = np.stack([w.foot_height for w in windows])
         self.last_action[ids] = np.stack([w.actions[-1] for w in windows])
-        self.task.reset(ids, [self.rngs[i] for i in ids])
+        self.task.reset(ids, [self.rngs[i] for i in ids], commands)
         self.steps[ids] = 0
         self.uncertainty[ids] = 0.0
         return self.observe(ids)
@@ -174,7 +176,9 @@ class ImaginedCore:
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
         contact = host_parts[1] > 0.5
         foot_height = self.norm.denormalize_foot_height(host_parts[2]).astype(np.float32)
-        terminated = self.task.terminated(host_parts[3][:, 0]) | diverged
+        terminated = diverged.copy()
+        if self.task.terminates:
+            terminated |= host_parts[3][:, 0] > 0
         self.uncertainty = np.nan_to_num(host_parts[4][:, 0].astype(np.float64), nan=0.0)
 
         reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)

@@ -1,7 +1,7 @@
 """`RWM-AnymalD-v0`, `RWM-Cheetah-v0`, ...: a `gymnasium.Env` whose step queries the world model instead of physics.
 
 Same observation and action spaces, commands, reward and termination as the task's physics env (`AnymalD-MuJoCo-v0`,
-`DMC-Cheetah-Run-v0`, ...; see `rwm_gym.imagination.tasks`). `render_mode="rgb_array"` (tasks with their own MJCF
+`DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with their own MJCF
 model, i.e. ANYmal D) draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the base
 position integrated from the predicted velocity.
 """
@@ -14,12 +14,14 @@ import gymnasium as gym
 import numpy as np
 
 from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
+from rwm_gym.vector.core import commands_from_options
 
 
 class ImaginedEnv(gym.Env):
-    """One imagined rollout. kwargs: the fields of `ImaginationOptions` (sample_predictions, uncertainty_penalty, ...)."""
+    """One imagined rollout. kwargs: the fields of `ImaginationOptions` (sample_predictions, uncertainty_penalty,
+    resample_commands, ...). `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
     def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
                  render_mode: str | None = None, width: int = 640, height: int = 480, env_id: str | None = None,
@@ -32,13 +34,15 @@ class ImaginedEnv(gym.Env):
                              "dream with; render its physics env instead")
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}
         self.render_mode = render_mode
         self._render_size = (height, width)
         self._dream = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        obs = self.core.reset(np.array([0]), [seed])
+        commands = commands_from_options(options, 1, self.task_spec.command.names)
+        obs = self.core.reset(np.array([0]), [seed], commands)
         if self._dream is not None:
             self._dream.reset()
         return obs[0], {"command": self.core.command[0].copy()}

@@ -16,7 +16,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -133,6 +135,28 @@ def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, param
     return float(loss.detach()), parts
 
 
+class _DeferredInterrupt:
+    """Ctrl-C ends the run between two iterations, never inside one.
+
+    An interrupt inside an iteration would save the RNG state after the iteration's draws beside the iteration count
+    from before them, and `--resume` would then diverge from the uninterrupted run. A second Ctrl-C stops at once.
+    """
+
+    def __init__(self):
+        self.requested, self._previous = False, None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def restore(self) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
 def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torch.Tensor]:
     """Rank 0's RNG states: the shared window sampler and its own noise stream (other ranks derive theirs)."""
     state = {"rng_torch": torch.get_rng_state(), "rng_sampler": sampler.get_state()}
@@ -144,17 +168,21 @@ def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torc
 def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
           out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
           tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
-          init: str | os.PathLike | None = None, clock: Callable[[], float] = time.monotonic) -> TrainResult:
+          init: str | os.PathLike | None = None, overwrite: bool = False,
+          clock: Callable[[], float] = time.monotonic) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
     init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
     the optimizer starts fresh.
     resume: continue from the checkpoint at `out` if it exists (same data file, same config except the budget).
+    overwrite: replace an existing `out`; without it (or `resume`) an existing `out` is refused.
     callback(iteration, stats) runs after every iteration (e.g. to stop early by raising KeyboardInterrupt, which
     saves a resumable checkpoint first).
     clock: seconds for the `minutes` budget and `wall_s` (e.g. `time.process_time` to count only this process's CPU
     time on a shared machine).
     """
+    if out is not None and Path(out).exists() and not (resume or overwrite):
+        raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
@@ -228,6 +256,7 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
 
         bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress or not world.is_main,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
+        interrupt = _DeferredInterrupt()
         try:
             while not finished():
                 by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
@@ -264,12 +293,19 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
+                if interrupt.requested:
+                    raise KeyboardInterrupt
         except KeyboardInterrupt:
             stats["wall_s"] = clock() - started
-            if save() is not None:  # rank 0 only
+            if world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
+                if world.is_main and out is not None:
+                    print(f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
+                          f"({out}, every {config.checkpoint_every} iterations) with --resume", file=sys.stderr)
+            elif save() is not None:
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
         finally:
+            interrupt.restore()
             bar.close()
             if writer is not None:
                 writer.close()
@@ -323,6 +359,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
     parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
     parser.add_argument("--ensemble", type=int, dest="ensemble_size", help="same as --ensemble-size")
@@ -359,10 +396,10 @@ def run(args: argparse.Namespace) -> int:
         dataset = Dataset.load(args.data)
         model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
         result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                       tensorboard=args.tensorboard, init=args.init)
+                       tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError, DatasetError, CheckpointError) as err:
         if distributed.current_world().is_main:
             print(f"rwm-gym train: {err}", file=sys.stderr)
         return 2

@@ -12,7 +12,8 @@ from pathlib import Path
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec, load_spec
-from rwm_gym.vector import CoreVecEnv, CoreVectorEnv
+from rwm_gym.vector.gym_vector_env import CoreGymVectorEnv
+from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
 
 
 def make_core(
@@ -23,13 +24,14 @@ def make_core(
     physics: PhysicsParams | Mapping[str, object] | None = None,
     observation_noise: bool = False,
     nthread: int = 0,
+    resample_commands: bool = True,
 ) -> LocomotionCore:
     task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
     return LocomotionCore(task, num_envs, xml_file=xml_file, physics=physics, observation_noise=observation_noise,
-                          nthread=nthread)
+                          nthread=nthread, resample_commands=resample_commands)
 
 
-class BatchedLocomotionVectorEnv(CoreVectorEnv):
+class LocomotionGymVectorEnv(CoreGymVectorEnv):
     """Gymnasium VectorEnv of N physics simulations; kwargs as `LocomotionEnv` plus `nthread` (0: all CPUs)."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
@@ -37,8 +39,11 @@ class BatchedLocomotionVectorEnv(CoreVectorEnv):
         super().__init__(make_core(spec, num_envs, **kwargs))
 
 
-class BatchedLocomotionVecEnv(CoreVecEnv):
+class LocomotionSB3VecEnv(CoreSB3VecEnv):
     """SB3 VecEnv of N physics simulations; kwargs as `LocomotionEnv` plus `nthread` (0: all CPUs)."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
         super().__init__(make_core(spec, num_envs, **kwargs))
+
+
+BatchedLocomotionVectorEnv, BatchedLocomotionVecEnv = LocomotionGymVectorEnv, LocomotionSB3VecEnv  # deprecated names

@@ -3,7 +3,7 @@
 `DMCCore` runs N suite environments of one task side by side (a plain loop: the suite's models are small), using
 dm_control's own MJCF models and task code for initial states and rewards. It exposes the batched-core protocol of
 `rwm_gym.vector` and `rwm_gym.data.collect`; `DMCEnv` is the core with N = 1 behind `gymnasium.Env`, and
-`DMCVectorEnv` / `DMCVecEnv` the core with N > 1, so all give identical transitions per seed.
+`DMCGymVectorEnv` / `DMCSB3VecEnv` the core with N > 1, so all give identical transitions per seed.
 
 The world-model state is read from the physics as the spec declares (see `rwm_gym.physics.dmc_layout`); the policy
 observation is the spec's `[observation]` groups (the state plus the last action). Suite tasks never terminate; an
@@ -19,11 +19,12 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.dmc_layout import DMCLayout, SuiteTask
-from rwm_gym.physics.locomotion import check_actions
-from rwm_gym.spec import TaskSpec, load_spec
+from rwm_gym.physics.dmc_layout import DMCLayout
+from rwm_gym.spec import SuiteTask, TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
-from rwm_gym.vector import CoreVecEnv, CoreVectorEnv
+from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
+from rwm_gym.vector.gym_vector_env import CoreGymVectorEnv
+from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
 
 
 def _load(suite_task: SuiteTask):
@@ -36,7 +37,8 @@ class DMCCore:
     """One dm_control suite task for N environments. Arrays are (N, ...) unless said otherwise."""
 
     def __init__(self, spec: TaskSpec, num_envs: int = 1):
-        self.spec, self.num_envs = spec, num_envs
+        self.spec = spec
+        self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = SuiteTask.from_spec(spec)
         self.envs = [_load(self.params) for _ in range(num_envs)]
         physics = self.envs[0].physics
@@ -63,8 +65,11 @@ class DMCCore:
         """Policy observations of envs `ids`, (len(ids), O) float32."""
         return build_observation(self.spec, self.state[ids], self.command[ids], self.last_action[ids])
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
+              commands: np.ndarray | None = None) -> np.ndarray:
         """Start new episodes in envs `ids` (re-seeding the suite task's generator where a seed is given)."""
+        if commands is not None and np.shape(commands)[-1]:
+            raise ValueError(f"{self.spec.name} has no commands")
         ids = np.asarray(ids, dtype=int)
         for i, seed in zip(ids, seeds or [None] * len(ids)):
             env = self.envs[i]
@@ -123,7 +128,7 @@ class DMCEnv(gym.Env):
     `render_mode="rgb_array"` renders dm_control's camera `camera` (needs an OpenGL backend, see MUJOCO_GL).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
     def __init__(self, spec: str | TaskSpec, *, render_mode: str | None = None, width: int = 320, height: int = 240,
                  camera: int = 0):
@@ -142,6 +147,7 @@ class DMCEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        commands_from_options(options, 1, self.task_spec.command.names)  # refuses unknown options and commands
         return self.core.reset(np.array([0]), [seed])[0], {}
 
     def step(self, action):
@@ -158,7 +164,7 @@ class DMCEnv(gym.Env):
         return self.physics.render(height=height, width=width, camera_id=self._camera)
 
 
-class DMCVectorEnv(CoreVectorEnv):
+class DMCGymVectorEnv(CoreGymVectorEnv):
     """Gymnasium VectorEnv of N copies of a dm_control task (`gym.make_vec(id, num_envs=N)`)."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run", **kwargs):
@@ -166,8 +172,11 @@ class DMCVectorEnv(CoreVectorEnv):
         super().__init__(make_core(spec, num_envs, **kwargs))
 
 
-class DMCVecEnv(CoreVecEnv):
+class DMCSB3VecEnv(CoreSB3VecEnv):
     """SB3 VecEnv of N copies of a dm_control task."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run"):
         super().__init__(make_core(spec, num_envs))
+
+
+DMCVectorEnv, DMCVecEnv = DMCGymVectorEnv, DMCSB3VecEnv  # deprecated names

@@ -21,44 +21,13 @@ lists a contact between one of its geoms and a geom of the spec's `[dm_control] 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from importlib.metadata import version
 
 import mujoco
 import numpy as np
 
-from rwm_gym.spec import TaskSpec
+from rwm_gym.spec import SuiteTask, TaskSpec
 
 _AXES = {"x": 0, "y": 1, "z": 2}
-
-
-@dataclass(frozen=True)
-class SuiteTask:
-    """The `[dm_control]` table of a spec: which suite task runs, and which body counts as the contact partner."""
-
-    domain: str
-    """dm_control suite domain, e.g. "cheetah"."""
-    task: str
-    """Task of the domain, e.g. "run"."""
-    contact_partner: str = "world"
-    """Body whose contacts with `privileged.contact_bodies` set the contact flags ("world" holds the floor)."""
-
-    @classmethod
-    def from_spec(cls, spec: TaskSpec) -> SuiteTask:
-        table = spec.extra.get("dm_control")
-        if not isinstance(table, dict):
-            raise ValueError(f"task spec {spec.name}: missing table [dm_control] (domain, task)")
-        for key in ("domain", "task"):
-            if not isinstance(table.get(key), str):
-                raise ValueError(f"task spec {spec.name}: [dm_control] field {key!r} missing or not a string")
-        unknown = sorted(set(table) - {"domain", "task", "contact_partner"})
-        if unknown:
-            raise ValueError(f"task spec {spec.name}: [dm_control] unknown field {unknown[0]!r}")
-        return cls(**table)
-
-    def to_dict(self) -> dict:
-        """JSON-serialisable description stored with datasets as their `physics_params`."""
-        return {**asdict(self), "dm_control_version": version("dm-control")}
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: tuple[str, ...], spec: TaskSpec, what: str) -> np.ndarray:

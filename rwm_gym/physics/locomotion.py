@@ -1,7 +1,7 @@
 """Velocity-tracking locomotion in MuJoCo: the vectorised task core and the single `gymnasium.Env`.
 
-`LocomotionCore` runs the task (commands, observation, reward, termination, time limit) for N simulations at once on
-either simulator backend; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the batched
+`LocomotionCore` runs N simulations at once on either simulator backend and hands the measured states to the task
+object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the batched
 envs in `rwm_gym.physics.batched` are the same core with N > 1. So the three give identical transitions per seed.
 """
 
@@ -18,19 +18,9 @@ from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
-from rwm_gym.task.commands import resample_period, sample_commands
 from rwm_gym.task.observation import build_observation
-from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
-
-
-def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Validate a batch of actions: right shape, finite; clipped to [-1, 1]."""
-    actions = np.asarray(actions, dtype=np.float64)
-    if actions.shape != shape:
-        raise ValueError(f"action has shape {actions.shape}, expected {shape}")
-    if not np.all(np.isfinite(actions)):
-        raise ValueError(f"action contains NaN or inf at env(s) {np.flatnonzero(~np.isfinite(actions).all(-1)).tolist()}")
-    return np.clip(actions, -1.0, 1.0)
+from rwm_gym.task.tasks import VelocityTrackingTask
+from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
 
 
 class LocomotionCore:
@@ -45,9 +35,10 @@ class LocomotionCore:
         physics: PhysicsParams | Mapping[str, object] | None = None,
         observation_noise: bool = False,
         nthread: int = 0,
+        resample_commands: bool = True,
     ):
         self.spec = spec
-        self.num_envs = num_envs
+        self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
         self.model = build_model(spec, xml_file, self.params)
         self.layout = RobotLayout.from_model(self.model, spec)
@@ -60,16 +51,19 @@ class LocomotionCore:
         self.observation_noise = observation_noise
         self.rngs = [np.random.default_rng() for _ in range(num_envs)]
         n, a = num_envs, spec.action_dim
-        self.command = np.zeros((n, len(spec.command.names)), dtype=np.float32)
+        self.task = VelocityTrackingTask(spec, n, resample_commands)
         self.last_action = np.zeros((n, a))
         self.steps = np.zeros(n, dtype=np.int64)
-        self.air_time = FeetAirTime(n, spec.foot_dim)
-        self.period = resample_period(spec.command, spec.policy_dt)
         self.current: Measurement = self._measure()
 
         high = np.ones(a, dtype=np.float32)
         self.single_action_space = gym.spaces.Box(-high, high, dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (spec.observation_dim,), dtype=np.float32)
+
+    @property
+    def command(self) -> np.ndarray:
+        """(N, K) the task's current commands."""
+        return self.task.command
 
     def _measure(self) -> Measurement:
         return measure(self.layout, self.spec, **self.sim.arrays())
@@ -78,8 +72,10 @@ class LocomotionCore:
         rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
         return build_observation(self.spec, self.current.state[ids], self.command[ids], self.last_action[ids], rngs)
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None) -> np.ndarray:
-        """Start new episodes in envs `ids` (re-seeding those with a seed); return their observations."""
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
+              commands: np.ndarray | None = None) -> np.ndarray:
+        """Start new episodes in envs `ids` (re-seeding those with a seed; holding `commands` (len(ids), K) if given);
+        return their observations."""
         ids = np.asarray(ids, dtype=int)
         for i, seed in zip(ids, seeds or [None] * len(ids)):
             if seed is not None:
@@ -93,10 +89,9 @@ class LocomotionCore:
             qvel[row, 0:3] += rng.uniform(-r.base_lin_vel_noise, r.base_lin_vel_noise, 3)
             qvel[row, 3:6] += rng.uniform(-r.base_ang_vel_noise, r.base_ang_vel_noise, 3)
         self.sim.reset(ids, self.keyframe, qpos, qvel)
-        self.command[ids] = sample_commands(self.spec.command, [self.rngs[i] for i in ids])
+        self.task.reset(ids, [self.rngs[i] for i in ids], commands)
         self.last_action[ids] = 0.0
         self.steps[ids] = 0
-        self.air_time.reset(ids)
         fresh = self._measure()
         for field in ("state", "contact", "foot_height", "terminated"):
             getattr(self.current, field)[ids] = getattr(fresh, field)[ids]
@@ -114,19 +109,14 @@ class LocomotionCore:
         self.sim.step(ctrl, self.spec.substeps)
 
         prev, now = self.current, self._measure()
-        feet = np.isin(self.spec.privileged.contact_bodies, self.spec.privileged.feet)
-        air = self.air_time.update(now.contact[:, feet], self.spec.policy_dt, self.spec.reward.feet_air_time_target)
-        terms = reward_terms(self.spec, now.state, prev.state, now.contact, self.command, actions, self.last_action, air)
-        reward = total_reward(self.spec, terms)
+        reward, terms = self.task.reward(now.state, prev.state, now.contact, now.foot_height, actions, self.last_action)
         info = {"command": self.command.copy(), **{f"reward/{k}": v for k, v in terms.items()}}
 
         self.current, self.last_action = now, actions
         self.steps += 1
         terminated = now.terminated.copy()
         truncated = (self.steps >= self.spec.episode_steps) & ~terminated
-        resample = np.flatnonzero(self.steps % self.period == 0)
-        if len(resample):
-            self.command[resample] = sample_commands(self.spec.command, [self.rngs[i] for i in resample])
+        self.task.advance(self.steps, self.rngs)
         return self.observe(), reward.astype(np.float64), terminated, truncated, info
 
     def record(self) -> dict[str, np.ndarray]:
@@ -149,9 +139,11 @@ class LocomotionEnv(gym.Env):
     Observation (spec `observation.groups`, 48 for ANYmal D), action in [-1, 1]^A scaled to joint-position offsets
     around the default pose. `info` carries the command and every unweighted reward term. The MuJoCo model and data are
     `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot.
+    `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode; `resample_commands=False` keeps
+    each episode's sampled command.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
     def __init__(
         self,
@@ -160,6 +152,7 @@ class LocomotionEnv(gym.Env):
         xml_file: str | Path | None = None,
         physics: PhysicsParams | Mapping[str, object] | None = None,
         observation_noise: bool = False,
+        resample_commands: bool = True,
         render_mode: str | None = None,
         width: int = 640,
         height: int = 480,
@@ -167,7 +160,7 @@ class LocomotionEnv(gym.Env):
     ):
         self.task_spec = spec if isinstance(spec, TaskSpec) else load_spec(spec)
         self.core = LocomotionCore(self.task_spec, 1, xml_file=xml_file, physics=physics,
-                                   observation_noise=observation_noise)
+                                   observation_noise=observation_noise, resample_commands=resample_commands)
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}
@@ -188,7 +181,8 @@ class LocomotionEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        obs = self.core.reset(np.array([0]), [seed])
+        commands = commands_from_options(options, 1, self.task_spec.command.names)
+        obs = self.core.reset(np.array([0]), [seed], commands)
         return obs[0], {"command": self.core.command[0].copy()}
 
     def step(self, action):

@@ -22,8 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rwm_gym.physics.dmc_layout import SuiteTask
-from rwm_gym.spec import TaskSpec
+from rwm_gym.spec import SuiteTask, TaskSpec
 
 SUPPORTED = {("cheetah", "run"), ("walker", "walk"), ("walker", "run"), ("walker", "stand"), ("hopper", "hop"),
              ("hopper", "stand"), ("quadruped", "walk"), ("quadruped", "run"), ("humanoid", "walk"),

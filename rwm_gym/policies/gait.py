@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rwm_gym.data.leg_kinematics import LegKinematics
+from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.physics.params import build_model
 from rwm_gym.spec import TaskSpec
 from rwm_gym.task.observation import observation_slices

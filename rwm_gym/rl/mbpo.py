@@ -70,10 +70,10 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     """
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset, merge_datasets
-    from rwm_gym.imagination.evaluate_policy import evaluate_policy, format_table, write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, write_json
     from stable_baselines3 import PPO
 
-    from rwm_gym.imagination.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
     from rwm_gym.model.config import TrainConfig
     from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
     from rwm_gym.model.checkpoint import read_meta
@@ -106,12 +106,13 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     if init_policy is not None:
         policy = PPO.load(init_policy, env=env, device=device)
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        best = (0, evaluation.episode_return)
+        best = (0, evaluation.tracking)
         save_policy(policy, out / "best_policy.zip")
         log.append({"iteration": 0, "imagined_step_reward": None, "imagined_steps": 0, **_physics(evaluation),
                     "model_error_fresh": None, "physics_samples": physics_samples,
                     "wall_s": time.monotonic() - started})
-        tqdm.write(f"iteration 0 ({init_policy}): physics return {evaluation.episode_return:.2f}")
+        tqdm.write(f"iteration 0 ({init_policy}): physics tracking {evaluation.tracking:.3f}, "
+                   f"return {evaluation.episode_return:.2f}")
         if config.critic_warmup_steps:
             warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
     else:
@@ -123,8 +124,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         stats = learn(policy, timesteps=config.ppo_timesteps, target_kl=ppo_config.target_kl, progress=progress)
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        if best is None or evaluation.episode_return > best[1]:
-            best = (k, evaluation.episode_return)
+        if best is None or evaluation.tracking > best[1]:
+            best = (k, evaluation.tracking)
             save_policy(policy, out / "best_policy.zip")
         fresh = collect(spec.physics_env_id, str(zip_path), config.collect_episodes, out / f"data_{k}.h5",
                         seed=config.seed + 1000 * k, num_envs=config.collect_episodes,
@@ -143,20 +144,22 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
                "physics_samples": physics_samples,
                "wall_s": time.monotonic() - started}
         log.append(row)
-        tqdm.write(f"iteration {k}: physics return {row['physics_return']:.2f}, |dv_xy| {row['lin_vel_error']:.3f}, "
+        tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, return {row['physics_return']:.2f}, "
+                   f"|dv_xy| {row['lin_vel_error']:.3f}, "
                    f"model error on fresh data {model_error}, imagined step reward {row['imagined_step_reward']:.4f}")
         tqdm.write(format_table(evaluation))
         ppo = ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)}  # its zip's settings
         report = {"config": config.to_dict(), "ppo": ppo, "data": str(data), "log": log,
-                  "best_iteration": best[0], "best_physics_return": best[1]}
+                  "best_iteration": best[0], "best_tracking": best[1]}
         write_json(report, out / "mbpo.json")
         plot_curve(log, out / "mbpo.png")
     return report
 
 
 def _physics(evaluation) -> dict:
-    """The log fields of a physics evaluation (`rwm_gym.imagination.evaluate_policy.Evaluation`)."""
-    return {"physics_return": evaluation.episode_return, "lin_vel_error": evaluation.lin_vel_error,
+    """The log fields of a physics evaluation (`rwm_gym.rl.evaluate_policy.Evaluation`)."""
+    return {"tracking": evaluation.tracking, "physics_return": evaluation.episode_return,
+            "lin_vel_error": evaluation.lin_vel_error,
             "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
 
 
@@ -170,8 +173,8 @@ def plot_curve(log: list[dict], path: Path) -> None:
 
     it = [r["iteration"] for r in log]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
-    axes[0].plot(it, [r["physics_return"] for r in log], "o-")
-    axes[0].set_title("physics return")
+    axes[0].plot(it, [r["tracking"] for r in log], "o-")
+    axes[0].set_title("physics tracking score")
     axes[1].plot(it, [r["lin_vel_error"] for r in log], "o-", label="|dv_xy| m/s")
     axes[1].plot(it, [r["yaw_rate_error"] for r in log], "o-", label="|dwz| rad/s")
     axes[1].set_title("tracking error")
@@ -209,6 +212,6 @@ def run(args: argparse.Namespace) -> int:
     config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
     report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
                   model_kind=args.model, device=args.device)
-    print(f"best physics return {report['best_physics_return']:.2f} at iteration {report['best_iteration']}; "
+    print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
           f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
     return 0

@@ -1,8 +1,13 @@
 """Judge a locomotion policy where it matters: in physics (`AnymalD-MuJoCo-v0`), over fixed commands and seeds.
 
 Every (command, seed) pair is one env of the batched physics core; the command is set after reset and never resampled,
-so the numbers of two policies are comparable. Per command we report the return, the velocity-tracking errors, the
-falls, the distance walked along the command and the velocity achieved; a table, JSON and a PNG plot.
+so the numbers of two policies are comparable.
+
+The headline figure is the **tracking score**: the mean over every evaluated step of
+`(w_xy * exp(-|cmd_xy - v_xy|^2 / sigma) + w_yaw * exp(-(cmd_yaw - w_z)^2 / sigma)) / (w_xy + w_yaw)` with the
+task's own tracking weights and sigma (1.0, 0.5 and 0.25 for ANYmal D), so 1.0 is perfect tracking; a robot that
+falls scores 0 for the rest of its episode. `scoring_commands` is the fixed command set it is measured on. Beside it
+we report the return, the velocity-tracking errors, the falls, the distance walked and the velocity achieved.
 """
 
 from __future__ import annotations
@@ -22,10 +27,31 @@ from rwm_gym.spec import TaskSpec
 PolicyFn = Callable[[np.ndarray], np.ndarray]
 """Observations (N, O) -> actions (N, A) in [-1, 1]."""
 
-DEFAULT_COMMANDS: tuple[tuple[float, float, float], ...] = (
-    (1.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.0, 0.5, 0.0), (-0.5, 0.0, 0.0), (0.0, 0.0, 0.5), (0.0, 0.0, 0.0),
-)
-"""(vx m/s, vy m/s, yaw rate rad/s) in the body frame."""
+SCORING_SEED = 20261123
+"""Seed of the random half of the scoring command set: fixed, so every score is measured on the same commands."""
+
+
+def scoring_commands(spec: str | TaskSpec = "anymal_d", num_random: int = 16,
+                     seed: int = SCORING_SEED) -> tuple[tuple[float, ...], ...]:
+    """The scoring command set: standing, 1 m/s forward, then `num_random` commands drawn uniformly from the spec's
+    ranges with a fixed seed. (vx m/s, vy m/s, yaw rate rad/s) in the body frame for ANYmal D."""
+    from rwm_gym.spec import load_spec
+
+    task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
+    low, high = np.asarray(task.command.low), np.asarray(task.command.high)
+    fixed = [np.zeros_like(low), np.where(np.arange(len(low)) == 0, 1.0, 0.0)]
+    drawn = np.random.default_rng(seed).uniform(low, high, (num_random, len(low)))
+    return tuple(tuple(round(float(x), 3) for x in c) for c in [*fixed, *drawn])
+
+
+def tracking_terms(spec: TaskSpec, state: np.ndarray, command: np.ndarray) -> np.ndarray:
+    """Per-env tracking score of one step (N,), in [0, 1]: the task's two tracking terms, weighted as in its reward."""
+    s, sigma, w = spec.state_slices, spec.reward.tracking_sigma, spec.reward.weights
+    v, wz = state[:, s["base_lin_vel"]][:, :2], state[:, s["base_ang_vel"]][:, 2]
+    lin = np.exp(-np.sum((command[:, :2] - v) ** 2, axis=1) / sigma)
+    yaw = np.exp(-((command[:, 2] - wz) ** 2) / sigma)
+    w_lin, w_yaw = w["track_lin_vel_xy"], w["track_ang_vel_z"]
+    return (w_lin * lin + w_yaw * yaw) / (w_lin + w_yaw)
 
 
 @dataclass(frozen=True)
@@ -34,6 +60,8 @@ class CommandResult:
 
     command: tuple[float, float, float]
     """(vx m/s, vy m/s, yaw rate rad/s)."""
+    tracking: float
+    """Tracking score (see the module docstring): 1.0 is perfect, a fall scores 0 for the rest of its episode."""
     episode_return: float
     """Mean sum of rewards (the task's weighted terms, each x dt); about 30 for a perfect 20 s episode."""
     lin_vel_error: float
@@ -55,6 +83,8 @@ class Evaluation:
     """A policy's physics evaluation: per command and overall (means over commands; falls summed)."""
 
     commands: list[CommandResult]
+    tracking: float
+    """Mean tracking score over every (command, seed) episode: the figure policies are judged by."""
     episode_return: float
     lin_vel_error: float
     yaw_rate_error: float
@@ -87,37 +117,40 @@ def as_policy(policy: str | os.PathLike | PolicyFn | object) -> PolicyFn:
 def evaluate_policy(
     policy: str | os.PathLike | PolicyFn | object,
     *,
-    commands: Sequence[Sequence[float]] = DEFAULT_COMMANDS,
+    commands: Sequence[Sequence[float]] | None = None,
     seeds: Sequence[int] = (0, 1, 2),
     steps: int | None = None,
     settle_steps: int = 50,
     spec: str | TaskSpec = "anymal_d",
     env_kwargs: dict | None = None,
+    core=None,
 ) -> Evaluation:
     """Run `policy` in physics for `steps` policy steps (default: a full episode) per (command, seed) pair.
 
-    settle_steps: the first steps (1 s at 50 Hz) are left out of the tracking errors, so the start-up transient does not
-    dominate. env_kwargs go to the physics core (e.g. `physics`, `observation_noise`).
+    commands: default `scoring_commands(spec)`. settle_steps: the first steps (1 s at 50 Hz) are left out of the
+    velocity errors (not of the tracking score), so the start-up transient does not dominate them. env_kwargs go to the
+    physics core (e.g. `physics`, `observation_noise`). `core`: a batched core of len(commands) x len(seeds) envs to
+    run instead of physics, e.g. an imagined one (`ImaginedCore`, commands not resampled) for the same score in a model.
     """
     from rwm_gym.physics.batched import make_core
 
     act = as_policy(policy)
     started = time.monotonic()
-    commands = [tuple(float(c) for c in cmd) for cmd in commands]
+    commands = [tuple(float(c) for c in cmd) for cmd in (commands or scoring_commands(spec))]
     pairs = [(c, s) for c in commands for s in seeds]
-    core = make_core(spec, len(pairs), **(env_kwargs or {}))
+    if core is None:
+        core = make_core(spec, len(pairs), **(env_kwargs or {}))
+    elif core.num_envs != len(pairs):
+        raise ValueError(f"core has {core.num_envs} envs, the evaluation needs {len(pairs)} (commands x seeds)")
     task = core.spec
     steps = steps or task.episode_steps
     if len(commands[0]) != len(task.command.names):
         raise ValueError(f"commands have {len(commands[0])} entries, the task's {task.name} has {task.command.names}")
     n, dt = len(pairs), task.policy_dt
-    core.reset(np.arange(n), [s for _, s in pairs])
-    core.command[:] = np.asarray([c for c, _ in pairs], dtype=np.float32)
-    core.period = steps + task.episode_steps + 1  # never resample within the evaluation
-    obs = core.observe()
+    obs = core.reset(np.arange(n), [s for _, s in pairs], np.asarray([c for c, _ in pairs], dtype=np.float32))
     lin, ang = task.state_slices["base_lin_vel"], task.state_slices["base_ang_vel"]
     alive = np.ones(n, dtype=bool)
-    returns, counted = np.zeros(n), np.zeros(n)
+    returns, counted, tracking = np.zeros(n), np.zeros(n), np.zeros(n)
     sums = {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")}
     cmd = core.command.astype(np.float64)
     cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
@@ -126,7 +159,8 @@ def evaluate_policy(
         obs, reward, terminated, _, _ = core.step(np.clip(act(obs), -1.0, 1.0))
         returns += np.where(alive, reward, 0.0)
         alive &= ~terminated
-        state = core.current.state
+        state = core.current.state if hasattr(core, "current") else core.state
+        tracking += np.where(alive, tracking_terms(task, state, cmd), 0.0)
         # a fallen robot makes no progress: it counts as standing still for the rest of the evaluation
         v = np.where(alive[:, None], state[:, lin][:, :2], 0.0)
         wz = np.where(alive, state[:, ang][:, 2], 0.0)
@@ -144,13 +178,13 @@ def evaluate_policy(
         m = np.array([pc == c for pc, _ in pairs])
         achieved = np.stack([means["vx"][m], means["vy"][m], means["wz"][m]], axis=1)
         rows.append(CommandResult(
-            command=c, episode_return=float(returns[m].mean()), lin_vel_error=float(means["lin_err"][m].mean()),
+            command=c, tracking=float(tracking[m].mean() / steps), episode_return=float(returns[m].mean()), lin_vel_error=float(means["lin_err"][m].mean()),
             yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~alive[m]).sum()),
             distance=float(sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
             achieved_std=tuple(float(x) for x in achieved.std(0)),
         ))
     return Evaluation(
-        commands=rows, episode_return=float(np.mean([r.episode_return for r in rows])),
+        commands=rows, tracking=float(tracking.mean() / steps), episode_return=float(np.mean([r.episode_return for r in rows])),
         lin_vel_error=float(np.mean([r.lin_vel_error for r in rows])),
         yaw_rate_error=float(np.mean([r.yaw_rate_error for r in rows])), falls=int(sum(r.falls for r in rows)),
         episodes=n, steps=steps, wall_s=time.monotonic() - started,
@@ -159,17 +193,17 @@ def evaluate_policy(
 
 def format_table(evaluation: Evaluation) -> str:
     """A plain-text table: one row per command and a mean row."""
-    head = f"{'command (vx, vy, wz)':>22} | {'return':>7} | {'|dv_xy| m/s':>11} | {'|dwz| rad/s':>11} | " \
+    head = f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | {'|dwz| rad/s':>11} | " \
            f"{'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}"
     lines = [head, "-" * len(head)]
     for r in evaluation.commands:
         cmd = "(" + ", ".join(f"{x:+.1f}" for x in r.command) + ")"
         got = "(" + ", ".join(f"{x:+.2f}" for x in r.achieved) + ")"
-        lines.append(f"{cmd:>22} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | {r.yaw_rate_error:11.3f} | "
+        lines.append(f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | {r.yaw_rate_error:11.3f} | "
                      f"{r.falls:5d} | {r.distance:7.2f} | {got:>22}")
     e = evaluation
     lines.append("-" * len(head))
-    lines.append(f"{'mean':>22} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | {e.yaw_rate_error:11.3f} | "
+    lines.append(f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | {e.yaw_rate_error:11.3f} | "
                  f"{e.falls:5d} | {'':>7} | {e.episodes} episodes x {e.steps} steps")
     return "\n".join(lines)
 
@@ -193,7 +227,7 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
         ax.set_title(name)
         ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
     axes[0].legend()
-    fig.suptitle(title or f"physics evaluation: return {evaluation.episode_return:.2f}, "
+    fig.suptitle(title or f"physics evaluation: tracking {evaluation.tracking:.3f}, return {evaluation.episode_return:.2f}, "
                           f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
     fig.tight_layout()
     path = atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))

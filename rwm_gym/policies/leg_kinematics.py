@@ -1,6 +1,6 @@
 """Kinematics of a quadruped's 3-joint legs (HAA about x, then HFE and KFE about y), read from its MuJoCo model.
 
-Used by the scripted gait (`rwm_gym.data.gait`) to turn foot positions into joint angles and foot forces into joint
+Used by the scripted gait (`rwm_gym.policies.gait`) to turn foot positions into joint angles and foot forces into joint
 torques. Everything is in the base frame at the base origin (x forward, y left, z up); arrays are (..., L, 3) over L
 legs, angles in rad, lengths in m.
 """

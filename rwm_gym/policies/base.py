@@ -78,7 +78,7 @@ def make_policy(name: str, spec: TaskSpec, num_envs: int, *, action_noise: float
     if name == "random":
         return RandomPolicy(spec, num_envs)
     if name == "gait":
-        from rwm_gym.data.gait import GaitPolicy
+        from rwm_gym.policies.gait import GaitPolicy
 
         return GaitPolicy(spec, num_envs, action_noise=action_noise)
     if name.endswith(".zip"):

@@ -3,7 +3,7 @@
 System identification needs data that excites every candidate effect: stance and swing (payload, ground friction),
 both signs of joint velocity at many speeds (friction, damping), fast target changes (delay, armature, PD gains) and
 torques at the drives' limits (torque limit, motor strength). A walking gait alone is too regular; random actions alone
-rarely load the legs. Deterministic given the per-episode generators (see `rwm_gym.data.policies.Policy`).
+rarely load the legs. Deterministic given the per-episode generators (see `rwm_gym.policies.base.Policy`).
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Behaviour cloning of logged demonstrations as the warm start of a PPO actor (`rwm-gym ppo --bc-data`).
 
 PPO from scratch does not find a walk within the few million imagined steps a small CPU affords; the scripted trot the
-world model was trained on (`rwm_gym.data.gait`) does walk. We regress the SB3 policy's mean action onto the logged
+world model was trained on (`rwm_gym.policies.gait`) does walk. We regress the SB3 policy's mean action onto the logged
 actions (MSE, Adam) through the policy's own forward path (the fixed observation scaling of
-`rwm_gym.imagination.ppo.ScaledObservation`, `mlp_extractor.policy_net`, `action_net`), then lower the action std so
+`rwm_gym.rl.ppo.ScaledObservation`, `mlp_extractor.policy_net`, `action_net`), then lower the action std so
 PPO's first rollouts stay near the walk. PPO then fine-tunes the cloned actor in imagination.
 
 Pairs follow the dataset layout (`rwm_gym.data.dataset`): action[t] is applied in state[t]; the observation of row t is

@@ -1,0 +1,110 @@
+"""The learning curve of a resumable PPO run: the tracking score of every snapshot against env steps and wall time.
+
+    python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--seeds 3] [--threshold 0.8] [--out DIR]
+
+Scores each `RUN/snapshots/step_N.zip` in physics on the scoring command set (`rwm-gym score`'s), once: results are
+kept in `<out>/curve.csv` and reused when the script runs again (a running training adds snapshots). The zero-action
+floor is scored once. Writes `<out>/curve.csv`, `<out>/curve.png` and `<out>/curve.json` with N_mf, the env steps of the
+first snapshot at or above `--threshold` with at most `--max-falls` falls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+from pathlib import Path
+
+from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.rl.score import score, zero_policy
+from rwm_gym.rl.training_run import TrainingRun
+
+FIELDS = ["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg"]
+
+
+def wall_at(run: TrainingRun, timesteps: int) -> float | None:
+    """Training wall time (s, summed over restarts) when the run had taken `timesteps` steps, from log.csv."""
+    if not run.log_path.is_file():
+        return None
+    with run.log_path.open() as f:
+        rows = [r for r in csv.DictReader(f) if int(r["timesteps"]) <= timesteps]
+    return float(rows[-1]["total_wall_s"]) if rows else 0.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-dir", type=Path, required=True)
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--threshold", type=float, default=0.8)
+    parser.add_argument("--max-falls", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=None, help="default: RUN/curve")
+    args = parser.parse_args()
+    run = TrainingRun(args.run_dir)
+    out = args.out or run.folder / "curve"
+    out.mkdir(parents=True, exist_ok=True)
+    table = out / "curve.csv"
+    rows = list(csv.DictReader(table.open())) if table.is_file() else []
+    done = {int(r["timesteps"]) for r in rows}
+    for snapshot in run.snapshot_files():
+        steps = int(snapshot.stem.split("_")[1])
+        if steps in done:
+            continue
+        e = score(str(snapshot), seeds=args.seeds)
+        rows.append({"timesteps": steps, "wall_s": wall_at(run, steps), "tracking": round(e.tracking, 4),
+                     "return": round(e.episode_return, 3), "falls": e.falls, "episodes": e.episodes,
+                     "loadavg": os.getloadavg()[0]})
+        print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}",
+              flush=True)
+        atomic_write(table, lambda tmp: _write_csv(tmp, rows))
+    rows.sort(key=lambda r: int(r["timesteps"]))
+    floor_path = out / "floor.json"
+    if floor_path.is_file():
+        floor = json.loads(floor_path.read_text())
+    else:
+        e = score(zero_policy, seeds=args.seeds)
+        floor = {"tracking": e.tracking, "return": e.episode_return, "falls": e.falls}
+        write_json(floor_path, floor)
+    reached = [r for r in rows if float(r["tracking"]) >= args.threshold and int(r["falls"]) <= args.max_falls]
+    n_mf = int(reached[0]["timesteps"]) if reached else None
+    best = max(rows, key=lambda r: float(r["tracking"])) if rows else None
+    write_json(out / "curve.json", {"run_dir": str(run.folder), "threshold": args.threshold,
+                                    "max_falls": args.max_falls, "n_mf": n_mf, "floor": floor, "best": best,
+                                    "rows": rows})
+    _plot(rows, floor, args.threshold, out / "curve.png")
+    print(f"floor (zero action): tracking {floor['tracking']:.3f}; best snapshot: {best}; "
+          f"N_mf (tracking >= {args.threshold}, falls <= {args.max_falls}): {n_mf}")
+
+
+def _write_csv(path: str, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _plot(rows: list[dict], floor: dict, threshold: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [int(r["timesteps"]) / 1e6 for r in rows]
+    walls = [float(r["wall_s"] or 0) / 60 for r in rows]
+    tracking = [float(r["tracking"]) for r in rows]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, x, label in ((axes[0], steps, "physics env steps (M)"), (axes[1], walls, "training wall time (min)")):
+        ax.plot(x, tracking, "o-", label="PPO snapshot")
+        ax.axhline(floor["tracking"], color="0.5", ls="--", label="zero action (stands still)")
+        ax.axhline(threshold, color="tab:green", ls=":", label=f"target {threshold}")
+        ax.set_xlabel(label)
+    axes[0].set_ylabel("tracking score in physics")
+    axes[0].legend()
+    fig.suptitle("model-free PPO in MuJoCo physics, ANYmal D")
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Scripted controllers that drive the physics env: random actions, the trot gait, the excitation policy."""

@@ -1,0 +1,458 @@
+"""PPO in imagination (or in physics, the model-free baseline), then a physics evaluation (`rwm-gym ppo`).
+
+Stable-Baselines3's PPO with RWM's settings (`PPOConfig`): actor and critic 128-128-128 ELU, initial action std 1,
+clip 0.2, 5 epochs of 4 minibatches, lr 1e-3 adapted to a KL target of 0.01 (rsl_rl's rule), gamma 0.99, lambda 0.95,
+entropy 0.005. The policy is saved as an ordinary SB3 zip (`PPO.load(path)` needs nothing else); the config, the
+training statistics and the physics evaluation go beside it as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from tqdm import tqdm
+
+from rwm_gym.model.config import field_docs
+from rwm_gym.spec import TaskSpec
+
+WHERE = ("imagination", "physics")
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (RWM's 'policy in imagination' figures, sized for a small CPU by default)."""
+
+    num_envs: int = 512
+    """Envs stepped together; one rollout is num_envs x n_steps transitions."""
+    n_steps: int = 24
+    """Steps per env per update."""
+    net_arch: tuple[int, ...] = (128, 128, 128)
+    """Hidden layers of the actor and of the (separate) critic."""
+    activation: str = "elu"
+    """Activation of both MLPs: elu, tanh or relu."""
+    log_std_init: float = 0.0
+    """Initial log std of the Gaussian policy (0: std 1)."""
+    clip_range: float = 0.2
+    """PPO ratio clip."""
+    n_epochs: int = 5
+    """Passes over each rollout."""
+    num_minibatches: int = 4
+    """Minibatches per pass (batch size = num_envs x n_steps / num_minibatches)."""
+    learning_rate: float = 1e-3
+    """Initial Adam learning rate."""
+    target_kl: float = 0.01
+    """KL target of the adaptive learning rate: /1.5 above 2x, x1.5 below 1/2 (0: constant learning rate)."""
+    gamma: float = 0.99
+    """Discount per policy step."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    ent_coef: float = 0.005
+    """Entropy bonus weight."""
+    vf_coef: float = 1.0
+    """Value-loss weight."""
+    max_grad_norm: float = 1.0
+    """Global gradient-norm clip."""
+    critic_warmup_steps: int = 0
+    """Env steps that train only the critic before the actor moves (for a warm-started actor; 0: none)."""
+    positive_reward_only: bool = False
+    """Clip each step's reward at 0 from below (legged_gym's only_positive_rewards): a young policy whose penalties
+    outweigh its tracking reward is not paid to end its episodes early."""
+
+    def __post_init__(self) -> None:
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"PPOConfig.activation {self.activation!r} unknown (choose from {', '.join(ACTIVATIONS)})")
+        if (self.num_envs * self.n_steps) % self.num_minibatches:
+            raise ValueError(f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "
+                             f"num_minibatches ({self.num_minibatches})")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+ACTIVATIONS = ("elu", "tanh", "relu")
+
+
+def observation_scale(spec: TaskSpec) -> tuple[list[float], list[float]]:
+    """Fixed (mean, std) of every observation entry: the spec's state normalisation; commands and actions as they are.
+
+    Raw observations mix m/s, rad and rad/s of very different spread; the policy sees them on a common scale.
+    """
+    mean, std = [], []
+    groups = {g.name: g for g in spec.state}
+    for name in spec.observation.groups:
+        size = len(spec.command.names) if name == "command" else spec.action_dim if name == "last_action" else 0
+        if name in groups:
+            mean += list(groups[name].mean)
+            std += list(groups[name].std)
+        else:
+            mean += [0.0] * size
+            std += [1.0] * size
+    return mean, std
+
+
+class ScaledObservation(BaseFeaturesExtractor):
+    """(obs - mean) / std with fixed, saved constants (part of the policy, so the SB3 zip stays self-contained)."""
+
+    def __init__(self, observation_space, mean: list[float], std: list[float]):
+        import torch
+
+        super().__init__(observation_space, observation_space.shape[0])
+        self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32))
+        self.register_buffer("std", torch.tensor(std, dtype=torch.float32))
+
+    def forward(self, observations):
+        return (observations - self.mean) / self.std
+
+
+class PositiveReward(VecEnvWrapper):
+    """Rewards clipped at 0 from below (`PPOConfig.positive_reward_only`); the clipped reward is what PPO sees."""
+
+    def reset(self):
+        return self.venv.reset()
+
+    def step_wait(self):
+        obs, reward, done, infos = self.venv.step_wait()
+        return obs, np.maximum(reward, 0.0), done, infos
+
+
+def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cpu") -> PPO:
+    """A fresh SB3 PPO on `env` with `config`'s settings; observations scaled by the env's task spec."""
+    import torch
+
+    mean, std = observation_scale(env.get_attr("spec")[0])
+    if config.positive_reward_only:
+        env = PositiveReward(env)
+
+    activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
+    arch = list(config.net_arch)
+    return PPO(
+        "MlpPolicy", env, learning_rate=config.learning_rate, n_steps=config.n_steps,
+        batch_size=env.num_envs * config.n_steps // config.num_minibatches, n_epochs=config.n_epochs,
+        gamma=config.gamma, gae_lambda=config.gae_lambda, clip_range=config.clip_range, ent_coef=config.ent_coef,
+        vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
+        policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
+                       "log_std_init": config.log_std_init, "features_extractor_class": ScaledObservation,
+                       "features_extractor_kwargs": {"mean": mean, "std": std}},
+    )
+
+
+class _Progress(BaseCallback):
+    """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate, and one log row per rollout."""
+
+    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool, on_rollout=None):
+        super().__init__()
+        self.total, self.minutes, self.target_kl, self.show = total, minutes, target_kl, bar
+        self.on_rollout = on_rollout
+        self.log: list[dict] = []
+
+    def _on_training_start(self) -> None:
+        self.started = time.monotonic()
+        self.start_steps = self.num_timesteps
+        self.bar = tqdm(total=self.total, unit="step", unit_scale=True, desc="ppo", disable=not self.show,
+                        dynamic_ncols=True)
+        self.running = np.zeros(self.training_env.num_envs)
+        self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
+
+    def _on_step(self) -> bool:
+        # the env's own rewards: SB3 adds value bootstraps at time limits into its buffer after this call
+        rewards, dones = self.locals["rewards"], self.locals["dones"]
+        self.reward_sum += float(rewards.sum())
+        self.reward_count += rewards.size
+        self.running += rewards
+        self.finished += self.running[dones].tolist()
+        self.running[dones] = 0.0
+        return self.minutes is None or time.monotonic() - self.started < 60 * self.minutes
+
+    def _on_rollout_end(self) -> None:
+        kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
+        lr = self.model.lr_schedule(1.0)
+        if self.target_kl > 0 and kl is not None:
+            if kl > 2.0 * self.target_kl:
+                lr = max(1e-5, lr / 1.5)
+            elif kl < self.target_kl / 2.0:
+                lr = min(1e-2, lr * 1.5)
+            self.model.learning_rate = lr
+            self.model._setup_lr_schedule()
+        reward = self.reward_sum / max(self.reward_count, 1)
+        returns = float(np.mean(self.finished)) if self.finished else None
+        self.log.append({"timesteps": int(self.num_timesteps), "wall_s": time.monotonic() - self.started,
+                         "mean_step_reward": reward, "episodes": len(self.finished), "mean_episode_return": returns,
+                         "lr": lr, "approx_kl": None if kl is None else float(kl),
+                         "std": float(self.model.policy.log_std.detach().exp().mean())})
+        if self.on_rollout is not None:
+            self.on_rollout(self.log[-1])
+        self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
+        self.bar.update(self.num_timesteps - self.bar.n - self.start_steps)
+        self.bar.set_postfix(reward=f"{reward:.4f}", lr=f"{lr:.1e}")
+
+    def _on_training_end(self) -> None:
+        self.bar.close()
+
+
+@dataclass
+class TrainStats:
+    """What one `learn` call did."""
+
+    timesteps: int
+    """Env steps taken (imagined or physics)."""
+    wall_s: float
+    steps_per_s: float
+    log: list[dict] = field(default_factory=list)
+    """Per rollout: timesteps, wall_s, mean_step_reward (the env's), episodes ended and their mean_episode_return, lr,
+    approx_kl (of the update before the rollout), std (mean action std)."""
+
+
+def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
+          progress: bool = True, callbacks: tuple[BaseCallback, ...] = (), on_rollout=None) -> TrainStats:
+    """Continue training `model` on its env for `timesteps` more steps and/or `minutes` (whichever ends first).
+
+    `callbacks` run after the progress bar's; `on_rollout(row)` receives each rollout's log row.
+    """
+    if not timesteps and not minutes:
+        raise ValueError("set a budget: timesteps and/or minutes")
+    total = int(timesteps) if timesteps else 10**12
+    callback = _Progress(total if timesteps else None, minutes, target_kl, progress, on_rollout)
+    before, started = model.num_timesteps, time.monotonic()
+    model.learn(total, callback=CallbackList([callback, *callbacks]), reset_num_timesteps=False, progress_bar=False)
+    wall = time.monotonic() - started
+    done = model.num_timesteps - before
+    return TrainStats(done, wall, done / max(wall, 1e-9), callback.log)
+
+
+def warm_up_critic(model: PPO, timesteps: int, *, progress: bool = True) -> TrainStats:
+    """Train only the value function for `timesteps` env steps: actor frozen, learning rate constant.
+
+    A cloned actor (`rwm_gym.rl.warm_start`) beside a freshly initialised critic gets advantages that are
+    noise, and PPO's first updates would pull it off the demonstrations before anything is learnt. Fitting the clone's
+    value first makes those updates point somewhere.
+    """
+    policy = model.policy
+    actor = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
+    trainable = [p.requires_grad for p in actor]
+    for p in actor:
+        p.requires_grad_(False)
+    try:
+        return learn(model, timesteps=timesteps, target_kl=0.0, progress=progress)
+    finally:
+        for p, flag in zip(actor, trainable):
+            p.requires_grad_(flag)
+
+
+def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
+             seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
+    """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
+    if where == "imagination":
+        from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
+
+        env = ImaginedSB3VecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
+    elif where == "physics":
+        from rwm_gym.physics.batched import LocomotionSB3VecEnv
+
+        env = LocomotionSB3VecEnv(num_envs=num_envs, **(env_kwargs or {}))
+    else:
+        raise ValueError(f"--in {where!r} unknown (choose from {', '.join(WHERE)})")
+    env.seed(seed)
+    return env
+
+
+def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> int | None:
+    """Physics transitions the policy cost: its own steps in physics, or the rows of the world model's dataset."""
+    if where == "physics":
+        return trained_steps
+    if checkpoint is None:
+        try:
+            from rwm_gym.imagination.core import default_checkpoint
+
+            checkpoint = default_checkpoint()
+        except (ImportError, FileNotFoundError):
+            return None
+    from rwm_gym.model.checkpoint import read_meta
+
+    provenance = read_meta(checkpoint).provenance
+    for key in ("dataset_steps", "dataset_rows", "num_steps"):
+        if key in provenance:
+            return int(provenance[key])
+    dataset = Path(provenance.get("dataset", ""))
+    if dataset.is_file():
+        from rwm_gym.data.dataset import Dataset
+
+        return int(Dataset.load(dataset).num_steps)
+    return None
+
+
+def save_policy(model: PPO, path: str | os.PathLike) -> Path:
+    """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.zip")
+    model.save(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
+                        help="train in the imagined env (world model) or in physics (model-free baseline)")
+    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument("--episode-steps", type=int, default=None,
+                        help="time limit of an imagined episode in policy steps (default: the task's; PPO bootstraps)")
+    parser.add_argument("--timesteps", type=int, default=None, help="budget in env steps")
+    parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)")
+    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--bc-data", type=Path, nargs="+", default=None,
+                        help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
+                             "from before PPO (rwm_gym.rl.warm_start)")
+    parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
+    parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
+    parser.add_argument("--keep-best", action="store_true",
+                        help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
+                             "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
+    parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
+    parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
+    parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
+    parser.add_argument("--run-dir", type=Path, default=None,
+                        help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
+                             "experience; running the same command again continues to the same --timesteps total")
+    parser.add_argument("--save-every", type=int, default=10, help="with --run-dir: rollouts between resume points")
+    parser.add_argument("--snapshot-every", type=int, default=25, help="with --run-dir: rollouts between snapshots")
+    parser.add_argument("--record-every", type=int, default=0,
+                        help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
+                             "world-model data (0: none)")
+    docs = field_docs(PPOConfig)
+    for f in fields(PPOConfig):
+        flag = "--" + f.name.replace("_", "-")
+        if f.name == "net_arch":
+            parser.add_argument(flag, type=int, nargs="+", default=None, help=docs.get(f.name))
+        elif isinstance(f.default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=docs.get(f.name))
+        elif f.name != "activation":
+            parser.add_argument(flag, type=type(f.default), default=None, help=docs.get(f.name))
+        else:
+            parser.add_argument(flag, choices=ACTIVATIONS, default=None, help=docs.get(f.name))
+
+
+def run(args: argparse.Namespace) -> int:
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot, write_json
+
+    given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
+    if "net_arch" in given:
+        given["net_arch"] = tuple(given["net_arch"])
+    config = PPOConfig(**given)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    if args.timesteps is None and args.minutes is None:
+        args.minutes = 8.0
+    env_kwargs = {"episode_steps": args.episode_steps} if args.where == "imagination" and args.episode_steps else {}
+    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
+                   env_kwargs=env_kwargs)
+    if args.run_dir is not None:
+        return run_resumable(args, config, env)
+    model = make_ppo(env, config, seed=args.seed, device=args.device)
+    cloned = None
+    if args.bc_data:
+        from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
+
+        cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
+                                                                  seed=args.seed), progress=True)
+        print(f"behaviour cloning: {cloned.pairs} pairs from {cloned.episodes} episodes, action MSE "
+              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {cloned.val_mse_after}) "
+              f"in {cloned.wall_s:.0f} s")
+        if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+            cloned_eval = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+            print("physics evaluation of the cloned actor, before PPO:")
+            print(format_table(cloned_eval))
+            save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
+            print(f"wrote {out_bc}")
+    warmup = None
+    if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
+        warmup = warm_up_critic(model, config.critic_warmup_steps)
+        print(f"critic warm-up: {warmup.timesteps} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
+    if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
+        stats = TrainStats(0, 0.0, 0.0)
+    else:
+        stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
+    out = save_policy(model, args.out)
+    print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+          f"wrote {out}")
+    report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
+              "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
+                                                                 **cloned.to_dict(),
+                                                                 "evaluation": None if args.no_eval
+                                                                 else cloned_eval.to_dict()},
+              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
+              "physics_samples": physics_samples(args.where, args.checkpoint,
+                                                 stats.timesteps + (warmup.timesteps if warmup else 0))}
+    if not args.no_eval:
+        evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print("physics evaluation" + (" after PPO:" if cloned else ":"))
+        print(format_table(evaluation))
+        report["evaluation"] = evaluation.to_dict()
+        report["kept"] = "ppo"
+        if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
+            os.replace(out, out.with_name(out.stem + "_ppo.zip"))
+            save_policy(PPO.load(out_bc, device=args.device), out)
+            evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
+            print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
+                  f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
+                  f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
+                  f"{out.with_name(out.stem + '_ppo.zip')}")
+        print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+    print(f"report: {write_json(report, out.with_suffix('.json'))}")
+    return 0
+
+
+def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv) -> int:
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
+    from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
+
+    if not args.timesteps:
+        raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
+    run = TrainingRun(args.run_dir)
+    state = run.state()
+    if run.resumable and state.get("ppo") != json.loads(json.dumps(config.to_dict())):
+        raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
+    recorder = None
+    if args.record_every:
+        if args.where != "physics":
+            raise SystemExit("rwm-gym ppo: --record-every records physics experience; use it with --in physics")
+        from rwm_gym.rl.experience import RecordingCore
+
+        env.core = recorder = RecordingCore(env.core, run.next_experience_file(), every=args.record_every,
+                                            policy=f"ppo ({args.run_dir})", seed=args.seed)
+    if run.resumable:
+        env.seed(args.seed + 7919 * (state["restarts"] + 1))  # fresh episodes, not a replay of the first start
+        model = resume_model(run, PositiveReward(env) if config.positive_reward_only else env, args.device)
+        print(f"resuming {run.folder} at {model.num_timesteps:,} steps (restart {state['restarts'] + 1})")
+    else:
+        model = make_ppo(env, config, seed=args.seed, device=args.device)
+    checkpoint = RunCheckpoint(run, config, save_every=args.save_every, snapshot_every=args.snapshot_every,
+                               recorder=recorder, prior_wall_s=state.get("wall_s", 0.0),
+                               restarts=state.get("restarts", -1) + 1)
+    remaining = args.timesteps - model.num_timesteps
+    try:
+        if remaining > 0:
+            learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
+                  on_rollout=checkpoint.log_row)
+        checkpoint.save()
+    finally:
+        if recorder is not None:
+            recorder.close()
+    out = save_policy(model, args.out)
+    print(f"{run.folder}: {model.num_timesteps:,} steps in all; wrote {out}")
+    return 0

@@ -1,0 +1,134 @@
+"""`rwm-gym score`: a policy's tracking score in physics (or in a world model), beside the zero-action floor.
+
+    rwm-gym score --policy P.zip --out DIR [--checkpoint CKPT] [--video]
+
+Runs the policy on the fixed scoring command set (`scoring_commands`: standing, 1 m/s forward and 16 commands drawn
+from the spec's ranges with a fixed seed), `--seeds` episodes each, commands held for the whole 20 s episode, and
+does the same for a policy that sends zero actions (it stands still: the floor any walking policy must beat).
+Writes DIR/score.json (tracking, return, falls, per command; the floor beside), DIR/score.md (the table) and
+DIR/score.png; `--video` adds DIR/walk.gif and a still DIR/walk.png of the policy walking through forward, lateral,
+turn and stop commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+
+from rwm_gym.atomic import atomic_write, write_json, write_text
+from rwm_gym.rl.evaluate_policy import (Evaluation, as_policy, evaluate_policy, format_table, plot,
+                                                  scoring_commands)
+
+VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
+    ("forward 1.0 m/s", (1.0, 0.0, 0.0)), ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
+    ("turn 1.0 rad/s", (0.0, 0.0, 1.0)), ("stop", (0.0, 0.0, 0.0)),
+)
+
+
+def zero_policy(obs: np.ndarray) -> np.ndarray:
+    """The floor: zero actions hold the default pose, so the robot stands still."""
+    return np.zeros((len(obs), 12), dtype=np.float32)
+
+
+def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int = 16, checkpoint: str | None = None,
+          spec: str = "anymal_d") -> Evaluation:
+    """The tracking score of `policy` (zip path, SB3 model or callable) in physics, or in the world model `checkpoint`."""
+    commands = scoring_commands(spec, num_random)
+    core = None
+    if checkpoint is not None:
+        from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
+
+        core = ImaginedCore(checkpoint, len(commands) * seeds, options=ImaginationOptions(resample_commands=False))
+    return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
+
+
+def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, seconds_each: float = 3.0,
+                fps: int = 25, size: tuple[int, int] = (480, 320), spec: str = "anymal_d") -> tuple[Path, Path]:
+    """Render `policy` in physics through `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
+    from PIL import Image, ImageDraw
+
+    from rwm_gym.physics.locomotion import LocomotionEnv
+
+    act = as_policy(policy)
+    # the video's commands, not the task's random ones
+    env = LocomotionEnv(spec, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False)
+    try:
+        obs, _ = env.reset(seed=0)
+        core = env.core
+        every = max(1, round(1.0 / (fps * env.task_spec.policy_dt)))
+        frames, stills = [], []
+        for label, command in VIDEO_COMMANDS:
+            core.command[0] = command
+            obs = core.observe()[0]
+            for t in range(round(seconds_each / env.task_spec.policy_dt)):
+                obs, _, terminated, _, _ = env.step(act(obs[None])[0])
+                if t % every == 0:
+                    image = Image.fromarray(env.render())
+                    ImageDraw.Draw(image).text((8, 8), label, fill=(255, 255, 255))
+                    frames.append(image)
+                if terminated:
+                    break
+            stills.append(frames[-1])
+            if terminated:
+                break
+    finally:
+        env.close()
+    duration_ms = int(1000 * every * env.task_spec.policy_dt)
+    gif = atomic_write(gif, lambda tmp: frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
+                                                         duration=duration_ms, loop=0))
+    still = atomic_write(still, lambda tmp: stills[0].save(tmp, format="PNG"))
+    return gif, still
+
+
+def summary_line(name: str, e: Evaluation) -> str:
+    return (f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
+            f"|dv_xy| {e.lin_vel_error:.3f} m/s")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--policy", required=True, help="SB3 .zip policy to score ('zero': the zero-action floor)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
+    parser.add_argument("--checkpoint", default=None,
+                        help="score in this world model (the imagined env) instead of physics, same commands and seeds")
+    parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
+    parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
+    parser.add_argument("--commands", type=int, default=16,
+                        help="random commands in the set, beside standing and 1 m/s forward (default: 16)")
+    parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.policy != "zero" and not Path(args.policy).is_file():
+        raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
+    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
+        raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
+    if (args.out / "score.json").exists() and not args.overwrite:
+        raise SystemExit(f"rwm-gym score: {args.out / 'score.json'} exists (pass --overwrite to replace it)")
+    policy = zero_policy if args.policy == "zero" else as_policy(args.policy)
+    where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
+    options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint)
+    result = score(policy, **options)
+    floor = score(zero_policy, **options)
+    table = format_table(result)
+    lines = [summary_line(f"policy {args.policy} in {where}", result),
+             summary_line(f"zero-action floor in {where}", floor)]
+    print(table)
+    print("\n".join(lines))
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / "score.md", f"# Tracking score of {args.policy} in {where}\n\n```\n{table}\n```\n\n"
+               + "\n".join(f"- {line}" for line in lines) + "\n")
+    plot(result, args.out / "score.png", title=lines[0])
+    report = {"policy": str(args.policy), "where": where, "tracking": result.tracking,
+              "return": result.episode_return, "falls": result.falls, "episodes": result.episodes,
+              "floor": {"tracking": floor.tracking, "return": floor.episode_return, "falls": floor.falls},
+              "evaluation": result.to_dict(), "floor_evaluation": floor.to_dict()}
+    write_json(args.out / "score.json", report)
+    if args.video:
+        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png")
+        print(f"video: {gif}, still: {still}")
+    print(f"wrote {args.out / 'score.json'}")
+    return 0

@@ -1,0 +1,112 @@
+"""The task objects: commands, reward and termination of a task, one object shared by both simulators.
+
+The physics core (`rwm_gym.physics.locomotion.LocomotionCore`) feeds a task measured states and contacts; the imagined
+core (`rwm_gym.imagination.core.ImaginedCore`) feeds it the world model's predictions. Either way the same object
+samples the commands, runs the feet-air-time timers and composes the reward, so the two cannot drift apart.
+
+- `VelocityTrackingTask` (ANYmal D): velocity commands sampled at reset and on the spec's period, the legged reward of
+  `rwm_gym.task.reward`; terminates (on the simulator's termination signal).
+- `SuiteRewardTask` (specs with a `[dm_control]` table): no commands, never terminates (suite tasks only hit their
+  time limit), the suite's reward as a pure function of the state, foot heights and action
+  (`rwm_gym.task.suite_reward`). The dm_control physics env scores with the suite's own `get_reward` instead.
+
+Arrays are (N, ...) over the core's envs; `ids` index them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+
+from rwm_gym.spec import TaskSpec
+from rwm_gym.task.commands import resample_period, sample_commands
+from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
+
+
+class Task(Protocol):
+    command: np.ndarray
+    """(N, K) the current commands (K = 0 without commands)."""
+    terminates: bool
+    """Whether the simulator's termination signal (a fall) ends an episode."""
+
+    def reset(self, ids: np.ndarray, rngs: Sequence[np.random.Generator], commands: np.ndarray | None = None) -> None:
+        """New episodes in envs `ids`; `rngs` are their generators (one per id). `commands` (len(ids), K): hold these
+        for the episode instead of sampling."""
+
+    def reward(self, next_state: np.ndarray, state: np.ndarray, contact: np.ndarray, foot_height: np.ndarray,
+               action: np.ndarray, last_action: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Reward (N,) of the transition state --action--> next_state (SI units) and its named terms (each (N,)).
+        Called once per step: it advances the task's timers."""
+
+    def advance(self, steps: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
+        """After a step: `steps` (N,) policy steps since each env's reset."""
+
+
+class VelocityTrackingTask:
+    """Commands and legged reward of the velocity-tracking task (ANYmal D).
+
+    resample_commands: draw a new command every `command.resample_seconds` (off: one command per episode).
+    """
+
+    terminates = True
+
+    def __init__(self, spec: TaskSpec, num_envs: int, resample_commands: bool = True):
+        self.spec = spec
+        self.resample_commands = resample_commands
+        self.command = np.zeros((num_envs, len(spec.command.names)), dtype=np.float32)
+        self.held = np.zeros(num_envs, dtype=bool)
+        """(N,) envs whose command was given at reset and is not resampled."""
+        self.air_time = FeetAirTime(num_envs, spec.foot_dim)
+        self.period = resample_period(spec.command, spec.policy_dt)
+        self._feet = np.isin(spec.privileged.contact_bodies, spec.privileged.feet)
+
+    def reset(self, ids: np.ndarray, rngs: Sequence[np.random.Generator], commands: np.ndarray | None = None) -> None:
+        # drawn even when a command is given, so that holding one leaves the rest of the episode's draws unchanged
+        self.command[ids] = sample_commands(self.spec.command, list(rngs))
+        if commands is not None:
+            self.command[ids] = commands
+        self.held[ids] = commands is not None
+        self.air_time.reset(ids)
+
+    def reward(self, next_state, state, contact, foot_height, action, last_action):
+        air = self.air_time.update(contact[:, self._feet], self.spec.policy_dt, self.spec.reward.feet_air_time_target)
+        terms = reward_terms(self.spec, next_state, state, contact, self.command, action, last_action, air)
+        return total_reward(self.spec, terms), terms
+
+    def advance(self, steps: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
+        if not self.resample_commands:
+            return
+        resample = np.flatnonzero((steps % self.period == 0) & ~self.held)
+        if len(resample):
+            self.command[resample] = sample_commands(self.spec.command, [rngs[i] for i in resample])
+
+
+class SuiteRewardTask:
+    """A dm_control suite task: no commands, no termination, the suite's reward of the state."""
+
+    terminates = False
+
+    def __init__(self, spec: TaskSpec, num_envs: int):
+        from rwm_gym.task.suite_reward import SuiteReward
+
+        self.command = np.zeros((num_envs, 0), dtype=np.float32)
+        self.suite_reward = SuiteReward(spec)
+
+    def reset(self, ids: np.ndarray, rngs: Sequence[np.random.Generator], commands: np.ndarray | None = None) -> None:
+        if commands is not None and commands.shape[-1]:
+            raise ValueError("a dm_control suite task has no commands")
+
+    def reward(self, next_state, state, contact, foot_height, action, last_action):
+        return self.suite_reward(next_state, foot_height, action), {}
+
+    def advance(self, steps: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
+        pass
+
+
+def make_task(spec: TaskSpec, num_envs: int, *, resample_commands: bool = True) -> Task:
+    """The task of a spec: a dm_control suite task if it has a `[dm_control]` table, else velocity tracking."""
+    if "dm_control" in spec.extra:
+        return SuiteRewardTask(spec, num_envs)
+    return VelocityTrackingTask(spec, num_envs, resample_commands)

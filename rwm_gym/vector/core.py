@@ -1,0 +1,110 @@
+"""What every batched core shares, whichever vector API wraps it.
+
+A *core* steps N envs at once (the MuJoCo batch, the dm_control loop, the world model). It provides:
+
+- `num_envs`, `single_observation_space`, `single_action_space`, `spec` (the TaskSpec);
+- `reset(ids, seeds, commands=None) -> obs`: start new episodes in envs `ids` (array), seeding those whose seed is not
+  None, holding `commands` (len(ids), K) for the episode where given; returns their observations, (len(ids), O);
+- `step(actions) -> obs, reward, terminated, truncated, info`: every env one step, arrays with a leading N axis and
+  `info` a dict of (N, ...) arrays; the core never resets on its own.
+
+Auto-reset (both adapters): an env that terminates or truncates is reset in the same call, and the observation returned
+for it is the new episode's first; the adapters say where the last one goes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+import gymnasium as gym
+import numpy as np
+
+MAX_NUM_ENVS = 16384
+"""Most envs one core steps. Each physics env holds its own MjData and each imagined env a GRU state, so memory grows
+linearly: a bound turns a typo (num_envs=100000) into an error instead of a machine that runs out of memory."""
+
+
+class BatchedCore(Protocol):
+    num_envs: int
+    single_observation_space: gym.spaces.Box
+    single_action_space: gym.spaces.Box
+
+    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
+              commands: np.ndarray | None = None) -> np.ndarray: ...
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]: ...
+
+
+def check_num_envs(num_envs: Any) -> int:
+    """`num_envs` as an int in 1..MAX_NUM_ENVS, or a one-line ValueError."""
+    if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or not 1 <= num_envs <= MAX_NUM_ENVS:
+        raise ValueError(f"num_envs must be an integer from 1 to {MAX_NUM_ENVS}, got {num_envs!r}")
+    return int(num_envs)
+
+
+def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Validate a batch of actions: right shape, finite; clipped to [-1, 1]."""
+    actions = np.asarray(actions, dtype=np.float64)
+    if actions.shape != shape:
+        raise ValueError(f"action has shape {actions.shape}, expected {shape}")
+    if not np.all(np.isfinite(actions)):
+        raise ValueError(f"action contains NaN or inf at env(s) {np.flatnonzero(~np.isfinite(actions).all(-1)).tolist()}")
+    return np.clip(actions, -1.0, 1.0)
+
+
+def seeds_per_env(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
+    """Gymnasium's convention: an int seeds env i with seed + i; a list gives one seed per env."""
+    if seed is None:
+        return [None] * n
+    if isinstance(seed, (int, np.integer)):
+        return [int(seed) + i for i in range(n)]
+    seeds = list(seed)
+    if len(seeds) != n:
+        raise ValueError(f"got {len(seeds)} seeds for {n} envs")
+    return seeds
+
+
+RESET_OPTIONS = ("command",)
+"""Keys `reset(options=...)` understands."""
+
+
+def commands_from_options(options: dict | None, n: int, command_names: Sequence[str]) -> np.ndarray | None:
+    """The commands (n, K) that `reset(options={"command": ...})` asks to hold, or None.
+
+    A command is K numbers in the spec's order (ANYmal D: vx m/s, vy m/s, yaw rate rad/s); one command is given to every
+    env, or one row per env. It holds for the whole episode (no resampling); a vector env keeps it through its
+    auto-resets, and the next `reset()` without it samples commands again.
+    """
+    if not options:
+        return None
+    unknown = sorted(set(options) - set(RESET_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown reset option {unknown[0]!r}; known: {', '.join(RESET_OPTIONS)}")
+    if "command" not in options or options["command"] is None:
+        return None
+    k = len(command_names)
+    if k == 0:
+        raise ValueError("this task has no commands: reset(options={'command': ...}) does not apply")
+    try:
+        command = np.asarray(options["command"], dtype=np.float32)
+    except (TypeError, ValueError):
+        raise ValueError(f"command must be {k} numbers ({', '.join(command_names)}), got {options['command']!r}") from None
+    if command.shape == (k,):
+        command = np.repeat(command[None], n, axis=0)
+    if command.shape != (n, k) or not np.all(np.isfinite(command)):
+        raise ValueError(f"command must be {k} finite numbers ({', '.join(command_names)}) or one row per env "
+                         f"({n}, {k}), got shape {command.shape}")
+    return command
+
+
+def step_with_autoreset(core: BatchedCore, actions: np.ndarray, held_commands: np.ndarray | None = None):
+    """Step the core and reset finished envs (holding `held_commands` (N, K) if given); returns obs (new episodes'
+    first where reset), reward, terminated, truncated, info, done ids and their final observations."""
+    obs, reward, terminated, truncated, info = core.step(actions)
+    done = np.flatnonzero(terminated | truncated)
+    final_obs = obs[done].copy()
+    if len(done):
+        obs = obs.copy()
+        obs[done] = core.reset(done, None, None if held_commands is None else held_commands[done])
+    return obs, reward, terminated, truncated, info, done, final_obs

@@ -1,0 +1,59 @@
+"""A batched core as a Gymnasium `VectorEnv` (Gymnasium 1.x conventions).
+
+Auto-reset is `AutoresetMode.SAME_STEP`: the observation returned for a finished env is its new episode's first; the
+last one is `info["final_obs"]` (N, O), valid where the mask `info["_final_obs"]` is True. Every info key `k` comes with
+its mask `info["_k"]`, as `SyncVectorEnv` gives them. `reset(options={"command": (vx, vy, yaw)})` holds a command (see
+`rwm_gym.vector.core.commands_from_options`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from rwm_gym.vector.core import BatchedCore, commands_from_options, seeds_per_env, step_with_autoreset
+
+
+class CoreGymVectorEnv(gym.vector.VectorEnv):
+    """Gymnasium `VectorEnv` over a batched core (same-step auto-reset)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(self, core: BatchedCore):
+        self.core = core
+        self.num_envs = core.num_envs
+        self.single_observation_space = core.single_observation_space
+        self.single_action_space = core.single_action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._held_commands: np.ndarray | None = None
+        self._needs_reset = True
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
+        super().reset(seed=seed if isinstance(seed, (int, type(None))) else None)
+        self._held_commands = commands_from_options(options, self.num_envs, self.core.spec.command.names)
+        obs = self.core.reset(np.arange(self.num_envs), seeds_per_env(seed, self.num_envs), self._held_commands)
+        self._needs_reset = False
+        return obs, {}
+
+    def step(self, actions):
+        if self._needs_reset:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        obs, reward, terminated, truncated, info, done, final_obs = step_with_autoreset(
+            self.core, actions, self._held_commands)
+        every = np.ones(self.num_envs, dtype=bool)
+        infos: dict[str, Any] = {}
+        for key, value in info.items():
+            infos[key], infos[f"_{key}"] = value, every
+        if len(done):
+            mask = np.zeros(self.num_envs, dtype=bool)
+            mask[done] = True
+            full = np.zeros_like(obs)
+            full[done] = final_obs
+            infos["final_obs"], infos["_final_obs"] = full, mask
+        return obs, reward, terminated, truncated, infos

@@ -1,0 +1,67 @@
+"""The tracking score: what it rewards, what it refuses, and that a walking policy beats standing still."""
+
+import numpy as np
+import pytest
+
+from rwm_gym.rl.evaluate_policy import evaluate_policy, scoring_commands, tracking_terms
+from rwm_gym.rl.score import zero_policy
+from rwm_gym.spec import load_spec
+
+SPEC = load_spec("anymal_d")
+
+
+def _state(v_xy, wz):
+    state = np.zeros((1, SPEC.state_dim))
+    s = SPEC.state_slices
+    state[0, s["base_lin_vel"].start:s["base_lin_vel"].start + 2] = v_xy
+    state[0, s["base_ang_vel"].start + 2] = wz
+    return state
+
+
+def test_perfect_tracking_scores_one_and_errors_cost_as_the_reward_terms_do():
+    command = np.array([[0.7, -0.2, 0.4]])
+    assert tracking_terms(SPEC, _state([0.7, -0.2], 0.4), command)[0] == pytest.approx(1.0)
+    # standing under that command: exp(-0.53/0.25) for xy (weight 1), exp(-0.16/0.25) for yaw (weight 0.5)
+    expected = (np.exp(-0.53 / 0.25) + 0.5 * np.exp(-0.16 / 0.25)) / 1.5
+    assert tracking_terms(SPEC, _state([0.0, 0.0], 0.0), command)[0] == pytest.approx(expected)
+
+
+def test_scoring_commands_are_fixed_and_inside_the_spec_ranges():
+    commands = np.array(scoring_commands())
+    assert len(commands) == 18
+    np.testing.assert_array_equal(commands[:2], [[0, 0, 0], [1, 0, 0]])  # standing, 1 m/s forward
+    assert (commands >= np.array(SPEC.command.low)).all() and (commands <= np.array(SPEC.command.high)).all()
+    np.testing.assert_array_equal(commands, scoring_commands())
+
+
+def test_a_trotting_policy_scores_above_standing_still_on_forward_commands():
+    from rwm_gym.policies.gait import GaitPolicy
+
+    gait = GaitPolicy(SPEC, 2)
+    gait.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+    commands = [(0.8, 0.0, 0.0), (0.5, 0.0, 0.0)]
+    walking = evaluate_policy(gait.act, commands=commands, seeds=[0], steps=150)
+    standing = evaluate_policy(zero_policy, commands=commands, seeds=[0], steps=150)
+    assert walking.falls == 0 and standing.falls == 0
+    assert walking.tracking > standing.tracking + 0.1
+
+
+def test_a_fall_scores_zero_for_the_rest_of_the_episode():
+    def flail(obs):  # full-range alternating targets topple the robot
+        return np.where(np.arange(12) % 2 == 0, 1.0, -1.0)[None].repeat(len(obs), 0) * np.sign(obs[:, :1] + 1e-3)
+
+    long = evaluate_policy(flail, commands=[(0.0, 0.0, 0.0)], seeds=[0], steps=400)
+    if long.falls == 0:
+        pytest.skip("this action pattern did not topple the robot")
+    short = evaluate_policy(flail, commands=[(0.0, 0.0, 0.0)], seeds=[0], steps=200)
+    # every step after the fall adds 0 while the episode length grows: the mean drops
+    assert long.tracking < short.tracking
+
+
+def test_score_command_refuses_bad_input_in_one_line(tmp_path, capsys):
+    from rwm_gym.cli import main
+
+    with pytest.raises(SystemExit, match="no such file"):
+        main(["score", "--policy", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "out")])
+    with pytest.raises(SystemExit, match="must be >= 1"):
+        main(["score", "--policy", "zero", "--seeds", "0", "--out", str(tmp_path / "out")])
