@@ -117,22 +117,30 @@ def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig,
     index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
     member = None
     if ensemble_size > 1:
-        member = distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world)
-        member = member.to(starts.device)
-    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+        member = _upload(distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world),
+                         starts.device)
+    window, real_rows = windows.gather_clipped(starts[_upload(index, starts.device)], config.segment_rows)
     return SegmentBatch(window, member, real_rows)
 
 
+def _upload(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A CPU tensor on `device`; to a GPU through pinned memory without waiting for it (a plain copy would)."""
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
 def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
-               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+               batch: SegmentBatch, grad_clip: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
-    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as detached
+    0-dim tensors on the device (no host copy per step)."""
     loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(params, grad_clip)
     optimizer.step()
-    return float(loss.detach()), parts
+    return loss.detach(), parts
 
 
 class _DeferredInterrupt:
@@ -273,10 +281,10 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 stats["iterations"], stats["wall_s"] = iteration, clock() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
-                    running = float(distributed.mean_over_ranks(torch.tensor(running, dtype=torch.float64,
-                                                                             device=device), world))
+                    running = float(distributed.mean_over_ranks(torch.as_tensor(running, device=device).double(),
+                                                                world))  # the logged loss: the ranks' mean
                     stats["train_loss"] = running / max(count, 1)
-                    stats["train_parts"] = {k: v / max(count, 1) for k, v in parts_sum.items()}
+                    stats["train_parts"] = {k: float(v) / max(count, 1) for k, v in parts_sum.items()}
                     stats["val_error"] = (validation_error(model, windows, val_starts, config) if world.is_main
                                           else None)
                     stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
@@ -290,7 +298,9 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                     save()
                     distributed.reseed_rank(config.seed, world, iteration)
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                if stats["log"] and stats["log"][-1]["iteration"] == iteration:  # not per step: a host copy
+                    bar.set_postfix(loss=f"{stats['train_loss']:.4f}",
+                                    val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
                 if interrupt.requested:
