@@ -55,8 +55,12 @@ class Options:
     """Branches per segment of the new arm."""
     new_stride: int = 1
     """Rows between branch starts of the new arm."""
+    new_lr: float = 1e-3
+    """Learning rate of the new arm (the old arm keeps the paper's 1e-3)."""
+    curve_arms: str = "old,new"
+    """Comma-separated arms whose validation curves are trained."""
     threads: str = "1,2"
-    """Comma-separated torch thread counts for the throughput part."""
+    """Comma-separated torch thread counts for the throughput part (empty: skip it)."""
     rounds: int = 3
     """Alternating old/new rounds per thread count."""
     steps: int = 4
@@ -73,7 +77,8 @@ def arms(options: Options) -> dict[str, TrainConfig]:
                        checkpoint_every=10 ** 9)
     return {"old": base,
             "new": TrainConfig(**{**base.to_dict(), "batch_size": options.new_batch,
-                                  "branches": options.new_branches, "branch_stride": options.new_stride})}
+                                  "branches": options.new_branches, "branch_stride": options.new_stride,
+                                  "lr": options.new_lr})}
 
 
 def throughput(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: Options, threads: int) -> dict:
@@ -109,6 +114,8 @@ def curves(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: O
     model_config = model_config_for(kind, data.spec(), ensemble_size=options.ensemble_size)
     out = {}
     for name, config in configs.items():
+        if name not in options.curve_arms.split(","):
+            continue
         result = train(data, model_config, config, progress=False, clock=time.process_time)
         out[name] = {"log": result.stats["log"], "iterations": result.stats["iterations"],
                      "windows": result.stats["iterations"] * config.batch_size,
@@ -127,9 +134,10 @@ def markdown(results: dict, options: Options) -> str:
     lines = [f"Data {options.data}; old: batch {configs['old']['batch_size']} windows of H + F rows; new: batch "
              f"{configs['new']['batch_size']} = {configs['new']['batch_size'] // configs['new']['branches']} segments x "
              f"{configs['new']['branches']} branches (stride {configs['new']['branch_stride']}). Load average at the "
-             f"start {results['loadavg_start']}, at the end {results['loadavg_end']}.", "",
-             "| model | threads | old windows/s | new windows/s | new/old (median of rounds) | per round |",
-             "|---|---|---|---|---|---|"]
+             f"start {results['loadavg_start']}, at the end {results['loadavg_end']}; new lr {configs['new']['lr']}."]
+    if results["throughput"]:
+        lines += ["", "| model | threads | old windows/s | new windows/s | new/old (median of rounds) | per round |",
+                  "|---|---|---|---|---|---|"]
     for row in results["throughput"]:
         rate = row["windows_per_s"]
         lines.append(f"| {row['kind']} | {row['threads']} | {rate['old']:.0f} | {rate['new']:.0f} | "
@@ -178,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"options": asdict(options), "arms": {k: v.to_dict() for k, v in configs.items()},
                      "loadavg_start": Path("/proc/loadavg").read_text().split()[0], "throughput": []}
     for kind in options.kinds.split(","):
-        for threads in (int(t) for t in options.threads.split(",")):
+        for threads in (int(t) for t in options.threads.split(",") if t):
             row = throughput(data, kind, configs, options, threads)
             results["throughput"].append({"kind": kind, "threads": threads, **row})
             print(kind, threads, {k: round(v) for k, v in row["windows_per_s"].items()},

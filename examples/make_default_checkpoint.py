@@ -1,11 +1,15 @@
 """Reproduce the ANYmal D world model shipped in `assets/checkpoints/` (the default of `RWM-AnymalD-v0`).
 
     python examples/make_default_checkpoint.py [--out assets/checkpoints] [--iterations 2000] [--threads 1]
+    python examples/make_default_checkpoint.py --data ppo_final.h5 ppo_mid.h5 --branches 32 --batch-size 256 \
+        --unit-gravity --joint-limits --minutes 90 --iterations 0
 
 Collects physics data with fixed seeds (correlated random actions, and the scripted trot with two levels of action
-noise under random commands), trains RWM (2 x 256 GRUs, 5 ensemble heads, history 32, forecast 8) for a fixed number
-of iterations, and writes the checkpoint plus a small reset dataset (real 32-step histories the imagined env starts
-from). The command line is stored in the checkpoint's `extras["made_by"]`.
+noise under random commands), adds any `--data` files of the same task (e.g. a PPO run's experience), trains RWM
+(2 x 256 GRUs, 5 ensemble heads, history 32, forecast 8) for a fixed number of iterations and/or minutes (resumable:
+run the same command again), and writes the checkpoint plus a small reset dataset (real 32-step histories the
+imagined env starts from, drawn from the scripted trot and the `--data` files). The command line is stored in the
+checkpoint's `extras["made_by"]`.
 """
 
 from __future__ import annotations
@@ -36,33 +40,55 @@ DATA_MIX = (
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("assets/checkpoints"))
-    parser.add_argument("--data", type=Path, default=Path("data/default_checkpoint"))
-    parser.add_argument("--iterations", type=int, default=2000)
+    parser.add_argument("--data-dir", type=Path, default=Path("data/default_checkpoint"),
+                        help="folder for the collected data and the merged mix")
+    parser.add_argument("--data", type=Path, nargs="*", default=[],
+                        help="more datasets of the task to train on (merged into the mix)")
+    parser.add_argument("--iterations", type=int, default=2000, help="gradient steps (0: only --minutes)")
+    parser.add_argument("--minutes", type=float, default=0.0, help="wall-clock budget (0: only --iterations)")
+    parser.add_argument("--batch-size", type=int, default=64, help="forecast windows per gradient step")
+    parser.add_argument("--branches", type=int, default=1, help="forecast branches per segment (1: paper windows)")
+    parser.add_argument("--ensemble", type=int, default=5, help="state heads")
+    parser.add_argument("--unit-gravity", action="store_true", help="ModelConfig.unit_gravity")
+    parser.add_argument("--joint-limits", action="store_true", help="ModelConfig.joint_limits")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core CPU)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
+    for extra in args.data:
+        if not extra.exists():
+            parser.error(f"--data {extra}: no such file")
     torch.set_num_threads(args.threads)
 
     parts = []
     for policy, episodes, steps, noise, seed in DATA_MIX:
-        path = args.data / f"{policy}_noise{noise}_seed{seed}.h5"
+        path = args.data_dir / f"{policy}_noise{noise}_seed{seed}.h5"
         if not path.exists():
             collect("AnymalD-MuJoCo-v0", policy, episodes, path, seed=seed, num_envs=16, action_noise=noise,
                     max_steps=steps)
         parts.append(path)
-    data = args.data / "anymal_d_mix.h5"
+    name = "anymal_d_mix" + "".join(f"+{extra.stem}" for extra in args.data)
+    data = args.data_dir / f"{name}.h5"
     if not data.exists():
-        merge_datasets(parts, data)
+        merge_datasets(parts + list(args.data), data)
 
     spec = load_spec("anymal_d")
     checkpoint = args.out / "anymal_d_rwm.safetensors"
-    config = TrainConfig(iterations=args.iterations, device=args.device, seed=0, val_every=250, checkpoint_every=250)
-    train(data, model_config_for("rwm", spec, ensemble_size=5), config, checkpoint, resume=True)
+    config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
+                         branches=args.branches, device=args.device, seed=0, val_every=250, checkpoint_every=250)
+    model_config = model_config_for("rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity,
+                                    joint_limits=args.joint_limits)
+    train(data, model_config, config, checkpoint, resume=True)
 
-    reset = make_reset_data(parts[1], args.out / "anymal_d_reset.h5", episodes=24, rows=160, seed=0)
+    reset_sources = [parts[1], *args.data]
+    if len(reset_sources) > 1:
+        if not (args.data_dir / f"reset_sources_{name}.h5").exists():
+            merge_datasets(reset_sources, args.data_dir / f"reset_sources_{name}.h5")
+        reset_sources = [args.data_dir / f"reset_sources_{name}.h5"]
+    reset = make_reset_data(reset_sources[0], args.out / "anymal_d_reset.h5", episodes=24, rows=160, seed=0)
     model, meta = load_checkpoint(checkpoint)
     extras = {"reset_data": reset.name, "made_by": "python examples/make_default_checkpoint.py " + " ".join(sys.argv[1:]),
-              "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in DATA_MIX]}
+              "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in DATA_MIX]
+              + [{"file": str(extra)} for extra in args.data]}
     save_checkpoint(checkpoint, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
                     stats=meta.stats, extras=extras)
     print(f"wrote {checkpoint} and {reset}")

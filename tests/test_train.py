@@ -117,10 +117,12 @@ def test_tiny_rwm_beats_no_change(data: Path) -> None:
 def test_cli_teacher_forcing_and_bad_data(data: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "tf.safetensors"
     code = main(["train", "--data", str(data), "--model", "mlp", "--out", str(out), "--teacher-forcing",
-                 "--iterations", "3", "--history", "4", "--hidden-size", "8", "--head-hidden", "8", "--quiet"])
+                 "--iterations", "3", "--history", "4", "--hidden-size", "8", "--head-hidden", "8", "--quiet",
+                 "--branches", "2", "--batch-size", "8", "--unit-gravity", "--no-joint-limits"])
     assert code == 0
     meta = read_meta(out)
     assert meta.train_config.forecast == 1 and meta.train_config.iterations == 3
+    assert meta.train_config.branches == 2 and meta.model_config.unit_gravity and not meta.model_config.joint_limits
     assert meta.model_config.hidden_size == 8 and meta.stats["iterations"] == 3
     assert main(["train", "--data", str(tmp_path / "missing.h5"), "--out", str(out)]) == 2
     assert "missing.h5" in capsys.readouterr().err

@@ -174,3 +174,41 @@ def test_training_loss_feeds_back_reparameterised_samples(monkeypatch) -> None:
     loss.backward()
     assert set(parts) == {"state", "contact", "foot", "termination", "bound"}
     assert all(p.grad is not None for p in model.parameters())
+
+
+def test_state_constraints_keep_gravity_unit_and_joints_in_their_ranges(tmp_path) -> None:
+    """Switched on, the predicted mean's projected gravity is a unit vector in physical units and its joint positions
+    sit inside the MJCF ranges, for inputs far outside the data; the clamp lets gradients through; a checkpoint
+    carries the switches and the limits; off, nothing changes."""
+    from rwm_gym.model.checkpoint import load_checkpoint, save_checkpoint
+    from rwm_gym.model.constraints import joint_ranges
+    from rwm_gym.model.normalization import Normalizer
+
+    normalizer, slices = Normalizer.from_spec(SPEC), SPEC.state_slices
+    low, high = (torch.as_tensor(r - torch.tensor(SPEC.actuator.default_pose).numpy(), dtype=torch.float32)
+                 for r in joint_ranges(SPEC))
+    assert torch.isfinite(low).all() and (low < 0).all() and (high > 0).all()
+    with pytest.raises(ValueError, match="spec"):
+        build_model(model_config_for("rwm", SPEC, **TINY, unit_gravity=True))
+    torch.manual_seed(0)
+    model = build_model(model_config_for("rwm", SPEC, **TINY, unit_gravity=True, joint_limits=True), SPEC)
+    state = (torch.randn(64, S) * 50).requires_grad_()
+    _, p = model.step(model.initial_hidden(64), state, torch.rand(64, A) * 2 - 1)
+    physical = normalizer.denormalize_state(p.state_mean)
+    torch.testing.assert_close(physical[:, slices["projected_gravity"]].norm(dim=-1), torch.ones(64))
+    joints = physical[:, slices["joint_pos"]]
+    assert (joints >= low - 1e-4).all() and (joints <= high + 1e-4).all()
+    assert ((joints - low).abs() < 1e-4).any() or ((joints - high).abs() < 1e-4).any()  # some were clamped
+    p.state_mean[:, slices["joint_pos"]].sum().backward()
+    assert (state.grad[:, slices["joint_pos"]] != 0).all()  # straight through: the residual's input still learns
+    path = save_checkpoint(tmp_path / "m.safetensors", model, SPEC)
+    loaded, meta = load_checkpoint(path)
+    assert meta.model_config.unit_gravity and meta.model_config.joint_limits
+    _, again = loaded.step(loaded.initial_hidden(64), state.detach(), torch.zeros(64, A))
+    _, before = model.step(model.initial_hidden(64), state.detach(), torch.zeros(64, A))
+    torch.testing.assert_close(again.state_mean, before.state_mean)
+    torch.manual_seed(0)
+    plain = build_model(model_config_for("rwm", SPEC, **TINY), SPEC)
+    _, free = plain.step(plain.initial_hidden(64), state.detach(), torch.zeros(64, A))
+    gravity = normalizer.denormalize_state(free.state_mean)[:, slices["projected_gravity"]].norm(dim=-1)
+    assert not torch.allclose(gravity, torch.ones(64))

@@ -1,7 +1,8 @@
 """Dual-autoregressive training of a world model on a dataset (`rwm-gym train`).
 
 Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
-whole episode); the loss is in `losses.py`. Adam with gradient clipping and a learning-rate schedule over the budget
+whole episode); with `branches` > 1 each drawn window start begins a longer segment that carries that many forecasts
+(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a learning-rate schedule over the budget
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.

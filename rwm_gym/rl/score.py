@@ -33,10 +33,30 @@ def zero_policy(obs: np.ndarray) -> np.ndarray:
     return np.zeros((len(obs), 12), dtype=np.float32)
 
 
+SCRIPTED = ("zero", "gait")
+"""Policies `--policy` also takes by name: the zero-action floor and the scripted trot (`rwm_gym.policies.gait`)."""
+
+
+def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
+    """A policy function for `num_envs` envs from a name in `SCRIPTED`, a zip path, an SB3 model or a callable."""
+    if isinstance(policy, str) and policy == "zero":
+        return zero_policy
+    if isinstance(policy, str) and policy == "gait":
+        from rwm_gym.policies.gait import GaitPolicy
+        from rwm_gym.spec import load_spec
+
+        gait = GaitPolicy(load_spec(spec), num_envs)
+        gait.reset(np.arange(num_envs), [np.random.default_rng(k) for k in range(num_envs)])
+        return gait.act
+    return as_policy(policy)
+
+
 def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int = 16, checkpoint: str | None = None,
           spec: str = "anymal_d") -> Evaluation:
-    """The tracking score of `policy` (zip path, SB3 model or callable) in physics, or in the world model `checkpoint`."""
+    """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
+    world model `checkpoint`."""
     commands = scoring_commands(spec, num_random)
+    policy = resolve_policy(policy, len(commands) * seeds, spec)
     core = None
     if checkpoint is not None:
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
@@ -46,13 +66,13 @@ def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int =
 
 
 def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, seconds_each: float = 3.0,
-                fps: int = 25, size: tuple[int, int] = (480, 320), spec: str = "anymal_d") -> tuple[Path, Path]:
+                fps: int = 15, size: tuple[int, int] = (400, 272), spec: str = "anymal_d") -> tuple[Path, Path]:
     """Render `policy` in physics through `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
     from PIL import Image, ImageDraw
 
     from rwm_gym.physics.locomotion import LocomotionEnv
 
-    act = as_policy(policy)
+    act = resolve_policy(policy, 1, spec)
     # the video's commands, not the task's random ones
     env = LocomotionEnv(spec, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False)
     try:
@@ -89,7 +109,8 @@ def summary_line(name: str, e: Evaluation) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--policy", required=True, help="SB3 .zip policy to score ('zero': the zero-action floor)")
+    parser.add_argument("--policy", required=True,
+                        help="SB3 .zip policy to score, or 'zero' (the zero-action floor) or 'gait' (the scripted trot)")
     parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
     parser.add_argument("--checkpoint", default=None,
                         help="score in this world model (the imagined env) instead of physics, same commands and seeds")
@@ -102,17 +123,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.policy != "zero" and not Path(args.policy).is_file():
+    if args.policy not in SCRIPTED and not Path(args.policy).is_file():
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
     if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
         raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
     if (args.out / "score.json").exists() and not args.overwrite:
         raise SystemExit(f"rwm-gym score: {args.out / 'score.json'} exists (pass --overwrite to replace it)")
-    policy = zero_policy if args.policy == "zero" else as_policy(args.policy)
+    policy = args.policy if args.policy in SCRIPTED else as_policy(args.policy)
     where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
     options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint)
     result = score(policy, **options)
-    floor = score(zero_policy, **options)
+    floor = result if args.policy == "zero" else score(zero_policy, **options)
     table = format_table(result)
     lines = [summary_line(f"policy {args.policy} in {where}", result),
              summary_line(f"zero-action floor in {where}", floor)]
