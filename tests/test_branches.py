@@ -15,17 +15,11 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.losses import segment_loss, window_loss
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC, one_thread, write_linear_dataset
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=2, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim
 LEARNED = [k for k in MODEL_KINDS if k != "no_change"]
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    with one_thread():
-        yield
 
 
 def tiny(kind: str, ensemble: int = 1):
