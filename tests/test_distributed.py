@@ -19,7 +19,7 @@ from safetensors import safe_open
 from rwm_gym.cli import main
 from rwm_gym.model import distributed
 from rwm_gym.model.checkpoint import read_meta
-from synthetic_dynamics import one_thread, write_linear_dataset
+from synthetic_dynamics import write_linear_dataset
 
 TESTS = Path(__file__).parent
 RUN = ["--teacher-forcing", "--loss", "nll", "--schedule", "constant", "--history", "6", "--batch-size", "8",
@@ -41,8 +41,7 @@ def train_cli(data: Path, out: Path, iterations: int, *, ranks: int, resume: boo
     args = ["train", "--data", str(data), "--out", str(out), "--iterations", str(iterations), *RUN, *(extra or [])]
     args += ["--resume"] if resume else []
     if ranks == 1:
-        with one_thread():
-            assert main(args) == 0
+        assert main(args) == 0  # one torch thread: conftest's autouse fixture
     else:
         torchrun("-m", "rwm_gym.cli", *args, nproc=ranks)
 
