@@ -107,7 +107,7 @@ def test_killed_collection_keeps_finished_episodes(tmp_path):
     (["--episodes", "-3"], "episodes must be a positive integer"),
     (["--max-steps", "-5"], "max_steps must be a positive"),
     (["--num-envs", "0"], "num_envs must be an integer"),
-    (["--env", "Nope-v0"], "unknown physics env 'Nope-v0'"),
+    (["--env", "Nope-v0"], "unknown env 'Nope-v0'"),
     (["--policy", "nope"], "unknown policy 'nope'"),
     (["--physics", "{bad"], "--physics is not valid JSON"),
 ])
