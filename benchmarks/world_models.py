@@ -16,6 +16,7 @@ Writes `results.json`, `results.md` and `error_vs_horizon_<source>.png` (+ data 
 
     python benchmarks/world_models.py --device cuda                    # full budget
     python benchmarks/world_models.py --gait-episodes 4 --random-episodes 2 --episode-steps 200 --iterations 20
+    torchrun --nproc_per_node=2 benchmarks/world_models.py ...   # data-parallel training (rank 0 collects and scores)
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ from tqdm import tqdm
 
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
-from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.model import TrainConfig, distributed, model_config_for
 from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint, plot_running_mean
 from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.train import train
@@ -72,6 +73,8 @@ class Options:
     """Cap on the length of collected episodes (policy steps)."""
     num_envs: int = 32
     """Simulations stepped together while collecting."""
+    workers: int = 1
+    """Collection processes (each with num_envs simulations); the data is the same whatever the number."""
     iterations: int = 5000
     """Gradient steps per model (the same for every model)."""
     minutes: float = 0.0
@@ -105,10 +108,10 @@ def dataset(options: Options) -> Path:
     else:
         parts = [collect(options.env, "gait", options.gait_episodes, out / "data" / "gait.h5", seed=options.seed,
                          num_envs=options.num_envs, action_noise=options.action_noise,
-                         max_steps=options.episode_steps, overwrite=True),
+                         max_steps=options.episode_steps, overwrite=True, workers=options.workers),
                  collect(options.env, "random", options.random_episodes, out / "data" / "random.h5",
                          seed=options.seed + 1, num_envs=options.num_envs, max_steps=options.episode_steps,
-                         overwrite=True)]
+                         overwrite=True, workers=options.workers)]
     if len(parts) == 1:
         return parts[0]
     merge_datasets(parts, merged)
@@ -155,9 +158,13 @@ def main(argv: list[str] | None = None) -> int:
     add_dataclass_options(parser, Options)
     options = Options(**vars(parser.parse_args(argv)))
     torch.set_num_threads(options.threads)
+    world = distributed.init_world(options.device)  # under torchrun: rank 0 collects, writes and scores
     out = Path(options.out)
-    (out / "data").mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
+    if world.is_main:
+        (out / "data").mkdir(parents=True, exist_ok=True)
+        dataset(options)
+    distributed.barrier(world)
     data = Dataset.load(dataset(options))
     spec = data.spec()
     evaluation = EvalConfig(max_windows=options.max_windows, seed=options.seed, device=options.device,
@@ -165,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     sources = options.test_data.split(",") if options.test_data else [str(data.path)]
     clock = time.process_time if options.cpu_clock else time.monotonic
     results: dict[str, dict] = {}
-    for name in tqdm(options.models.split(","), desc="models", unit="model"):
+    for name in tqdm(options.models.split(","), desc="models", unit="model", disable=not world.is_main):
         kind, train_fields, model_fields = MODELS[name]
         config = TrainConfig(**{**dict(batch_size=options.batch_size, branches=options.branches,
                                        iterations=options.iterations, minutes=options.minutes, seed=options.seed,
@@ -175,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         trained = train(data, model_config_for(kind, spec, **model_fields), config, out / f"{name}.safetensors",
                         progress=False, overwrite=True, clock=clock)
         wall = time.perf_counter() - tic
+        if not world.is_main:  # under torchrun every rank trains, rank 0 scores and writes
+            continue
         results[name] = {}
         for source in sources:
             tic = time.perf_counter()
@@ -184,8 +193,11 @@ def main(argv: list[str] | None = None) -> int:
                 "eval_wall_s": time.perf_counter() - tic, "iterations": trained.stats["iterations"],
                 "val_error": trained.stats["val_error"], "log": trained.stats["log"]}
         print(name, {s: [round(r["error"][h], 3) for h in r["error"]] for s, r in results[name].items()}, flush=True)
+    distributed.close_world()
+    if not world.is_main:
+        return 0
     wall = time.perf_counter() - started
-    write_json(out / "results.json", {"options": asdict(options), "rows": data.num_steps,
+    write_json(out / "results.json", {"options": asdict(options), "world_size": world.size, "rows": data.num_steps,
                                       "episodes": data.num_episodes, "wall_s": wall,
                                       "loadavg_end": Path("/proc/loadavg").read_text().split()[0], "models": results})
     table = "\n".join(markdown(results, Path(s).stem, data, options, wall) for s in sources)

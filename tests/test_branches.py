@@ -39,7 +39,8 @@ def loss_and_grads(fn, model, window, config, member):
     model.zero_grad()
     loss, parts = fn(model, window, config, 2.0, member)
     loss.backward()
-    return loss.detach(), parts, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    return loss.detach(), {k: float(v) for k, v in parts.items()}, grads
 
 
 @pytest.mark.parametrize("kind", LEARNED)

@@ -7,6 +7,7 @@ import math
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -49,3 +50,15 @@ def test_quickstart_runs_clone_warmup_ppo_and_both_evaluations(tmp_path):
     assert report["behaviour_cloning"]["evaluation"]["episodes"] == 18 and report["evaluation"]["episodes"] == 18
     assert report["critic_warmup"]["timesteps"] == 64 and report["train"]["timesteps"] == 64
     assert out.is_file() and out.with_name("policy_bc.zip").is_file()
+
+
+@pytest.mark.slow  # five commands, each a fresh process (about a minute on idle cores)
+def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
+    """The GPU pipeline's logic on tiny budgets with --device cpu (no GPU on CI; the script is written for one)."""
+    example = load_example("gpu_pipeline")
+    timings = example.main(["--device", "cpu", "--out", str(tmp_path), "--episodes", "4", "--episode-steps", "80",
+                            "--num-envs", "2", "--workers", "2", "--iterations", "4", "--batch-size", "8",
+                            "--ppo-timesteps", "256", "--ppo-envs", "8", "--no-ppo-eval"])
+    assert list(timings["stages"]) == ["collect_gait", "collect_random", "train", "evaluate", "ppo"]
+    assert (tmp_path / "rwm.safetensors").is_file() and (tmp_path / "policy.zip").is_file()
+    assert (tmp_path / "timings.json").is_file()

@@ -1,15 +1,20 @@
 """Collect episodes from a physics env into an HDF5 dataset (`rwm-gym collect`).
 
-Runs N envs of a batched physics core side by side; episode k always starts from seed `seed + k` (env and policy), so
-its content does not depend on N. Each finished episode is appended and flushed at once: an interrupted collection
-keeps every finished episode.
+Runs N envs of a batched physics core side by side, in one process or in `--workers` processes; episode k always
+starts from seed `seed + k` (env and policy), so its content does not depend on N or on the workers. One writer appends
+the episodes in episode order and flushes each at once: an interrupted collection keeps every episode written (those
+that finished before an earlier one are held back until it is written).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import inspect
+import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -66,12 +71,16 @@ def collect(
     env_kwargs: Mapping[str, object] | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> Path:
     """Collect `episodes` episodes of `env_id` (a physics id, a spec path or a TaskSpec) driven by `policy` into `out`;
     returns the path.
 
     max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
-    (e.g. `xml_file`, `physics`).
+    (e.g. `xml_file`, `physics`). workers > 1 runs that many processes, each a batched core of `num_envs` envs, on
+    blocks of episode numbers (`policy` must then be a name or a path); this process writes every episode in episode
+    order, so the file is the same, byte for byte, whatever `workers` and `num_envs` (tested for the random and gait
+    policies; an SB3 policy acts on a batch, whose float rounding may depend on its size).
     """
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
@@ -79,46 +88,92 @@ def collect(
         raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
     if Path(out).exists() and not overwrite:
         raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
-    num_envs = min(check_num_envs(num_envs), episodes)
-    core = make_physics_core(env_id, num_envs, **dict(env_kwargs or {}))
-    spec = core.spec
-    pol = make_policy(policy, spec, num_envs, action_noise=action_noise) if isinstance(policy, str) else policy
-    horizon = min(max_steps or spec.episode_steps, spec.episode_steps)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and not isinstance(policy, str):
+        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
+    job = _Job(env_id, policy, seed, min(check_num_envs(num_envs), episodes), action_noise, max_steps,
+               dict(env_kwargs or {}), threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers))
+    runner = _Runner(job)
+    spec, core, horizon = runner.core.spec, runner.core, runner.horizon
     info = DatasetInfo(
-        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core), policy=pol.name,
+        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core),
+        policy=runner.policy.name,
         seed=seed, physics_params=core.params.to_dict(),
         metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    buffers: list[list[dict] | None] = [None] * num_envs
-    next_episode = 0
-
-    def start(ids: np.ndarray) -> np.ndarray:
-        nonlocal next_episode
-        ids = ids[: max(0, episodes - next_episode)]
-        if len(ids) == 0:
-            return ids
-        numbers = np.arange(next_episode, next_episode + len(ids))
-        next_episode += len(ids)
-        core.reset(ids, [seed + int(k) for k in numbers])
-        pol.reset(ids, [np.random.default_rng([seed + int(k), 1]) for k in numbers])
-        record = core.record()
-        for i in ids:
-            buffers[i] = [{f: record[f][i] for f in ROW_FIELDS}]
-        return ids
-
     with DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
         total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
     ) as bar:
+        if workers == 1:
+            finished = runner.run(range(episodes))
+        else:
+            del runner, core  # the workers build their own
+            finished = _fan_out(job, episodes, workers)
+        for episode in _in_order(finished):
+            writer.append_episode(episode)
+            bar.update(1)
+    return out
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What a collection process needs to turn episode numbers into episodes (picklable, for workers)."""
+
+    env_id: str
+    policy: str | Policy
+    seed: int
+    num_envs: int
+    action_noise: float
+    max_steps: int | None
+    env_kwargs: dict
+    threads: int = 0
+    """mujoco.batch threads of the core (0: all CPUs), where the core takes the option."""
+
+
+class _Runner:
+    """One batched physics core and its policy; episode k always starts from seed `seed + k`."""
+
+    def __init__(self, job: _Job) -> None:
+        kwargs = dict(job.env_kwargs)
+        if job.threads and _takes_nthread(job.env_id):
+            kwargs["nthread"] = job.threads
+        self.job, self.core = job, make_physics_core(job.env_id, job.num_envs, **kwargs)
+        spec = self.core.spec
+        self.policy = (make_policy(job.policy, spec, job.num_envs, action_noise=job.action_noise)
+                       if isinstance(job.policy, str) else job.policy)
+        self.horizon = min(job.max_steps or spec.episode_steps, spec.episode_steps)
+
+    def run(self, numbers: range) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+        """(k, episode) for every episode number k in `numbers`, in the order they finish."""
+        core, pol, seed, num_envs, spec = self.core, self.policy, self.job.seed, self.job.num_envs, self.core.spec
+        buffers: list[list[dict] | None] = [None] * num_envs
+        episode_of = np.zeros(num_envs, dtype=np.int64)
+        todo = iter(numbers)
+
+        def start(ids: np.ndarray) -> np.ndarray:
+            ks = [k for _, k in zip(ids, todo)]
+            ids = ids[:len(ks)]
+            if len(ids) == 0:
+                return ids
+            core.reset(ids, [seed + k for k in ks])
+            pol.reset(ids, [np.random.default_rng([seed + k, 1]) for k in ks])
+            episode_of[ids] = ks
+            record = core.record()
+            for i in ids:
+                buffers[i] = [{f: record[f][i] for f in ROW_FIELDS}]
+            return ids
+
         obs = np.zeros((num_envs, spec.observation_dim), dtype=np.float32)
         ids = start(np.arange(num_envs))
         obs[ids] = core.observe(ids)
-        while writer.num_episodes < episodes:
+        while any(b is not None for b in buffers):
             actions = pol.act(obs)
             obs, reward, terminated, truncated, _ = core.step(actions)
             record = core.record()
-            truncated = truncated | (core.steps >= horizon) & ~terminated
+            truncated = truncated | (core.steps >= self.horizon) & ~terminated
             finished = []
             for i in range(num_envs):
                 rows = buffers[i]
@@ -128,15 +183,51 @@ def collect(
                 rows.append({f: record[f][i] for f in ROW_FIELDS})
                 if terminated[i] or truncated[i]:
                     rows[-1]["truncated"] = bool(truncated[i])
-                    writer.append_episode(stack_episode(rows, spec.action_dim))
-                    bar.update(1)
+                    yield int(episode_of[i]), stack_episode(rows, spec.action_dim)
                     buffers[i] = None
                     finished.append(i)
             if finished:
                 restarted = start(np.asarray(finished))
                 if len(restarted):
                     obs[restarted] = core.observe(restarted)
-    return out
+
+
+def _takes_nthread(env_id: str | Path | TaskSpec) -> bool:
+    from rwm_gym.registration import _entry, resolve_spec
+
+    return "nthread" in inspect.signature(_entry(resolve_spec(env_id), "core_entry_point")).parameters
+
+
+def _in_order(finished: Iterable[tuple[int, dict]]) -> Iterator[dict]:
+    """Episodes in episode-number order (0, 1, ...), holding back those that finish before an earlier one."""
+    waiting, next_k = {}, 0
+    for k, episode in finished:
+        waiting[k] = episode
+        while next_k in waiting:
+            yield waiting.pop(next_k)
+            next_k += 1
+
+
+_WORKER: _Runner | None = None
+
+
+def _worker_block(job: _Job, numbers: range) -> list[tuple[int, dict]]:
+    """A worker process's share: the episodes of one block of numbers (the core is built once per process)."""
+    global _WORKER
+    if _WORKER is None or _WORKER.job != job:
+        _WORKER = _Runner(job)
+    return list(_WORKER.run(numbers))
+
+
+def _fan_out(job: _Job, episodes: int, workers: int) -> Iterator[tuple[int, dict]]:
+    """Episodes from `workers` processes; blocks of numbers go to whichever worker is free and come back in order."""
+    import multiprocessing
+
+    block = max(1, min(4 * job.num_envs, -(-episodes // workers)))  # a few waves of envs, all workers busy
+    blocks = [range(a, min(a + block, episodes)) for a in range(0, episodes, block)]
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        for result in pool.imap(functools.partial(_worker_block, job), blocks):
+            yield from result
 
 
 def stack_episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
@@ -170,6 +261,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
     parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")
     parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (default 8)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="processes collecting side by side, each with --num-envs simulations (default 1); the "
+                             "file is the same whatever the number")
     parser.add_argument("--action-noise", type=float, default=0.0, help="Gaussian std added to the policy's actions")
     parser.add_argument("--max-steps", type=int, default=None, help="cap on episode length (policy steps)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
@@ -195,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError(f"--physics is not valid JSON ({err})") from None
         path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
                        action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                       overwrite=args.overwrite)
+                       overwrite=args.overwrite, workers=args.workers)
     except KeyboardInterrupt:
         print(f"rwm-gym collect: interrupted; the finished episodes are in {args.out} (complete=false)", file=sys.stderr)
         return 130

@@ -262,6 +262,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fine-tuning budget (gradient steps) of the world model after correction")
     parser.add_argument("--regenerate-episodes", type=int, default=WorldModelGapConfig.episodes,
                         help="episodes regenerated from the corrected simulator for the fine-tuning")
+    parser.add_argument("--device", default=WorldModelGapConfig.device,
+                        help="torch device of the world-model rows (fine-tuning and evaluation): cpu or cuda")
 
 
 def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
@@ -276,7 +278,8 @@ def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes)
+    wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes,
+                                    device=args.device)
     try:
         sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
         noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()

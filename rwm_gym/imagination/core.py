@@ -175,16 +175,21 @@ class ImaginedCore:
         if self.options.sample_predictions:
             noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
             mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
-        next_norm = mean.cpu().numpy().astype(np.float64)
+        # The task runs in numpy (the Gymnasium contract): one device-to-host copy per step carries every output.
+        parts = (mean, (p.contact_logits > 0).to(mean.dtype), p.foot_height.to(mean.dtype),
+                 p.termination_logit.to(mean.dtype).unsqueeze(1), p.uncertainty.to(mean.dtype).unsqueeze(1))
+        host = torch.cat(parts, dim=1).cpu().numpy()
+        host_parts = np.split(host, np.cumsum([t.shape[1] for t in parts])[:-1], axis=1)
+        next_norm = host_parts[0].astype(np.float64)
         diverged = ~np.isfinite(next_norm).all(axis=1) | (np.abs(next_norm) > self.options.divergence_bound).any(axis=1)
         next_state = self.norm.denormalize_state(next_norm).astype(np.float32)
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
-        contact = (p.contact_logits > 0).cpu().numpy()
-        foot_height = self.norm.denormalize_foot_height(p.foot_height.cpu().numpy()).astype(np.float32)
+        contact = host_parts[1] > 0.5
+        foot_height = self.norm.denormalize_foot_height(host_parts[2]).astype(np.float32)
         terminated = diverged.copy()
         if self.task.terminates:
-            terminated |= p.termination_logit.cpu().numpy() > 0
-        self.uncertainty = np.nan_to_num(p.uncertainty.cpu().numpy().astype(np.float64), nan=0.0)
+            terminated |= host_parts[3][:, 0] > 0
+        self.uncertainty = np.nan_to_num(host_parts[4][:, 0].astype(np.float64), nan=0.0)
 
         reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)
         ended = getattr(self.task, "ended", None)  # a termination function's verdict on this step (FunctionTask)

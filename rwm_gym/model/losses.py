@@ -68,13 +68,16 @@ def forecast_loss(model: WorldModel, prediction: Prediction, target: Window, war
     return sum(parts.values()), parts
 
 
-def _floats(parts: dict[str, torch.Tensor]) -> dict[str, float]:
-    return {name: float(value.detach()) for name, value in parts.items()}
+def _detached(parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The parts for logging, left on the device: reading them (`float`) is a host copy the trainer makes only when it
+    logs, never per step (on cuda each copy waits for the GPU)."""
+    return {name: value.detach() for name, value in parts.items()}
 
 
 def window_loss(model: WorldModel, batch: Window, config: TrainConfig, pos_weight: float,
-                member: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss of a batch of windows of H + F rows (the paper's recipe), and its parts (floats, for logging).
+                member: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Total loss of a batch of windows of H + F rows (the paper's recipe), and its parts (detached 0-dim tensors,
+    for logging).
 
     member: (B,) ensemble head per window (each head learns from its own windows), None for a single head.
     """
@@ -83,12 +86,12 @@ def window_loss(model: WorldModel, batch: Window, config: TrainConfig, pos_weigh
                                       member=member)
     target = batch.map(lambda t: t[:, h:h + f])
     total, parts = forecast_loss(model, prediction, target, warm, batch.states[:, 1:h], config, pos_weight)
-    return total, _floats(parts)
+    return total, _detached(parts)
 
 
 def segment_loss(model: WorldModel, batch: Window, config: TrainConfig, pos_weight: float,
                  member: torch.Tensor | None = None,
-                 real_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                 real_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Total loss of a batch of segments of `config.segment_rows` rows, each carrying `config.branches` forecasts,
     and its parts. member: (B,) ensemble head per segment, None for a single head. real_rows: (B,) long rows of each
     segment inside its episode (`WindowData.gather_clipped`); forecasts predicting a row past it do not count. With
@@ -105,7 +108,7 @@ def segment_loss(model: WorldModel, batch: Window, config: TrainConfig, pos_weig
             warm_weight = (targets.unsqueeze(0) < real_rows.unsqueeze(1)).to(batch.states.dtype)
     total, parts = forecast_loss(model, prediction, target, warm, warm_target, config, pos_weight, weight,
                                  warm_weight)
-    return total, _floats(parts)
+    return total, _detached(parts)
 
 
 class SegmentLoss(nn.Module):
@@ -117,7 +120,7 @@ class SegmentLoss(nn.Module):
         self.model, self.config, self.pos_weight = model, config, pos_weight
 
     def forward(self, batch: Window, member: torch.Tensor | None = None,
-                real_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                real_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return segment_loss(self.model, batch, self.config, self.pos_weight, member, real_rows)
 
 

@@ -6,6 +6,9 @@ whole episode); with `branches` > 1 each drawn window start begins a longer segm
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
+
+Under `torchrun --nproc_per_node=N` the same call trains data-parallel (DDP): the global batch is split over the
+ranks and only rank 0 validates and writes; see `rwm_gym.model.distributed` for what each rank does and its seeds.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from tqdm import tqdm
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
+from rwm_gym.model import distributed
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.losses import SegmentLoss, relative_error
@@ -106,26 +110,40 @@ class SegmentBatch:
     """(B,) long rows of each segment inside its episode."""
 
 
-def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int) -> SegmentBatch:
+def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int,
+                 generator: torch.Generator | None = None,
+                 world: distributed.World = distributed.SINGLE) -> SegmentBatch:
     """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
-    head per segment. Consumes torch's global RNG (a seeded run draws the same batches)."""
+    head per segment, from `generator` (torch's global RNG if None; a seeded run draws the same batches). In a
+    distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`)."""
     segments = config.batch_size // config.branches
-    index = torch.randint(len(starts), (segments,))
-    member = torch.randint(ensemble_size, (segments,)).to(starts.device) if ensemble_size > 1 else None
-    window, real_rows = windows.gather_clipped(starts[index.to(starts.device)], config.segment_rows)
+    index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
+    member = None
+    if ensemble_size > 1:
+        member = _upload(distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world),
+                         starts.device)
+    window, real_rows = windows.gather_clipped(starts[_upload(index, starts.device)], config.segment_rows)
     return SegmentBatch(window, member, real_rows)
 
 
+def _upload(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A CPU tensor on `device`; to a GPU through pinned memory without waiting for it (a plain copy would)."""
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
 def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
-               batch: SegmentBatch, grad_clip: float) -> tuple[float, dict[str, float]]:
+               batch: SegmentBatch, grad_clip: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
-    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as floats."""
+    data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as detached
+    0-dim tensors on the device (no host copy per step)."""
     loss, parts = loss_fn(batch.window, batch.member, batch.real_rows)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(params, grad_clip)
     optimizer.step()
-    return float(loss.detach()), parts
+    return loss.detach(), parts
 
 
 class _DeferredInterrupt:
@@ -150,8 +168,9 @@ class _DeferredInterrupt:
             signal.signal(signal.SIGINT, self._previous)
 
 
-def _rng_state(device: torch.device) -> dict[str, torch.Tensor]:
-    state = {"rng_torch": torch.get_rng_state()}
+def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torch.Tensor]:
+    """Rank 0's RNG states: the shared window sampler and its own noise stream (other ranks derive theirs)."""
+    state = {"rng_torch": torch.get_rng_state(), "rng_sampler": sampler.get_state()}
     if device.type == "cuda":
         state["rng_cuda"] = torch.cuda.get_rng_state(device)
     return state
@@ -184,12 +203,15 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
         raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
                          f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
-    device, out = torch.device(config.device), out and Path(out)
+    world = distributed.init_world(config.device)
+    distributed.check_batch(config.batch_size // config.branches, world)
+    device, out = distributed.rank_device(config.device, world), out and Path(out)
     normalizer = Normalizer.from_spec(spec)
     train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
     rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
     with _deterministic(device):
         torch.manual_seed(config.seed)
+        sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
         model = build_model(model_config, spec).to(device).train()
         windows = WindowData(dataset, normalizer, device)
         train_starts = windows.window_starts(train_ids, rows)
@@ -214,36 +236,50 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
             model.load_state_dict(loaded.state_dict())
             provenance["init_checkpoint"] = str(init)
         if resume and out is not None and out.exists():
-            stats = _resume(out, model, optimizer, config, provenance["sha256"], device)
+            stats = _resume(out, model, optimizer, config, provenance["sha256"], device, sampler)
+        distributed.reseed_rank(config.seed, world, stats["iterations"])
+        compute_loss = distributed.data_parallel(loss_fn, world)
 
         def save() -> Path | None:
-            if out is None:
+            if out is None or not world.is_main:
                 return None
             return save_checkpoint(out, model, spec, normalizer=normalizer, train_config=config, provenance=provenance,
-                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device))
+                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device, sampler))
 
-        writer = _tensorboard(tensorboard)
+        writer = _tensorboard(tensorboard) if world.is_main else None
         started = clock() - stats["wall_s"]
         iteration, running, parts_sum = stats["iterations"], 0.0, {}
+
+        agreed = {"iteration": -1, "seconds": 0.0}
+
+        def elapsed() -> float:
+            """Seconds into the run. Ranks must share the learning rate and the stop: with several, the slowest
+            rank's time, agreed every 10 iterations."""
+            if not world.distributed:
+                return clock() - started
+            if iteration % 10 == 0 and agreed["iteration"] != iteration:
+                agreed["iteration"] = iteration
+                agreed["seconds"] = distributed.max_over_ranks(clock() - started, device, world)
+            return agreed["seconds"]
 
         def finished() -> bool:
             if optimizer is None:
                 return True
             by_steps = config.iterations > 0 and iteration >= config.iterations
-            return by_steps or (config.minutes > 0 and clock() - started >= 60 * config.minutes)
+            return by_steps or (config.minutes > 0 and elapsed() >= 60 * config.minutes)
 
-        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress,
+        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress or not world.is_main,
                    desc=f"train {model_config.kind}", dynamic_ncols=True)
         interrupt = _DeferredInterrupt()
         try:
             while not finished():
                 by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
-                by_time = (clock() - started) / (60 * config.minutes) if config.minutes > 0 else 0.0
+                by_time = elapsed() / (60 * config.minutes) if config.minutes > 0 else 0.0
                 lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
                 for group in optimizer.param_groups:
                     group["lr"] = lr
-                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size)
-                loss, parts = train_step(loss_fn, optimizer, params, batch, config.grad_clip)
+                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size, sampler, world)
+                loss, parts = train_step(compute_loss, optimizer, params, batch, config.grad_clip)
                 iteration += 1
                 running += loss
                 for name, value in parts.items():
@@ -251,9 +287,12 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 stats["iterations"], stats["wall_s"] = iteration, clock() - started
                 if iteration % config.val_every == 0 or finished():
                     count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
+                    running = float(distributed.mean_over_ranks(torch.as_tensor(running, device=device).double(),
+                                                                world))  # the logged loss: the ranks' mean
                     stats["train_loss"] = running / max(count, 1)
-                    stats["train_parts"] = {k: v / max(count, 1) for k, v in parts_sum.items()}
-                    stats["val_error"] = validation_error(model, windows, val_starts, config)
+                    stats["train_parts"] = {k: float(v) / max(count, 1) for k, v in parts_sum.items()}
+                    stats["val_error"] = (validation_error(model, windows, val_starts, config) if world.is_main
+                                          else None)
                     stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
                                          "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
                     running, parts_sum = 0.0, {}
@@ -263,15 +302,22 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                                 writer.add_scalar(name, value, iteration)
                 if iteration % config.checkpoint_every == 0:
                     save()
+                    distributed.reseed_rank(config.seed, world, iteration)
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4f}", val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                if stats["log"] and stats["log"][-1]["iteration"] == iteration:  # not per step: a host copy
+                    bar.set_postfix(loss=f"{stats['train_loss']:.4f}",
+                                    val=stats["val_error"] and f"{stats['val_error']:.4f}")
                 if callback is not None:
                     callback(iteration, stats)
                 if interrupt.requested:
                     raise KeyboardInterrupt
         except KeyboardInterrupt:
             stats["wall_s"] = clock() - started
-            if save() is not None:
+            if world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
+                if world.is_main and out is not None:
+                    print(f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
+                          f"({out}, every {config.checkpoint_every} iterations) with --resume", file=sys.stderr)
+            elif save() is not None:
                 print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
             raise
         finally:
@@ -279,14 +325,14 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
             bar.close()
             if writer is not None:
                 writer.close()
-        if optimizer is None:
+        if optimizer is None and world.is_main:
             stats["val_error"] = validation_error(model, windows, val_starts, config)
         stats["wall_s"] = clock() - started
         return TrainResult(model, stats, save())
 
 
 def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | None, config: TrainConfig,
-            sha256: str, device: torch.device) -> dict:
+            sha256: str, device: torch.device, sampler: torch.Generator) -> dict:
     """Load the state of an interrupted run into model and optimizer; return its stats."""
     meta, state = load_training_state(path, model, optimizer)
     if meta.train_config is None:
@@ -298,6 +344,10 @@ def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | No
     if "rng_torch" not in state:
         raise CheckpointError(f"{path}: no RNG state saved, cannot resume")
     torch.set_rng_state(state["rng_torch"])
+    if "rng_sampler" in state:
+        sampler.set_state(state["rng_sampler"])
+    else:  # a checkpoint from before the shared sampler: its draws continue from a stream derived from the iteration
+        sampler.manual_seed(distributed.rank_seed(config.seed, 0, int(meta.stats.get("iterations", 0))))
     if device.type == "cuda" and "rng_cuda" in state:
         torch.cuda.set_rng_state(state["rng_cuda"], device)
     return meta.stats
@@ -356,8 +406,12 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     except (ValueError, FileNotFoundError, FileExistsError, DatasetError, CheckpointError) as err:
-        print(f"rwm-gym train: {err}", file=sys.stderr)
+        if distributed.current_world().is_main:
+            print(f"rwm-gym train: {err}", file=sys.stderr)
         return 2
-    summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
-    print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
+    finally:
+        distributed.close_world()
+    if result.path is not None:  # rank 0
+        summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
+        print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
     return 0
