@@ -24,7 +24,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from rwm_gym.atomic import write_text
+from rwm_gym.atomic import write_json, write_text
 from rwm_gym.physics.batched import LocomotionSB3VecEnv
 from rwm_gym.physics.locomotion import LocomotionEnv
 from rwm_gym.resources import assets_dir
@@ -116,9 +116,8 @@ def main() -> None:
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_text(args.out.with_suffix(".md"), table + "\n")
-    write_text(args.out.with_suffix(".json"), __import__("json").dumps(
-        {"rows": rows, "standing": {k: [{"stands": ok, "base_dz_m": dz} for ok, dz in v] for k, v in stand.items()}},
-        indent=2))
+    write_json(args.out.with_suffix(".json"), {
+        "rows": rows, "standing": {k: [{"stands": ok, "base_dz_m": dz} for ok, dz in v] for k, v in stand.items()}})
 
 
 if __name__ == "__main__":

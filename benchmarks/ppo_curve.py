@@ -54,7 +54,8 @@ def main() -> None:
         rows.append({"timesteps": steps, "wall_s": wall_at(run, steps), "tracking": round(e.tracking, 4),
                      "return": round(e.episode_return, 3), "falls": e.falls, "episodes": e.episodes,
                      "loadavg": os.getloadavg()[0]})
-        print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}",
+        print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, "
+              f"falls {e.falls}/{e.episodes}",
               flush=True)
         atomic_write(table, lambda tmp: _write_csv(tmp, rows))
     rows.sort(key=lambda r: int(r["timesteps"]))

@@ -9,7 +9,6 @@ import sys
 import time
 
 import numpy as np
-import pytest
 
 from rwm_gym.data.dataset import Dataset
 

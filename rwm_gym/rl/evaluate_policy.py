@@ -177,13 +177,15 @@ def evaluate_policy(
         m = np.array([pc == c for pc, _ in pairs])
         achieved = np.stack([means["vx"][m], means["vy"][m], means["wz"][m]], axis=1)
         rows.append(CommandResult(
-            command=c, tracking=float(tracking[m].mean() / steps), episode_return=float(returns[m].mean()), lin_vel_error=float(means["lin_err"][m].mean()),
+            command=c, tracking=float(tracking[m].mean() / steps), episode_return=float(returns[m].mean()),
+            lin_vel_error=float(means["lin_err"][m].mean()),
             yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~alive[m]).sum()),
             distance=float(sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
             achieved_std=tuple(float(x) for x in achieved.std(0)),
         ))
     return Evaluation(
-        commands=rows, tracking=float(tracking.mean() / steps), episode_return=float(np.mean([r.episode_return for r in rows])),
+        commands=rows, tracking=float(tracking.mean() / steps),
+        episode_return=float(np.mean([r.episode_return for r in rows])),
         lin_vel_error=float(np.mean([r.lin_vel_error for r in rows])),
         yaw_rate_error=float(np.mean([r.yaw_rate_error for r in rows])), falls=int(sum(r.falls for r in rows)),
         episodes=n, steps=steps, wall_s=time.monotonic() - started,
@@ -192,18 +194,18 @@ def evaluate_policy(
 
 def format_table(evaluation: Evaluation) -> str:
     """A plain-text table: one row per command and a mean row."""
-    head = f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | {'|dwz| rad/s':>11} | " \
-           f"{'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}"
+    head = f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | " \
+           f"{'|dwz| rad/s':>11} | {'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}"
     lines = [head, "-" * len(head)]
     for r in evaluation.commands:
         cmd = "(" + ", ".join(f"{x:+.1f}" for x in r.command) + ")"
         got = "(" + ", ".join(f"{x:+.2f}" for x in r.achieved) + ")"
-        lines.append(f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | {r.yaw_rate_error:11.3f} | "
-                     f"{r.falls:5d} | {r.distance:7.2f} | {got:>22}")
+        lines.append(f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | "
+                     f"{r.yaw_rate_error:11.3f} | {r.falls:5d} | {r.distance:7.2f} | {got:>22}")
     e = evaluation
     lines.append("-" * len(head))
-    lines.append(f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | {e.yaw_rate_error:11.3f} | "
-                 f"{e.falls:5d} | {'':>7} | {e.episodes} episodes x {e.steps} steps")
+    lines.append(f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | "
+                 f"{e.yaw_rate_error:11.3f} | {e.falls:5d} | {'':>7} | {e.episodes} episodes x {e.steps} steps")
     return "\n".join(lines)
 
 
@@ -226,7 +228,8 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
         ax.set_title(name)
         ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
     axes[0].legend()
-    fig.suptitle(title or f"physics evaluation: tracking {evaluation.tracking:.3f}, return {evaluation.episode_return:.2f}, "
+    fig.suptitle(title or f"physics evaluation: tracking {evaluation.tracking:.3f}, "
+                          f"return {evaluation.episode_return:.2f}, "
                           f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
     fig.tight_layout()
     path = atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))

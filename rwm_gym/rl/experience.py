@@ -78,7 +78,7 @@ class RecordingCore:
 
 
 def _episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:
-    """The dataset arrays of buffered rows, with the PPO iteration of each row (the last row repeats its predecessor's)."""
+    """Dataset arrays of buffered rows with each row's PPO iteration (the last row repeats its predecessor's)."""
     iterations = [r.get("ppo_iteration", rows[-2]["ppo_iteration"] if len(rows) > 1 else 0) for r in rows]
     episode = stack_episode(rows, action_dim)
     episode["ppo_iteration"] = np.asarray(iterations, dtype=np.int32)

@@ -110,7 +110,7 @@ def summary_line(name: str, e: Evaluation) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", required=True,
-                        help="SB3 .zip policy to score, or 'zero' (the zero-action floor) or 'gait' (the scripted trot)")
+                        help="SB3 .zip policy to score, or 'zero' (zero-action floor) or 'gait' (the scripted trot)")
     parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
     parser.add_argument("--checkpoint", default=None,
                         help="score in this world model (the imagined env) instead of physics, same commands and seeds")

@@ -65,7 +65,7 @@ class RunCheckpoint(BaseCallback):
         self.run, self.config, self.recorder = run, config, recorder
         self.save_every, self.snapshot_every = save_every, snapshot_every
         self.prior_wall_s, self.restarts = prior_wall_s, restarts
-        self.started = time.monotonic()
+        self.started = time.monotonic()  # reset when training starts; set here so log_row works before that
 
     def _rollout_index(self) -> int:
         return self.num_timesteps // (self.training_env.num_envs * self.model.n_steps)
