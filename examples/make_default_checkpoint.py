@@ -48,6 +48,7 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=0.0, help="wall-clock budget (0: only --iterations)")
     parser.add_argument("--batch-size", type=int, default=64, help="forecast windows per gradient step")
     parser.add_argument("--branches", type=int, default=1, help="forecast branches per segment (1: paper windows)")
+    parser.add_argument("--branch-stride", type=int, default=1, help="rows between the starts of a segment's branches")
     parser.add_argument("--ensemble", type=int, default=5, help="state heads")
     parser.add_argument("--unit-gravity", action="store_true", help="ModelConfig.unit_gravity")
     parser.add_argument("--joint-limits", action="store_true", help="ModelConfig.joint_limits")
@@ -74,7 +75,7 @@ def main() -> None:
     spec = load_spec("anymal_d")
     checkpoint = args.out / "anymal_d_rwm.safetensors"
     config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
-                         branches=args.branches, device=args.device, seed=0, val_every=250, checkpoint_every=250)
+                         branches=args.branches, branch_stride=args.branch_stride, device=args.device, seed=0, val_every=250, checkpoint_every=250)
     model_config = model_config_for("rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity,
                                     joint_limits=args.joint_limits)
     train(data, model_config, config, checkpoint, resume=True)

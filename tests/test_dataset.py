@@ -147,9 +147,25 @@ def test_merge(tmp_path: Path, path: Path, episodes) -> None:
     assert [s["episodes"] for s in ds.info.metadata["merged_from"]] == [6, 2]
     np.testing.assert_array_equal(ds.episode(7)["state"], more[1]["state"])
     bad = tmp_path / "bad.h5"
-    write_dataset(bad, make_info(spec_text=SPEC.text + "\n# edited\n"), more)
+    write_dataset(bad, make_info(spec_text=SPEC.text.replace("episode_steps = 1000", "episode_steps = 999")), more)
     with pytest.raises(DatasetError, match="bad.h5.*'spec'"):
         merge_datasets([path, bad], tmp_path / "never.h5")
+
+
+def test_merge_ignores_file_pointers_and_drops_fields_not_in_every_file(tmp_path: Path, path: Path) -> None:
+    """A PPO run's experience (extra `ppo_iteration`, a spec without `default_checkpoint`) merges with collector data."""
+    assert "default_checkpoint" in SPEC.text
+    rng = np.random.default_rng(2)
+    ppo = [{**make_episode(rng, 3, extra=True), "ppo_iteration": np.full(4, 7, np.int32)} for _ in range(2)]
+    older_spec = "\n".join(line for line in SPEC.text.splitlines() if not line.startswith("default_checkpoint"))
+    other = tmp_path / "ppo.h5"
+    write_dataset(other, make_info(spec_text=older_spec), ppo)
+    out = tmp_path / "merged.h5"
+    merge_datasets([path, other], out)
+    merged = Dataset.load(out)
+    assert merged.num_episodes == 8 and "ppo_iteration" not in merged.fields
+    assert merged.info.metadata["dropped_fields"] == ["ppo_iteration"]
+    np.testing.assert_array_equal(merged.episode(7)["action"], ppo[1]["action"])
 
 
 def _edit(path: Path, edit) -> None:

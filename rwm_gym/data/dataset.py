@@ -33,6 +33,7 @@ import hashlib
 import json
 import os
 import secrets
+import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -330,31 +331,46 @@ def write_dataset(path: str | os.PathLike, info: DatasetInfo, episodes: Iterable
     atomic_write(path, write)
 
 
-def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
-    """Concatenate the episodes of datasets with the same spec text, columns and fields into `out` (atomic).
+def _spec_without_pointers(text: str) -> dict:
+    """A spec's TOML minus the entries that say where files live, not what the data is (e.g. default_checkpoint)."""
+    parsed = tomllib.loads(text)
+    parsed.get("task", {}).pop("default_checkpoint", None)
+    return parsed
 
-    The merged file keeps the first file's env_id, dt and seed; policy and physics_params are kept when all files
-    agree (else policies are joined and physics_params left empty); metadata["merged_from"] records each source.
+
+def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
+    """Concatenate the episodes of datasets of the same task (spec, columns, dt) into `out` (atomic).
+
+    Specs must agree except for file pointers (`default_checkpoint`). Only the fields every file has are kept (a PPO
+    run's `ppo_iteration` is dropped when merged with collector data); metadata["dropped_fields"] names them. The
+    merged file keeps the first file's env_id, dt and seed; policy and physics_params are kept when all files agree
+    (else policies are joined and physics_params left empty); metadata["merged_from"] records each source.
     """
     if not paths:
         raise ValueError("merge_datasets: no input files")
     sets = [Dataset.load(p) for p in paths]
     first = sets[0]
+    first_spec = _spec_without_pointers(first.info.spec_text)
     for d in sets[1:]:
-        for what, a, b in (("attribute 'spec'", d.info.spec_text, first.info.spec_text),
+        for what, a, b in (("attribute 'spec'", _spec_without_pointers(d.info.spec_text), first_spec),
                            ("attribute 'columns'", d.info.columns, first.info.columns),
-                           ("attribute 'dt'", d.info.dt, first.info.dt),
-                           ("fields", sorted(d.fields), sorted(first.fields))):
+                           ("attribute 'dt'", d.info.dt, first.info.dt)):
             if a != b:
                 raise DatasetError(f"{d.path}: {what}: differs from {first.path}, cannot merge")
-        for name in d.fields:
+    common = [name for name in first.fields if all(name in d.fields for d in sets)]
+    dropped = sorted({name for d in sets for name in d.fields} - set(common))
+    for d in sets[1:]:
+        for name in common:
             if d[name].shape[1:] != first[name].shape[1:] or d[name].dtype != first[name].dtype:
                 raise DatasetError(f"{d.path}: field '{name}': shape or dtype differs from {first.path}, cannot merge")
     policies = list(dict.fromkeys(d.info.policy for d in sets))
     same_physics = all(d.info.physics_params == first.info.physics_params for d in sets)
     sources = [{"path": str(d.path), "sha256": d.file_hash(), "policy": d.info.policy, "seed": d.info.seed,
                 "episodes": d.num_episodes, "physics_params": d.info.physics_params} for d in sets]
+    metadata = {**first.info.metadata, "merged_from": sources}
+    if dropped:
+        metadata["dropped_fields"] = dropped
     info = replace(first.info, policy=" + ".join(policies),
-                   physics_params=first.info.physics_params if same_physics else {},
-                   metadata={**first.info.metadata, "merged_from": sources})
-    write_dataset(out, info, (d.episode(i) for d in sets for i in range(d.num_episodes)))
+                   physics_params=first.info.physics_params if same_physics else {}, metadata=metadata)
+    episodes = ({name: d.episode(i)[name] for name in common} for d in sets for i in range(d.num_episodes))
+    write_dataset(out, info, episodes)
