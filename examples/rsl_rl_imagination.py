@@ -32,6 +32,8 @@ class Args:
     """Imagined envs stepped together (RWM: 4096)."""
     iterations: int = 50
     """PPO iterations; each collects num_envs x 24 imagined steps."""
+    reset_data: str | None = None
+    """Dataset of real histories imagined episodes restart from (None: the checkpoint's)."""
     episode_steps: int | None = None
     """Time limit of an imagined episode in policy steps (None: the task's 20 s)."""
     uncertainty_penalty: float = 0.0
@@ -71,7 +73,8 @@ def main(args: Args) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     env = ImaginedRslRlVecEnv(args.checkpoint, args.num_envs, seed=args.seed, device=args.device,
-                              episode_steps=args.episode_steps, uncertainty_penalty=args.uncertainty_penalty)
+                              reset_data=args.reset_data, episode_steps=args.episode_steps,
+                              uncertainty_penalty=args.uncertainty_penalty)
     train_cfg = rsl_rl_train_cfg(PPOConfig(num_envs=args.num_envs), run_name="rwm_imagination")
     runner = OnPolicyRunner(env, train_cfg, log_dir=args.log_dir, device=args.device)
     runner.learn(num_learning_iterations=args.iterations)
@@ -92,7 +95,8 @@ def main(args: Args) -> dict:
 
 def parse_args(argv: list[str] | None = None) -> Args:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    add_dataclass_options(parser, Args, types={"checkpoint": str, "episode_steps": int, "score_steps": int})
+    add_dataclass_options(parser, Args, types={"checkpoint": str, "reset_data": str, "episode_steps": int,
+                                               "score_steps": int})
     return Args(**vars(parser.parse_args(argv)))
 
 
