@@ -66,3 +66,14 @@ def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
     assert list(timings["stages"]) == ["collect_gait", "collect_random", "train", "evaluate", "ppo"]
     assert (tmp_path / "rwm.safetensors").is_file() and (tmp_path / "policy.zip").is_file()
     assert (tmp_path / "timings.json").is_file()
+
+
+def test_rsl_rl_example_trains_in_imagination_and_scores_in_physics(tmp_path):
+    pytest.importorskip("rsl_rl", reason="rsl-rl-lib is not installed (pip install '.[rsl-rl]')")
+    example = load_example("rsl_rl_imagination")
+    args = example.parse_args(["--num-envs", "4", "--iterations", "1", "--episode-steps", "10", "--log-dir",
+                               str(tmp_path), "--score-steps", "10"])
+    result = example.main(args)
+    assert result["imagined_steps"] == 4 * 24
+    assert 0.0 <= result["tracking"] <= 1.0 and 0.0 <= result["floor"] <= 1.0
+    assert (tmp_path / "model_0.pt").is_file()  # the runner's own checkpoint

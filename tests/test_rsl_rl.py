@@ -124,18 +124,3 @@ def test_physics_env_holds_a_command_and_matches_its_core(rsl_rl):
     command = slice(9, 12)  # base lin vel 3, ang vel 3, gravity 3, then the command
     np.testing.assert_array_equal(obs["policy"][:, command].numpy(), [[1.0, 0.0, 0.0]] * 2)
 
-
-def test_example_trains_and_scores_in_physics(rsl_rl, tmp_path):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parent.parent / "examples" / "rsl_rl_imagination.py"
-    spec = importlib.util.spec_from_file_location("rsl_rl_imagination", path)
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
-    args = example.parse_args(["--num-envs", "4", "--iterations", "1", "--episode-steps", "10", "--log-dir",
-                               str(tmp_path), "--score-steps", "10"])
-    result = example.main(args)
-    assert result["imagined_steps"] == 4 * 24
-    assert 0.0 <= result["tracking"] <= 1.0 and 0.0 <= result["floor"] <= 1.0
-    assert (tmp_path / "model_0.pt").is_file()
