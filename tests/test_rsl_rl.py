@@ -87,7 +87,7 @@ def test_on_policy_runner_trains_in_imagination_on_the_cores_numbers(rsl_rl, tmp
     assert truncations > 0  # 16 steps with a 5-step limit: time-outs were exercised
     logs = [s["log"] for s in seen if s["log"]]
     assert logs and all("Episode_Termination/time_out" in log for log in logs)
-    assert any(key.startswith("Episode_Reward/") for key in logs[0])
+    assert any(key.startswith("Episode_Term/") for key in logs[0])
 
 
 def test_episode_length_buf_is_the_time_limit(rsl_rl):

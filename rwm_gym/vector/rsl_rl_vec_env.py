@@ -11,9 +11,10 @@ unchanged:
 - auto-reset in the same step: a finished env's returned observation is its new episode's first (rsl_rl never reads
   the last one: it bootstraps a time-out with the value of the state the step started from);
 - extras["time_outs"] (num_envs,) bool: episodes cut by the time limit, not terminated (PPO bootstraps them);
-- extras["log"]: on steps where episodes end, the mean over those episodes of each reward term's sum
-  ("Episode_Reward/<term>") and the share that timed out, terminated or (imagination) saw the model diverge
-  ("Episode_Termination/<why>"); the runner writes them to TensorBoard and prints them;
+- extras["log"]: on steps where episodes end, the mean over those episodes of each reward term's sum, the raw term
+  before its weight and dt ("Episode_Term/<term>", the core's info["reward/<term>"]), and the share that timed out,
+  terminated or (imagination) saw the model diverge ("Episode_Termination/<why>"); the runner writes them to
+  TensorBoard and prints them;
 - `episode_length_buf` is the core's own step counter (a view on CPU): writing it, as
   `OnPolicyRunner.learn(init_at_random_ep_len=True)` does, moves every env's time limit, as in Isaac Lab.
 
@@ -139,7 +140,7 @@ class CoreRslRlVecEnv(VecEnv):
             sums = self._term_sums.setdefault(key, np.zeros(self.num_envs))
             sums += value
             if len(done):
-                log[f"Episode_Reward/{key[len('reward/'):]}"] = float(sums[done].mean())
+                log[f"Episode_Term/{key[len('reward/'):]}"] = float(sums[done].mean())
                 sums[done] = 0.0
         if len(done):
             log["Episode_Termination/time_out"] = float(time_outs[done].mean())
