@@ -211,7 +211,8 @@ def test_state_constraints_keep_gravity_unit_and_joints_in_their_ranges(tmp_path
 
 @pytest.mark.parametrize("kind", [k for k in MODEL_KINDS if k != "no_change"])
 def test_own_heads_alone_predict_exactly_what_the_full_ensemble_predicts(kind: str) -> None:
-    """Without the disagreement each rollout runs only its own head: bit for bit the full ensemble's selection."""
+    """Without the disagreement each rollout runs only its own head: the full ensemble's selection, up to the last
+    float32 bit (a matmul kernel may round differently for a different row count)."""
     model = tiny(kind, ensemble_size=3).eval()
     batch = 7
     window = random_window(batch, 2)
@@ -224,7 +225,7 @@ def test_own_heads_alone_predict_exactly_what_the_full_ensemble_predicts(kind: s
             _, mixture = model.step(hidden, window.states[:, 0], window.actions[:, 0])  # no member: all heads
         _, after = model.step(hidden, window.states[:, 0], window.actions[:, 0], member)
     for name in ("state_mean", "state_std", "contact_logits", "foot_height", "termination_logit"):
-        assert torch.equal(getattr(own, name), getattr(full, name)), name
+        torch.testing.assert_close(getattr(own, name), getattr(full, name), rtol=1e-6, atol=1e-6, msg=name)
     assert own.uncertainty is None and (full.uncertainty > 0).all()
     assert mixture.uncertainty is not None  # a mixture needs every head anyway
     assert after.uncertainty is not None  # the block restores the setting
