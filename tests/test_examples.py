@@ -50,6 +50,10 @@ def test_quickstart_runs_clone_warmup_ppo_and_both_evaluations(tmp_path):
     assert report["behaviour_cloning"]["evaluation"]["episodes"] == 18 and report["evaluation"]["episodes"] == 18
     assert report["critic_warmup"]["timesteps"] == 64 and report["train"]["timesteps"] == 64
     assert out.is_file() and out.with_name("policy_bc.zip").is_file()
+    assert report["kept"] in ("ppo", "behaviour_cloning")  # the verdict is in the JSON
+    # the physics samples behind the policy: a count, or (a shipped model older than the count) the reason
+    samples, source = report["physics_samples"], report["physics_samples_source"]
+    assert (isinstance(samples, int) and samples > 0) or (samples is None and source.startswith("unknown: "))
 
 
 @pytest.mark.slow  # five commands, each a fresh process (about a minute on idle cores)
