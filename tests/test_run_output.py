@@ -31,7 +31,7 @@ def last_count(err: str) -> tuple[str, str]:
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    return write_linear_dataset(tmp_path_factory.mktemp("data") / "linear.h5", num_episodes=6)
+    return write_linear_dataset(tmp_path_factory.mktemp("data") / "linear.h5")
 
 
 def test_ppo_bar_counts_the_whole_rollouts_sb3_runs(capsys):
@@ -50,7 +50,8 @@ def test_ppo_bar_with_only_minutes_counts_seconds_of_the_budget(capsys):
 
 
 def test_train_bar_with_only_minutes_counts_seconds_of_the_budget(data, capsys):
-    config = TrainConfig(history=4, forecast=2, batch_size=4, iterations=0, minutes=0.5 / 60, val_every=5)
+    config = TrainConfig(history=4, forecast=2, batch_size=4, iterations=0, minutes=0.5 / 60, val_every=5,
+                         val_fraction=0.25)
     result = train(data, model_config_for("mlp", SPEC, **TINY_MODEL), config, progress=True)
     err = capsys.readouterr().err
     assert result.stats["iterations"] > 0
@@ -60,7 +61,7 @@ def test_train_bar_with_only_minutes_counts_seconds_of_the_budget(data, capsys):
 
 def test_physics_samples_come_from_provenance_or_say_why_unknown(data, tmp_path):
     out = tmp_path / "m.safetensors"
-    config = TrainConfig(history=4, forecast=2, batch_size=4, iterations=2, val_every=2)
+    config = TrainConfig(history=4, forecast=2, batch_size=4, iterations=2, val_every=2, val_fraction=0.25)
     train(data, model_config_for("mlp", SPEC, **TINY_MODEL), config, out, progress=False)
     rows = dataset_rows(out)
     assert rows[0] == Dataset.load(data).num_steps and "provenance" in rows[1]

@@ -358,13 +358,13 @@ def run(args: argparse.Namespace) -> int:
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
         warmup = warm_up_critic(model, config.critic_warmup_steps)
-        print(f"critic warm-up: {warmup.timesteps} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
+        print(f"critic warm-up: {warmup.timesteps:,} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
     if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
         stats = TrainStats(0, 0.0, 0.0)
     else:
         stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
     out = save_policy(model, args.out)
-    print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+    print(f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
     report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
               "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
