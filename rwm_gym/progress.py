@@ -42,6 +42,8 @@ class BudgetBar:
 
     def show(self, steps_done: int, seconds: float, **postfix) -> None:
         """Move the bar to `steps_done` (step budget) or `seconds` (time budget), capped at the total."""
+        if self.bar.disable:
+            return
         if self.by_time:  # a run that stopped on its clock fills its bar, whatever the rounding
             target = self.total if seconds >= self.seconds else min(int(seconds), self.total)
         else:
