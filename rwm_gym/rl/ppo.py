@@ -371,7 +371,8 @@ def run(args: argparse.Namespace) -> int:
                                                                  **cloned.to_dict(),
                                                                  "evaluation": None if args.no_eval
                                                                  else cloned_eval.to_dict()},
-              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats)}
+              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
+              "kept": "ppo"}  # which policy --out holds; --keep-best may hand back the clone
     report["physics_samples"], report["physics_samples_source"] = physics_samples(
         args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0))
     samples = report["physics_samples"]
@@ -382,7 +383,6 @@ def run(args: argparse.Namespace) -> int:
         print("physics evaluation" + (" after PPO:" if cloned else ":"))
         print(format_table(evaluation))
         report["evaluation"] = evaluation.to_dict()
-        report["kept"] = "ppo"
         if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
             os.replace(out, out.with_name(out.stem + "_ppo.zip"))
             save_policy(PPO.load(out_bc, device=args.device), out)
@@ -391,6 +391,9 @@ def run(args: argparse.Namespace) -> int:
                   f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
                   f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
                   f"{out.with_name(out.stem + '_ppo.zip')}")
+        elif cloned is not None:
+            print(f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
+                  f"{evaluation.tracking:.3f} after PPO)")
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
