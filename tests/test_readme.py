@@ -28,7 +28,7 @@ def test_the_readme_has_python_snippets():
     assert len(SNIPPETS) >= 4
 
 
-@pytest.mark.parametrize("code", cases())
+@pytest.mark.parametrize("code", list(cases()))
 def test_python_snippet_runs_when_pasted_alone(code: str, tmp_path: Path) -> None:
     for needed, why in NEEDS_EARLIER_STEPS.items():
         if needed in code:

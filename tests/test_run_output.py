@@ -98,7 +98,7 @@ def test_every_subcommand_help_names_its_defaults(command):
             continue  # positional arguments, switches and --help
         if action.required or flag in OPTIONAL_INPUTS and action.default is None:
             continue
-        text = sub.formatter_class(prog="x")._get_help_string(action) or ""
+        text = sub.formatter_class(prog="x")._format_action(action)  # the option's lines as --help prints them
         assert "default" in text, f"rwm-gym {command} {flag}: help names no default ({text!r})"
 
 
