@@ -1,6 +1,7 @@
-"""Batched environments behind the two vector APIs our users plug into: Gymnasium's `VectorEnv` and SB3's `VecEnv`.
+"""Batched environments behind the vector APIs our users plug into: Gymnasium's `VectorEnv`, SB3's and rsl_rl's.
 
 `core` holds what every batched core shares (the protocol, action and `num_envs` checks, reset options, auto-reset);
-`gym_vector_env` and `sb3_vec_env` adapt a core to each API. They are separate modules so that a Gymnasium user does not
-import Stable-Baselines3 (and torch) on the way.
+`gym_vector_env` and `sb3_vec_env` adapt a core to each API, and `rsl_rl_vec_env` to rsl_rl's `VecEnv` (an optional
+extra). They are separate modules so that a Gymnasium user does not import Stable-Baselines3 (and torch) on the way, and
+nobody imports rsl_rl who does not use it.
 """
