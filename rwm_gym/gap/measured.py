@@ -152,7 +152,8 @@ def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float,
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--effect", action="append", default=[], help="effect of the vocabulary to hide (repeatable)")
+    parser.add_argument("--effect", action="append", default=[],
+                        help="effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)")
     parser.add_argument("--magnitude", action="append", default=[],
                         help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)")
     parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
