@@ -297,6 +297,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
     parser.add_argument("--episode-steps", type=int, default=None,
                         help="time limit of an imagined episode in policy steps (default: the task's; PPO bootstraps)")
+    parser.add_argument("--reset-data", type=Path, default=None,
+                        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
+    parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
+                        help="lambda of RWM-U's penalty -lambda * u * dt on the ensemble disagreement u (imagination)")
     parser.add_argument("--timesteps", type=int, default=None, help="budget in env steps")
     parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
     parser.add_argument("--seed", type=int, default=0)
@@ -341,7 +345,13 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
-    env_kwargs = {"episode_steps": args.episode_steps} if args.where == "imagination" and args.episode_steps else {}
+    env_kwargs = {}
+    if args.where == "imagination":
+        env_kwargs = {"episode_steps": args.episode_steps, "reset_data": args.reset_data,
+                      "uncertainty_penalty": args.uncertainty_penalty}
+        env_kwargs = {k: v for k, v in env_kwargs.items() if v}
+    elif args.reset_data or args.uncertainty_penalty:
+        raise SystemExit("rwm-gym ppo: --reset-data and --uncertainty-penalty apply to --in imagination")
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
     if args.run_dir is not None:
@@ -374,6 +384,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
     report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
+              "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()},
               "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
                                                                  **cloned.to_dict(),
                                                                  "evaluation": None if args.no_eval
@@ -432,7 +443,9 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv) -> i
         if remaining > 0:
             learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
                   on_rollout=checkpoint.log_row)
-        checkpoint.save()
+            checkpoint.save()
+        else:
+            print(f"{run.folder} already has its {args.timesteps:,} steps")
     finally:
         if recorder is not None:
             recorder.close()
