@@ -39,6 +39,8 @@ def main() -> None:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--max-falls", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="default: RUN/curve")
+    parser.add_argument("--trained-in", choices=("physics", "imagination"), default="physics",
+                        help="where the run trained (labels the plot: physics or imagined env steps)")
     args = parser.parse_args()
     run = TrainingRun(args.run_dir)
     out = args.out or run.folder / "curve"
@@ -72,7 +74,7 @@ def main() -> None:
     write_json(out / "curve.json", {"run_dir": str(run.folder), "threshold": args.threshold,
                                     "max_falls": args.max_falls, "n_mf": n_mf, "floor": floor, "best": best,
                                     "rows": rows})
-    _plot(rows, floor, args.threshold, out / "curve.png")
+    _plot(rows, floor, args.threshold, out / "curve.png", args.trained_in)
     print(f"floor (zero action): tracking {floor['tracking']:.3f}; best snapshot: {best}; "
           f"N_mf (tracking >= {args.threshold}, falls <= {args.max_falls}): {n_mf}")
 
@@ -84,7 +86,7 @@ def _write_csv(path: str, rows: list[dict]) -> None:
         writer.writerows(rows)
 
 
-def _plot(rows: list[dict], floor: dict, threshold: float, path: Path) -> None:
+def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_in: str = "physics") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -94,14 +96,16 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path) -> None:
     walls = [float(r["wall_s"] or 0) / 60 for r in rows]
     tracking = [float(r["tracking"]) for r in rows]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for ax, x, label in ((axes[0], steps, "physics env steps (M)"), (axes[1], walls, "training wall time (min)")):
+    steps_label = f"{'imagined' if trained_in == 'imagination' else 'physics'} env steps (M)"
+    for ax, x, label in ((axes[0], steps, steps_label), (axes[1], walls, "training wall time (min)")):
         ax.plot(x, tracking, "o-", label="PPO snapshot")
         ax.axhline(floor["tracking"], color="0.5", ls="--", label="zero action (stands still)")
         ax.axhline(threshold, color="tab:green", ls=":", label=f"target {threshold}")
         ax.set_xlabel(label)
     axes[0].set_ylabel("tracking score in physics")
     axes[0].legend()
-    fig.suptitle("model-free PPO in MuJoCo physics, ANYmal D")
+    fig.suptitle("PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
+                 if trained_in == "imagination" else "model-free PPO in MuJoCo physics, ANYmal D")
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)

@@ -8,6 +8,7 @@ subcommand runs, so `rwm-gym --help` stays fast.
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib
 import sys
 
@@ -29,12 +30,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 class DefaultsHelpFormatter(argparse.HelpFormatter):
     """`--help` names every option's default, unless its help already does or there is none to name."""
 
+    @staticmethod
+    def _names_a_default(action: argparse.Action) -> bool:
+        default = action.default
+        unnamed = default is None or default is False or default == [] or default == () or default == argparse.SUPPRESS
+        return bool(action.option_strings) and not unnamed
+
+    def _format_action(self, action: argparse.Action) -> str:
+        if not action.help and self._names_a_default(action):  # argparse prints nothing for an option without help
+            action = copy.copy(action)
+            action.help = "(default %(default)s)"
+        return super()._format_action(action)
+
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        unnamed = action.default is None or action.default is False or action.default == [] or action.default == ()
-        if "default" in text or unnamed or action.default == argparse.SUPPRESS or not action.option_strings:
+        if "default" in text or not self._names_a_default(action):
             return text
-        return f"{text} (default {action.default})".strip()
+        return f"{text} (default %(default)s)".strip()
 
 
 def _entry(target: str, what: str):

@@ -161,23 +161,14 @@ EPISODES = {"backlash": 9}
 """Measured episodes per test where 6 leave too few held-out blocks for the significance test."""
 
 
-FAST_SOLVER_LIMIT = (
-    "known regression of the fast ANYmal MJCF (pyramidal cone, 4 Newton iterations): the solver's answer depends on its "
-    "warm start, which re-simulation from measured mid-episode states lacks, so a constraint-borne effect is fitted "
-    "off (joint friction 2.62 N·m for 2.0 measured this session); open in issue 16")
-_FAST_SOLVER_CASES = {"joint_friction", "pd_gains", "ground_friction"}
 
-
-@pytest.mark.parametrize("name", [
-    pytest.param(n, marks=pytest.mark.xfail(reason=FAST_SOLVER_LIMIT, strict=False)) if n in _FAST_SOLVER_CASES else n
-    for n in EFFECT_NAMES if n != "backlash"])
+@pytest.mark.parametrize("name", [n for n in EFFECT_NAMES if n != "backlash"])
 def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name):
     report = _hidden_and_check(tmp_path, name, episodes=EPISODES.get(name, 6))
     assert set(report) >= {"effect", "parameters", "explained_fraction", "gap_before", "gap_after", "where",
                            "corrected", "plots"}
 
 
-@pytest.mark.xfail(reason=FAST_SOLVER_LIMIT, strict=False)
 def test_backlash_workflow_and_world_model_rows(tmp_path):
     """Backlash hidden: named, fitted, written as an env option; then the world-model rows with a tiny model."""
     report = _hidden_and_check(tmp_path, "backlash", episodes=EPISODES["backlash"],

@@ -18,9 +18,9 @@ from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows
-from rwm_gym.gap.scope import joint_groups, scoped
+from rwm_gym.gap.scope import MIN_WINDOWS_PER_PARAMETER, joint_groups, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
-from rwm_gym.physics.params import PhysicsParams
+from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -151,3 +151,48 @@ def test_walking_policy_data_and_identifiability(tmp_path, capsys):
     assert all(v["signal"] >= 0 and v["identifiable"] == (v["signal_to_floor"] >= 1.0) for v in table.values())
     assert table["ground_friction"]["signal"] > table["backlash"]["signal"]
     json.dumps(table)
+
+
+def test_per_joint_brackets_reach_an_effect_held_by_one_joint_of_a_group():
+    friction = EFFECTS["joint_friction"].parameters[0]  # 0 .. 8 N·m
+    leg_fit = SimpleNamespace(scope="leg", values=[2.0, 0.0, 0.0, 0.0])  # LF fitted 2: one LF joint may hold 6
+    brackets = per_joint_brackets(SPEC, leg_fit, friction)
+    assert brackets[:3] == [(0.0, 8.0)] * 3 and brackets[3:] == [(0.0, 2.0)] * 9
+
+
+def test_friction_in_one_joint_is_fitted_per_joint(tmp_path):
+    """Friction in the LF knee only. A group scope beats the global form and 12 episodes give enough fitting windows
+    (`MIN_WINDOWS_PER_PARAMETER` per parameter), so the per-joint form (12 values) is fitted too: it finds the
+    friction in that joint, nearly none elsewhere, and explains more of the held-out gap than any coarser form."""
+    true = np.zeros(12)
+    true[SPEC.actuator.joints.index("LF_KFE")] = 6.0  # N·m
+    data = Dataset.load(make_measured({}, 12, tmp_path / "m.h5", max_steps=150,
+                                      extra_physics={"joint_friction": true.tolist()}, progress=False))
+    train_ids, held_ids = data.split_episodes(GapConfig.val_fraction, GapConfig.split_seed)
+    train, held = make_windows(data, train_ids, 5, GapConfig.fit_stride), make_windows(data, held_ids, 25, 5)
+    assert len(train) >= MIN_WINDOWS_PER_PARAMETER * 12
+    resim, base, config = Resimulator(SPEC), PhysicsParams(), FitConfig(scopes=("leg", "joint"))
+    before = gap_per_window(SPEC, resim.rollout(held, base), held)
+    friction = EFFECTS["joint_friction"]
+    fit = fit_effect(friction, resim, train, base, config, np.array([1.0]), (0.0, 8.0))
+    score_fit(fit, friction, resim, held, base, before, config)
+    forms = {f.scope: f for _, f in scope_candidates([fit], {"joint_friction": friction}, SPEC, resim, train, held,
+                                                     base, before, config)}
+    assert set(forms) == {"leg", "joint"}, "the per-joint form is tried"
+    values = dict(zip(forms["joint"].names, forms["joint"].values))
+    assert abs(values.pop("joint_friction_LF_KFE") - 6.0) <= 0.25 * 6.0
+    assert max(values.values()) < 1.0
+    assert forms["joint"].explained_fraction > forms["leg"].explained_fraction > fit.explained_fraction
+
+
+def test_solver_settings_are_an_env_option_and_the_gap_default():
+    assert build_model(SPEC).opt.iterations == 4  # the fast MJCF for PPO
+    model = build_model(SPEC, solver=CONVERGED_SOLVER)
+    assert (model.opt.iterations, model.opt.ls_iterations, model.opt.noslip_iterations) == (100, 50, 2)
+    from rwm_gym.physics.batched import make_core
+
+    assert make_core("anymal_d", 1, solver={"iterations": 30}).model.opt.iterations == 30
+    with pytest.raises(ValueError, match="unknown solver setting"):
+        make_core("anymal_d", 1, solver={"tolerance": 1e-9})
+    assert Resimulator(SPEC).model(PhysicsParams()).opt.iterations == 100
+    assert GapConfig().solver == CONVERGED_SOLVER

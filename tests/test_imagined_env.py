@@ -171,3 +171,50 @@ def test_render_draws_the_dream(checkpoint):
     later = env.render()
     assert first.shape == later.shape == (120, 160, 3) and first.std() > 0
     assert not np.array_equal(first, later)  # the drawn robot follows the predicted state
+
+
+def _vec_rollout(checkpoint, steps=30, **options):
+    core = ImaginedSB3VecEnv(checkpoint, num_envs=5, episode_steps=12, **options)
+    core.seed(7)
+    out = [core.reset()]
+    rng = np.random.default_rng(0)
+    rewards, infos = [], []
+    for _ in range(steps):
+        obs, reward, done, info = core.step(rng.uniform(-1, 1, (5, 12)).astype(np.float32))
+        out.append(obs)
+        rewards.append(reward)
+        infos.append(info)
+    return np.stack(out), np.stack(rewards), infos
+
+
+def test_without_the_penalty_each_env_runs_only_its_head_with_the_same_numbers(checkpoint):
+    """Penalty 0: only each env's own head runs and no disagreement; obs and rewards equal the full-ensemble path's."""
+    obs_full, rewards_full, infos_full = _vec_rollout(checkpoint, report_uncertainty=True)
+    obs_own, rewards_own, infos_own = _vec_rollout(checkpoint)
+    np.testing.assert_allclose(obs_own, obs_full, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(rewards_own, rewards_full, rtol=1e-5, atol=1e-5)
+    assert "uncertainty" in infos_full[0][0] and "uncertainty" not in infos_own[0][0]
+    assert any("episode" in info for step in infos_own for info in step)  # the rollout crossed resets
+
+
+def test_batched_reset_windows_are_the_sampled_ones(checkpoint):
+    windows = ImaginedEnv(checkpoint).core.reset_windows
+    ends = np.array([windows.draw(np.random.default_rng(s)) for s in range(4)])
+    batch = windows.gather(ends)
+    for row, seed in enumerate(range(4)):
+        one = windows.sample(np.random.default_rng(seed))
+        for name in ("states", "actions", "contact", "foot_height"):
+            np.testing.assert_array_equal(getattr(batch, name)[row], getattr(one, name))
+
+
+def test_sb3_logs_episode_returns_while_training_in_imagination(checkpoint, tmp_path):
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import configure
+
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=4, episode_steps=5)
+    model = PPO("MlpPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, seed=0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(64)
+    header, *rows = (tmp_path / "progress.csv").read_text().splitlines()
+    column = header.split(",").index("rollout/ep_rew_mean")
+    assert rows and all(np.isfinite(float(row.split(",")[column])) for row in rows)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -34,7 +35,7 @@ def test_ppo_trains_in_physics():
     assert model.policy.log_std.shape == (12,)
 
 
-def test_cli_ppo_in_physics_writes_zip_and_report(tmp_path):
+def test_cli_ppo_in_physics_writes_zip_and_report(tmp_path, capsys):
     out = tmp_path / "policy.zip"
     rc = main(["ppo", "--in", "physics", "--timesteps", "256", "--num-envs", "8", "--n-steps", "16",
                "--net-arch", "32", "32", "--out", str(out), "--eval-seeds", "1", "--eval-steps", "20", "--threads", "1"])
@@ -42,6 +43,10 @@ def test_cli_ppo_in_physics_writes_zip_and_report(tmp_path):
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["where"] == "physics" and report["ppo"]["net_arch"] == [32, 32]
     assert report["physics_samples"] == report["train"]["timesteps"] >= 256
+    assert report["physics_samples_source"] == "the policy's own physics steps"
+    printed = capsys.readouterr().out
+    assert f"physics samples behind the policy: {report['physics_samples']:,}" in printed
+    assert not re.search(r"\d\.\d{5,}", printed)  # every figure printed to a sensible precision
     assert report["evaluation"]["episodes"] == 18 and len(report["evaluation"]["commands"]) == 18  # the scoring set
     model = PPO.load(out, device="cpu")
     action, _ = model.predict(np.zeros(48, np.float32), deterministic=True)

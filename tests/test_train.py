@@ -3,6 +3,7 @@ the same weights, every kind trains, and a tiny RWM learns a linear system bette
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -115,6 +116,8 @@ def test_cli_teacher_forcing_and_bad_data(data: Path, tmp_path: Path, capsys) ->
                  "--iterations", "3", "--history", "4", "--hidden-size", "8", "--head-hidden", "8", "--quiet",
                  "--branches", "2", "--batch-size", "8", "--unit-gravity", "--no-joint-limits"])
     assert code == 0
+    summary = capsys.readouterr().out
+    assert "3 iterations in" in summary and not re.search(r"\d\.\d{5,}", summary)  # no raw floats
     meta = read_meta(out)
     assert meta.train_config.forecast == 1 and meta.train_config.iterations == 3
     assert meta.train_config.branches == 2 and meta.model_config.unit_gravity and not meta.model_config.joint_limits

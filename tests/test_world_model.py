@@ -207,3 +207,38 @@ def test_state_constraints_keep_gravity_unit_and_joints_in_their_ranges(tmp_path
     _, free = plain.step(plain.initial_hidden(64), state.detach(), torch.zeros(64, A))
     gravity = normalizer.denormalize_state(free.state_mean)[:, slices["projected_gravity"]].norm(dim=-1)
     assert not torch.allclose(gravity, torch.ones(64))
+
+
+@pytest.mark.parametrize("kind", [k for k in MODEL_KINDS if k != "no_change"])
+def test_own_heads_alone_predict_exactly_what_the_full_ensemble_predicts(kind: str) -> None:
+    """Without the disagreement each rollout runs only its own head: the full ensemble's selection, up to the last
+    float32 bit (a matmul kernel may round differently for a different row count)."""
+    model = tiny(kind, ensemble_size=3).eval()
+    batch = 7
+    window = random_window(batch, 2)
+    member = torch.tensor([2, 0, 1, 1, 2, 0, 2])
+    hidden = model.initial_hidden(batch)
+    with torch.no_grad():
+        _, full = model.step(hidden, window.states[:, 0], window.actions[:, 0], member)
+        with model.computing_disagreement(False):
+            _, own = model.step(hidden, window.states[:, 0], window.actions[:, 0], member)
+            _, mixture = model.step(hidden, window.states[:, 0], window.actions[:, 0])  # no member: all heads
+        _, after = model.step(hidden, window.states[:, 0], window.actions[:, 0], member)
+    for name in ("state_mean", "state_std", "contact_logits", "foot_height", "termination_logit"):
+        torch.testing.assert_close(getattr(own, name), getattr(full, name), rtol=1e-6, atol=1e-6, msg=name)
+    assert own.uncertainty is None and (full.uncertainty > 0).all()
+    assert mixture.uncertainty is not None  # a mixture needs every head anyway
+    assert after.uncertainty is not None  # the block restores the setting
+
+
+@pytest.mark.parametrize("kind", MODEL_KINDS)
+def test_warm_hidden_is_the_hidden_state_of_warm_up(kind: str) -> None:
+    model = tiny(kind, ensemble_size=2).eval()
+    window = random_window(3, 6)
+    member = torch.tensor([0, 1, 1])
+    with torch.no_grad():
+        expected, _ = model.warm_up(window.states, window.actions, member)
+        hidden = model.warm_hidden(window.states, window.actions, member)
+    assert len(hidden) == len(expected)
+    for h, e in zip(hidden, expected):
+        assert torch.equal(h, e)

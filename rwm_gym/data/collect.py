@@ -265,9 +265,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="processes collecting side by side, each with --num-envs simulations (default 1); the "
                              "file is the same whatever the number")
     parser.add_argument("--action-noise", type=float, default=0.0, help="Gaussian std added to the policy's actions")
-    parser.add_argument("--max-steps", type=int, default=None, help="cap on episode length (policy steps)")
+    parser.add_argument("--max-steps", type=int, default=None,
+                        help="cap on episode length in policy steps (default: the task's episode length)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument("--physics", default=None, help="JSON dict of physics parameters (see PhysicsParams)")
+    parser.add_argument("--physics", default=None,
+                        help="JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
 

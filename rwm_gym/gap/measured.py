@@ -15,7 +15,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -24,6 +24,7 @@ import numpy as np
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics, parse_effects
+from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
 from rwm_gym.physics.robot import measure
 from rwm_gym.policies.base import make_policy
 from rwm_gym.policies.excitation import ExcitationPolicy
@@ -91,13 +92,15 @@ def make_measured(
     num_envs: int = 8,
     noise: SensorNoise = SensorNoise(),
     policy: str = "excitation",
+    solver: SolverSettings | None = CONVERGED_SOLVER,
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
     """Write `episodes` episodes of `env_id` with `effects` ({name: parameter values}) hidden in the robot.
 
     `extra_physics` (PhysicsParams fields, e.g. per-joint values) is hidden too. `policy` drives the robot:
-    `excitation` (default), `gait`, `random` or the path of an SB3 `.zip`.
+    `excitation` (default), `gait`, `random` or the path of an SB3 `.zip`. `solver`: how the robot's physics is
+    solved (default: each step to convergence, as a real robot's physics is; None: the MJCF's own settings).
     """
     out = Path(out)
     if out.exists() and not overwrite:
@@ -112,8 +115,9 @@ def make_measured(
         n = max(1, min(num_envs, episodes))
         driver = (ExcitationPolicy(nominal.spec, n) if policy == "excitation" else
                   make_policy(policy, nominal.spec, n))
+        solved = {"solver": asdict(solver)} if solver is not None else {}
         collect(env_id, driver, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
-                env_kwargs={**env_kwargs, "physics": hidden}, overwrite=True, progress=progress)
+                env_kwargs={**env_kwargs, "physics": hidden, **solved}, overwrite=True, progress=progress)
         source = Dataset.load(raw)
         info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
                        complete=False)
@@ -152,7 +156,8 @@ def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float,
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--effect", action="append", default=[], help="effect of the vocabulary to hide (repeatable)")
+    parser.add_argument("--effect", action="append", default=[],
+                        help="effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)")
     parser.add_argument("--magnitude", action="append", default=[],
                         help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)")
     parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
@@ -165,9 +170,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
     parser.add_argument("--noise-scale", type=float, default=1.0,
                         help="multiplier on the default sensor noise (0: none)")
+    parser.add_argument("--solver-iterations", type=int, default=CONVERGED_SOLVER.iterations,
+                        help="MuJoCo solver iterations per physics step of the hidden robot (0: the MJCF's own)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--overwrite", action="store_true")
+
+
+def solver_option(iterations: int) -> SolverSettings | None:
+    """--solver-iterations N: N iterations (line search as `CONVERGED_SOLVER`); 0: the MJCF's own settings."""
+    if iterations < 0:
+        raise ValueError(f"--solver-iterations must be >= 0, got {iterations}")
+    return replace(CONVERGED_SOLVER, iterations=iterations) if iterations else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -180,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
         path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
                              extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,
                              max_steps=args.max_steps, noise=SensorNoise(scale=args.noise_scale), policy=args.policy,
-                             overwrite=args.overwrite)
+                             solver=solver_option(args.solver_iterations), overwrite=args.overwrite)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"rwm-gym make-measured: {err}", file=sys.stderr)
         return 2

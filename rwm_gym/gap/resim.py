@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
+from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, SolverSettings, build_model, dead_band
 from rwm_gym.physics.robot import RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator
 from rwm_gym.spec import TaskSpec
@@ -103,13 +103,20 @@ def make_windows(dataset: Dataset, episodes: np.ndarray, horizon: int, stride: i
 
 
 class Resimulator:
-    """Re-simulates windows of measured data on one robot model (the task spec's or `xml_file`)."""
+    """Re-simulates windows of measured data on one robot model (the task spec's or `xml_file`).
 
-    def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, nthread: int = 0):
-        self.spec, self.xml_file, self.nthread = spec, xml_file, nthread
+    `solver` (default `CONVERGED_SOLVER`): every physics step solved to convergence, whatever the MJCF's iteration
+    count. With a few iterations per step (the fast MJCF for PPO) the solve is left unfinished and carried to the next
+    step, so a re-simulated window is a rough function of the parameters and of the (noisy) measured start state, and
+    a fit of a constraint-borne effect (joint friction, contacts) lands off the true value.
+    """
+
+    def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, nthread: int = 0,
+                 solver: SolverSettings | None = CONVERGED_SOLVER):
+        self.spec, self.xml_file, self.nthread, self.solver = spec, xml_file, nthread, solver
 
     def model(self, params: PhysicsParams) -> mujoco.MjModel:
-        return build_model(self.spec, self.xml_file, params)
+        return build_model(self.spec, self.xml_file, params, self.solver)
 
     def rollout(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
                 correction: TorqueCorrection | None = None) -> np.ndarray:

@@ -96,6 +96,20 @@ def per_joint_start(spec: TaskSpec, fit: CandidateFit) -> np.ndarray:
     return out
 
 
+def per_joint_brackets(spec: TaskSpec, fit: CandidateFit, p: Parameter) -> list[tuple[float, float]]:
+    """Search interval of each joint's value, from a group fit: an effect held by one joint of a group of n is fitted
+    per group at about 1/n of its size (the group's other joints pull the value down), so a joint's interval reaches
+    n x its group's distance from nominal, plus a quarter of the parameter's range."""
+    width = 0.25 * (p.high - p.low)
+    sizes = np.ones(len(spec.actuator.joints))
+    if fit.scope != "global":
+        for ids in joint_groups(spec, fit.scope).values():
+            sizes[ids] = len(ids)
+    start = per_joint_start(spec, fit)
+    reach = np.abs(start - p.nominal) * sizes + width
+    return [(max(p.low, v - r), min(p.high, v + r)) for v, r in zip(start, reach)]
+
+
 SCOPE_CHARGE = 0.05
 """Score charged per parameter a scoped form has beyond the global one, as a fraction of the nominal gap: on top of
 `FitConfig.penalty_per_parameter`, which inflates only the remaining gap and so costs next to nothing when the global
@@ -135,10 +149,10 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
     form = scoped(effect, spec, "joint") if "joint" in config.scopes else None
     if form is not None and grouped and max(f.score for f in grouped) > best.score \
             and len(train) >= MIN_WINDOWS_PER_PARAMETER * len(form.parameters):
-        start = per_joint_start(spec, max(grouped, key=lambda f: f.score))
-        width = 0.25 * (p.high - p.low)  # each joint near its group's value
-        brackets = [(max(p.low, v - width), min(p.high, v + width)) for v in start]
-        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations // 2,
+        group_fit = max(grouped, key=lambda f: f.score)
+        start = per_joint_start(spec, group_fit)
+        brackets = per_joint_brackets(spec, group_fit, effect.parameters[0])
+        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations,
                                  sweeps=1)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit)))

@@ -30,7 +30,7 @@ from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_per_window, paired_p_value
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
-from rwm_gym.gap.measured import SensorNoise
+from rwm_gym.gap.measured import SensorNoise, solver_option
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
@@ -38,6 +38,7 @@ from rwm_gym.gap.scope import SCOPES
 from rwm_gym.gap.select import Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
+from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
 
@@ -57,6 +58,9 @@ class GapConfig:
     """Measured steps replayed before each window (fills the actuator delay buffer)."""
     learned_correction: bool = True
     """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
+    solver: SolverSettings | None = CONVERGED_SOLVER
+    """MuJoCo solver settings of every re-simulation (default: each step solved to convergence, not the fast MJCF's
+    4 iterations; see `resim.Resimulator`); None: the MJCF's own. The corrected MJCF keeps the MJCF's settings."""
 
 
 def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
@@ -83,7 +87,7 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     horizon = max(GAP_HORIZONS)
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
     held = make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
-    resim = Resimulator(spec, sim_kwargs.get("xml_file"))
+    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=config.solver)
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
     held, dropped_held = drop_diverged(resim, held, base, measured)
@@ -255,6 +259,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor-noise", default=None,
                         help="JSON SensorNoise of the measured data (SI units, e.g. {\"joint_vel\": 0.05}); "
                              "default: make-measured's")
+    parser.add_argument("--solver-iterations", type=int, default=CONVERGED_SOLVER.iterations,
+                        help="MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)")
     parser.add_argument("--world-model", default="auto",
                         help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
                              "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
@@ -289,7 +295,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
         report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
                          config=GapConfig(val_fraction=args.val_fraction,
-                                          learned_correction=args.learned_correction),
+                                          learned_correction=args.learned_correction,
+                                          solver=solver_option(args.solver_iterations)),
                          fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects), sensor_noise=noise,
                          world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
     except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors

@@ -57,6 +57,9 @@ class ImaginationOptions:
     """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
     push_velocity: float = 0.5
     """m/s, half-width of a push."""
+    report_uncertainty: bool = False
+    """Compute the ensemble disagreement every step and report it as info['uncertainty'] even without a penalty
+    (it runs all k heads per step; off and penalty 0, each env runs only its own head and info has no uncertainty)."""
     divergence_bound: float = 50.0
     """|normalised state| above which the model is taken to have diverged and the episode ends."""
 
@@ -135,7 +138,12 @@ class ImaginedCore:
     def observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         return build_observation(self.spec, self.state[ids], self.command[ids], self.last_action[ids])
 
-    @torch.no_grad()
+    @property
+    def needs_uncertainty(self) -> bool:
+        """Whether a step computes the ensemble disagreement (the penalty or the report asks for it)."""
+        return self.options.uncertainty_penalty > 0 or self.options.report_uncertainty
+
+    @torch.inference_mode()
     def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
               commands: np.ndarray | None = None) -> np.ndarray:
         """Start envs `ids` from real history windows, replaying the full warm-up through the model; hold `commands`
@@ -144,42 +152,35 @@ class ImaginedCore:
         for i, seed in zip(ids, seeds or [None] * len(ids)):
             if seed is not None:
                 self.rngs[i] = np.random.default_rng(seed)
-        windows = [self.reset_windows.sample(self.rngs[i]) for i in ids]
-        members = [int(self.rngs[i].integers(self.ensemble_size)) for i in ids]
-        states = torch.as_tensor(np.stack([w.states for w in windows]), device=self.device)
-        actions = torch.as_tensor(np.stack([w.actions for w in windows]), device=self.device)
+        # per env: its window's draw, then its head's draw, from its own generator (seeded envs repeat exactly)
+        ends, members = np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=np.int64)
+        for row, i in enumerate(ids):
+            ends[row] = self.reset_windows.draw(self.rngs[i])
+            members[row] = self.rngs[i].integers(self.ensemble_size)
+        windows = self.reset_windows.gather(ends)
+        states = torch.as_tensor(windows.states, device=self.device)
+        actions = torch.as_tensor(windows.actions, device=self.device)
         index = torch.as_tensor(ids, device=self.device)
         member = torch.as_tensor(members, device=self.device)
         self.member[index] = member
-        hidden, _ = self.model.warm_up(self.norm.normalize_state(states).float(), actions.float(),
-                                       member if self.ensemble_size > 1 else None)
+        hidden = self.model.warm_hidden(self.norm.normalize_state(states).float(), actions.float(),
+                                        member if self.ensemble_size > 1 else None)
         self.hidden = self.model.scatter_hidden(self.hidden, index, hidden)
-        self.state[ids] = np.stack([w.states[-1] for w in windows])
-        self.contact[ids] = np.stack([w.contact for w in windows])
-        self.foot_height[ids] = np.stack([w.foot_height for w in windows])
-        self.last_action[ids] = np.stack([w.actions[-1] for w in windows])
+        self.state[ids] = windows.states[:, -1]
+        self.contact[ids] = windows.contact
+        self.foot_height[ids] = windows.foot_height
+        self.last_action[ids] = windows.actions[:, -1]
         self.task.reset(ids, [self.rngs[i] for i in ids], commands)
         self.steps[ids] = 0
         self.uncertainty[ids] = 0.0
         return self.observe(ids)
 
-    @torch.no_grad()
     def step(self, actions: np.ndarray):
         """Every env one imagined step: obs, reward, terminated, truncated, info (arrays per env)."""
         actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
-        x = self.norm.normalize_state(torch.as_tensor(self.state, device=self.device))
-        u = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
-        member = self.member if self.ensemble_size > 1 else None
-        self.hidden, p = self.model.step(self.hidden, x.float(), u, member)
-        mean = p.state_mean
-        if self.options.sample_predictions:
-            noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
-            mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
-        # The task runs in numpy (the Gymnasium contract): one device-to-host copy per step carries every output.
-        parts = (mean, (p.contact_logits > 0).to(mean.dtype), p.foot_height.to(mean.dtype),
-                 p.termination_logit.to(mean.dtype).unsqueeze(1), p.uncertainty.to(mean.dtype).unsqueeze(1))
-        host = torch.cat(parts, dim=1).cpu().numpy()
-        host_parts = np.split(host, np.cumsum([t.shape[1] for t in parts])[:-1], axis=1)
+        host = self._predict(actions)
+        sizes = (self.spec.state_dim, self.spec.contact_dim, self.spec.foot_dim, 1)
+        host_parts = np.split(host, np.cumsum(sizes), axis=1)
         next_norm = host_parts[0].astype(np.float64)
         diverged = ~np.isfinite(next_norm).all(axis=1) | (np.abs(next_norm) > self.options.divergence_bound).any(axis=1)
         next_state = self.norm.denormalize_state(next_norm).astype(np.float32)
@@ -189,15 +190,18 @@ class ImaginedCore:
         terminated = diverged.copy()
         if self.task.terminates:
             terminated |= host_parts[3][:, 0] > 0
-        self.uncertainty = np.nan_to_num(host_parts[4][:, 0].astype(np.float64), nan=0.0)
+        if self.needs_uncertainty:
+            self.uncertainty = np.nan_to_num(host_parts[4][:, 0].astype(np.float64), nan=0.0)
 
         reward, terms = self.task.reward(next_state, self.state, contact, foot_height, actions, self.last_action)
         ended = getattr(self.task, "ended", None)  # a termination function's verdict on this step (FunctionTask)
         if ended is not None:
             terminated |= ended
-        reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
+        if self.options.uncertainty_penalty > 0:
+            reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty": self.uncertainty.copy(),
+        info = {"command": self.command.copy(), "model_diverged": diverged,
+                **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
                 **{f"reward/{k}": v for k, v in terms.items()}}
 
         self.state, self.contact, self.foot_height, self.last_action = next_state, contact, foot_height, actions
@@ -206,6 +210,26 @@ class ImaginedCore:
         self._push()
         self.task.advance(self.steps, self.rngs)
         return self.observe(), reward.astype(np.float64), terminated, truncated, info
+
+    @torch.inference_mode()
+    def _predict(self, actions: np.ndarray) -> np.ndarray:
+        """The model's step on the host: (N, S + C + F + 1 [+ 1]) normalised next state (sampled if asked), contact
+        flags, foot heights, termination logit [, disagreement when `needs_uncertainty`]."""
+        x = self.norm.normalize_state(torch.as_tensor(self.state, device=self.device))
+        u = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        member = self.member if self.ensemble_size > 1 else None
+        with self.model.computing_disagreement(self.needs_uncertainty):
+            self.hidden, p = self.model.step(self.hidden, x.float(), u, member)
+        mean = p.state_mean
+        if self.options.sample_predictions:
+            noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
+            mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
+        # The task runs in numpy (the Gymnasium contract): one device-to-host copy per step carries every output.
+        parts = [mean, (p.contact_logits > 0).to(mean.dtype), p.foot_height.to(mean.dtype),
+                 p.termination_logit.to(mean.dtype).unsqueeze(1)]
+        if self.needs_uncertainty:
+            parts.append(p.uncertainty.to(mean.dtype).unsqueeze(1))
+        return torch.cat(parts, dim=1).cpu().numpy()
 
     def _push(self) -> None:
         if self.options.push_interval_s <= 0:

@@ -45,10 +45,20 @@ class ResetWindows:
         self.contact, self.foot_height = dataset["contact"], dataset["foot_height"]
 
     def sample(self, rng: np.random.Generator) -> ResetWindow:
-        t = int(self.ends[rng.integers(len(self.ends))])
+        t = self.draw(rng)
         rows = slice(t - self.history + 1, t + 1)
         return ResetWindow(self.states[rows], self.actions[t - self.history + 1 : t], self.contact[t],
                            self.foot_height[t])
+
+    def draw(self, rng: np.random.Generator) -> int:
+        """The last row of a uniformly drawn window (one draw from `rng`, the same `sample` makes)."""
+        return int(self.ends[rng.integers(len(self.ends))])
+
+    def gather(self, ends: np.ndarray) -> ResetWindow:
+        """The windows ending at rows `ends` (n,), stacked in one gather: states (n, H, S), actions (n, H - 1, A),
+        contact (n, C), foot_height (n, F)."""
+        rows = ends[:, None] + np.arange(1 - self.history, 1)
+        return ResetWindow(self.states[rows], self.actions[rows[:, :-1]], self.contact[ends], self.foot_height[ends])
 
 
 def make_reset_data(source: Dataset | str | Path, out: str | Path, *, episodes: int = 32, rows: int = 200,

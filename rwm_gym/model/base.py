@@ -11,6 +11,9 @@ foot heights and termination flag of row t+1).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 from torch import nn
 
@@ -99,6 +102,26 @@ class WorldModel(nn.Module):
         if history == 1:
             return hidden, None
         return self.observe(hidden, states[:, :-1], actions[:, :history - 1], member, next_states=states[:, 1:])
+
+    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor,
+                    member: torch.Tensor | None = None) -> Hidden:
+        """`warm_up`'s hidden state alone, for callers that discard its predictions (an imagined env's reset).
+        The default runs `warm_up`; models whose recurrence does not read the heads skip them."""
+        return self.warm_up(states, actions, member)[0]
+
+    @contextmanager
+    def computing_disagreement(self, enabled: bool) -> Iterator[None]:
+        """Within the block, ensemble heads compute their disagreement (`Prediction.uncertainty`) only if `enabled`;
+        off, each rollout given a `member` runs only that head (k times fewer head FLOPs) and `uncertainty` is None."""
+        heads = [m for m in self.modules() if isinstance(m, StateHead)]
+        before = [h.disagreement for h in heads]
+        for h in heads:
+            h.disagreement = enabled
+        try:
+            yield
+        finally:
+            for h, flag in zip(heads, before):
+                h.disagreement = flag
 
     def forecast(self, states: torch.Tensor, actions: torch.Tensor, horizon: int, *, sample: bool,
                  member: torch.Tensor | None = None) -> tuple[Prediction, Prediction | None]:

@@ -22,6 +22,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from rwm_gym.atomic import atomic_write
+from rwm_gym.data.dataset import Dataset
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model
@@ -111,6 +112,27 @@ def _read(path: Path, device: str | torch.device) -> tuple[dict[str, str], dict[
 def read_meta(path: str | os.PathLike) -> CheckpointMeta:
     """The metadata of a checkpoint, without building its model."""
     return _meta(Path(path), *_read(Path(path), "cpu"))
+
+
+def dataset_rows(path: str | os.PathLike) -> tuple[int | None, str]:
+    """Rows (physics transitions) of the dataset a checkpoint was trained on, and where the figure comes from.
+
+    Read from the provenance (`dataset_steps`), else from the dataset file it names when that file is found (as
+    named, or beside the checkpoint) with the recorded sha256; otherwise None and the reason.
+    """
+    provenance = read_meta(path).provenance
+    if "dataset_steps" in provenance:
+        return int(provenance["dataset_steps"]), f"rows of the world model's dataset ({path} provenance)"
+    named = provenance.get("dataset")
+    if not named:
+        return None, f"unknown: {path} names no dataset in its provenance"
+    for candidate in (Path(named), Path(path).parent / named):
+        if candidate.is_file():
+            dataset = Dataset.load(candidate)
+            if provenance.get("sha256") in (None, dataset.file_hash()):
+                return int(dataset.num_steps), f"rows of {candidate}, the world model's dataset"
+    return None, (f"unknown: {path} predates the row count in its provenance (dataset_steps) and its dataset "
+                  f"{named} (with its sha256) is not here")
 
 
 def _meta(path: Path, header: dict[str, str], tensors: dict[str, torch.Tensor]) -> CheckpointMeta:

@@ -22,8 +22,9 @@ class Prediction:
     """(B, F) foot heights divided by the spec's foot_height_std."""
     termination_logit: torch.Tensor
     """(B,) logit of "the next row is a terminal state"."""
-    uncertainty: torch.Tensor
-    """(B,) ensemble disagreement: mean over dims of the std of the members' means (zeros for one member)."""
+    uncertainty: torch.Tensor | None
+    """(B,) ensemble disagreement: mean over dims of the std of the members' means (zeros for one member); None where
+    the caller asked not to compute it (`WorldModel.computing_disagreement(False)`)."""
     kl: torch.Tensor | None = None
     """(B,) KL(posterior || prior) of a latent-variable model, only when the true next state was given."""
 

@@ -45,6 +45,17 @@ class RWM(WorldModel):
         prediction = self.heads(out_state, out_privileged, states, member)
         return (h_state.transpose(0, 1), h_privileged.transpose(0, 1)), prediction
 
+    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor,
+                    member: torch.Tensor | None = None) -> Hidden:
+        """The GRUs over the history without the heads (the hidden state does not read them)."""
+        batch, history = states.shape[:2]
+        if history == 1:
+            return self.initial_hidden(batch, states.device)
+        x = torch.cat([states[:, :-1], actions[:, :history - 1]], dim=-1)
+        _, h_state = self.state_gru(x)
+        _, h_privileged = self.privileged_gru(x)
+        return h_state.transpose(0, 1), h_privileged.transpose(0, 1)
+
     def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
         hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)

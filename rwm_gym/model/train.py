@@ -14,7 +14,6 @@ ranks and only rank 0 validates and writes; see `rwm_gym.model.distributed` for 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -28,7 +27,6 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
@@ -40,6 +38,7 @@ from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
 from rwm_gym.options import add_dataclass_options
+from rwm_gym.progress import BudgetBar
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
@@ -268,8 +267,8 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
             by_steps = config.iterations > 0 and iteration >= config.iterations
             return by_steps or (config.minutes > 0 and elapsed() >= 60 * config.minutes)
 
-        bar = tqdm(total=config.iterations or None, initial=iteration, disable=not progress or not world.is_main,
-                   desc=f"train {model_config.kind}", dynamic_ncols=True)
+        bar = BudgetBar(steps=config.iterations or None, minutes=config.minutes or None, initial=iteration,
+                        desc=f"train {model_config.kind}", unit="it", disable=not progress or not world.is_main)
         interrupt = _DeferredInterrupt()
         try:
             while not finished():
@@ -303,14 +302,16 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 if iteration % config.checkpoint_every == 0:
                     save()
                     distributed.reseed_rank(config.seed, world, iteration)
-                bar.update(1)
+                postfix = {}
                 if stats["log"] and stats["log"][-1]["iteration"] == iteration:  # not per step: a host copy
-                    bar.set_postfix(loss=f"{stats['train_loss']:.4f}",
-                                    val=stats["val_error"] and f"{stats['val_error']:.4f}")
+                    postfix = {"loss": f"{stats['train_loss']:.4f}",
+                               "val": stats["val_error"] and f"{stats['val_error']:.4f}"}
+                bar.show(iteration, stats["wall_s"], **postfix)
                 if callback is not None:
                     callback(iteration, stats)
                 if interrupt.requested:
                     raise KeyboardInterrupt
+            bar.show(iteration, clock() - started)  # the budget's end (a time bar ends full)
         except KeyboardInterrupt:
             stats["wall_s"] = clock() - started
             if world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
@@ -386,6 +387,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           skip=("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
 
 
+def summary_text(stats: dict) -> str:
+    """The end-of-run line's figures, each to a sensible precision ('none' where a figure is missing)."""
+    def figure(value, form: str) -> str:
+        return "none" if value is None else format(value, form)
+
+    return (f"{stats['iterations']:,} iterations in {stats['wall_s']:.1f} s, train loss "
+            f"{figure(stats.get('train_loss'), '.4f')}, val error {figure(stats.get('val_error'), '.4f')}")
+
+
 def _given(args: argparse.Namespace, options) -> dict:
     return {f.name: getattr(args, f.name) for f in options if getattr(args, f.name, None) is not None}
 
@@ -412,6 +422,5 @@ def run(args: argparse.Namespace) -> int:
     finally:
         distributed.close_world()
     if result.path is not None:  # rank 0
-        summary = {k: result.stats.get(k) for k in ("iterations", "wall_s", "train_loss", "val_error")}
-        print(f"{args.model}: wrote {result.path} " + json.dumps(summary))
+        print(f"{args.model}: wrote {result.path} ({summary_text(result.stats)})")
     return 0

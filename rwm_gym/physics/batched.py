@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from rwm_gym.physics.locomotion import LocomotionCore
-from rwm_gym.physics.params import PhysicsParams
+from rwm_gym.physics.params import PhysicsParams, SolverSettings
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.vector.gym_vector_env import CoreGymVectorEnv
 from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
@@ -25,10 +25,11 @@ def make_core(
     observation_noise: bool = False,
     nthread: int = 0,
     resample_commands: bool = True,
+    solver: SolverSettings | Mapping[str, int] | None = None,
 ) -> LocomotionCore:
     task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
     return LocomotionCore(task, num_envs, xml_file=xml_file, physics=physics, observation_noise=observation_noise,
-                          nthread=nthread, resample_commands=resample_commands)
+                          nthread=nthread, resample_commands=resample_commands, solver=solver)
 
 
 class LocomotionGymVectorEnv(CoreGymVectorEnv):

@@ -15,7 +15,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.params import PhysicsParams, build_model, dead_band
+from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
@@ -37,11 +37,13 @@ class LocomotionCore:
         observation_noise: bool = False,
         nthread: int = 0,
         resample_commands: bool = True,
+        solver: SolverSettings | Mapping[str, int] | None = None,
     ):
         self.spec = spec
         self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
-        self.model = build_model(spec, xml_file, self.params)
+        self.solver = SolverSettings.from_dict(solver)
+        self.model = build_model(spec, xml_file, self.params, self.solver)
         if not np.isclose(self.model.opt.timestep, spec.physics_dt):
             raise ValueError(f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
                              f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s")
@@ -142,7 +144,8 @@ class LocomotionEnv(gym.Env):
 
     Observation (spec `observation.groups`, 48 for ANYmal D), action in [-1, 1]^A scaled to joint-position offsets
     around the default pose. `info` carries the command and every unweighted reward term. The MuJoCo model and data are
-    `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot.
+    `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot;
+    `solver` (see `SolverSettings`, e.g. `{"iterations": 100}`) how exactly MuJoCo solves each step, not the robot.
     `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode; `resample_commands=False` keeps
     each episode's sampled command.
     """
@@ -157,6 +160,7 @@ class LocomotionEnv(gym.Env):
         physics: PhysicsParams | Mapping[str, object] | None = None,
         observation_noise: bool = False,
         resample_commands: bool = True,
+        solver: SolverSettings | Mapping[str, int] | None = None,
         render_mode: str | None = None,
         width: int = 640,
         height: int = 480,
@@ -164,7 +168,8 @@ class LocomotionEnv(gym.Env):
     ):
         self.task_spec = spec if isinstance(spec, TaskSpec) else load_spec(spec)
         self.core = LocomotionCore(self.task_spec, 1, xml_file=xml_file, physics=physics,
-                                   observation_noise=observation_noise, resample_commands=resample_commands)
+                                   observation_noise=observation_noise, resample_commands=resample_commands,
+                                   solver=solver)
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}

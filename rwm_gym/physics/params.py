@@ -78,21 +78,66 @@ def per_joint(value: PerJoint, n: int, name: str) -> np.ndarray:
     return out
 
 
-def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None) -> mujoco.MjModel:
+@dataclass(frozen=True)
+class SolverSettings:
+    """Overrides of the MJCF's constraint-solver `<option>`; None keeps the MJCF's value.
+
+    Not a physical parameter: the robot is the same, only how exactly MuJoCo solves its contacts and joint friction
+    changes. The shipped ANYmal MJCF takes 4 solver iterations for speed (PPO); each step then leaves the solve
+    unfinished and the next one continues from it, so a trajectory is a rough function of the parameters and the
+    start state. Identification (`rwm-gym gap`) and its stand-in for a real robot (`make-measured`) solve each step
+    to convergence instead (`CONVERGED_SOLVER`).
+    """
+
+    iterations: int | None = None
+    """Main solver iterations per physics step (MuJoCo's default 100)."""
+    ls_iterations: int | None = None
+    """Line-search iterations per solver iteration (MuJoCo's default 50)."""
+    noslip_iterations: int | None = None
+    """No-slip post-solve iterations (0: off)."""
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, object] | SolverSettings | None) -> SolverSettings:
+        if isinstance(values, SolverSettings):
+            return values
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values or {}) - names)
+        if unknown:
+            raise ValueError(f"unknown solver setting(s) {unknown}; known: {sorted(names)}")
+        return cls(**dict(values or {}))
+
+    def apply(self, mj: mujoco.MjSpec) -> None:
+        for name in ("iterations", "ls_iterations", "noslip_iterations"):
+            value = getattr(self, name)
+            if value is not None:
+                if value < 0:
+                    raise ValueError(f"solver setting {name} must be >= 0, got {value}")
+                setattr(mj.option, name, int(value))
+
+
+CONVERGED_SOLVER = SolverSettings(iterations=100, ls_iterations=50)
+"""MuJoCo's default iteration counts (no-slip as in the MJCF): each physics step solved to convergence."""
+
+
+def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None,
+                solver: SolverSettings | None = None) -> mujoco.MjModel:
     """Compile the robot of `spec` (or `xml_file`) with the spec's actuator figures and `params` applied.
 
     The MJCF must name its actuated hinge joints and their position actuators as the spec's `actuator.joints`.
     """
-    return build_spec(spec, xml_file, params).compile()
+    return build_spec(spec, xml_file, params, solver).compile()
 
 
-def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None) -> mujoco.MjSpec:
+def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None,
+               solver: SolverSettings | None = None) -> mujoco.MjSpec:
     """The uncompiled `MjSpec` of `build_model` (e.g. to write the modified robot as MJCF with `to_xml()`)."""
     params = params or PhysicsParams()
     path = Path(xml_file) if xml_file is not None else spec.model_path
     if not path.is_file():
         raise FileNotFoundError(f"robot model {path} not found")
     mj = mujoco.MjSpec.from_file(str(path))
+    if solver is not None:
+        solver.apply(mj)
     act = spec.actuator
     n = len(act.joints)
     kp = act.kp * per_joint(params.kp_scale, n, "kp_scale")

@@ -20,9 +20,9 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
-from tqdm import tqdm
 
 from rwm_gym.options import add_dataclass_options
+from rwm_gym.progress import BudgetBar, whole_rollouts
 from rwm_gym.rl.policy_file import save_policy
 from rwm_gym.spec import TaskSpec
 
@@ -159,8 +159,8 @@ class _Progress(BaseCallback):
     def _on_training_start(self) -> None:
         self.started = time.monotonic()
         self.start_steps = self.num_timesteps
-        self.bar = tqdm(total=self.total, unit="step", unit_scale=True, desc="ppo", disable=not self.show,
-                        dynamic_ncols=True)
+        steps = self.total and whole_rollouts(self.total, self.model.n_steps * self.training_env.num_envs)
+        self.bar = BudgetBar(steps=steps, minutes=self.minutes, desc="ppo", unit_scale=True, disable=not self.show)
         self.running = np.zeros(self.training_env.num_envs)
         self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
 
@@ -172,7 +172,10 @@ class _Progress(BaseCallback):
         self.running += rewards
         self.finished += self.running[dones].tolist()
         self.running[dones] = 0.0
-        return self.minutes is None or time.monotonic() - self.started < 60 * self.minutes
+        seconds = time.monotonic() - self.started
+        if self.bar.by_time:
+            self.bar.show(self.num_timesteps - self.start_steps, seconds)
+        return self.minutes is None or seconds < 60 * self.minutes
 
     def _on_rollout_end(self) -> None:
         kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
@@ -193,8 +196,8 @@ class _Progress(BaseCallback):
         if self.on_rollout is not None:
             self.on_rollout(self.log[-1])
         self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
-        self.bar.update(self.num_timesteps - self.bar.n - self.start_steps)
-        self.bar.set_postfix(reward=f"{reward:.4f}", lr=f"{lr:.1e}")
+        self.bar.show(self.num_timesteps - self.start_steps, time.monotonic() - self.started,
+                      reward=f"{reward:.4f}", lr=f"{lr:.1e}")
 
     def _on_training_end(self) -> None:
         self.bar.close()
@@ -221,7 +224,7 @@ def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = N
     """
     if not timesteps and not minutes:
         raise ValueError("set a budget: timesteps and/or minutes")
-    total = int(timesteps) if timesteps else 10**12
+    total = int(timesteps) if timesteps else 10**12  # SB3 runs whole rollouts: the bar counts those
     callback = _Progress(total if timesteps else None, minutes, target_kl, progress, on_rollout)
     before, started = model.num_timesteps, time.monotonic()
     model.learn(total, callback=CallbackList([callback, *callbacks]), reset_num_timesteps=False, progress_bar=False)
@@ -266,29 +269,18 @@ def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None 
     return env
 
 
-def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> int | None:
-    """Physics transitions the policy cost: its own steps in physics, or the rows of the world model's dataset."""
+def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
+    """Physics transitions the policy cost, and where that figure comes from (or why it is unknown): its own steps
+    in physics; in imagination, the rows of the world model's dataset."""
     if where == "physics":
-        return trained_steps
+        return trained_steps, "the policy's own physics steps"
     if checkpoint is None:
-        try:
-            from rwm_gym.imagination.core import default_checkpoint
+        from rwm_gym.imagination.core import default_checkpoint
 
-            checkpoint = default_checkpoint()
-        except (ImportError, FileNotFoundError):
-            return None
-    from rwm_gym.model.checkpoint import read_meta
+        checkpoint = default_checkpoint()
+    from rwm_gym.model.checkpoint import dataset_rows
 
-    provenance = read_meta(checkpoint).provenance
-    for key in ("dataset_steps", "dataset_rows", "num_steps"):
-        if key in provenance:
-            return int(provenance[key])
-    dataset = Path(provenance.get("dataset", ""))
-    if dataset.is_file():
-        from rwm_gym.data.dataset import Dataset
-
-        return int(Dataset.load(dataset).num_steps)
-    return None
+    return dataset_rows(checkpoint)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -301,8 +293,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
     parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
                         help="lambda of RWM-U's penalty -lambda * u * dt on the ensemble disagreement u (imagination)")
-    parser.add_argument("--timesteps", type=int, default=None, help="budget in env steps")
-    parser.add_argument("--minutes", type=float, default=None, help="budget in wall-clock minutes")
+    parser.add_argument("--timesteps", type=int, default=None,
+                        help="budget in env steps (default: none; with neither budget, --minutes 8)")
+    parser.add_argument("--minutes", type=float, default=None,
+                        help="budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
     parser.add_argument("--threads", type=int, default=None,
@@ -317,7 +311,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
                              "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
     parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
-    parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode")
+    parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode (default: the task's episode, 20 s)")
     parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
     parser.add_argument("--run-dir", type=Path, default=None,
                         help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
@@ -363,8 +357,9 @@ def run(args: argparse.Namespace) -> int:
 
         cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
                                                                   seed=args.seed), progress=True)
-        print(f"behaviour cloning: {cloned.pairs} pairs from {cloned.episodes} episodes, action MSE "
-              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {cloned.val_mse_after}) "
+        held_out = "none" if cloned.val_mse_after is None else f"{cloned.val_mse_after:.3f}"
+        print(f"behaviour cloning: {cloned.pairs:,} pairs from {cloned.episodes} episodes, action MSE "
+              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
               f"in {cloned.wall_s:.0f} s")
         if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
             cloned_eval = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
@@ -375,13 +370,13 @@ def run(args: argparse.Namespace) -> int:
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
         warmup = warm_up_critic(model, config.critic_warmup_steps)
-        print(f"critic warm-up: {warmup.timesteps} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
+        print(f"critic warm-up: {warmup.timesteps:,} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
     if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
         stats = TrainStats(0, 0.0, 0.0)
     else:
         stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
     out = save_policy(model, args.out)
-    print(f"trained {stats.timesteps} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+    print(f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
     report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
               "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()},
@@ -390,14 +385,17 @@ def run(args: argparse.Namespace) -> int:
                                                                  "evaluation": None if args.no_eval
                                                                  else cloned_eval.to_dict()},
               "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
-              "physics_samples": physics_samples(args.where, args.checkpoint,
-                                                 stats.timesteps + (warmup.timesteps if warmup else 0))}
+              "kept": "ppo"}  # which policy --out holds; --keep-best may hand back the clone
+    report["physics_samples"], report["physics_samples_source"] = physics_samples(
+        args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0))
+    samples = report["physics_samples"]
+    print(f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
+          f"({report['physics_samples_source']})")
     if not args.no_eval:
         evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
         print("physics evaluation" + (" after PPO:" if cloned else ":"))
         print(format_table(evaluation))
         report["evaluation"] = evaluation.to_dict()
-        report["kept"] = "ppo"
         if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
             os.replace(out, out.with_name(out.stem + "_ppo.zip"))
             save_policy(PPO.load(out_bc, device=args.device), out)
@@ -406,6 +404,9 @@ def run(args: argparse.Namespace) -> int:
                   f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
                   f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
                   f"{out.with_name(out.stem + '_ppo.zip')}")
+        elif cloned is not None:
+            print(f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
+                  f"{evaluation.tracking:.3f} after PPO)")
         print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
