@@ -6,17 +6,27 @@ import numpy as np
 import pytest
 import torch
 
-from rwm_gym.data.dataset import Dataset
+from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.rl.ppo import PPOConfig, make_env, make_ppo
-from rwm_gym.rl.warm_start import CloneConfig, action_mse, behaviour_clone, demonstrations
-from rwm_gym.resources import assets_dir
+from rwm_gym.rl.warm_start import CloneConfig, action_mse, behaviour_clone, default_demonstrations, demonstrations
 
 TINY = PPOConfig(num_envs=2, n_steps=16, num_minibatches=1, net_arch=(64, 64))
 
 
 @pytest.fixture(scope="module")
-def trot() -> Dataset:
-    return Dataset.load(assets_dir() / "checkpoints" / "anymal_d_reset.h5")
+def trot(tmp_path_factory) -> Dataset:
+    """24 episodes of the shipped scripted-trot demonstrations that do not end in a fall, 80 rows each."""
+    demos = Dataset.load(default_demonstrations())
+    keep = [i for i in range(demos.num_episodes) if not demos.episode(i)["terminated"].any()][:24]
+    path = tmp_path_factory.mktemp("trot") / "trot.h5"
+
+    def first_rows(i: int) -> dict[str, np.ndarray]:
+        episode = {k: v[:80].copy() for k, v in demos.episode(i).items()}
+        episode["action"][-1], episode["reward"][-1], episode["truncated"][-1] = 0.0, 0.0, True
+        return episode
+
+    write_dataset(path, demos.info, (first_rows(i) for i in keep))
+    return Dataset.load(path)
 
 
 def test_pairs_follow_the_dataset_layout(trot):
