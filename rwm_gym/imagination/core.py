@@ -77,6 +77,7 @@ class ImaginedCore:
         self.options = options or ImaginationOptions(**kwargs)
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
+        self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
         self.spec: TaskSpec = self.meta.spec
         if env_id is not None and self.spec.imagined_env_id != env_id:
             raise ValueError(f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
@@ -218,8 +219,7 @@ class ImaginedCore:
         x = self.norm.normalize_state(torch.as_tensor(self.state, device=self.device))
         u = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         member = self.member if self.ensemble_size > 1 else None
-        with self.model.computing_disagreement(self.needs_uncertainty):
-            self.hidden, p = self.model.step(self.hidden, x.float(), u, member)
+        self.hidden, p = self.model.step(self.hidden, x.float(), u, member)
         mean = p.state_mean
         if self.options.sample_predictions:
             noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])

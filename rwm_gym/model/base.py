@@ -115,13 +115,18 @@ class WorldModel(nn.Module):
         off, each rollout given a `member` runs only that head (k times fewer head FLOPs) and `uncertainty` is None."""
         heads = [m for m in self.modules() if isinstance(m, StateHead)]
         before = [h.disagreement for h in heads]
-        for h in heads:
-            h.disagreement = enabled
+        self.set_disagreement(enabled)
         try:
             yield
         finally:
             for h, flag in zip(heads, before):
                 h.disagreement = flag
+
+    def set_disagreement(self, enabled: bool) -> None:
+        """`computing_disagreement` for good, for an owner that decides once (an imagined env's own model)."""
+        for module in self.modules():
+            if isinstance(module, StateHead):
+                module.disagreement = enabled
 
     def forecast(self, states: torch.Tensor, actions: torch.Tensor, horizon: int, *, sample: bool,
                  member: torch.Tensor | None = None) -> tuple[Prediction, Prediction | None]:

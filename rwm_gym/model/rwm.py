@@ -38,23 +38,26 @@ class RWM(WorldModel):
     def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
                 next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
         """Both GRUs over the whole sequence at once (cuDNN on GPU); `next_states` is not used."""
+        (out_state, out_privileged), hidden = self._recur(hidden, states, actions)
+        return hidden, self.heads(out_state, out_privileged, states, member)
+
+    def _recur(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor
+               ) -> tuple[tuple[torch.Tensor, torch.Tensor], Hidden]:
+        """Both GRUs over (states, actions) (B, T, .): their outputs (B, T, H) and the hidden state after T steps."""
         x = torch.cat([states, actions], dim=-1)
         h_state, h_privileged = (h.transpose(0, 1).contiguous() for h in hidden)
         out_state, h_state = self.state_gru(x, h_state)
         out_privileged, h_privileged = self.privileged_gru(x, h_privileged)
-        prediction = self.heads(out_state, out_privileged, states, member)
-        return (h_state.transpose(0, 1), h_privileged.transpose(0, 1)), prediction
+        return (out_state, out_privileged), (h_state.transpose(0, 1), h_privileged.transpose(0, 1))
 
     def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor,
                     member: torch.Tensor | None = None) -> Hidden:
         """The GRUs over the history without the heads (the hidden state does not read them)."""
         batch, history = states.shape[:2]
+        hidden = self.initial_hidden(batch, states.device)
         if history == 1:
-            return self.initial_hidden(batch, states.device)
-        x = torch.cat([states[:, :-1], actions[:, :history - 1]], dim=-1)
-        _, h_state = self.state_gru(x)
-        _, h_privileged = self.privileged_gru(x)
-        return h_state.transpose(0, 1), h_privileged.transpose(0, 1)
+            return hidden
+        return self._recur(hidden, states[:, :-1], actions[:, :history - 1])[1]
 
     def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
