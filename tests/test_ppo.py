@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -141,7 +142,7 @@ def test_imagined_return_rises_on_the_shipped_model():
     assert np.mean(after[-5:]) > initial + 0.1 * abs(initial), (before, after)
 
 
-def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkpoint, tmp_path):
+def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tiny_checkpoint, tmp_path):
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset
     from rwm_gym.rl.mbpo import MBPOConfig, mbpo
@@ -153,22 +154,33 @@ def test_mbpo_loop_from_a_policy_fine_tunes_and_logs_every_iteration(tiny_checkp
                      PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32)), seed=0)
     start.save(tmp_path / "start.zip")
     config = MBPOConfig(iterations=2, ppo_timesteps=128, num_envs=8, imagined_episode_steps=20, collect_episodes=2,
-                        collect_steps=48, model_iterations=5, model_finetune=True, model_lr=3e-4,
+                        collect_steps=48, base_episodes=3, model_iterations=5, model_finetune=True, model_lr=3e-4,
                         critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
-    report = mbpo(data, tmp_path / "mbpo", config, checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip",
-                  progress=False)
+    run = dict(checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip", progress=False)
+    report = mbpo(data, tmp_path / "mbpo", config, **run)
     log = report["log"]
     assert [row["iteration"] for row in log] == [0, 1, 2]
     assert log[0]["model_error_fresh"] is None and all(row["model_error_fresh"] for row in log[1:])
     rows = [row["physics_samples"] for row in log]
-    assert rows[0] == Dataset.load(data).num_steps and rows[0] < rows[1] < rows[2]
+    fresh = [Dataset.load(tmp_path / "mbpo" / f"data_{k}.h5").num_steps for k in (1, 2)]
+    assert rows == [Dataset.load(data).num_steps, rows[0] + fresh[0], rows[0] + fresh[0] + fresh[1]]
+    assert Dataset.load(tmp_path / "mbpo" / "buffer.h5").num_episodes == 3 + 2 + 2  # base + both collections
     assert report["best_tracking"] == max(row["tracking"] for row in log)
     assert report["ppo"] == {"init_policy": str(tmp_path / "start.zip")}  # settings from the zip, not defaults
     for k in (1, 2):  # each model is fine-tuned from the one before
-        previous = tiny_checkpoint if k == 1 else tmp_path / "mbpo" / "model_1.safetensors"
+        previous = tmp_path / "mbpo" / f"model_{k - 1}.safetensors"
         assert read_meta(tmp_path / "mbpo" / f"model_{k}.safetensors").provenance["init_checkpoint"] == str(previous)
     assert (tmp_path / "mbpo" / "mbpo.png").stat().st_size > 0
     assert json.loads((tmp_path / "mbpo" / "mbpo.json").read_text())["log"] == json.loads(json.dumps(log))
+
+    # stopped after iteration 1 and resumed: the same numbers as the run never stopped
+    first = mbpo(data, tmp_path / "resumed", replace(config, iterations=1), **run)
+    assert len(first["log"]) == 2
+    resumed = mbpo(data, tmp_path / "resumed", config, **run)["log"]
+    numbers = ("tracking", "physics_return", "falls", "physics_samples", "imagined_step_reward", "model_error_fresh")
+    assert [[row[n] for n in numbers] for row in resumed] == [[row[n] for n in numbers] for row in log]
+    with pytest.raises(ValueError, match="other settings \\(model_lr\\)"):
+        mbpo(data, tmp_path / "resumed", replace(config, model_lr=1e-3), **run)
 
 
 def test_mbpo_options_come_from_its_config_fields():

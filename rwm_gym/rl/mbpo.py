@@ -1,26 +1,33 @@
-"""The MBPO-PPO loop (`rwm-gym mbpo`): PPO in imagination, judge in physics, collect, retrain the model, repeat.
+"""MBPO-PPO (`rwm-gym mbpo`): the RWM paper's online loop, resumable, every physics sample counted.
 
-Each iteration: (1) continue PPO on the imagined env of the current world model; (2) evaluate the policy in physics
-(fixed commands and seeds) and keep the best zip; (3) collect fresh physics episodes with the policy (plus action
-noise); (4) measure the current model's prediction error on that fresh data (the states the policy now visits);
-(5) retrain the world model on all data so far (from scratch, same budget each time: `train` resumes only on an
-unchanged dataset) or fine-tune it from its last weights (`model_finetune`, the cheap choice on a small CPU). Logged
-per iteration, as JSON and a PNG curve: model error on fresh data, imagined reward, physics return and tracking error,
-physics samples so far. A policy to start from (`init_policy`, e.g. the behaviour-cloned actor `rwm-gym ppo --bc-data
-... --timesteps 0` writes) is evaluated first as iteration 0, and its critic is warmed up before the actor moves.
+Iteration k: (1) PPO continues in imagination on model k-1, its episodes restarting from real histories of the
+buffer; (2) the policy's tracking score is measured in physics; (3) physics episodes are collected with it, acting
+with Gaussian noise of its own current std (the exploration PPO used in imagination); (4) the model's error on that
+fresh data is measured (the states the policy now visits); (5) the model is fine-tuned (or retrained) on the buffer:
+`base_episodes` episodes of the starting data plus every fresh episode so far, so the states an imagined policy
+exploits get real data (the cause of exploitation is missing coverage, and this is its fix).
+
+Physics samples are the starting data's rows plus every collected row. The folder holds each iteration's policy,
+model and fresh data, and `mbpo.json` (config, log). The same command run again resumes after the last finished
+iteration: each iteration reloads its inputs from those files and is seeded by (seed, k), so a resumed run gives the
+numbers of one never stopped.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 from rwm_gym.atomic import atomic_write
 from rwm_gym.options import add_dataclass_options
+
+RESUME_MAY_CHANGE = ("iterations",)
+"""MBPOConfig fields a resumed run may set differently; the others must match the folder's."""
 
 
 @dataclass(frozen=True)
@@ -35,24 +42,28 @@ class MBPOConfig:
     """Imagined envs."""
     imagined_episode_steps: int = 250
     """Time limit of an imagined episode (policy steps); PPO bootstraps at the limit."""
+    uncertainty_penalty: float = 0.0
+    """lambda of RWM-U's penalty on the ensemble disagreement in imagination (0: none)."""
     collect_episodes: int = 32
     """Physics episodes collected per iteration."""
     collect_steps: int = 250
     """Cap on a collected episode's length (policy steps)."""
-    action_noise: float = 0.1
-    """Gaussian std added to the policy's actions while collecting (exploration)."""
+    action_noise: float | None = None
+    """Gaussian std added to the policy's actions while collecting (default: the policy's own mean std)."""
+    base_episodes: int = 0
+    """Episodes of the starting data kept in the buffer beside the fresh ones (0: all of it)."""
     model_iterations: int = 1000
     """World-model gradient steps per retraining."""
     model_finetune: bool = False
-    """Fine-tune the current world model on all data so far instead of retraining it from scratch."""
+    """Fine-tune the current world model on the buffer instead of retraining it from scratch."""
     model_lr: float = 1e-3
     """Adam learning rate of the world-model (re)training (lower it for fine-tuning, e.g. 3e-4)."""
     critic_warmup_steps: int = 0
     """Imagined steps that train only the critic of `init_policy` before the first PPO iteration."""
-    eval_seeds: int = 2
-    """Physics evaluation episodes per command."""
-    eval_steps: int = 500
-    """Policy steps per physics evaluation episode."""
+    eval_seeds: int = 3
+    """Physics evaluation episodes per command (3 with full episodes: the tracking score)."""
+    eval_steps: int | None = None
+    """Policy steps per physics evaluation episode (None: the task's episode)."""
     seed: int = 0
     """Seeds PPO, collection and model training (each iteration offsets it)."""
 
@@ -63,98 +74,141 @@ class MBPOConfig:
 def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
          init_policy: str | Path | None = None, model_kind: str = "rwm", device: str = "cpu",
          progress: bool = True) -> dict:
-    """Run the loop from the dataset `data` into the folder `out`; returns the report (also `out/mbpo.json`).
+    """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps).
     init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
     """
-    from rwm_gym.data.collect import collect
-    from rwm_gym.data.dataset import Dataset, merge_datasets
-    from rwm_gym.atomic import write_json
-    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
     from stable_baselines3 import PPO
 
-    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.atomic import write_json
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import Dataset, merge_datasets
+    from rwm_gym.imagination.reset_data import make_reset_data
+    from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.model.config import TrainConfig
     from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
-    from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.model.factory import model_config_for
     from rwm_gym.model.train import train
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
+    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    started = time.monotonic()
-    spec = Dataset.load(data).spec()
-    model_config = read_meta(checkpoint).model_config if checkpoint else model_config_for(model_kind, spec)
-
-    def retrain(dataset: Path, k: int, previous: Path | None) -> Path:
-        train_config = TrainConfig(iterations=config.model_iterations, seed=config.seed + k, device=device,
-                                   lr=config.model_lr, val_every=max(1, config.model_iterations // 4),
-                                   checkpoint_every=config.model_iterations)
-        init = previous if config.model_finetune else None
-        return train(dataset, model_config, train_config, out / f"model_{k}.safetensors", progress=progress,
-                     init=init).path
-
-    all_data = Path(data)
-    physics_samples = int(Dataset.load(all_data).num_steps)
-    checkpoint = Path(checkpoint) if checkpoint else retrain(all_data, 0, None)
+    report_path = out / "mbpo.json"
+    report = json.loads(report_path.read_text()) if report_path.exists() else None
+    if report is not None:
+        _check_resume(report, config, report_path)
+    starting = Dataset.load(data)
+    spec = starting.spec()
     ppo_config = PPOConfig(num_envs=config.num_envs)
-    env_kwargs = {"episode_steps": config.imagined_episode_steps}
-    env = make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device, seed=config.seed,
-                   env_kwargs=env_kwargs)
-    log: list[dict] = []
-    best = None
-    if init_policy is not None:
-        policy = PPO.load(init_policy, env=env, device=device)
+    env_kwargs = {"episode_steps": config.imagined_episode_steps,
+                  "uncertainty_penalty": config.uncertainty_penalty}
+
+    def model_path(k: int) -> Path:
+        return out / f"model_{k}.safetensors"
+
+    def retrain(buffer: Path, k: int, previous: Path | None) -> Path:
+        previous_config = read_meta(previous).train_config if previous is not None else TrainConfig()
+        train_config = replace(previous_config, iterations=config.model_iterations, minutes=0.0, seed=config.seed + k,
+                               device=device, lr=config.model_lr, val_every=max(1, config.model_iterations // 4),
+                               checkpoint_every=config.model_iterations)
+        init = previous if config.model_finetune else None
+        return train(buffer, model_config, train_config, model_path(k), progress=progress, init=init,
+                     overwrite=True).path
+
+    started = time.monotonic()
+    base = out / "buffer_base.h5"
+    if not base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
+        keep = config.base_episodes or starting.num_episodes
+        make_reset_data(starting, base, episodes=keep, rows=spec.episode_steps + 1, seed=config.seed)
+    if report is None:  # iteration 0: the starting model and policy, scored
+        if checkpoint is None:
+            model_config = model_config_for(model_kind, spec)
+            retrain(base if config.base_episodes else Path(data), 0, None)
+        else:
+            model_config = read_meta(checkpoint).model_config
+            model_path(0).write_bytes(Path(checkpoint).read_bytes())
+        env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
+                       env_kwargs={**env_kwargs, "reset_data": base})
+        if init_policy is not None:
+            policy = PPO.load(init_policy, env=env, device=device)
+            if config.critic_warmup_steps:
+                warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
+        else:
+            policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
+        save_policy(policy, out / "policy_0.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        best = (0, evaluation.tracking)
-        save_policy(policy, out / "best_policy.zip")
-        log.append({"iteration": 0, "imagined_step_reward": None, "imagined_steps": 0, **_physics(evaluation),
-                    "model_error_fresh": None, "physics_samples": physics_samples,
-                    "wall_s": time.monotonic() - started})
-        tqdm.write(f"iteration 0 ({init_policy}): physics tracking {evaluation.tracking:.3f}, "
-                   f"return {evaluation.episode_return:.2f}")
-        if config.critic_warmup_steps:
-            warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
-    else:
-        policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
-    for k in tqdm(range(1, config.iterations + 1), desc="mbpo", disable=not progress):
-        if k > 1:
-            policy.set_env(make_env("imagination", config.num_envs, checkpoint=checkpoint, device=device,
-                                    seed=config.seed + k, env_kwargs=env_kwargs))
+        report = {"config": config.to_dict(), "data": str(data), "start_checkpoint": None if checkpoint is None else str(checkpoint),
+                  "ppo": ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
+                  "log": [{"iteration": 0, "imagined_steps": 0, "imagined_step_reward": None,
+                           **_physics(evaluation), "model_error_fresh": None,
+                           "physics_samples": int(starting.num_steps), "learning_rate": policy.learning_rate,
+                           "wall_s": time.monotonic() - started}]}
+        _write_report(report, out, write_json)
+        tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
+    model_config = read_meta(model_path(0)).model_config
+    prior_wall = report["log"][-1]["wall_s"]
+    started = time.monotonic() - prior_wall
+    done = report["log"][-1]["iteration"]
+    bar = tqdm(range(done + 1, config.iterations + 1), desc="mbpo", disable=not progress, initial=done,
+               total=config.iterations)
+    for k in bar:
+        previous = report["log"][-1]
+        fresh_files = [out / f"data_{j}.h5" for j in range(1, k)]
+        buffer = out / "buffer.h5" if fresh_files else base
+        if fresh_files:
+            merge_datasets([base, *fresh_files], buffer)
+        env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
+                       seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
+        policy = PPO.load(out / f"policy_{k - 1}.zip", env=env, device=device)  # the same path resumed or not
+        policy.learning_rate = previous["learning_rate"]
+        policy._setup_lr_schedule()
+        policy.set_random_seed(config.seed + k)
         stats = learn(policy, timesteps=config.ppo_timesteps, target_kl=ppo_config.target_kl, progress=progress)
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        if best is None or evaluation.tracking > best[1]:
-            best = (k, evaluation.tracking)
-            save_policy(policy, out / "best_policy.zip")
+        noise = config.action_noise
+        if noise is None:
+            noise = float(policy.policy.log_std.detach().exp().mean())
         fresh = collect(spec.physics_env_id, str(zip_path), config.collect_episodes, out / f"data_{k}.h5",
-                        seed=config.seed + 1000 * k, num_envs=config.collect_episodes,
-                        action_noise=config.action_noise, max_steps=config.collect_steps, overwrite=True,
-                        progress=progress)
-        model_error = evaluate_checkpoint(checkpoint, fresh, EvalConfig(horizons=(8, 32), max_horizon=100,
-                                                                        noise_levels=(), device=device),
-                                          all_episodes=True, progress=False)["error"]
-        physics_samples += int(Dataset.load(fresh).num_steps)
-        merged = out / f"all_{k}.h5"
-        merge_datasets([all_data, fresh], merged)
-        all_data = merged
-        checkpoint = retrain(all_data, k, checkpoint)
-        row = {"iteration": k, "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
-               "imagined_steps": stats.timesteps, **_physics(evaluation), "model_error_fresh": model_error,
-               "physics_samples": physics_samples,
+                        seed=config.seed + 1000 * k, num_envs=min(config.collect_episodes, 64), action_noise=noise,
+                        max_steps=config.collect_steps, overwrite=True, progress=progress)
+        model_error = evaluate_checkpoint(model_path(k - 1), fresh,
+                                          EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(),
+                                                     device=device), all_episodes=True, progress=False)["error"]
+        merge_datasets([base, *fresh_files, fresh], out / "buffer.h5")
+        retrain(out / "buffer.h5", k, model_path(k - 1))
+        row = {"iteration": k, "imagined_steps": previous["imagined_steps"] + stats.timesteps,
+               "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
+               **_physics(evaluation), "model_error_fresh": model_error,
+               "physics_samples": previous["physics_samples"] + int(Dataset.load(fresh).num_steps),
+               "action_noise": noise, "learning_rate": float(policy.learning_rate),
                "wall_s": time.monotonic() - started}
-        log.append(row)
-        tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, return {row['physics_return']:.2f}, "
-                   f"|dv_xy| {row['lin_vel_error']:.3f}, "
-                   f"model error on fresh data {model_error}, imagined step reward {row['imagined_step_reward']:.4f}")
+        report["log"].append(row)
+        _write_report(report, out, write_json)
+        tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
+                   f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
+                   f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}")
         tqdm.write(format_table(evaluation))
-        ppo = ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)}  # its zip's settings
-        report = {"config": config.to_dict(), "ppo": ppo, "data": str(data), "log": log,
-                  "best_iteration": best[0], "best_tracking": best[1]}
-        write_json(out / "mbpo.json", report)
-        plot_curve(log, out / "mbpo.png")
     return report
+
+
+def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
+    """Refuse to resume a folder started with other settings (only `RESUME_MAY_CHANGE` may differ)."""
+    saved = {k: v for k, v in report["config"].items() if k not in RESUME_MAY_CHANGE}
+    given = {k: v for k, v in json.loads(json.dumps(config.to_dict())).items() if k not in RESUME_MAY_CHANGE}
+    if saved != given:
+        differ = sorted(k for k in given if saved.get(k) != given[k])
+        raise ValueError(f"{path}: this folder's run has other settings ({', '.join(differ)}); use another --out")
+
+
+def _write_report(report: dict, out: Path, write_json) -> None:
+    log = report["log"]
+    best = max(log, key=lambda row: row["tracking"])
+    report["best_iteration"], report["best_tracking"] = best["iteration"], best["tracking"]
+    write_json(out / "mbpo.json", report)
+    plot_curve(log, out / "mbpo.png")
 
 
 def _physics(evaluation) -> dict:
@@ -164,30 +218,30 @@ def _physics(evaluation) -> dict:
             "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
 
 
-def plot_curve(log: list[dict], path: Path) -> None:
-    """Physics return, tracking error and fresh-data model error per iteration, written atomically."""
+def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] | None = None) -> None:
+    """Physics tracking against physics samples (beside model-free PPO's curve, if given), and the fresh-data model
+    error per iteration; written atomically."""
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    it = [r["iteration"] for r in log]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
-    axes[0].plot(it, [r["tracking"] for r in log], "o-")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    axes[0].plot([r["physics_samples"] / 1e6 for r in log], [r["tracking"] for r in log], "o-", label="MBPO-PPO")
+    if model_free:
+        axes[0].plot([s / 1e6 for s, _ in model_free], [t for _, t in model_free], "-", label="model-free PPO")
+    axes[0].set_xlabel("physics samples (M)")
     axes[0].set_title("physics tracking score")
-    axes[1].plot(it, [r["lin_vel_error"] for r in log], "o-", label="|dv_xy| m/s")
-    axes[1].plot(it, [r["yaw_rate_error"] for r in log], "o-", label="|dwz| rad/s")
-    axes[1].set_title("tracking error")
-    axes[1].legend()
+    axes[0].legend()
     measured = [r for r in log if r["model_error_fresh"]]
     for horizon in (measured[0]["model_error_fresh"] if measured else []):
-        axes[2].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
+        axes[1].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
                      label=f"{horizon} steps")
-    axes[2].set_title("model error on fresh physics data")
-    axes[2].legend()
-    for ax in axes:
-        ax.set_xlabel("iteration")
+    axes[1].set_xlabel("iteration")
+    axes[1].set_title("model error on the policy's fresh physics data")
+    if measured:
+        axes[1].legend()
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
@@ -195,14 +249,15 @@ def plot_curve(log: list[dict], path: Path) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
-    parser.add_argument("--out", required=True, type=Path, help="folder for models, data, policies and the report")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="run folder: models, data, policies and the report; the same command resumes it")
     parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
     parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
     parser.add_argument("--init-policy", default=None, type=Path,
                         help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    add_dataclass_options(parser, MBPOConfig)
+    add_dataclass_options(parser, MBPOConfig, types={"action_noise": float, "eval_steps": int})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -211,8 +266,11 @@ def run(args: argparse.Namespace) -> int:
 
         torch.set_num_threads(args.threads)
     config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
-    report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
-                  model_kind=args.model, device=args.device)
+    try:
+        report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
+                      model_kind=args.model, device=args.device)
+    except ValueError as error:
+        raise SystemExit(f"rwm-gym mbpo: {error}") from None
     print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
           f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
     return 0
