@@ -176,9 +176,14 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
     # stopped after iteration 1 and resumed: the same numbers as the run never stopped
     first = mbpo(data, tmp_path / "resumed", replace(config, iterations=1), **run)
     assert len(first["log"]) == 2
-    resumed = mbpo(data, tmp_path / "resumed", config, **run)["log"]
+    curve = tmp_path / "model_free.csv"
+    curve.write_text("timesteps,wall_s,tracking\n0,0,0.23\n1000,5,0.5\n")
+    resumed = mbpo(data, tmp_path / "resumed", config, model_free_curve=curve, **run)["log"]
     numbers = ("tracking", "physics_return", "falls", "physics_samples", "imagined_step_reward", "model_error_fresh")
     assert [[row[n] for n in numbers] for row in resumed] == [[row[n] for n in numbers] for row in log]
+    curve.write_text("steps,score\n0,0.2\n")
+    with pytest.raises(ValueError, match="needs 'timesteps' and 'tracking' columns"):
+        mbpo(data, tmp_path / "resumed", config, model_free_curve=curve, **run)
     with pytest.raises(ValueError, match="other settings \\(model_lr\\)"):
         mbpo(data, tmp_path / "resumed", replace(config, model_lr=1e-3), **run)
 

@@ -73,11 +73,13 @@ class MBPOConfig:
 
 def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
          init_policy: str | Path | None = None, model_kind: str = "rwm", device: str = "cpu",
-         progress: bool = True) -> dict:
+         model_free_curve: str | Path | None = None, progress: bool = True) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps).
     init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
+    model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
+    `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
     """
     from stable_baselines3 import PPO
 
@@ -95,6 +97,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    model_free = read_curve(model_free_curve) if model_free_curve else None
     report_path = out / "mbpo.json"
     report = json.loads(report_path.read_text()) if report_path.exists() else None
     if report is not None:
@@ -145,7 +148,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
                            **_physics(evaluation), "model_error_fresh": None,
                            "physics_samples": int(starting.num_steps), "learning_rate": policy.learning_rate,
                            "wall_s": time.monotonic() - started}]}
-        _write_report(report, out, write_json)
+        _write_report(report, out, write_json, model_free)
         tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
     model_config = read_meta(model_path(0)).model_config
     prior_wall = report["log"][-1]["wall_s"]
@@ -186,11 +189,12 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
                "action_noise": noise, "learning_rate": float(policy.learning_rate),
                "wall_s": time.monotonic() - started}
         report["log"].append(row)
-        _write_report(report, out, write_json)
+        _write_report(report, out, write_json, model_free)
         tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
                    f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
                    f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}")
         tqdm.write(format_table(evaluation))
+    plot_curve(report["log"], out / "mbpo.png", model_free)  # also when resumed with nothing left to run
     return report
 
 
@@ -203,12 +207,23 @@ def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
         raise ValueError(f"{path}: this folder's run has other settings ({', '.join(differ)}); use another --out")
 
 
-def _write_report(report: dict, out: Path, write_json) -> None:
+def _write_report(report: dict, out: Path, write_json, model_free) -> None:
     log = report["log"]
     best = max(log, key=lambda row: row["tracking"])
     report["best_iteration"], report["best_tracking"] = best["iteration"], best["tracking"]
     write_json(out / "mbpo.json", report)
-    plot_curve(log, out / "mbpo.png")
+    plot_curve(log, out / "mbpo.png", model_free)
+
+
+def read_curve(path: str | Path) -> list[tuple[int, float]]:
+    """(timesteps, tracking) rows of a physics-tracking curve CSV."""
+    import csv
+
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not {"timesteps", "tracking"} <= set(rows[0]):
+        raise ValueError(f"{path}: a curve CSV needs 'timesteps' and 'tracking' columns")
+    return [(int(float(r["timesteps"])), float(r["tracking"])) for r in rows]
 
 
 def _physics(evaluation) -> dict:
@@ -255,6 +270,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
     parser.add_argument("--init-policy", default=None, type=Path,
                         help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
+    parser.add_argument("--model-free-curve", default=None, type=Path,
+                        help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
+                             "assets/policies/anymal_d_ppo_physics_curve.csv")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     add_dataclass_options(parser, MBPOConfig, types={"action_noise": float, "eval_steps": int})
@@ -268,7 +286,7 @@ def run(args: argparse.Namespace) -> int:
     config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
     try:
         report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
-                      model_kind=args.model, device=args.device)
+                      model_kind=args.model, device=args.device, model_free_curve=args.model_free_curve)
     except ValueError as error:
         raise SystemExit(f"rwm-gym mbpo: {error}") from None
     print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
