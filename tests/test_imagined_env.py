@@ -218,3 +218,17 @@ def test_sb3_logs_episode_returns_while_training_in_imagination(checkpoint, tmp_
     header, *rows = (tmp_path / "progress.csv").read_text().splitlines()
     column = header.split(",").index("rollout/ep_rew_mean")
     assert rows and all(np.isfinite(float(row.split(",")[column])) for row in rows)
+
+
+def test_cached_warm_ups_give_the_numbers_of_fresh_ones(checkpoint):
+    """Each reset window warms up once and is reused: same observations and rewards as warming up on every reset."""
+    obs_cached, rewards_cached, infos = _vec_rollout(checkpoint)
+    obs_fresh, rewards_fresh, _ = _vec_rollout(checkpoint, warm_up_cache_mb=0.0)
+    np.testing.assert_allclose(obs_cached, obs_fresh, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(rewards_cached, rewards_fresh, rtol=1e-5, atol=1e-5)
+    assert any("episode" in info for step in infos for info in step)  # the rollout crossed resets
+    core = ImaginedSB3VecEnv(checkpoint, 4).core
+    assert core.warm_up_cache is not None and not core.warm_up_cache.filled.any()
+    core.reset(np.arange(4), [0, 1, 2, 3])
+    assert 1 <= int(core.warm_up_cache.filled.sum()) <= 4  # the drawn windows, each once
+    assert ImaginedSB3VecEnv(checkpoint, 4, warm_up_cache_mb=0.0).core.warm_up_cache is None

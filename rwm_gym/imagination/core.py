@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.imagination.reset_data import ResetWindows
+from rwm_gym.imagination.reset_data import ResetWindows, WarmUpCache
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import TaskSpec, shipped_spec
@@ -62,6 +62,9 @@ class ImaginationOptions:
     (it runs all k heads per step; off and penalty 0, each env runs only its own head and info has no uncertainty)."""
     divergence_bound: float = 50.0
     """|normalised state| above which the model is taken to have diverged and the episode ends."""
+    warm_up_cache_mb: float = 512.0
+    """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
+    reset); models whose warm-up reads the ensemble member always warm up."""
 
 
 class ImaginedCore:
@@ -107,6 +110,11 @@ class ImaginedCore:
         self.uncertainty = np.zeros(n)
         self.member = torch.zeros(n, dtype=torch.long, device=self.device)
         self.hidden = self.model.initial_hidden(n, self.device)
+        template = self.model.initial_hidden(1, self.device)
+        self.warm_up_cache = None
+        if (not self.model.warm_hidden_reads_member
+                and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20):
+            self.warm_up_cache = WarmUpCache(self.reset_windows, template)
         self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
 
@@ -159,13 +167,13 @@ class ImaginedCore:
             ends[row] = self.reset_windows.draw(self.rngs[i])
             members[row] = self.rngs[i].integers(self.ensemble_size)
         windows = self.reset_windows.gather(ends)
-        states = torch.as_tensor(windows.states, device=self.device)
-        actions = torch.as_tensor(windows.actions, device=self.device)
         index = torch.as_tensor(ids, device=self.device)
         member = torch.as_tensor(members, device=self.device)
         self.member[index] = member
-        hidden = self.model.warm_hidden(self.norm.normalize_state(states).float(), actions.float(),
-                                        member if self.ensemble_size > 1 else None)
+        if self.warm_up_cache is not None:
+            hidden = self.warm_up_cache.get(ends, lambda rows: self._warm_hidden(self.reset_windows.gather(rows)))
+        else:
+            hidden = self._warm_hidden(windows, member if self.ensemble_size > 1 else None)
         self.hidden = self.model.scatter_hidden(self.hidden, index, hidden)
         self.state[ids] = windows.states[:, -1]
         self.contact[ids] = windows.contact
@@ -175,6 +183,12 @@ class ImaginedCore:
         self.steps[ids] = 0
         self.uncertainty[ids] = 0.0
         return self.observe(ids)
+
+    def _warm_hidden(self, windows, member: torch.Tensor | None = None):
+        """The model's hidden state after replaying real history windows (`ResetWindow`s stacked)."""
+        states = torch.as_tensor(windows.states, device=self.device)
+        actions = torch.as_tensor(windows.actions, device=self.device)
+        return self.model.warm_hidden(self.norm.normalize_state(states).float(), actions.float(), member)
 
     def step(self, actions: np.ndarray):
         """Every env one imagined step: obs, reward, terminated, truncated, info (arrays per env)."""

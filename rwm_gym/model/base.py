@@ -35,6 +35,9 @@ class WorldModel(nn.Module):
 
     filters_with_next_state = False
     """True when `step` uses the true next state (a posterior); then its predictions on known steps are no forecasts."""
+    warm_hidden_reads_member = True
+    """False when `warm_hidden` ignores the ensemble member: a history's warm state then serves every member and can
+    be cached (`rwm_gym.imagination.reset_data.WarmUpCache`)."""
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()

@@ -19,6 +19,8 @@ from rwm_gym.model.heads import Heads
 class RWM(WorldModel):
     """Hidden = (state GRU, privileged GRU), each (B, num_layers, hidden_size): batch first, unlike `nn.GRU`."""
 
+    warm_hidden_reads_member = False  # the GRUs read states and actions only; the heads come after them
+
     def __init__(self, config: ModelConfig) -> None:
         super().__init__(config)
         inputs = config.state_dim + config.action_dim
