@@ -17,7 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "collect": ("rwm_gym.data.collect", "collect episodes from a physics env into an HDF5 dataset"),
     "train": ("rwm_gym.model.train", "train a world model (RWM or a baseline) on a dataset"),
     "evaluate": ("rwm_gym.model.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
-    "ppo": ("rwm_gym.rl.ppo", "train PPO in imagination (or physics) and evaluate it in physics"),
+    "ppo": ("rwm_gym.rl.ppo_command", "train PPO in imagination (or physics) and evaluate it in physics"),
     "score": ("rwm_gym.rl.score", "tracking score of a policy in physics (or a world model) beside the zero-action floor"),
     "mbpo": ("rwm_gym.rl.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
     "make-measured": ("rwm_gym.gap.measured", "make 'measured' data from a simulator with a hidden physical effect"),

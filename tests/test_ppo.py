@@ -202,3 +202,16 @@ def test_mbpo_options_come_from_its_config_fields():
     defaults = parser.parse_args(["--data", "d", "--out", "o"])
     assert defaults.model_finetune is False and defaults.ppo_timesteps == mbpo.MBPOConfig.ppo_timesteps
     assert "Fine-tune the current world model" in parser.format_help()
+
+
+def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1",
+            "--run-dir", str(run), "--no-eval", "--out", str(run / "final.zip"), "--episode-steps", "20"]
+    assert main([*args, "--timesteps", "64"]) == 0
+    state = json.loads((run / "state.json").read_text())
+    assert state["env"] == {"where": "imagination", "checkpoint": None, "imagination": {"episode_steps": 20}}
+    with pytest.raises(SystemExit, match="started in another env"):
+        main([*args[:-1], "30", "--timesteps", "128"])
+    assert main([*args, "--timesteps", "128"]) == 0  # the same env resumes
+    assert json.loads((run / "state.json").read_text())["timesteps"] == 128

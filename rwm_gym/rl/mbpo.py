@@ -272,7 +272,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
     parser.add_argument("--model-free-curve", default=None, type=Path,
                         help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
-                             "assets/policies/anymal_d_ppo_physics_curve.csv")
+                             "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     add_dataclass_options(parser, MBPOConfig, types={"action_noise": float, "eval_steps": int})

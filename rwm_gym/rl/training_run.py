@@ -1,7 +1,8 @@
 """A long PPO run in a folder that survives being killed: resume point, policy snapshots, learning log, experience.
 
     RUN/latest.zip             SB3 model (policy, optimiser, step count), written atomically every `save_every` rollouts
-    RUN/state.json             PPO config, learning rate, rollouts done, wall time, restarts, experience files
+    RUN/state.json             PPO config, the env trained in (physics or a world model and its imagination
+                               options), learning rate, rollouts done, wall time, restarts, experience files
     RUN/snapshots/step_N.zip   the policy that collected the rollout starting at env step N, every `snapshot_every`
     RUN/log.csv                one row per rollout (the `learn` log: step reward, episode return, lr, KL, std, wall)
     RUN/experience/part_K.h5   episodes of every `record_every`-th env (`RecordingCore`), one file per process start
@@ -60,9 +61,9 @@ class RunCheckpoint(BaseCallback):
     """
 
     def __init__(self, run: TrainingRun, config, *, save_every: int, snapshot_every: int,
-                 recorder=None, prior_wall_s: float = 0.0, restarts: int = 0):
+                 recorder=None, prior_wall_s: float = 0.0, restarts: int = 0, environment: dict | None = None):
         super().__init__()
-        self.run, self.config, self.recorder = run, config, recorder
+        self.run, self.config, self.recorder, self.environment = run, config, recorder, environment
         self.save_every, self.snapshot_every = save_every, snapshot_every
         self.prior_wall_s, self.restarts = prior_wall_s, restarts
         self.started = time.monotonic()  # reset when training starts; set here so log_row works before that
@@ -102,7 +103,7 @@ class RunCheckpoint(BaseCallback):
     def save(self) -> None:
         save_policy(self.model, self.run.latest)
         write_json(self.run.state_path, {
-            "ppo": asdict(self.config), "timesteps": int(self.num_timesteps), "rollouts": self._rollout_index(),
+            "ppo": asdict(self.config), "env": self.environment, "timesteps": int(self.num_timesteps), "rollouts": self._rollout_index(),
             "learning_rate": float(self.model.learning_rate),
             "wall_s": self.prior_wall_s + time.monotonic() - self.started, "restarts": self.restarts,
             "experience": sorted(str(p.name) for p in self.run.experience.glob("part_*.h5")),

@@ -1,0 +1,212 @@
+"""`rwm-gym ppo`: train PPO in imagination (or in physics), report what it cost, and judge it in physics.
+
+The library half is `rwm_gym.rl.ppo` (settings, env, learner); this module is the command: options, the behaviour-
+cloning warm start, the resumable run folder (`rwm_gym.rl.training_run`), and the JSON / PNG report beside the zip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from dataclasses import asdict, fields
+from pathlib import Path
+
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecEnv
+
+from rwm_gym.options import add_dataclass_options
+from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.ppo import (ACTIVATIONS, WHERE, PPOConfig, PositiveReward, TrainStats, learn, make_env, make_ppo,
+                            warm_up_critic)
+
+
+def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
+    """Physics transitions the policy cost, and where that figure comes from (or why it is unknown): its own steps
+    in physics; in imagination, the rows of the world model's dataset."""
+    if where == "physics":
+        return trained_steps, "the policy's own physics steps"
+    if checkpoint is None:
+        from rwm_gym.imagination.core import default_checkpoint
+
+        checkpoint = default_checkpoint()
+    from rwm_gym.model.checkpoint import dataset_rows
+
+    return dataset_rows(checkpoint)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
+                        help="train in the imagined env (world model) or in physics (model-free baseline)")
+    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument("--episode-steps", type=int, default=None,
+                        help="time limit of an imagined episode in policy steps (default: the task's; PPO bootstraps)")
+    parser.add_argument("--reset-data", type=Path, default=None,
+                        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
+    parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
+                        help="lambda of RWM-U's penalty -lambda * u * dt on the ensemble disagreement u (imagination)")
+    parser.add_argument("--timesteps", type=int, default=None,
+                        help="budget in env steps (default: none; with neither budget, --minutes 8)")
+    parser.add_argument("--minutes", type=float, default=None,
+                        help="budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)")
+    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--bc-data", type=Path, nargs="+", default=None,
+                        help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
+                             "from before PPO (rwm_gym.rl.warm_start)")
+    parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
+    parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
+    parser.add_argument("--keep-best", action="store_true",
+                        help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
+                             "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)")
+    parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
+    parser.add_argument("--eval-steps", type=int, default=None, help="policy steps per evaluation episode (default: the task's episode, 20 s)")
+    parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
+    parser.add_argument("--run-dir", type=Path, default=None,
+                        help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
+                             "experience; running the same command again continues to the same --timesteps total")
+    parser.add_argument("--save-every", type=int, default=10, help="with --run-dir: rollouts between resume points")
+    parser.add_argument("--snapshot-every", type=int, default=25, help="with --run-dir: rollouts between snapshots")
+    parser.add_argument("--record-every", type=int, default=0,
+                        help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
+                             "world-model data (0: none)")
+    add_dataclass_options(parser, PPOConfig, defaults_none=True, types={"net_arch": int}, nargs={"net_arch": "+"},
+                          choices={"activation": ACTIVATIONS})
+
+
+def run(args: argparse.Namespace) -> int:
+    from rwm_gym.atomic import write_json
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
+
+    given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
+    if "net_arch" in given:
+        given["net_arch"] = tuple(given["net_arch"])
+    config = PPOConfig(**given)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    if args.timesteps is None and args.minutes is None:
+        args.minutes = 8.0
+    env_kwargs = {}
+    if args.where == "imagination":
+        env_kwargs = {"episode_steps": args.episode_steps, "reset_data": args.reset_data,
+                      "uncertainty_penalty": args.uncertainty_penalty}
+        env_kwargs = {k: v for k, v in env_kwargs.items() if v}
+    elif args.reset_data or args.uncertainty_penalty:
+        raise SystemExit("rwm-gym ppo: --reset-data and --uncertainty-penalty apply to --in imagination")
+    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
+                   env_kwargs=env_kwargs)
+    if args.run_dir is not None:
+        return run_resumable(args, config, env, env_kwargs)
+    model = make_ppo(env, config, seed=args.seed, device=args.device)
+    cloned = None
+    if args.bc_data:
+        from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
+
+        cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
+                                                                  seed=args.seed), progress=True)
+        held_out = "none" if cloned.val_mse_after is None else f"{cloned.val_mse_after:.3f}"
+        print(f"behaviour cloning: {cloned.pairs:,} pairs from {cloned.episodes} episodes, action MSE "
+              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
+              f"in {cloned.wall_s:.0f} s")
+        if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+            cloned_eval = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+            print("physics evaluation of the cloned actor, before PPO:")
+            print(format_table(cloned_eval))
+            save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
+            print(f"wrote {out_bc}")
+    warmup = None
+    if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
+        warmup = warm_up_critic(model, config.critic_warmup_steps)
+        print(f"critic warm-up: {warmup.timesteps:,} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
+    if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
+        stats = TrainStats(0, 0.0, 0.0)
+    else:
+        stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
+    out = save_policy(model, args.out)
+    print(f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+          f"wrote {out}")
+    report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
+              "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()},
+              "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
+                                                                 **cloned.to_dict(),
+                                                                 "evaluation": None if args.no_eval
+                                                                 else cloned_eval.to_dict()},
+              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
+              "kept": "ppo"}  # which policy --out holds; --keep-best may hand back the clone
+    report["physics_samples"], report["physics_samples_source"] = physics_samples(
+        args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0))
+    samples = report["physics_samples"]
+    print(f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
+          f"({report['physics_samples_source']})")
+    if not args.no_eval:
+        evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print("physics evaluation" + (" after PPO:" if cloned else ":"))
+        print(format_table(evaluation))
+        report["evaluation"] = evaluation.to_dict()
+        if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
+            os.replace(out, out.with_name(out.stem + "_ppo.zip"))
+            save_policy(PPO.load(out_bc, device=args.device), out)
+            evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
+            print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
+                  f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
+                  f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
+                  f"{out.with_name(out.stem + '_ppo.zip')}")
+        elif cloned is not None:
+            print(f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
+                  f"{evaluation.tracking:.3f} after PPO)")
+        print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+    print(f"report: {write_json(out.with_suffix('.json'), report)}")
+    return 0
+
+
+def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_kwargs: dict) -> int:
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
+    from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
+
+    if not args.timesteps:
+        raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
+    run = TrainingRun(args.run_dir)
+    state = run.state()
+    if run.resumable and state.get("ppo") != json.loads(json.dumps(config.to_dict())):
+        raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
+    environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint),
+                   "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()}}
+    if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
+        raise SystemExit(f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another "
+                         f"--run-dir")
+    recorder = None
+    if args.record_every:
+        if args.where != "physics":
+            raise SystemExit("rwm-gym ppo: --record-every records physics experience; use it with --in physics")
+        from rwm_gym.rl.experience import RecordingCore
+
+        env.core = recorder = RecordingCore(env.core, run.next_experience_file(), every=args.record_every,
+                                            policy=f"ppo ({args.run_dir})", seed=args.seed)
+    if run.resumable:
+        env.seed(args.seed + 7919 * (state["restarts"] + 1))  # fresh episodes, not a replay of the first start
+        model = resume_model(run, PositiveReward(env) if config.positive_reward_only else env, args.device)
+        print(f"resuming {run.folder} at {model.num_timesteps:,} steps (restart {state['restarts'] + 1})")
+    else:
+        model = make_ppo(env, config, seed=args.seed, device=args.device)
+    checkpoint = RunCheckpoint(run, config, save_every=args.save_every, snapshot_every=args.snapshot_every,
+                               recorder=recorder, prior_wall_s=state.get("wall_s", 0.0),
+                               restarts=state.get("restarts", -1) + 1, environment=environment)
+    remaining = args.timesteps - model.num_timesteps
+    try:
+        if remaining > 0:
+            learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
+                  on_rollout=checkpoint.log_row)
+            checkpoint.save()
+        else:
+            print(f"{run.folder} already has its {args.timesteps:,} steps")
+    finally:
+        if recorder is not None:
+            recorder.close()
+    out = save_policy(model, args.out)
+    print(f"{run.folder}: {model.num_timesteps:,} steps in all; wrote {out}")
+    return 0
