@@ -15,7 +15,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "spec": ("rwm_gym.specgen.command", "write a task spec for a dm_control task or a legged robot's MJCF"),
     "collect": ("rwm_gym.data.collect", "collect episodes from a physics env into an HDF5 dataset"),
-    "train": ("rwm_gym.model.train", "train a world model (RWM or a baseline) on a dataset"),
+    "train": ("rwm_gym.model.train_command", "train a world model (RWM or a baseline) on a dataset"),
     "evaluate": ("rwm_gym.model.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
     "ppo": ("rwm_gym.rl.ppo_command", "train PPO in imagination (or physics) and evaluate it in physics"),
     "score": ("rwm_gym.rl.score", "tracking score of a policy in physics (or a world model) beside the zero-action floor"),

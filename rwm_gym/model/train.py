@@ -13,7 +13,6 @@ ranks and only rank 0 validates and writes; see `rwm_gym.model.distributed` for 
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import signal
@@ -23,21 +22,20 @@ import warnings
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from rwm_gym.data.dataset import Dataset, DatasetError
+from rwm_gym.data.dataset import Dataset
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model import distributed
-from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig, config_difference
-from rwm_gym.model.factory import build_model, model_config_for
+from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
+from rwm_gym.model.factory import build_model
 from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
-from rwm_gym.options import add_dataclass_options
 from rwm_gym.progress import BudgetBar
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
@@ -364,63 +362,3 @@ def _tensorboard(log_dir: str | None):
         print("tensorboard is not installed; no TensorBoard scalars written", file=sys.stderr)
         return None
     return SummaryWriter(log_dir)
-
-
-_MODEL_OPTIONS = tuple(f for f in fields(ModelConfig)
-                       if f.name not in ("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of `rwm-gym train`: the run, then one flag per TrainConfig and ModelConfig field."""
-    parser.add_argument("--data", required=True, help="HDF5 dataset to train on")
-    parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
-    parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
-    parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
-    parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
-    parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_dataclass_options(parser.add_argument_group("training options"), TrainConfig, defaults_none=True,
-                          choices={"loss": LOSSES, "schedule": SCHEDULES})
-    add_dataclass_options(parser.add_argument_group("model options"), ModelConfig, defaults_none=True,
-                          skip=("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
-
-
-def summary_text(stats: dict) -> str:
-    """The end-of-run line's figures, each to a sensible precision ('none' where a figure is missing)."""
-    def figure(value, form: str) -> str:
-        return "none" if value is None else format(value, form)
-
-    return (f"{stats['iterations']:,} iterations in {stats['wall_s']:.1f} s, train loss "
-            f"{figure(stats.get('train_loss'), '.4f')}, val error {figure(stats.get('val_error'), '.4f')}")
-
-
-def _given(args: argparse.Namespace, options) -> dict:
-    return {f.name: getattr(args, f.name) for f in options if getattr(args, f.name, None) is not None}
-
-
-def run(args: argparse.Namespace) -> int:
-    """`rwm-gym train`: train, print a summary line, write the checkpoint; 2 on bad input, 130 on Ctrl-C."""
-    try:
-        options = _given(args, fields(TrainConfig))
-        if args.teacher_forcing:
-            options["forecast"] = 1
-        if options.get("minutes") and "iterations" not in options:
-            options["iterations"] = 0
-        config = TrainConfig(**options)
-        dataset = Dataset.load(args.data)
-        model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
-        result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                       tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
-    except KeyboardInterrupt:
-        return 130
-    except (ValueError, FileNotFoundError, FileExistsError, DatasetError, CheckpointError) as err:
-        if distributed.current_world().is_main:
-            print(f"rwm-gym train: {err}", file=sys.stderr)
-        return 2
-    finally:
-        distributed.close_world()
-    if result.path is not None:  # rank 0
-        print(f"{args.model}: wrote {result.path} ({summary_text(result.stats)})")
-    return 0
