@@ -26,6 +26,9 @@ from tqdm import tqdm
 from rwm_gym.atomic import atomic_write
 from rwm_gym.options import add_dataclass_options
 
+TRACKING_TARGET = 0.80
+"""The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
+
 RESUME_MAY_CHANGE = ("iterations",)
 """MBPOConfig fields a resumed run may set differently; the others must match the folder's."""
 
@@ -234,29 +237,39 @@ def _physics(evaluation) -> dict:
 
 
 def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] | None = None) -> None:
-    """Physics tracking against physics samples (beside model-free PPO's curve, if given), and the fresh-data model
-    error per iteration; written atomically."""
+    """Physics tracking against physics samples (beside model-free PPO's curve, if given) and against imagined steps
+    (wall-clock minutes marked), and the fresh-data model error per iteration; written atomically."""
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    axes[0].plot([r["physics_samples"] / 1e6 for r in log], [r["tracking"] for r in log], "o-", label="MBPO-PPO")
+    fig, axes = plt.subplots(1, 3, figsize=(16, 3.8))
+    tracking = [r["tracking"] for r in log]
+    axes[0].plot([r["physics_samples"] / 1e6 for r in log], tracking, "o-", label="MBPO-PPO")
     if model_free:
         axes[0].plot([s / 1e6 for s, _ in model_free], [t for _, t in model_free], "-", label="model-free PPO")
     axes[0].set_xlabel("physics samples (M)")
     axes[0].set_title("physics tracking score")
     axes[0].legend()
+    imagined = [r["imagined_steps"] / 1e6 for r in log]
+    axes[1].plot(imagined, tracking, "o-")
+    for r, x, y in list(zip(log, imagined, tracking))[::max(1, len(log) // 6)]:
+        axes[1].annotate(f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6),
+                         fontsize=7, ha="center")
+    for ax in axes[:2]:
+        ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
+    axes[1].set_xlabel("imagined steps (M)")
+    axes[1].set_title("physics tracking against imagined steps (wall time)")
     measured = [r for r in log if r["model_error_fresh"]]
     for horizon in (measured[0]["model_error_fresh"] if measured else []):
-        axes[1].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
+        axes[2].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
                      label=f"{horizon} steps")
-    axes[1].set_xlabel("iteration")
-    axes[1].set_title("model error on the policy's fresh physics data")
+    axes[2].set_xlabel("iteration")
+    axes[2].set_title("model error on the policy's fresh physics data")
     if measured:
-        axes[1].legend()
+        axes[2].legend()
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
