@@ -2,8 +2,8 @@
 
 Iteration k: (1) PPO continues in imagination on model k-1, its episodes restarting from real histories of the
 buffer; (2) the policy's tracking score is measured in physics; (3) physics episodes are collected with it, acting
-with Gaussian noise of its own current std (the exploration PPO used in imagination); (4) the model's error on that
-fresh data is measured (the states the policy now visits); (5) the model is fine-tuned (or retrained) on the buffer:
+with no noise, half and all of its own current std (the deterministic policy that is judged, and the exploration PPO
+used in imagination); (4) the model's error on that fresh data is measured (the states the policy now visits); (5) the model is fine-tuned (or retrained) on the buffer:
 `base_episodes` episodes of the starting data plus every fresh episode so far, so the states an imagined policy
 exploits get real data (the cause of exploitation is missing coverage, and this is its fix).
 
@@ -52,7 +52,9 @@ class MBPOConfig:
     collect_steps: int = 250
     """Cap on a collected episode's length (policy steps)."""
     action_noise: float | None = None
-    """Gaussian std added to the policy's actions while collecting (default: the policy's own mean std)."""
+    """Gaussian std added to the policy's actions while collecting (default: a third of the episodes each at 0, half
+    and all of the policy's own mean std: the states of the deterministic policy the score judges and of the exploring
+    one PPO runs in imagination)."""
     base_episodes: int = 0
     """Episodes of the starting data kept in the buffer beside the fresh ones (0: all of it)."""
     model_iterations: int = 1000
@@ -87,7 +89,6 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     from stable_baselines3 import PPO
 
     from rwm_gym.atomic import write_json
-    from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset, merge_datasets
     from rwm_gym.imagination.reset_data import make_reset_data
     from rwm_gym.model.checkpoint import read_meta
@@ -175,11 +176,11 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
         noise = config.action_noise
-        if noise is None:
-            noise = float(policy.policy.log_std.detach().exp().mean())
-        fresh = collect(spec.physics_env_id, str(zip_path), config.collect_episodes, out / f"data_{k}.h5",
-                        seed=config.seed + 1000 * k, num_envs=min(config.collect_episodes, 64), action_noise=noise,
-                        max_steps=config.collect_steps, overwrite=True, progress=progress)
+        if noise is None:  # the deterministic policy the score judges, and the exploring one PPO runs in imagination
+            std = float(policy.policy.log_std.detach().exp().mean())
+            noise = [0.0, std / 2, std]
+        fresh = _collect(spec.physics_env_id, zip_path, config, k, noise if isinstance(noise, list) else [noise],
+                         out / f"data_{k}.h5", progress)
         model_error = evaluate_checkpoint(model_path(k - 1), fresh,
                                           EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(),
                                                      device=device), all_episodes=True, progress=False)["error"]
@@ -199,6 +200,24 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         tqdm.write(format_table(evaluation))
     plot_curve(report["log"], out / "mbpo.png", model_free)  # also when resumed with nothing left to run
     return report
+
+
+def _collect(env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels: list[float], out: Path,
+             progress: bool) -> Path:
+    """Iteration k's physics episodes, split evenly over the action-noise levels, in one file."""
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import merge_datasets
+
+    counts = [config.collect_episodes // len(noise_levels) + (i < config.collect_episodes % len(noise_levels))
+              for i in range(len(noise_levels))]
+    parts = [collect(env_id, str(policy), n, out.with_name(f".{out.stem}_{i}.h5"), seed=config.seed + 1000 * k + 100 * i,
+                     num_envs=min(n, 64), action_noise=level, max_steps=config.collect_steps, overwrite=True,
+                     progress=progress)
+             for i, (n, level) in enumerate(zip(counts, noise_levels)) if n]
+    merge_datasets(parts, out)
+    for part in parts:
+        part.unlink()
+    return out
 
 
 def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
