@@ -81,3 +81,21 @@ def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, c
     saved = json.loads((tmp_path / "two" / "evaluation.json").read_text())
     assert set(saved["sources"]) == {"linear", "other"}
     assert all(len(r["running_mean"]) == r["longest"] for r in saved["sources"].values())
+
+
+def test_the_plotted_line_meets_every_table_value(data: Path, tmp_path: Path) -> None:
+    """Each horizon has its own windows: the plot's running mean must be over those, ending at the table's value."""
+    from rwm_gym.model.evaluate import plot_running_mean
+
+    ds = Dataset.load(data)
+    config = EvalConfig(history=10, horizons=(3, 8), max_horizon=20, noise_levels=(), max_windows=7)
+    result = evaluate(build_model(model_config_for("no_change", SPEC)), ds, Normalizer.from_spec(SPEC), SPEC, config,
+                      progress=False)
+    by_horizon = result["running_mean_by_horizon"]
+    assert sorted(by_horizon, key=int) == [str(n) for n in result["horizons"]]
+    for key, error in result["error"].items():
+        assert len(by_horizon[key]) == int(key) and by_horizon[key][-1] == pytest.approx(error, rel=1e-6)
+    longest = str(result["longest"])  # the older single curve, over the longest horizon's windows, misses them
+    assert any(abs(result["running_mean"][int(k) - 1] - result["error"][k]) > 1e-6 for k in result["error"] if k != longest)
+    plot_running_mean({"no change": result}, tmp_path / "plot.png")
+    assert (tmp_path / "plot.png").stat().st_size > 0

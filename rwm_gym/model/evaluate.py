@@ -104,7 +104,7 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
     data_mean = windows.states.mean(0)
     result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
                     "episodes": len(episodes), "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
-                    "floors": {"no change": {}, "predict the mean": {}}, "max_abs": {},
+                    "floors": {"no change": {}, "predict the mean": {}}, "max_abs": {}, "running_mean_by_horizon": {},
                     "noise": {str(s): {} for s in config.noise_levels}}
     jobs = [(n, s) for n in horizons for s in (0.0, *config.noise_levels)]
     for horizon, noise in tqdm(jobs, desc="evaluate", disable=not progress, dynamic_ncols=True):
@@ -123,6 +123,8 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
         result["floors"]["no change"][key] = float(_ratio(run["no_change"], run["abs_true"]).mean())
         result["floors"]["predict the mean"][key] = float(_ratio(run["mean"], run["abs_true"]).mean())
         result["max_abs"][key] = {"prediction": float(run["max_prediction"].max()), "data": float(run["max_true"].max())}
+        per_step = _ratio(run["abs_error"], run["abs_true"]).mean(0)  # over this horizon's own windows
+        result["running_mean_by_horizon"][key] = (per_step.cumsum(0) / torch.arange(1, horizon + 1)).tolist()
         hits = run["contact_hit"]
         result["contact_accuracy"][key] = float(hits.float().mean()) if hits.shape[-1] else None
         if horizon == longest:
@@ -155,9 +157,10 @@ def format_table(result: dict) -> str:
 
 
 def plot_running_mean(results: dict[str, dict], path: str | os.PathLike, title: str = "") -> None:
-    """The error the table reports against the open-loop horizon N, one line per result (model or data source):
-    the running mean over steps 1..N of the longest horizon's windows, and the table's own values as markers
-    (each horizon has its own windows; their count is written beside the marker). PNG, log scale."""
+    """The error the table reports against the open-loop horizon N, one line per result (model or data source).
+    Between two table horizons the line is the running mean over steps 1..N of the larger one's windows (each horizon
+    has its own windows: all that fit, up to `max_windows`), so it meets every table value (marker, with its window
+    count) exactly; a step in the line is where the set of windows changes. PNG, log scale."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -165,14 +168,21 @@ def plot_running_mean(results: dict[str, dict], path: str | os.PathLike, title: 
 
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     for name, result in results.items():
-        running = result.get("running_mean") or list(np.cumsum(result["curve"]) / np.arange(1, len(result["curve"]) + 1))
-        line, = ax.plot(np.arange(1, len(running) + 1), running,
-                        label=f"{name} (running mean, {result['windows'][str(result['longest'])]} windows)")
-        keys = list(result["error"])
-        ax.plot([int(k) for k in keys], [result["error"][k] for k in keys], "o", color=line.get_color())
+        keys = sorted(result["error"], key=int)
+        by_horizon = result.get("running_mean_by_horizon") or {}
+        color, previous = None, 0
+        for k in keys:  # older results without per-horizon curves get markers only
+            if k not in by_horizon:
+                continue
+            n = np.arange(previous + 1, int(k) + 1)
+            line, = ax.plot(n, np.asarray(by_horizon[k])[previous:], color=color,
+                            label=None if color else f"{name} (running mean of each horizon's windows)")
+            color, previous = line.get_color(), int(k)
+        markers, = ax.plot([int(k) for k in keys], [result["error"][k] for k in keys], "o", color=color,
+                           label=None if color else name)
         for k in keys:
             ax.annotate(f"{result['windows'][k]}", (int(k), result["error"][k]), fontsize=7,
-                        textcoords="offset points", xytext=(3, 3), color=line.get_color())
+                        textcoords="offset points", xytext=(3, 3), color=markers.get_color())
     ax.set(xlabel="open-loop horizon N (steps after the true history)",
            ylabel="relative error, mean over steps 1..N", yscale="log",
            title=title or "markers: the table's values (number: windows)")
