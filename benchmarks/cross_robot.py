@@ -67,6 +67,9 @@ class Options:
     """Length of each collected episode (policy steps); at least 32 + max(horizons)."""
     iterations: int = 150
     """Gradient steps per model (the same for every model and domain); 150 fits ~45 min on one CPU core."""
+    cpu_minutes: float = 0.0
+    """If > 0: an equal budget of this process's CPU minutes per model instead (`iterations` then only caps it), so
+    models are compared at equal compute, not equal steps, and other jobs on the machine do not count."""
     horizons: str = "8,32,100"
     """Forecast steps at which the error is reported."""
     eval_windows: int = 256
@@ -80,7 +83,7 @@ class Options:
     @property
     def train_config(self) -> TrainConfig:
         """The shared recipe: TrainConfig's defaults with this budget, seed and device."""
-        return TrainConfig(iterations=self.iterations, seed=self.seed, device=self.device,
+        return TrainConfig(iterations=self.iterations, minutes=self.cpu_minutes, seed=self.seed, device=self.device,
                            val_every=self.iterations, checkpoint_every=self.iterations)
 
 
@@ -121,7 +124,8 @@ def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Option
     return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()
 
 
-SETTINGS = ("episodes", "episode_steps", "iterations", "horizons", "eval_windows", "seed", "device", "models")
+SETTINGS = ("episodes", "episode_steps", "iterations", "cpu_minutes", "horizons", "eval_windows", "seed", "device",
+            "models")
 """Options a saved domain result must share with the current run to be reused."""
 
 
@@ -147,7 +151,7 @@ def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
         config = replace(base, forecast=forecast or base.forecast)
         model_config = model_config_for(kind, spec)
         start = time.perf_counter()
-        trained = train(dataset, model_config, config, progress=False)
+        trained = train(dataset, model_config, config, progress=False, clock=time.process_time)
         wall = time.perf_counter() - start
         errors = horizon_errors(trained.model, dataset, val_ids, options)
         results["models"][name] = {"errors": errors.tolist(), "train_wall_s": wall, "kind": kind,
@@ -174,18 +178,21 @@ def mean_ranks(results: dict, horizons: list[int]) -> dict[str, float]:
 def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s: float, options: Options) -> str:
     config = options.train_config
     collect_s = sum(domain["collect_wall_s"] for domain in results.values())
-    head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | train s |"
+    head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | iterations | train s |"
+    budget = (f"{options.cpu_minutes:g} CPU-minutes (at most {options.iterations} iterations)" if options.cpu_minutes
+              else f"{options.iterations} iterations")
     lines = [(f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
-              f"(lower is better). One recipe for every domain: {options.iterations} iterations x "
+              f"(lower is better). One recipe for every domain: {budget} x "
               f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
               f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
               f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
               f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."),
-             "", head, "|" + "---|" * (len(horizons) + 3)]
+             "", head, "|" + "---|" * (len(horizons) + 4)]
     for env_id, domain in results.items():
         for name, r in domain["models"].items():
             cells = " | ".join(f"{r['errors'][h - 1]:.3f}" for h in horizons)
-            lines.append(f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['train_wall_s']:.0f} |")
+            lines.append(f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['iterations']} "
+                         f"| {r['train_wall_s']:.0f} |")
     lines += ["", f"Mean rank over {len(results)} domains x {len(horizons)} horizons (1 = lowest error):", "",
               "| model | mean rank |", "|---|---|"]
     lines += [f"| {name} | {rank:.2f} |" for name, rank in sorted(ranks.items(), key=lambda item: item[1])]
