@@ -62,6 +62,15 @@ def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
     assert one.read_bytes() == two.read_bytes() == wide.read_bytes()
 
 
+def test_the_zero_policy_stands_still_and_its_noise_is_seeded(tmp_path):
+    path = collect(ENV_ID, "zero", 2, tmp_path / "zero.h5", seed=0, max_steps=40, progress=False)
+    assert np.all(Dataset.load(path)["action"] == 0.0)
+    noisy = [collect(ENV_ID, "zero", 2, tmp_path / f"noisy{k}.h5", seed=0, max_steps=40, action_noise=0.1,
+                     progress=False) for k in range(2)]
+    actions = Dataset.load(noisy[0])["action"]
+    assert 0.05 < actions.std() < 0.15 and np.array_equal(actions, Dataset.load(noisy[1])["action"])
+
+
 def test_workers_need_a_policy_by_name(tmp_path):
     from rwm_gym.policies.base import make_policy
 

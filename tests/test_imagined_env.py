@@ -143,6 +143,37 @@ def test_sb3_vecenv_and_uncertainty_penalty(checkpoint):
     assert np.all(rewards <= plain_rewards + 1e-6) and np.any(rewards < plain_rewards)
 
 
+def _first_step(checkpoint, **options):
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=4, **options)
+    venv.seed(0)
+    venv.reset()
+    _, rewards, dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
+    return rewards, dones, infos
+
+
+def test_the_penalty_charges_only_disagreement_above_the_floor(checkpoint):
+    plain, _, _ = _first_step(checkpoint)
+    _, _, infos = _first_step(checkpoint, report_uncertainty=True)
+    u = np.array([info["uncertainty"] for info in infos])
+    above_all, _, _ = _first_step(checkpoint, uncertainty_penalty=10.0, uncertainty_floor=float(u.max()) + 1.0)
+    np.testing.assert_allclose(above_all, plain, atol=1e-6)  # nothing above the floor: nothing charged
+    floor = float(np.median(u))
+    charged, _, _ = _first_step(checkpoint, uncertainty_penalty=10.0, uncertainty_floor=floor)
+    expected = plain - 10.0 * np.maximum(u - floor, 0.0) * load_spec("anymal_d").policy_dt
+    np.testing.assert_allclose(charged, expected, atol=1e-6)
+
+
+def test_the_halt_ends_episodes_where_the_ensemble_disagrees(checkpoint):
+    _, _, infos = _first_step(checkpoint, report_uncertainty=True)
+    u = np.array([info["uncertainty"] for info in infos])
+    threshold = float(np.median(u))
+    _, dones, halted_infos = _first_step(checkpoint, uncertainty_halt=threshold)
+    halted = np.array([info["uncertainty_halt"] for info in halted_infos])
+    np.testing.assert_array_equal(halted, u > threshold)
+    assert halted.any() and dones[halted].all()
+    assert not any(info["TimeLimit.truncated"] for info, h in zip(halted_infos, halted) if h)  # no bootstrap
+
+
 def test_bad_checkpoints_fail_clearly(checkpoint, tmp_path):
     truncated = tmp_path / "cut.safetensors"
     truncated.write_bytes(checkpoint.read_bytes()[:1000])

@@ -256,7 +256,7 @@ def _jsonable(value):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)")
-    parser.add_argument("--policy", default="gait", help="'random', 'gait' or the path of an SB3 .zip")
+    parser.add_argument("--policy", default="gait", help="'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip")
     parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
     parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")

@@ -50,7 +50,14 @@ class ImaginationOptions:
     episode_steps: int | None = None
     """Time limit in policy steps (None: the task spec's)."""
     uncertainty_penalty: float = 0.0
-    """lambda of the RWM-U penalty -lambda * u * dt, u the ensemble disagreement."""
+    """lambda of the RWM-U penalty -lambda * max(u - uncertainty_floor, 0) * dt, u the ensemble disagreement."""
+    uncertainty_floor: float = 0.0
+    """Disagreement the penalty leaves free: the model's own level on states like its data (the shipped ANYmal model:
+    about 0.02 while the teacher walks or the robot stands). A penalty on every step would make ending the episode
+    early pay; charging only the excess keeps surviving worth it."""
+    uncertainty_halt: float = 0.0
+    """End an episode (terminated, no bootstrap) where u exceeds this (0: never): MOReL's halt, so a policy cannot
+    collect reward in states the model does not know."""
     resample_commands: bool = True
     """Resample commands on the spec's period (off: one command per episode)."""
     push_interval_s: float = 0.0
@@ -150,7 +157,8 @@ class ImaginedCore:
     @property
     def needs_uncertainty(self) -> bool:
         """Whether a step computes the ensemble disagreement (the penalty or the report asks for it)."""
-        return self.options.uncertainty_penalty > 0 or self.options.report_uncertainty
+        return (self.options.uncertainty_penalty > 0 or self.options.uncertainty_halt > 0
+                or self.options.report_uncertainty)
 
     @torch.inference_mode()
     def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
@@ -213,9 +221,14 @@ class ImaginedCore:
         if ended is not None:
             terminated |= ended
         if self.options.uncertainty_penalty > 0:
-            reward = reward - self.options.uncertainty_penalty * self.uncertainty * self.spec.policy_dt
+            excess = np.maximum(self.uncertainty - self.options.uncertainty_floor, 0.0)
+            reward = reward - self.options.uncertainty_penalty * excess * self.spec.policy_dt
+        halted = np.zeros(self.num_envs, dtype=bool)
+        if self.options.uncertainty_halt > 0:
+            halted = self.uncertainty > self.options.uncertainty_halt
+            terminated |= halted
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged,
+        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted,
                 **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
                 **{f"reward/{k}": v for k, v in terms.items()}}
 

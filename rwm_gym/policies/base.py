@@ -48,6 +48,27 @@ class RandomPolicy:
         return np.clip(self.actions, -1.0, 1.0)
 
 
+class ZeroPolicy:
+    """Zero actions (the default pose: the robot stands still, the tracking score's floor), plus optional Gaussian
+    noise; its episodes are the standing states every physics episode starts from."""
+
+    name = "zero"
+
+    def __init__(self, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0):
+        self.action_noise, self.action_dim = action_noise, spec.action_dim
+        self.rngs: list[np.random.Generator] = [np.random.default_rng(0) for _ in range(num_envs)]
+
+    def reset(self, ids: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        for i, rng in zip(ids, rngs):
+            self.rngs[i] = rng
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        actions = np.zeros((obs.shape[0], self.action_dim))
+        if self.action_noise > 0:
+            actions = actions + np.stack([rng.normal(0, self.action_noise, self.action_dim) for rng in self.rngs])
+        return np.clip(actions, -1.0, 1.0)
+
+
 class SB3Policy:
     """A trained Stable-Baselines3 policy (a `.zip` from `model.save`), acting deterministically, plus optional noise."""
 
@@ -74,7 +95,9 @@ class SB3Policy:
 
 
 def make_policy(name: str, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0) -> Policy:
-    """`random`, `gait`, or the path of an SB3 `.zip`."""
+    """`random`, `zero`, `gait`, or the path of an SB3 `.zip`."""
+    if name == "zero":
+        return ZeroPolicy(spec, num_envs, action_noise=action_noise)
     if name == "random":
         return RandomPolicy(spec, num_envs)
     if name == "gait":
@@ -85,4 +108,4 @@ def make_policy(name: str, spec: TaskSpec, num_envs: int, *, action_noise: float
         if not Path(name).is_file():
             raise FileNotFoundError(f"policy file {name} not found")
         return SB3Policy(name, spec, num_envs, action_noise=action_noise)
-    raise ValueError(f"unknown policy {name!r}: use 'random', 'gait' or the path of an SB3 .zip")
+    raise ValueError(f"unknown policy {name!r}: use 'random', 'zero', 'gait' or the path of an SB3 .zip")

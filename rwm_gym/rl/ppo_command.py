@@ -45,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
     parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
                         help="lambda of RWM-U's penalty -lambda * u * dt on the ensemble disagreement u (imagination)")
+    parser.add_argument("--uncertainty-floor", type=float, default=0.0,
+                        help="disagreement the penalty leaves free (the model's level on its own data, ~0.02)")
+    parser.add_argument("--uncertainty-halt", type=float, default=0.0,
+                        help="end an imagined episode where the disagreement exceeds this (0: never; MOReL's halt)")
     parser.add_argument("--timesteps", type=int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
     parser.add_argument("--minutes", type=float, default=None,
@@ -94,10 +98,11 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {}
     if args.where == "imagination":
         env_kwargs = {"episode_steps": args.episode_steps, "reset_data": args.reset_data,
-                      "uncertainty_penalty": args.uncertainty_penalty}
+                      "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
+                      "uncertainty_halt": args.uncertainty_halt}
         env_kwargs = {k: v for k, v in env_kwargs.items() if v}
-    elif args.reset_data or args.uncertainty_penalty:
-        raise SystemExit("rwm-gym ppo: --reset-data and --uncertainty-penalty apply to --in imagination")
+    elif args.reset_data or args.uncertainty_penalty or args.uncertainty_floor or args.uncertainty_halt:
+        raise SystemExit("rwm-gym ppo: --reset-data and --uncertainty-* apply to --in imagination")
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
     if args.run_dir is not None:
