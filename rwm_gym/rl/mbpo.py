@@ -47,6 +47,10 @@ class MBPOConfig:
     """Time limit of an imagined episode (policy steps); PPO bootstraps at the limit."""
     uncertainty_penalty: float = 0.0
     """lambda of RWM-U's penalty on the ensemble disagreement in imagination (0: none)."""
+    uncertainty_floor: float = 0.0
+    """Disagreement the penalty leaves free (`ImaginationOptions.uncertainty_floor`)."""
+    uncertainty_halt: float = 0.0
+    """End an imagined episode where the disagreement exceeds this (0: never; `ImaginationOptions.uncertainty_halt`)."""
     collect_episodes: int = 32
     """Physics episodes collected per iteration."""
     collect_steps: int = 250
@@ -110,7 +114,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     spec = starting.spec()
     ppo_config = PPOConfig(num_envs=config.num_envs)
     env_kwargs = {"episode_steps": config.imagined_episode_steps,
-                  "uncertainty_penalty": config.uncertainty_penalty}
+                  "uncertainty_penalty": config.uncertainty_penalty, "uncertainty_floor": config.uncertainty_floor,
+                  "uncertainty_halt": config.uncertainty_halt}
 
     def model_path(k: int) -> Path:
         return out / f"model_{k}.safetensors"
@@ -222,7 +227,8 @@ def _collect(env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels
 
 def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
     """Refuse to resume a folder started with other settings (only `RESUME_MAY_CHANGE` may differ)."""
-    saved = {k: v for k, v in report["config"].items() if k not in RESUME_MAY_CHANGE}
+    defaults = json.loads(json.dumps(MBPOConfig().to_dict()))  # a field added since the run started: its default
+    saved = {k: v for k, v in {**defaults, **report["config"]}.items() if k not in RESUME_MAY_CHANGE}
     given = {k: v for k, v in json.loads(json.dumps(config.to_dict())).items() if k not in RESUME_MAY_CHANGE}
     if saved != given:
         differ = sorted(k for k in given if saved.get(k) != given[k])
