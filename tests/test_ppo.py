@@ -188,6 +188,15 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
         mbpo(data, tmp_path / "resumed", replace(config, model_lr=1e-3), **run)
 
 
+def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
+    from rwm_gym.rl.mbpo import MBPOConfig, _check_resume
+
+    older = {k: v for k, v in MBPOConfig().to_dict().items() if k not in ("uncertainty_floor", "uncertainty_halt")}
+    _check_resume({"config": older}, MBPOConfig(iterations=9), tmp_path / "mbpo.json")  # only iterations changed
+    with pytest.raises(ValueError, match="other settings \\(uncertainty_halt\\)"):
+        _check_resume({"config": older}, MBPOConfig(uncertainty_halt=0.06), tmp_path / "mbpo.json")
+
+
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 
