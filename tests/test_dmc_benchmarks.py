@@ -1,4 +1,5 @@
-"""Smoke tests of the dm_control benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py), tiny budgets."""
+"""Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py),
+tiny budgets."""
 
 from __future__ import annotations
 
@@ -57,3 +58,13 @@ def test_dmc_imagination_trains_both_arms_and_scores_them_in_physics(tmp_path: P
         assert result[arm]["ppo_steps"] > 0 and len(result[arm]["evaluation"]["returns"]) == 1
     assert (tmp_path / "DMC-Finger-Spin-v0" / "ppo_imagination.zip").is_file()
     assert len(result["untrained"]["evaluation"]["returns"]) == 1
+
+
+def test_imagined_standing_counts_running_episodes(tmp_path: Path, capsys) -> None:
+    standing = _script("imagined_standing")
+    standing.main(["--episodes", "2", "--envs", "4", "--steps", "20", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "standing.json").read_text())["rows"]
+    assert [r["step"] for r in rows] == [1, 10, 20]
+    running = [r["running"] for r in rows]
+    assert all(0.0 <= r <= 1.0 for r in running) and running == sorted(running, reverse=True)
+    assert "running" in capsys.readouterr().out
