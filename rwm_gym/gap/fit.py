@@ -64,7 +64,10 @@ class FitConfig:
     min_excess_explained: float = 0.3
     """An effect added after the first must explain this share of the gap still above the noise floor."""
     scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
-    """Joint-group scopes tried for the best joint effect of each selection step (`gap.scope`)."""
+    """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`)."""
+    scoped_effects: int = 2
+    """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
+    joints may explain little in its global form and rank below another joint effect that mimics it there."""
 
 
 @dataclass

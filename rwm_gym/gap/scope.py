@@ -2,11 +2,11 @@
 
 A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
-one-parameter joint effect (friction, damping, armature, motor strength, torque limit, backlash) of a selection step
-is also fitted per group (from nominal, two sweeps of one bounded search per group value, `fit.fit_coordinatewise`)
-and scored on the same held-out
-windows with the same rule: every parameter beyond the first inflates the remaining gap by
-`FitConfig.penalty_per_parameter`, so a scope with more parameters must explain that much more to win. Per joint (12
+one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash; the best
+`FitConfig.scoped_effects` of them) of a selection step are also fitted per group (from nominal, two sweeps of one
+bounded search per group value, `fit.fit_coordinatewise`) and scored on the same held-out windows with the same
+rule: every parameter beyond the first inflates the remaining gap by `FitConfig.penalty_per_parameter`, so a scope
+with more parameters must explain that much more to win. Per joint (12
 parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
 scope beat the global form) and the fitting windows outnumber its parameters `MIN_WINDOWS_PER_PARAMETER` times.
 
@@ -125,16 +125,26 @@ def _charge_scope(fit: CandidateFit) -> CandidateFit:
 def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator,
                      train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
                      config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
-    """The scoped forms (`config.scopes`) of the best-scoring global joint effect among `fits`, each fitted from the
-    global value and scored on the held-out windows; [] if no candidate has a scoped form or none reduces the gap.
+    """The scoped forms (`config.scopes`) of the `config.scoped_effects` best-scoring global joint effects among
+    `fits` (whether or not their global form reduces the gap), each fitted from nominal and scored on the held-out
+    windows; [] if none has a scoped form.
 
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
-    ranked = sorted((f for f in fits if f.scope == "global" and f.status == "ok" and f.explained_fraction > 0),
+    # not only effects whose global form reduces the gap: friction in one joint, spread over all twelve, may not
+    ranked = sorted((f for f in fits if f.scope == "global" and f.status == "ok" and f.effect in JOINT_EFFECTS),
                     key=lambda f: -f.score)
-    best = next((f for f in ranked if f.effect in JOINT_EFFECTS), None)
-    if best is None:
-        return []
-    effect, p = effects[best.effect], effects[best.effect].parameters[0]
+    out: list[tuple[Effect, CandidateFit]] = []
+    for best in ranked[:config.scoped_effects]:
+        out += _scoped_fits(best, effects[best.effect], spec, resim, train, heldout, base, before, config)
+    return out
+
+
+def _scoped_fits(best: CandidateFit, effect: Effect, spec: TaskSpec, resim: Resimulator, train: Windows,
+                 heldout: Windows, base: PhysicsParams, before: np.ndarray,
+                 config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+    """`effect` (whose global fit is `best`) fitted per leg and per joint type, and per joint where a group form beat
+    the global one and the data suffice."""
+    p = effect.parameters[0]
     out: list[tuple[Effect, CandidateFit]] = []
     for scope in (s for s in config.scopes if s != "joint"):
         form = scoped(effect, spec, scope)
