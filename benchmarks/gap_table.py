@@ -152,7 +152,8 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> di
 
 def settings(args: argparse.Namespace) -> dict:
     # version 2: make-measured and the re-simulations solve each physics step to convergence (CONVERGED_SOLVER)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 2}
+    # version 3: the two best joint effects are fitted in their scopes (FitConfig.scoped_effects)
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 3}
 
 
 def summarise(rows: list[dict]) -> dict:
