@@ -221,3 +221,15 @@ def test_the_two_best_joint_effects_are_fitted_in_their_scopes_even_if_their_glo
     tried.clear()
     scope.scope_candidates(fits, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig(scoped_effects=1))
     assert tried == ["joint_damping"]
+
+
+def test_a_large_gap_on_short_held_out_episodes_can_still_be_significant():
+    """Two held-out episodes of 6 windows fall into 4 blocks of 25 rows: an exact Wilcoxon test on 4 blocks cannot go
+    below 1/16, so a gap 60x the floor was called `none`. Smaller blocks give the test the power to see it."""
+    from rwm_gym.gap.fit import MIN_BLOCKS, paired_p_value
+
+    windows = SimpleNamespace(episode=np.repeat([0, 1], 6), start=np.tile(np.arange(0, 30, 5), 2))
+    reduction = np.linspace(1.0, 2.0, 12)  # every window far above the floor
+    assert paired_p_value(reduction, windows, block_rows=25) < 0.01
+    assert 2.0 ** -MIN_BLOCKS < 0.01
+    assert paired_p_value(-reduction, windows, block_rows=25) > 0.5  # and a gap below it is not
