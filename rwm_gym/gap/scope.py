@@ -6,9 +6,9 @@ one-parameter joint effects (friction, damping, armature, motor strength, torque
 `FitConfig.scoped_effects` of them) of a selection step are also fitted per group (from nominal, two sweeps of one
 bounded search per group value, `fit.fit_coordinatewise`) and scored on the same held-out windows with the same
 rule: every parameter beyond the first inflates the remaining gap by `FitConfig.penalty_per_parameter`, so a scope
-with more parameters must explain that much more to win. Per joint (12
-parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
-scope beat the global form) and the fitting windows outnumber its parameters `MIN_WINDOWS_PER_PARAMETER` times.
+with more parameters must explain that much more to win. Per joint (12 parameters on ANYmal D) is tried only where the
+data already shows the effect is not uniform (a leg or joint-type scope beat the global form) and the fitting windows
+outnumber its parameters `MIN_WINDOWS_PER_PARAMETER` times.
 
 Groups come from the actuated joints' names in the task spec, "<leg>_<type>": the leg is the part before the first
 "_", the joint type the rest (ANYmal D: legs LF, RF, LH, RH; types HAA, HFE, KFE). A grouping with fewer than two

@@ -23,6 +23,11 @@ class Policy(Protocol):
     def act(self, obs: np.ndarray) -> np.ndarray: ...
 
 
+def gaussian_noise(rngs: list[np.random.Generator], std: float, dim: int) -> np.ndarray:
+    """(N, dim) action noise, each env's row drawn from its own generator (so the data is deterministic)."""
+    return np.stack([rng.normal(0.0, std, dim) for rng in rngs])
+
+
 class RandomPolicy:
     """Temporally correlated random actions: a(t) = rho * a(t-1) + sqrt(1 - rho^2) * sigma * eps, clipped to [-1, 1].
 
@@ -43,7 +48,7 @@ class RandomPolicy:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         rho = self.correlation
-        noise = np.stack([rng.normal(0.0, self.scale, self.actions.shape[1]) for rng in self.rngs])
+        noise = gaussian_noise(self.rngs, self.scale, self.actions.shape[1])
         self.actions = rho * self.actions + np.sqrt(1.0 - rho**2) * noise
         return np.clip(self.actions, -1.0, 1.0)
 
@@ -65,7 +70,7 @@ class ZeroPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         actions = np.zeros((obs.shape[0], self.action_dim))
         if self.action_noise > 0:
-            actions = actions + np.stack([rng.normal(0, self.action_noise, self.action_dim) for rng in self.rngs])
+            actions = actions + gaussian_noise(self.rngs, self.action_noise, self.action_dim)
         return np.clip(actions, -1.0, 1.0)
 
 
@@ -90,7 +95,7 @@ class SB3Policy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         actions, _ = self.model.predict(obs.astype(np.float32), deterministic=True)
         if self.action_noise > 0:
-            actions = actions + np.stack([rng.normal(0, self.action_noise, self.action_dim) for rng in self.rngs])
+            actions = actions + gaussian_noise(self.rngs, self.action_noise, self.action_dim)
         return np.clip(actions, -1.0, 1.0)
 
 

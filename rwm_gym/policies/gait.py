@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rwm_gym.policies.base import gaussian_noise
 from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.physics.params import build_model
 from rwm_gym.spec import TaskSpec
@@ -188,7 +189,7 @@ class GaitPolicy:
 
         actions = (target.reshape(self.num_envs, -1) - self.default_pose) / self.spec.actuator.action_scale
         if self.action_noise > 0:
-            actions = actions + np.stack([rng.normal(0.0, self.action_noise, actions.shape[1]) for rng in self.rngs])
+            actions = actions + gaussian_noise(self.rngs, self.action_noise, actions.shape[1])
         return np.clip(actions, -1.0, 1.0).astype(np.float32)
 
     def _foot_velocity(self, twist: np.ndarray) -> np.ndarray:
