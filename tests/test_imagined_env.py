@@ -263,3 +263,31 @@ def test_cached_warm_ups_give_the_numbers_of_fresh_ones(checkpoint):
     core.reset(np.arange(4), [0, 1, 2, 3])
     assert 1 <= int(core.warm_up_cache.filled.sum()) <= 4  # the drawn windows, each once
     assert ImaginedSB3VecEnv(checkpoint, 4, warm_up_cache_mb=0.0).core.warm_up_cache is None
+
+
+def test_random_first_episode_length_spreads_the_first_restarts(checkpoint):
+    """rsl_rl's init_at_random_ep_len: the first episode of each env starts at a random step of its time limit (the
+    same for the same seed); every later episode runs the full limit."""
+    from rwm_gym.imagination.vec_env import make_imagined_core
+
+    def first_steps(**options):
+        core = make_imagined_core(checkpoint, 32, episode_steps=10, **options)
+        core.reset(np.arange(32), seeds=list(range(32)))
+        return core
+
+    assert (first_steps().steps == 0).all()
+    core = first_steps(random_first_episode_length=True)
+    assert core.steps.min() >= 0 and core.steps.max() < 10 and len(np.unique(core.steps)) >= 5
+    np.testing.assert_array_equal(core.steps, first_steps(random_first_episode_length=True).steps)
+    later = np.array([0, 5, 31])
+    core.reset(later)
+    assert (core.steps[later] == 0).all()  # an env's next episode is a whole one
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=32, episode_steps=10, random_first_episode_length=True,
+                             divergence_bound=1e9)
+    venv.seed(0)
+    venv.reset()
+    ends = []
+    for _ in range(10):
+        _, _, dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
+        ends.append(sum(info.get("TimeLimit.truncated", False) for info in infos))
+    assert sum(ends) >= 20 and max(ends) < 32  # restarts come on different steps, not all at once

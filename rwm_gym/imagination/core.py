@@ -58,6 +58,10 @@ class ImaginationOptions:
     uncertainty_halt: float = 0.0
     """End an episode (terminated, no bootstrap) where u exceeds this (0: never): MOReL's halt, so a policy cannot
     collect reward in states the model does not know."""
+    random_first_episode_length: bool = False
+    """Start each env's first episode at a random elapsed step in [0, episode_steps), drawn from its own generator
+    (rsl_rl's `init_at_random_ep_len`): without it, N envs with an equal time limit all restart on the same step, and
+    every PPO rollout sees the same phase of its episodes."""
     resample_commands: bool = True
     """Resample commands on the spec's period (off: one command per episode)."""
     push_interval_s: float = 0.0
@@ -114,6 +118,7 @@ class ImaginedCore:
         self.foot_height = np.zeros((n, self.spec.foot_dim), dtype=np.float32)
         self.last_action = np.zeros((n, a))
         self.steps = np.zeros(n, dtype=np.int64)
+        self.started = np.zeros(n, dtype=bool)
         self.uncertainty = np.zeros(n)
         self.member = torch.zeros(n, dtype=torch.long, device=self.device)
         self.hidden = self.model.initial_hidden(n, self.device)
@@ -189,6 +194,10 @@ class ImaginedCore:
         self.last_action[ids] = windows.actions[:, -1]
         self.task.reset(ids, [self.rngs[i] for i in ids], commands)
         self.steps[ids] = 0
+        if self.options.random_first_episode_length:
+            for i in ids[~self.started[ids]]:
+                self.steps[i] = self.rngs[i].integers(self.episode_steps)
+        self.started[ids] = True
         self.uncertainty[ids] = 0.0
         return self.observe(ids)
 

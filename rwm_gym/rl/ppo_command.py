@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="disagreement the penalty leaves free (the model's level on its own data, ~0.02)")
     parser.add_argument("--uncertainty-halt", type=float, default=0.0,
                         help="end an imagined episode where the disagreement exceeds this (0: never; MOReL's halt)")
+    parser.add_argument("--random-first-episode-length", action="store_true",
+                        help="start each imagined env's first episode at a random step of its time limit, so restarts "
+                             "spread over time (rsl_rl's init_at_random_ep_len)")
     parser.add_argument("--timesteps", type=int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
     parser.add_argument("--minutes", type=float, default=None,
@@ -100,10 +103,13 @@ def run(args: argparse.Namespace) -> int:
     if args.where == "imagination":
         env_kwargs = {"episode_steps": args.episode_steps, "reset_data": args.reset_data,
                       "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
-                      "uncertainty_halt": args.uncertainty_halt}
+                      "uncertainty_halt": args.uncertainty_halt,
+                      "random_first_episode_length": args.random_first_episode_length}
         env_kwargs = {k: v for k, v in env_kwargs.items() if v}
-    elif args.reset_data or args.uncertainty_penalty or args.uncertainty_floor or args.uncertainty_halt:
-        raise SystemExit("rwm-gym ppo: --reset-data and --uncertainty-* apply to --in imagination")
+    elif (args.reset_data or args.uncertainty_penalty or args.uncertainty_floor or args.uncertainty_halt
+          or args.random_first_episode_length):
+        raise SystemExit("rwm-gym ppo: --reset-data, --uncertainty-* and --random-first-episode-length apply to "
+                         "--in imagination")
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
     if args.run_dir is not None:
