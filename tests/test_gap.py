@@ -197,8 +197,6 @@ def test_per_leg_form_of_joint_effects():
     assert per_leg(EFFECTS["payload"], SPEC) is None and per_leg(EFFECTS["action_delay"], SPEC) is None
 
 
-@pytest.mark.xfail(strict=False, reason="measured in this session on 6 episodes with the pyramidal-cone MJCF and "
-                   "coordinate-wise group fits: 'unexplained'; the 9-episode grid case (walking data) named it per leg")
 def test_workflow_finds_friction_in_one_leg(tmp_path):
     true = [6.0] * 3 + [0.0] * 9  # N·m, the LF leg only
     data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true},

@@ -88,8 +88,9 @@ def test_spring_model_edits_the_mjcf(tmp_path):
         write_spring_model(SPEC, tmp_path / "x.xml", "ELBOW", 1.0)
 
 
-@pytest.mark.xfail(strict=False, reason="measured in this session on 6 episodes with the pyramidal-cone MJCF: "
-                   "'unexplained' (global friction 21 %, p=0.12); the 9-episode grid case named it (KFE, error 9 %)")
+@pytest.mark.slow  # a known limit that costs ~50 s: kept out of the default run
+@pytest.mark.xfail(strict=False, reason="measured on 6 episodes with the pyramidal-cone MJCF: 'unexplained' (global "
+                   "friction 21 %, p=0.12); the 9-episode grid case named it (KFE, error 9 %)")
 def test_friction_in_one_joint_type_is_named_per_joint_type(tmp_path):
     true = [0.0, 0.0, 4.0] * 4  # N·m, the knees (KFE) only
     data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true},

@@ -4,11 +4,12 @@ A worn gearbox sits in one leg; a seal type sits in one joint type of every leg;
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
 one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash; the best
 `FitConfig.scoped_effects` of those whose global form reduces the held-out gap at all) of a selection step are also
-fitted per group (from nominal, two sweeps of one bounded search per group value, `fit.fit_coordinatewise`) and
-scored on the same held-out windows with the same rule: every parameter beyond the first inflates the remaining gap
-by `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain that much more to win. Per joint
-(12 parameters on ANYmal D) is tried only where the data already shows the effect is not uniform (a leg or joint-type
-scope beat the global form) and the fitting windows outnumber its parameters `MIN_WINDOWS_PER_PARAMETER` times.
+fitted per group (from nominal, `FitConfig.group_sweeps` sweeps of one bounded search per group value,
+`fit.fit_coordinatewise`) and scored on the same held-out windows with the same rule: every parameter beyond the
+first inflates the remaining gap by `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain
+that much more to win. Per joint (12 parameters on ANYmal D) is tried only where the data already shows the effect
+is not uniform (a leg or joint-type scope beat the global form) and the fitting windows outnumber its parameters
+`MIN_WINDOWS_PER_PARAMETER` times.
 
 Groups come from the actuated joints' names in the task spec, "<leg>_<type>": the leg is the part before the first
 "_", the joint type the rest (ANYmal D: legs LF, RF, LH, RH; types HAA, HFE, KFE). A grouping with fewer than two
@@ -155,7 +156,7 @@ def _scoped_fits(best: CandidateFit, effect: Effect, spec: TaskSpec, resim: Resi
             continue
         start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
         fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
-                                 config.max_evaluations // 2 + 2)
+                                 config.max_evaluations // 2 + 2, sweeps=config.group_sweeps)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit)))
     grouped = [f for _, f in out if f.status == "ok"]
