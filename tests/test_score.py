@@ -65,3 +65,24 @@ def test_score_command_refuses_bad_input_in_one_line(tmp_path, capsys):
         main(["score", "--policy", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "out")])
     with pytest.raises(SystemExit, match="must be >= 1"):
         main(["score", "--policy", "zero", "--seeds", "0", "--out", str(tmp_path / "out")])
+
+
+def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, capsys):
+    """The shipped model's own reset data are mostly early falls: zero actions 'fall' in imagination from there. From
+    histories of the robot standing they do not, as in physics."""
+    from rwm_gym.cli import main
+    from rwm_gym.data.collect import collect
+    from rwm_gym.imagination.core import default_checkpoint
+    from rwm_gym.rl.score import score
+
+    shipped = str(default_checkpoint())
+    standing = collect("AnymalD-MuJoCo-v0", "zero", 4, tmp_path / "stand.h5", max_steps=60, num_envs=4,
+                       progress=False)
+    options = dict(seeds=2, steps=60, num_random=4, checkpoint=shipped)
+    assert score("zero", **options).falls > 0
+    assert score("zero", reset_data=standing, **options).falls == 0
+    with pytest.raises(SystemExit, match="--reset-data applies to --checkpoint"):
+        main(["score", "--policy", "zero", "--reset-data", str(standing), "--out", str(tmp_path / "out")])
+    with pytest.raises(SystemExit, match="missing.h5: no such file"):
+        main(["score", "--policy", "zero", "--checkpoint", shipped, "--reset-data", str(tmp_path / "missing.h5"),
+              "--out", str(tmp_path / "out")])

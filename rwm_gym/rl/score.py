@@ -1,6 +1,6 @@
 """`rwm-gym score`: a policy's tracking score in physics (or in a world model), beside the zero-action floor.
 
-    rwm-gym score --policy P.zip --out DIR [--checkpoint CKPT] [--video]
+    rwm-gym score --policy P.zip --out DIR [--checkpoint CKPT [--reset-data H5]] [--video]
 
 Runs the policy on the fixed scoring command set (`scoring_commands`: standing, 1 m/s forward and 16 commands drawn
 from the spec's ranges with a fixed seed), `--seeds` episodes each, commands held for the whole 20 s episode, and
@@ -52,16 +52,17 @@ def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
 
 
 def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int = 16, checkpoint: str | None = None,
-          spec: str = "anymal_d") -> Evaluation:
+          reset_data: str | os.PathLike | None = None, spec: str = "anymal_d") -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
-    world model `checkpoint`."""
+    world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's)."""
     commands = scoring_commands(spec, num_random)
     policy = resolve_policy(policy, len(commands) * seeds, spec)
     core = None
     if checkpoint is not None:
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
-        core = ImaginedCore(checkpoint, len(commands) * seeds, options=ImaginationOptions(resample_commands=False))
+        core = ImaginedCore(checkpoint, len(commands) * seeds, reset_data=reset_data,
+                            options=ImaginationOptions(resample_commands=False))
     return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
 
 
@@ -114,6 +115,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
     parser.add_argument("--checkpoint", default=None,
                         help="score in this world model (the imagined env) instead of physics, same commands and seeds")
+    parser.add_argument("--reset-data", type=Path, default=None,
+                        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
+                             "the checkpoint's; the shipped one's are mostly early falls)")
     parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
     parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
     parser.add_argument("--commands", type=int, default=16,
@@ -130,8 +134,15 @@ def run(args: argparse.Namespace) -> int:
     if (args.out / "score.json").exists() and not args.overwrite:
         raise SystemExit(f"rwm-gym score: {args.out / 'score.json'} exists (pass --overwrite to replace it)")
     policy = args.policy if args.policy in SCRIPTED else as_policy(args.policy)
+    if args.reset_data is not None and args.checkpoint is None:
+        raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
+    if args.reset_data is not None and not args.reset_data.is_file():
+        raise SystemExit(f"rwm-gym score: --reset-data {args.reset_data}: no such file")
     where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
-    options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint)
+    if args.reset_data is not None:
+        where += f" from {args.reset_data}"
+    options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint,
+                   reset_data=args.reset_data)
     result = score(policy, **options)
     floor = result if args.policy == "zero" else score(zero_policy, **options)
     table = format_table(result)
