@@ -1,11 +1,14 @@
 """The learning curve of a resumable PPO run: the tracking score of every snapshot against env steps and wall time.
 
     python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--seeds 3] [--threshold 0.8] [--out DIR]
+    python benchmarks/ppo_curve.py --run-dir runs/imagC --trained-in imagination --checkpoint CKPT --reset-data H5
 
 Scores each `RUN/snapshots/step_N.zip` in physics on the scoring command set (`rwm-gym score`'s), once: results are
 kept in `<out>/curve.csv` and reused when the script runs again (a running training adds snapshots). The zero-action
 floor is scored once. Writes `<out>/curve.csv`, `<out>/curve.png` and `<out>/curve.json` with N_mf, the env steps of the
-first snapshot at or above `--threshold` with at most `--max-falls` falls.
+first snapshot at or above `--threshold` with at most `--max-falls` falls. With `--checkpoint` every snapshot is also
+scored inside that world model (from `--reset-data`'s histories): where the two curves part, the policy exploits the
+model.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.rl.score import score, zero_policy
 from rwm_gym.rl.training_run import TrainingRun
 
-FIELDS = ["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg"]
+FIELDS = ["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg", "imagined_tracking",
+          "imagined_falls"]
 
 
 def wall_at(run: TrainingRun, timesteps: int) -> float | None:
@@ -41,24 +45,33 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="default: RUN/curve")
     parser.add_argument("--trained-in", choices=("physics", "imagination"), default="physics",
                         help="where the run trained (labels the plot: physics or imagined env steps)")
+    parser.add_argument("--checkpoint", default=None,
+                        help="also score every snapshot inside this world model (imagined tracking and falls)")
+    parser.add_argument("--reset-data", default=None,
+                        help="with --checkpoint: histories the imagined episodes start from (default: the model's)")
     args = parser.parse_args()
     run = TrainingRun(args.run_dir)
     out = args.out or run.folder / "curve"
     out.mkdir(parents=True, exist_ok=True)
     table = out / "curve.csv"
     rows = list(csv.DictReader(table.open())) if table.is_file() else []
-    done = {int(r["timesteps"]) for r in rows}
+    done = {int(r["timesteps"]): r for r in rows}
     for snapshot in run.snapshot_files():
         steps = int(snapshot.stem.split("_")[1])
-        if steps in done:
-            continue
-        e = score(str(snapshot), seeds=args.seeds)
-        rows.append({"timesteps": steps, "wall_s": wall_at(run, steps), "tracking": round(e.tracking, 4),
-                     "return": round(e.episode_return, 3), "falls": e.falls, "episodes": e.episodes,
-                     "loadavg": os.getloadavg()[0]})
-        print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, "
-              f"falls {e.falls}/{e.episodes}",
-              flush=True)
+        row = done.get(steps)
+        if row is None:
+            e = score(str(snapshot), seeds=args.seeds)
+            row = {"timesteps": steps, "wall_s": wall_at(run, steps), "tracking": round(e.tracking, 4),
+                   "return": round(e.episode_return, 3), "falls": e.falls, "episodes": e.episodes,
+                   "loadavg": os.getloadavg()[0]}
+            rows.append(row)
+            print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, "
+                  f"falls {e.falls}/{e.episodes}", flush=True)
+        if args.checkpoint and not row.get("imagined_tracking"):
+            e = score(str(snapshot), seeds=args.seeds, checkpoint=args.checkpoint, reset_data=args.reset_data)
+            row.update(imagined_tracking=round(e.tracking, 4), imagined_falls=e.falls)
+            print(f"{snapshot.name} in the world model: tracking {e.tracking:.3f}, falls {e.falls}/{e.episodes}",
+                  flush=True)
         atomic_write(table, lambda tmp: _write_csv(tmp, rows))
     rows.sort(key=lambda r: int(r["timesteps"]))
     floor_path = out / "floor.json"
@@ -95,14 +108,17 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_i
     steps = [int(r["timesteps"]) / 1e6 for r in rows]
     walls = [float(r["wall_s"] or 0) / 60 for r in rows]
     tracking = [float(r["tracking"]) for r in rows]
+    imagined = [(x, float(r["imagined_tracking"])) for x, r in zip(steps, rows) if r.get("imagined_tracking")]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     steps_label = f"{'imagined' if trained_in == 'imagination' else 'physics'} env steps (M)"
     for ax, x, label in ((axes[0], steps, steps_label), (axes[1], walls, "training wall time (min)")):
-        ax.plot(x, tracking, "o-", label="PPO snapshot")
+        ax.plot(x, tracking, "o-", label="PPO snapshot, in physics")
         ax.axhline(floor["tracking"], color="0.5", ls="--", label="zero action (stands still)")
         ax.axhline(threshold, color="tab:green", ls=":", label=f"target {threshold}")
         ax.set_xlabel(label)
-    axes[0].set_ylabel("tracking score in physics")
+    if imagined:
+        axes[0].plot(*zip(*imagined), "s--", color="tab:orange", label="the same, inside the world model")
+    axes[0].set_ylabel("tracking score (physics unless said)")
     axes[0].legend()
     fig.suptitle("PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
                  if trained_in == "imagination" else "model-free PPO in MuJoCo physics, ANYmal D")
