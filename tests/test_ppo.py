@@ -224,3 +224,10 @@ def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsy
         main([*args[:-1], "30", "--timesteps", "128"])
     assert main([*args, "--timesteps", "128"]) == 0  # the same env resumes
     assert json.loads((run / "state.json").read_text())["timesteps"] == 128
+
+
+def test_imagination_options_are_refused_in_physics_by_name():
+    from rwm_gym.cli import main
+
+    with pytest.raises(SystemExit, match="--uncertainty-halt, --random-first-episode-length apply to --in imagination"):
+        main(["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length", "--timesteps", "1"])

@@ -259,7 +259,7 @@ def paired_p_value(reduction: np.ndarray, windows: Windows, block_rows: int) -> 
     """One-sided p-value that per-window reductions (W,) are > 0: Wilcoxon signed-rank test on block means (windows
     pooled into independent-ish blocks; rank-based because a gap that lives in rare events, such as torque saturation,
     is heavy-tailed). Blocks are `block_rows` long, halved until there are `MIN_BLOCKS` of them."""
-    while True:  # short held-out episodes: smaller blocks, or no p-value could pass (exact Wilcoxon's least is 2^-n)
+    while True:
         blocks = windows.episode * 100_000 + windows.start // block_rows
         if len(np.unique(blocks)) >= MIN_BLOCKS or block_rows <= 1:
             break

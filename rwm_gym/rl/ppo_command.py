@@ -99,17 +99,15 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
+    imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
+                           "random_first_episode_length")
+    imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
+    if imagined and args.where != "imagination":
+        raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
+                         f"--in imagination")
     env_kwargs = {}
     if args.where == "imagination":
-        env_kwargs = {"episode_steps": args.episode_steps, "reset_data": args.reset_data,
-                      "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
-                      "uncertainty_halt": args.uncertainty_halt,
-                      "random_first_episode_length": args.random_first_episode_length}
-        env_kwargs = {k: v for k, v in env_kwargs.items() if v}
-    elif (args.reset_data or args.uncertainty_penalty or args.uncertainty_floor or args.uncertainty_halt
-          or args.random_first_episode_length):
-        raise SystemExit("rwm-gym ppo: --reset-data, --uncertainty-* and --random-first-episode-length apply to "
-                         "--in imagination")
+        env_kwargs = {k: v for k, v in {"episode_steps": args.episode_steps, **imagined}.items() if v}
     env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                    env_kwargs=env_kwargs)
     if args.run_dir is not None:
