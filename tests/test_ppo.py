@@ -230,4 +230,5 @@ def test_imagination_options_are_refused_in_physics_by_name():
     from rwm_gym.cli import main
 
     with pytest.raises(SystemExit, match="--uncertainty-halt, --random-first-episode-length apply to --in imagination"):
-        main(["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length", "--timesteps", "1"])
+        main(["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length",
+              "--timesteps", "1"])

@@ -44,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reset-data", type=Path, default=None,
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
     parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
-                        help="lambda of RWM-U's penalty -lambda * max(u - floor, 0) * dt on the ensemble disagreement u "
-                             "(imagination)")
+                        help="lambda of RWM-U's penalty -lambda * max(u - floor, 0) * dt on the ensemble "
+                             "disagreement u (imagination)")
     parser.add_argument("--uncertainty-floor", type=float, default=0.0,
                         help="disagreement the penalty leaves free (the model's level on its own data, ~0.02)")
     parser.add_argument("--uncertainty-halt", type=float, default=0.0,
