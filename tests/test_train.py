@@ -136,3 +136,15 @@ def test_init_from_checkpoint_starts_from_its_weights(data: Path, tmp_path: Path
     other = model_config_for("rwm", SPEC, **{**TINY, "hidden_size": 8})
     with pytest.raises(CheckpointError, match="hidden_size"):
         train(data, other, tiny_step, init=first.path, progress=False)
+
+
+def test_cli_init_takes_the_checkpoints_model_config(data: Path, tmp_path: Path, capsys) -> None:
+    """Fine-tuning needs no model options: `--init`'s config is their default; a different family is refused."""
+    config = model_config_for("rwm", SPEC, **{**TINY, "ensemble_size": 2})
+    first = train(data, config, FAST, tmp_path / "a.safetensors", progress=False).path
+    common = ["train", "--data", str(data), "--init", str(first), "--history", "6", "--forecast", "3",
+              "--batch-size", "8", "--iterations", "1", "--val-every", "1", "--val-fraction", "0.25", "--quiet"]
+    assert main([*common, "--out", str(tmp_path / "b.safetensors")]) == 0
+    assert read_meta(tmp_path / "b.safetensors").model_config == config
+    assert main([*common, "--out", str(tmp_path / "c.safetensors"), "--model", "mlp"]) == 2
+    assert "cannot start a mlp model from a rwm checkpoint" in capsys.readouterr().err

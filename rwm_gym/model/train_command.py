@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import fields
+from dataclasses import fields, replace
 
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model import distributed
-from rwm_gym.model.checkpoint import CheckpointError
+from rwm_gym.model.checkpoint import CheckpointError, read_meta
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
@@ -22,11 +22,13 @@ _MODEL_OPTIONS = tuple(f for f in fields(ModelConfig)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym train`: the run, then one flag per TrainConfig and ModelConfig field."""
     parser.add_argument("--data", required=True, help="HDF5 dataset to train on")
-    parser.add_argument("--model", default="rwm", choices=MODEL_KINDS, help="model family (default rwm)")
+    parser.add_argument("--model", choices=MODEL_KINDS,
+                        help="model family (default rwm, or --init's)")
     parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
+    parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning); its model "
+                        "config is the default of every model option")
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
     parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -49,6 +51,17 @@ def _given(args: argparse.Namespace, options) -> dict:
     return {f.name: getattr(args, f.name) for f in options if getattr(args, f.name, None) is not None}
 
 
+def _model_config(args: argparse.Namespace, dataset: Dataset) -> ModelConfig:
+    """The options given, on top of `--init`'s model config when fine-tuning (else the family's defaults)."""
+    given = _given(args, _MODEL_OPTIONS)
+    if args.init is None:
+        return model_config_for(args.model or "rwm", dataset.spec(), **given)
+    start = read_meta(args.init).model_config
+    if args.model is not None and args.model != start.kind:
+        raise ValueError(f"{args.init}: cannot start a {args.model} model from a {start.kind} checkpoint")
+    return replace(start, **given)
+
+
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym train`: train, print a summary line, write the checkpoint; 2 on bad input, 130 on Ctrl-C."""
     try:
@@ -59,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
             options["iterations"] = 0
         config = TrainConfig(**options)
         dataset = Dataset.load(args.data)
-        model_config = model_config_for(args.model, dataset.spec(), **_given(args, _MODEL_OPTIONS))
+        model_config = _model_config(args, dataset)
         result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
                        tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
     except KeyboardInterrupt:
@@ -71,5 +84,5 @@ def run(args: argparse.Namespace) -> int:
     finally:
         distributed.close_world()
     if result.path is not None:  # rank 0
-        print(f"{args.model}: wrote {result.path} ({summary_text(result.stats)})")
+        print(f"{model_config.kind}: wrote {result.path} ({summary_text(result.stats)})")
     return 0
