@@ -1,5 +1,5 @@
-"""Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py),
-tiny budgets."""
+"""Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
+benchmarks/exploitation.py), tiny budgets."""
 
 from __future__ import annotations
 
@@ -68,3 +68,28 @@ def test_imagined_standing_counts_running_episodes(tmp_path: Path, capsys) -> No
     running = [r["running"] for r in rows]
     assert all(0.0 <= r <= 1.0 for r in running) and running == sorted(running, reverse=True)
     assert "running" in capsys.readouterr().out
+
+
+def test_exploitation_tilt_saturation_and_foresight() -> None:
+    """The exploitation benchmark's measures: tilt from projected gravity, the share of rows at the effort limit, and
+    the model's open-loop view of the last steps of a physics episode (here a robot standing: no tilt, no fall)."""
+    import numpy as np
+
+    from rwm_gym.imagination.core import default_checkpoint
+    from rwm_gym.model.checkpoint import load_checkpoint
+    from rwm_gym.rl.score import zero_policy
+
+    exploitation = _script("exploitation")
+    assert [round(exploitation.tilt(np.array(g)), 6) for g in ((0, 0, -1), (1, 0, 0), (0, -1, 0), (0, 0, 1))] == \
+        [0.0, 90.0, 90.0, 180.0]
+    model, meta = load_checkpoint(default_checkpoint())
+    spec = meta.spec
+    states = np.zeros((4, spec.state_dim))
+    states[1, spec.state_slices["joint_torque"].start + 5] = -spec.actuator.effort_limit
+    assert exploitation.saturated_fraction(spec, states) == 0.25
+    states, actions, fell = exploitation.physics_episode(zero_policy, (0.0, 0.0, 0.0), 0, 40)
+    assert not fell and states.shape == (41, spec.state_dim) and actions.shape == (40, spec.action_dim)
+    assert exploitation.foresight(model, meta, states, actions, 35) is None  # a warm-up of 5 rows is too short
+    view = exploitation.foresight(model, meta, states, actions, 12)
+    assert view["lead"] == 12 and view["tilt_physics"] < 5 and view["tilt_predicted"] < 10
+    assert view["max_termination_probability"] < 0.5
