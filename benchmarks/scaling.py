@@ -20,7 +20,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.resources import assets_dir
 
 

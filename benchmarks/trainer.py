@@ -29,7 +29,7 @@ import torch
 from rwm_gym.atomic import atomic_write
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import TrainConfig, build_model, model_config_for
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.evaluate import write_json
 from rwm_gym.model.losses import SegmentLoss
 from rwm_gym.model.normalization import Normalizer

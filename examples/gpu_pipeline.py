@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from rwm_gym.data.dataset import merge_datasets
-from rwm_gym.model.config import add_dataclass_options
+from rwm_gym.options import add_dataclass_options
 
 
 @dataclass(frozen=True)
