@@ -7,9 +7,13 @@ until an environment is made.
 import os
 
 # Offscreen rendering without a display: MuJoCo picks its GL backend when first imported, so choose EGL here unless
-# the user already chose one.
+# the user already chose one. Only where libEGL exists: with MUJOCO_GL=egl and no libEGL, `import mujoco` itself fails
+# (seen on a GPU machine without libegl1), and physics needs no GL at all.
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
-    os.environ["MUJOCO_GL"] = "egl"
+    import ctypes.util
+
+    if ctypes.util.find_library("EGL"):
+        os.environ["MUJOCO_GL"] = "egl"
 
 from rwm_gym.registration import register_all  # noqa: E402
 

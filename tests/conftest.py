@@ -1,13 +1,11 @@
 """Test setup shared by every test file."""
 
-import os
 
 import pytest
 
-# MuJoCo picks its OpenGL backend when first imported, whichever test file imports it first: headless EGL unless the
-# environment chose one (rwm_gym does the same on import, but some tests import mujoco or dm_control before it).
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
-    os.environ["MUJOCO_GL"] = "egl"
+# MuJoCo picks its OpenGL backend when first imported, whichever test file imports it first: importing rwm_gym here
+# makes its choice (headless EGL where libEGL exists) before any test imports mujoco or dm_control.
+import rwm_gym  # noqa: E402,F401
 
 
 @pytest.fixture(autouse=True)

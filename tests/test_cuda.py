@@ -19,7 +19,7 @@ from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.spec import load_spec
 from synthetic_dynamics import write_linear_dataset
-from test_distributed import assert_same_weights, train_cli
+from test_distributed import assert_same_weights, tensors, train_cli
 
 DEVICE = "cuda"
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no cuda device visible to torch")
@@ -37,7 +37,13 @@ def test_training_on_cuda_matches_the_cpu(data: Path, tmp_path: Path) -> None:
     train_cli(data, cuda, 6, ranks=1, extra=["--device", DEVICE])
     losses = [[e["train_loss"] for e in read_meta(p).stats["log"]] for p in (cpu, cuda)]
     np.testing.assert_allclose(losses[1], losses[0], rtol=1e-3)
-    assert_same_weights(cpu, cuda, rtol=1e-3, atol=1e-4)
+    # Adam's normalised step turns a rounding difference in a near-zero gradient into up to one learning rate
+    # (1e-3) per step: on an H100, 1 of 768 elements of one GRU matrix differed by 1.6e-3 after 6 steps, the rest
+    # agreed to 1e-4. So: almost every weight agrees closely, and none by more than the steps could move it.
+    assert_same_weights(cpu, cuda, rtol=0.0, atol=6 * 1e-3)
+    a, b = tensors(cpu), tensors(cuda)
+    close = [torch.isclose(a[k], b[k], rtol=1e-3, atol=1e-4).float().mean().item() for k in a if k.startswith("model/")]
+    assert min(close) > 0.99
     cpu_scores = evaluate_checkpoint(cpu, data, EvalConfig(horizons=(4,), max_windows=32), progress=False)
     cuda_scores = evaluate_checkpoint(cpu, data, EvalConfig(horizons=(4,), max_windows=32, device=DEVICE),
                                       progress=False)
