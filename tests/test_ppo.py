@@ -232,3 +232,29 @@ def test_imagination_options_are_refused_in_physics_by_name():
     with pytest.raises(SystemExit, match="--uncertainty-halt, --random-first-episode-length apply to --in imagination"):
         main(["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length",
               "--timesteps", "1"])
+
+
+def test_compact_policy_drops_run_state_and_keeps_the_policy(tmp_path):
+    import zipfile
+
+    import gymnasium as gym
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from rwm_gym.rl.policy_file import compact_policy, save_policy
+
+    model = PPO("MlpPolicy", make_vec_env(lambda: gym.make("Pendulum-v1"), n_envs=64, seed=0), n_steps=8,
+                batch_size=64, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=512)
+    full = save_policy(model, tmp_path / "full.zip")
+    small = compact_policy(full, tmp_path / "small.zip")
+    assert small.stat().st_size < full.stat().st_size
+    loaded = PPO.load(small, device="cpu")
+    assert loaded._last_obs is None  # the 64 training envs' last observations are gone
+    obs = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    with pytest.raises(FileExistsError):
+        compact_policy(full, small)
+    with zipfile.ZipFile(tmp_path / "other.zip", "w") as archive:
+        archive.writestr("other", b"{}")
+    with pytest.raises(ValueError, match="not an SB3 policy zip"):
+        compact_policy(tmp_path / "other.zip", tmp_path / "x.zip")

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import os
+import zipfile
 from pathlib import Path
+
+from rwm_gym.atomic import atomic_write
 
 
 def save_policy(model, path: str | os.PathLike) -> Path:
@@ -14,3 +18,31 @@ def save_policy(model, path: str | os.PathLike) -> Path:
     model.save(tmp)
     os.replace(tmp, path)
     return path
+
+
+# Per-run state in an SB3 zip's `data`: the last observations of every training env (1 MB at 4096 envs) and episode
+# statistics. A policy handed to users does not need it; loading sets only what the file holds.
+RUN_STATE_KEYS = ("_last_obs", "_last_episode_starts", "_last_original_obs", "ep_info_buffer", "ep_success_buffer")
+
+
+def compact_policy(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Copy an SB3 policy zip without its training envs' run state (`RUN_STATE_KEYS`): the weights, the optimizer and
+    every setting stay, so it loads, predicts and can train on exactly as before. Rewrites the zip's JSON entry only
+    (nothing in the file is unpickled); refuses to overwrite `dst` unless asked."""
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and not overwrite:
+        raise FileExistsError(f"{dst} exists (pass overwrite=True to replace it)")
+    with zipfile.ZipFile(src) as archive:
+        entries = {info: archive.read(info) for info in archive.infolist()}
+    if not any(info.filename == "data" for info in entries):
+        raise ValueError(f"{src} is not an SB3 policy zip (no 'data' entry)")
+
+    def write(tmp: str) -> None:
+        with zipfile.ZipFile(tmp, "w") as out:
+            for info, payload in entries.items():
+                if info.filename == "data":
+                    data = json.loads(payload)
+                    payload = json.dumps({k: v for k, v in data.items() if k not in RUN_STATE_KEYS}, indent=4)
+                out.writestr(info, payload)
+
+    return atomic_write(dst, write)
