@@ -156,7 +156,8 @@ def settings(args: argparse.Namespace) -> dict:
     # version 4: ... of those whose global form reduces the held-out gap, one sweep per group fit
     # version 5: two sweeps per group fit again (FitConfig.group_sweeps: one left knee friction unexplained)
     # version 6: joint effects are also fitted at one joint alone where its residual stands out (scope.outlying_joint)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 6}
+    # version 7: later selection steps also fit the best candidates together with the named effects (joint_candidates)
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 7}
 
 
 def summarise(rows: list[dict]) -> dict:

@@ -238,3 +238,45 @@ def test_a_large_gap_on_short_held_out_episodes_can_still_be_significant():
     assert paired_p_value(reduction, windows, block_rows=25) < 0.01
     assert 2.0 ** -MIN_BLOCKS < 0.01
     assert paired_p_value(-reduction, windows, block_rows=25) > 0.5  # and a gap below it is not
+
+
+def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatch):
+    """A first effect fitted alone can soak up part of a second; on top of it, frozen, the second explains too little.
+    The best `joint_candidates` candidates are fitted again together with the named effects: where that scores better
+    on held-out windows, the candidate carries the named effects' refitted values; elsewhere it stays as it was."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def fitted(name, values, score):
+        return CandidateFit(name, [name] * len(values), ["1"] * len(values), list(values), [0.1] * len(values), 0.0,
+                            explained_fraction=score, score=score)
+
+    named = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8))]
+    candidates = [(EFFECTS["action_delay"], fitted("action_delay", [0.005], 0.10)),
+                  (EFFECTS["payload"], fitted("payload", [1.0, 0.0, 0.0], 0.05)),
+                  (EFFECTS["joint_damping"], fitted("joint_damping", [0.5], 0.01))]
+    joint_gap = {"action_delay": 0.2, "payload": 0.99}  # held-out gap of each joint fit, `current` being 1.0
+    seen = []
+
+    def fake_fit(effect, resim, train, base, config, start, bracket, max_evaluations=None):
+        seen.append(effect.name)
+        assert base == PhysicsParams() and bracket == (0.0, 0.0)
+        values = list(start)
+        values[0] = 0.05  # the named armature, refitted
+        return CandidateFit(effect.name, [], [], values, [0.01] * len(values), 0.0)
+
+    def fake_score(fit, effect, resim, held, base, before, config):
+        fit.gap_mean = joint_gap[effect.name.split("+")[1]]
+        fit.explained_fraction, fit.p_value = 1.0 - fit.gap_mean, 1e-4
+
+    monkeypatch.setattr(select, "fit_effect", fake_fit)
+    monkeypatch.setattr(select, "score_fit", fake_score)
+    out = select.joint_candidates(candidates, named, None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig())
+    assert seen == ["armature+action_delay", "armature+payload"]  # the two best, not joint_damping
+    delay, payload, damping = (fit for _, fit in out)
+    assert delay.named_refit == [[0.05]] and delay.values == [0.005]
+    assert delay.score == pytest.approx(0.8) and delay.p_value == 1e-4
+    assert payload is candidates[1][1]  # 1 - 0.99 x 1.2 charged for its 3 parameters: worse than fitted alone
+    assert damping is candidates[2][1] and damping.named_refit is None
+    assert select.named_params(named, out[0], PhysicsParams(), PhysicsParams()) == \
+        EFFECTS["armature"].physics([0.05], PhysicsParams())

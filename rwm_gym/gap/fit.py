@@ -72,6 +72,10 @@ class FitConfig:
     scoped_effects: int = 2
     """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
     joints may explain little in its global form and rank below another joint effect that mimics it there."""
+    joint_candidates: int = 2
+    """At selection steps after the first, the best candidates (this many) are also fitted together with the effects
+    named before them: a first effect fitted alone may have soaked up part of a second (armature absorbing an action
+    delay on walking data, 95 % too large), and on top of it, frozen, the second explains too little to be named."""
 
 
 @dataclass
@@ -99,6 +103,9 @@ class CandidateFit:
     """Parameter points rejected because the simulation blew up there, each with MuJoCo's reason."""
     status: str = "ok"
     """"ok", or "rejected: <reason>" when the fitted values blow up on held-out windows."""
+    named_refit: list[list[float]] | None = None
+    """A joint candidate's values for each effect named before it, fitted together with it
+    (`FitConfig.joint_candidates`)."""
 
 
 def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:

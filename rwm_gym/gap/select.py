@@ -11,7 +11,9 @@ named is fitted and scored on top of it (`fit.fit_all`), the best joint effect a
 - no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
   within `ambiguity_ratio` of the best's.
 
-A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, all their
+At later steps the best `joint_candidates` candidates are also fitted together with the effects named so far; one
+that scores better so is judged (and named) with those refitted values. A significant gap that no candidate explains
+at step 1 is `unexplained`. With two or more named effects, all their
 parameters are refitted together (least squares from the sequential values), kept if the held-out gap does not grow.
 Each named effect's share of the explained gap is its held-out gap reduction when the effects are added in order at
 their final values.
@@ -135,6 +137,8 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         fits = fit_all(remaining, resim, train, held, params, current, config, progress)
         candidates = [(remaining[f.effect], f) for f in fits]
         candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
+        if named and config.joint_candidates:
+            candidates = joint_candidates(candidates, named, resim, train, held, base, current, config)
         excess = float(current.mean() - np.nanmean(floor))
         for _, fit in candidates:
             fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
@@ -142,13 +146,18 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         pick, reason, rival = name_step(candidates, config, first=k == 0)
         if rival is not None:
             best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score)
-            resolved = resolve_rivals(best, rival, resim, train, held, params, current, floor, config)
+            resolved = resolve_rivals(best, rival, resim, train, held, named_params(named, best, base, params),
+                                      current, floor, config)
             if resolved is not None:
                 pick, reason = resolved
         step["decision"] = reason
         if pick is None:
             break
         step["named"] = f"{pick[0].name} ({pick[0].scope})"
+        params = named_params(named, pick, base, params)
+        if pick[1].named_refit is not None:
+            for (_, fit), values in zip(named, pick[1].named_refit):
+                fit.values = list(values)
         named.append(pick)
         params = pick[0].physics(pick[1].values, params)
         current = gap_per_window(spec, resim.rollout(held, params), held)
@@ -162,6 +171,45 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
     summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
     return Selection(named[0][0].name, f"named in order: {summary}; {reason}" if len(named) > 1 else
                      steps[0]["decision"], named, params, current, shares, steps, refit)
+
+
+def named_params(named: list[Candidate], candidate: Candidate, base: PhysicsParams, params: PhysicsParams
+                 ) -> PhysicsParams:
+    """The simulator `candidate` is added to: `params` (the named effects), or for a joint candidate the named
+    effects at the values refitted with it."""
+    if candidate[1].named_refit is None:
+        return params
+    return combine(named).physics(np.concatenate(candidate[1].named_refit), base)
+
+
+def joint_candidates(candidates: list[Candidate], named: list[Candidate], resim: Resimulator, train: Windows,
+                     held: Windows, base: PhysicsParams, current: np.ndarray, config: FitConfig) -> list[Candidate]:
+    """The best `config.joint_candidates` candidates fitted again together with the effects named so far (from
+    their current values), on top of `base`; each is replaced where that scores better on held-out windows than
+    fitted alone on top of the named effects. Scored against the same gap `current`, charged for its own
+    parameters only (the named effects' parameters are already charged)."""
+    ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
+    better: dict[int, Candidate] = {}
+    for effect, fit in ranked[:config.joint_candidates]:
+        combined = combine([*named, (effect, fit)])
+        start = np.concatenate([*(f.values for _, f in named), fit.values])
+        joint = fit_effect(combined, resim, train, base, config, start, (0.0, 0.0),
+                           max_evaluations=2 * config.max_evaluations)
+        score_fit(joint, combined, resim, held, base, current, config)
+        if joint.status != "ok":
+            continue
+        own = len(fit.values)
+        score = 1.0 - (joint.gap_mean / float(current.mean())) * (1.0 + config.penalty_per_parameter * (own - 1))
+        if score <= fit.score:
+            continue
+        cuts = np.cumsum([0] + [len(f.values) for _, f in named])
+        refit = CandidateFit(fit.effect, fit.names, fit.units, list(joint.values[-own:]),
+                             list(joint.uncertainty[-own:]), joint.train_cost, joint.gap, joint.gap_mean,
+                             joint.explained_fraction, score=score, p_value=joint.p_value, scope=fit.scope,
+                             rejected=joint.rejected,
+                             named_refit=[list(joint.values[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
+        better[id(fit)] = (effect, refit)
+    return [better.get(id(fit), (effect, fit)) for effect, fit in candidates]
 
 
 def joint_refit(named: list[Candidate], resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams,
