@@ -271,7 +271,10 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
 
     monkeypatch.setattr(select, "fit_effect", fake_fit)
     monkeypatch.setattr(select, "score_fit", fake_score)
-    out = select.joint_candidates(candidates, named, None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig())
+    earlier = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8)),
+               (EFFECTS["joint_damping"], fitted("joint_damping", [0.7], 0.6))]
+    out = select.joint_candidates(candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)),
+                                  FitConfig())
     assert seen == ["armature+action_delay", "armature+payload"]  # the two best, not joint_damping
     delay, payload, damping = (fit for _, fit in out)
     assert delay.named_refit == [[0.05]] and delay.values == [0.005]
@@ -280,3 +283,13 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
     assert damping is candidates[2][1] and damping.named_refit is None
     assert select.named_params(named, out[0], PhysicsParams(), PhysicsParams()) == \
         EFFECTS["armature"].physics([0.05], PhysicsParams())
+    # the best of the step before (not named, here joint_damping) is fitted jointly too, from its value there
+    seen.clear()
+    joint_gap["joint_damping"] = 0.5
+    starts = []
+    monkeypatch.setattr(select, "fit_effect", lambda effect, *args, **kwargs: starts.append(list(args[4])) or
+                        fake_fit(effect, *args, **kwargs))
+    out = select.joint_candidates(candidates, named, earlier, None, None, None, PhysicsParams(), np.ones((4, 3)),
+                                  FitConfig())
+    assert seen == ["armature+action_delay", "armature+payload", "armature+joint_damping"]
+    assert starts[-1] == [0.1, 0.7] and out[2][1].named_refit == [[0.05]]

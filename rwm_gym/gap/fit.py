@@ -73,9 +73,10 @@ class FitConfig:
     """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
     joints may explain little in its global form and rank below another joint effect that mimics it there."""
     joint_candidates: int = 2
-    """At selection steps after the first, the best candidates (this many) are also fitted together with the effects
-    named before them: a first effect fitted alone may have soaked up part of a second (armature absorbing an action
-    delay on walking data, 95 % too large), and on top of it, frozen, the second explains too little to be named."""
+    """At selection steps after the first, the best candidates of the step (this many) and of the step before are
+    also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second
+    (armature absorbing an action delay on walking data, 95 % too large), and on top of it, frozen, the second then
+    explains nothing."""
 
 
 @dataclass

@@ -11,9 +11,9 @@ named is fitted and scored on top of it (`fit.fit_all`), the best joint effect a
 - no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
   within `ambiguity_ratio` of the best's.
 
-At later steps the best `joint_candidates` candidates are also fitted together with the effects named so far; one
-that scores better so is judged (and named) with those refitted values. A significant gap that no candidate explains
-at step 1 is `unexplained`. With two or more named effects, all their
+At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
+of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
+A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, all their
 parameters are refitted together (least squares from the sequential values), kept if the held-out gap does not grow.
 Each named effect's share of the explained gap is its held-out gap reduction when the effects are added in order at
 their final values.
@@ -124,7 +124,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window."""
     named: list[Candidate] = []
-    params, current, steps, reason = base, before, [], ""
+    params, current, steps, reason, earlier = base, before, [], "", []
     for k in range(config.max_effects):
         test = compare_with_floor(current, floor, held, config.block_rows, floor_config)
         step: dict = {"gap": float(current.mean()), "floor_test": test, "candidates": [], "named": None}
@@ -138,7 +138,8 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         candidates = [(remaining[f.effect], f) for f in fits]
         candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
         if named and config.joint_candidates:
-            candidates = joint_candidates(candidates, named, resim, train, held, base, current, config)
+            candidates = joint_candidates(candidates, named, earlier, resim, train, held, base, current, config)
+        earlier = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
         excess = float(current.mean() - np.nanmean(floor))
         for _, fit in candidates:
             fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
@@ -182,17 +183,26 @@ def named_params(named: list[Candidate], candidate: Candidate, base: PhysicsPara
     return combine(named).physics(np.concatenate(candidate[1].named_refit), base)
 
 
-def joint_candidates(candidates: list[Candidate], named: list[Candidate], resim: Resimulator, train: Windows,
-                     held: Windows, base: PhysicsParams, current: np.ndarray, config: FitConfig) -> list[Candidate]:
-    """The best `config.joint_candidates` candidates fitted again together with the effects named so far (from
-    their current values), on top of `base`; each is replaced where that scores better on held-out windows than
-    fitted alone on top of the named effects. Scored against the same gap `current`, charged for its own
-    parameters only (the named effects' parameters are already charged)."""
-    ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
+def joint_candidates(candidates: list[Candidate], named: list[Candidate], earlier: list[Candidate],
+                     resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams, current: np.ndarray,
+                     config: FitConfig) -> list[Candidate]:
+    """Fit some candidates again together with the effects named so far, on top of `base`: the best
+    `config.joint_candidates` of this step, then (up to twice that many in all) the best of the step before
+    (`earlier`, ranked; started from their values there), which a named effect may have soaked up. Each is replaced
+    where the joint fit scores better on held-out windows than its fit on top of the named effects: scored against
+    the same gap `current`, charged for its own parameters only (the named effects' are already charged)."""
+    ok = {(e.name, f.scope): (e, f) for e, f in candidates if f.status == "ok"}
+    ranked = sorted(ok, key=lambda key: ok[key][1].score, reverse=True)[:config.joint_candidates]
+    starts = {key: ok[key][1].values for key in ranked}
+    for effect, fit in earlier:
+        key = (effect.name, fit.scope)
+        if key in ok and key not in starts and len(starts) < 2 * config.joint_candidates:
+            starts[key] = fit.values
     better: dict[int, Candidate] = {}
-    for effect, fit in ranked[:config.joint_candidates]:
+    for key, values in starts.items():
+        effect, fit = ok[key]
         combined = combine([*named, (effect, fit)])
-        start = np.concatenate([*(f.values for _, f in named), fit.values])
+        start = np.concatenate([*(f.values for _, f in named), values])
         joint = fit_effect(combined, resim, train, base, config, start, (0.0, 0.0),
                            max_evaluations=2 * config.max_evaluations)
         score_fit(joint, combined, resim, held, base, current, config)
@@ -203,12 +213,11 @@ def joint_candidates(candidates: list[Candidate], named: list[Candidate], resim:
         if score <= fit.score:
             continue
         cuts = np.cumsum([0] + [len(f.values) for _, f in named])
-        refit = CandidateFit(fit.effect, fit.names, fit.units, list(joint.values[-own:]),
-                             list(joint.uncertainty[-own:]), joint.train_cost, joint.gap, joint.gap_mean,
-                             joint.explained_fraction, score=score, p_value=joint.p_value, scope=fit.scope,
-                             rejected=joint.rejected,
-                             named_refit=[list(joint.values[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
-        better[id(fit)] = (effect, refit)
+        values = [float(v) for v in joint.values]
+        better[id(fit)] = (effect, CandidateFit(
+            fit.effect, fit.names, fit.units, values[-own:], list(joint.uncertainty[-own:]), joint.train_cost,
+            joint.gap, joint.gap_mean, joint.explained_fraction, score=score, p_value=joint.p_value, scope=fit.scope,
+            rejected=joint.rejected, named_refit=[values[a:b] for a, b in zip(cuts[:-1], cuts[1:])]))
     return [better.get(id(fit), (effect, fit)) for effect, fit in candidates]
 
 
