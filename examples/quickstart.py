@@ -61,6 +61,10 @@ def main() -> int:
     print(summary_line("zero-action floor (stands still)", floor))
     print(f"shipped physics PPO policy (36 M physics steps): tracking {shipped['tracking']:.3f}, "
           f"falls {shipped['falls']}/{shipped['episodes']} (from its JSON)")
+    mbpo = json.loads((assets_dir() / "policies" / "anymal_d_mbpo_ppo.json").read_text())
+    print(f"shipped MBPO-PPO policy (trained in imagination, {mbpo['physics_samples']['counted']:,} physics samples): "
+          f"tracking {mbpo['score']['tracking']:.3f}, falls {mbpo['score']['falls']}/{mbpo['score']['episodes']} "
+          "(from its JSON)")
     if args.video:
         try:
             gif, _ = record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")

@@ -86,3 +86,22 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     with pytest.raises(SystemExit, match="missing.h5: no such file"):
         main(["score", "--policy", "zero", "--checkpoint", shipped, "--reset-data", str(tmp_path / "missing.h5"),
               "--out", str(tmp_path / "out")])
+
+
+@pytest.mark.parametrize("name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo"])
+def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
+    """Each shipped policy is under 1 MiB, carries no training-env state, and walks forward at 1 m/s in physics on
+    a short episode without falling; its JSON's score sits above the zero-action floor it states."""
+    import json
+
+    from stable_baselines3 import PPO
+
+    from rwm_gym.resources import assets_dir
+
+    path = assets_dir() / "policies" / f"{name}.zip"
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert path.stat().st_size < 2**20
+    assert PPO.load(path, device="cpu")._last_obs is None
+    assert meta["score"]["tracking"] > meta["score"]["floor"]["tracking"] + 0.4
+    forward = evaluate_policy(str(path), commands=[(1.0, 0.0, 0.0)], seeds=[0], steps=150)
+    assert forward.falls == 0 and forward.tracking > 0.6
