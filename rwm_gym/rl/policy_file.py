@@ -27,8 +27,8 @@ RUN_STATE_KEYS = ("_last_obs", "_last_episode_starts", "_last_original_obs", "ep
 
 def compact_policy(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Path:
     """Copy an SB3 policy zip without its training envs' run state (`RUN_STATE_KEYS`): the weights, the optimizer and
-    every setting stay, so it loads, predicts and can train on exactly as before. Rewrites the zip's JSON entry only
-    (nothing in the file is unpickled); refuses to overwrite `dst` unless asked."""
+    every setting stay, so it loads and predicts exactly as before (training on starts from fresh env resets).
+    Rewrites the zip's JSON entry only (nothing in the file is unpickled); refuses to overwrite `dst` unless asked."""
     src, dst = Path(src), Path(dst)
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst} exists (pass overwrite=True to replace it)")
