@@ -1,6 +1,7 @@
 """The whole pipeline on a GPU machine, each stage timed: collect -> train -> evaluate -> PPO in imagination (scored in
-physics). Written for a machine with NVIDIA GPUs; NOT RUN on one yet (the project's machines had none): the figures in
-the README's "Scaling out" are from CPUs only. Run it and send `timings.json`.
+physics). Written for a machine with NVIDIA GPUs. Run once on one H100 (ninth session): collect, train and evaluate
+ran (figures in the README's "Scaling out"); its PPO stage was cut by the session's time, and 2+ GPUs (torchrun) were
+not run. Run it and send `timings.json`.
 
     python examples/gpu_pipeline.py                            # all GPUs torch sees, all CPU cores for physics
     python examples/gpu_pipeline.py --device cpu --episodes 2 --episode-steps 40 --iterations 4 \\
