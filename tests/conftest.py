@@ -1,11 +1,10 @@
 """Test setup shared by every test file."""
 
-
 import pytest
 
 # MuJoCo picks its OpenGL backend when first imported, whichever test file imports it first: importing rwm_gym here
 # makes its choice (headless EGL where libEGL exists) before any test imports mujoco or dm_control.
-import rwm_gym  # noqa: E402,F401
+import rwm_gym  # noqa: F401
 
 
 @pytest.fixture(autouse=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -10,28 +9,21 @@ from pathlib import Path
 import pytest
 import torch
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+from script_loader import BENCHMARKS, EXAMPLES, load_script
 
 
 def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script(EXAMPLES / f"{name}.py", f"example_{name}")
 
 
-SCRIPTS = sorted([*EXAMPLES.glob("*.py"), *(EXAMPLES.parent / "benchmarks").glob("*.py")])
+SCRIPTS = sorted([*EXAMPLES.glob("*.py"), *BENCHMARKS.glob("*.py")])
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=[f"{p.parent.name}/{p.name}" for p in SCRIPTS])
 def test_every_example_and_benchmark_imports(script: Path):
     """The slow or GPU-only scripts are not run by the default suite; their imports still must resolve (three
     once imported a helper from a module it had left)."""
-    spec = importlib.util.spec_from_file_location(f"script_{script.parent.name}_{script.stem}", script)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_script(script, f"script_{script.parent.name}_{script.stem}")
     assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
 
 

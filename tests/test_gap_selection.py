@@ -271,8 +271,6 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
 
     monkeypatch.setattr(select, "fit_effect", fake_fit)
     monkeypatch.setattr(select, "score_fit", fake_score)
-    earlier = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8)),
-               (EFFECTS["joint_damping"], fitted("joint_damping", [0.7], 0.6))]
     out = select.joint_candidates(candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)),
                                   FitConfig())
     assert seen == ["armature+action_delay", "armature+payload"]  # the two best, not joint_damping
@@ -285,6 +283,8 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
         EFFECTS["armature"].physics([0.05], PhysicsParams())
     # the best of the step before (not named, here joint_damping) is fitted jointly too, from its value there
     seen.clear()
+    earlier = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8)),
+               (EFFECTS["joint_damping"], fitted("joint_damping", [0.7], 0.6))]
     joint_gap["joint_damping"] = 0.5
     starts = []
     monkeypatch.setattr(select, "fit_effect", lambda effect, *args, **kwargs: starts.append(list(args[4])) or
