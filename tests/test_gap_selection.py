@@ -234,10 +234,26 @@ def test_a_large_gap_on_short_held_out_episodes_can_still_be_significant():
     from rwm_gym.gap.fit import MIN_BLOCKS, paired_p_value
 
     windows = SimpleNamespace(episode=np.repeat([0, 1], 6), start=np.tile(np.arange(0, 30, 5), 2))
-    reduction = np.linspace(1.0, 2.0, 12)  # every window far above the floor
-    assert paired_p_value(reduction, windows, block_rows=25) < 0.01
+    floor = np.full(12, 0.01)
+    gap = floor + np.linspace(1.0, 2.0, 12)  # every window far above the floor
+    assert paired_p_value(gap, floor, windows, block_rows=25) < 0.01
     assert 2.0 ** -MIN_BLOCKS < 0.01
-    assert paired_p_value(-reduction, windows, block_rows=25) > 0.5  # and a gap below it is not
+    assert paired_p_value(floor, gap, windows, block_rows=25) > 0.5  # and a gap below it is not
+
+
+def test_with_too_few_windows_for_the_rank_test_the_size_of_the_gap_decides():
+    """A robot that falls at once leaves five held-out windows: no rank test on 5 blocks reaches p < 0.01 (its floor is
+    2^-5 = 0.031), so a gap 500x the floor was called `none`. There the t-test on log ratios decides: a gap hundreds of
+    times the floor is significant, one that wanders around the floor is not."""
+    from rwm_gym.gap.fit import paired_p_value, paired_test
+
+    windows = SimpleNamespace(episode=np.arange(5), start=np.zeros(5, dtype=int))
+    floor = np.array([0.006, 0.008, 0.007, 0.009, 0.008])
+    assert "t-test" in paired_test(windows, 25, 0.01)
+    assert paired_p_value(floor * np.array([400, 700, 500, 600, 550]), floor, windows, 25) < 0.01
+    assert paired_p_value(floor * np.array([1.3, 0.8, 1.1, 0.9, 1.2]), floor, windows, 25) > 0.1
+    many = SimpleNamespace(episode=np.arange(12), start=np.zeros(12, dtype=int))
+    assert "Wilcoxon" in paired_test(many, 25, 0.01)
 
 
 def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatch):

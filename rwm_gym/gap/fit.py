@@ -9,7 +9,8 @@ optimum (`mujoco.sysid.calculate_intervals`).
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
 step; the explained fraction is 1 - gap_after / gap_before; the score charges `penalty_per_parameter` per extra
 parameter: score = 1 - (gap_after / gap_before) x (1 + penalty x extra parameters). Significance: one-sided Wilcoxon
-signed-rank test on per-block (`block_rows` rows of an episode) mean error reductions.
+signed-rank test on per-block (`block_rows` rows of an episode) mean error reductions, or where there are too few blocks
+for it, a t-test on the blocks' log error ratios (`paired_p_value`).
 
 Blow-ups: parameters at which MuJoCo's integration diverges (`resim.SimulationDiverged`) are rejected, never silently:
 the grid point or search step costs infinity, and the candidate's `rejected` lists each rejected point with MuJoCo's
@@ -254,7 +255,7 @@ def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Wi
     fit.explained_fraction = 1.0 - fit.gap_mean / float(before.mean())
     remaining = (fit.gap_mean / float(before.mean())) * (1.0 + config.penalty_per_parameter * (len(fit.values) - 1))
     fit.score = 1.0 - remaining
-    fit.p_value = paired_p_value(before.mean(1) - after.mean(1), heldout, config.block_rows)
+    fit.p_value = paired_p_value(before.mean(1), after.mean(1), heldout, config.block_rows, config.significance)
     return after
 
 
@@ -263,19 +264,53 @@ MIN_BLOCKS = 8
 6 blocks (short held-out episodes of a robot that falls) no gap, however large, could reach p < 0.01."""
 
 
-def paired_p_value(reduction: np.ndarray, windows: Windows, block_rows: int) -> float:
-    """One-sided p-value that per-window reductions (W,) are > 0: Wilcoxon signed-rank test on block means (windows
-    pooled into independent-ish blocks; rank-based because a gap that lives in rare events, such as torque saturation,
-    is heavy-tailed). Blocks are `block_rows` long, halved until there are `MIN_BLOCKS` of them."""
+def block_ids(windows: Windows, block_rows: int) -> np.ndarray:
+    """(W,) block of each window: `block_rows` rows of one episode, halved until there are `MIN_BLOCKS` blocks (or
+    every window is its own block)."""
     while True:
         blocks = windows.episode * 100_000 + windows.start // block_rows
         if len(np.unique(blocks)) >= MIN_BLOCKS or block_rows <= 1:
-            break
+            return blocks
         block_rows = max(1, block_rows // 2)
-    means = np.array([reduction[blocks == b].mean() for b in np.unique(blocks)])
-    if len(means) < 3 or np.allclose(means, means[0]):
+
+
+def block_means(values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """Mean of per-window `values` (W,) in each block, in the order of `np.unique(blocks)`."""
+    return np.array([values[blocks == b].mean() for b in np.unique(blocks)])
+
+
+def paired_p_value(larger: np.ndarray, smaller: np.ndarray, windows: Windows, block_rows: int,
+                   significance: float = 0.01) -> float:
+    """One-sided p-value that per-window errors `larger` (W,) exceed `smaller` (W,) of the same windows, on block means
+    (windows pooled into independent-ish blocks, `block_ids`). Wilcoxon signed-rank test on the differences: rank-based
+    because a gap that lives in rare events, such as torque saturation, is heavy-tailed. On n blocks it cannot go below
+    2^-n, so where it could not reach `significance` at all (a log whose robot falls at once has few windows), a t-test
+    on the blocks' log ratios decides instead: it weighs how many times larger each block's error is (`paired_test`)."""
+    blocks = block_ids(windows, block_rows)
+    big, small = block_means(larger, blocks), block_means(smaller, blocks)
+    if rank_test_can_reach(len(big), significance):
+        difference = big - small
+        if len(difference) < 3 or np.allclose(difference, difference[0]):
+            return 1.0
+        return float(stats.wilcoxon(difference, alternative="greater").pvalue)
+    logs = np.log(np.maximum(big, 1e-300) / np.maximum(small, 1e-300))
+    if len(logs) < 2 or np.allclose(logs, logs[0]):
         return 1.0
-    return float(stats.wilcoxon(means, alternative="greater").pvalue)
+    return float(stats.ttest_1samp(logs, 0.0, alternative="greater").pvalue)
+
+
+def rank_test_can_reach(blocks: int, significance: float) -> bool:
+    """Whether the exact one-sided Wilcoxon test on `blocks` blocks can give p below `significance` (2^-n < it)."""
+    return 2.0 ** -blocks < significance
+
+
+def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
+    """Which test `paired_p_value` runs on these windows, in words."""
+    n = len(np.unique(block_ids(windows, block_rows)))
+    if rank_test_can_reach(n, significance):
+        return f"one-sided Wilcoxon signed-rank on {n} block means"
+    return (f"one-sided t-test on the log ratios of {n} block means (too few blocks for the rank test to reach "
+            f"p < {significance})")
 
 
 def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams,

@@ -207,7 +207,7 @@ def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, he
     except SimulationDiverged as err:
         return {"kind": "learned", "status": f"rejected: the simulation blows up with it ({err.reason})",
                 "path": str(path), "training": info, "config": dataclasses.asdict(config)}
-    p_value = paired_p_value(after.mean(1) - corrected.mean(1), held, fit_config.block_rows)
+    p_value = paired_p_value(after.mean(1), corrected.mean(1), held, fit_config.block_rows, fit_config.significance)
     return {"kind": "learned residual joint torque (actuator-network style MLP), not a named effect",
             "status": "ok", "gap_before": float(after.mean()), "gap_after": float(corrected.mean()),
             "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
