@@ -7,9 +7,12 @@ one-hot of the joint to the torque that joint misses (N·m). This is the actuato
 used as a residual on top of the (corrected) simulator.
 
 Training data come from the measured fitting episodes (never the held-out ones): from each measured row the
-simulator steps one policy step with the measured action, which gives the joint velocity it misses, and again with a
-probe torque on each joint, which gives the joint velocities' response to a joint torque there (contacts included).
-The network is fitted so that response @ torque matches the missing velocity (least squares). The correction is
+simulator steps one policy step with the measured action, which gives the base and joint velocities it misses, and
+again with a probe torque on each joint, which gives those velocities' response to a joint torque there (contacts
+included). The network is fitted so that response @ torque matches the missing velocities (least squares, each
+channel in units of the spec's state std). Fitted to the joint velocities alone, a torque in a stance leg is not
+observable (the contact holds the joint, the body moves instead); the network then put arbitrary torques there and
+made the held-out gap larger on three of four cases tried (`LearnedCorrectionConfig.observed`). The correction is
 applied in re-simulation as a joint torque (`qfrc_applied`) held over each policy step (`resim.TorqueCorrection`),
 and judged by the held-out gap like any candidate. It lives in the report and `learned_correction.safetensors`, not in the corrected MJCF.
 """
@@ -46,7 +49,11 @@ class LearnedCorrectionConfig:
     iterations: int = 1500
     """Adam steps (full batch)."""
     lr: float = 3e-3
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-3
+    observed: tuple[str, ...] = ("base_lin_vel", "base_ang_vel", "joint_vel")
+    """State groups whose one-step miss the torque is fitted to, each in units of the spec's state std. The joint
+    velocities alone cannot see a torque in a stance leg (the contact holds the joint still and the body moves
+    instead); adding the base velocities makes it observable."""
     seed: int = 0
 
 
@@ -109,11 +116,11 @@ class ConstantTorque:
         return np.broadcast_to(self.value, joint_pos.shape)
 
 
-def training_targets(resim: Resimulator, windows: Windows, params: PhysicsParams, history: int, probe_nm: float = 1.0
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """From one-step windows (horizon 1, warmup history-1): inputs (B, A, F), the joint velocity the simulator misses
-    after one policy step (B, A) rad/s, and its response to a joint torque held over that step (B, A, A) rad/s per
-    N·m, probed with `probe_nm` on each joint in turn (contacts included, so a stance leg's response is small)."""
+def training_targets(resim: Resimulator, windows: Windows, params: PhysicsParams, history: int, probe_nm: float = 1.0,
+                     observed: tuple[str, ...] = ("joint_vel",)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From one-step windows (horizon 1, warmup history-1): inputs (B, A, F), what the simulator misses after one
+    policy step in the `observed` state groups (B, O) in state-std units, and their response to a joint torque held
+    over that step (B, O, A) per N·m, probed with `probe_nm` on each joint in turn (contacts included)."""
     spec = resim.spec
     act = spec.actuator
     default = np.asarray(act.default_pose)
@@ -125,14 +132,15 @@ def training_targets(resim: Resimulator, windows: Windows, params: PhysicsParams
                            default)  # (B, k+1, A, 3)
     rows = [feats[:, max(k - lag, 0)] for lag in range(history)]  # newest first, repeated where history is short
     x = with_joint_ids(np.stack(rows, axis=2).reshape(len(windows), spec.action_dim, -1))
-    joint_vel = spec.state_slices["joint_vel"]
-    free = resim.rollout(windows, params, horizon=1)[:, 0, joint_vel]
-    missing = windows.target[:, 0, joint_vel] - free
-    response = np.empty((len(windows), spec.action_dim, spec.action_dim))
+    columns = np.concatenate([np.arange(spec.state_dim)[spec.state_slices[name]] for name in observed])
+    scale = np.asarray(spec.state_std)[columns]
+    free = resim.rollout(windows, params, horizon=1)[:, 0, columns] / scale
+    missing = windows.target[:, 0, columns] / scale - free
+    response = np.empty((len(windows), len(columns), spec.action_dim))
     for j in range(spec.action_dim):
         probe = np.zeros(spec.action_dim)
         probe[j] = probe_nm
-        pushed = resim.rollout(windows, params, horizon=1, correction=ConstantTorque(probe))[:, 0, joint_vel]
+        pushed = resim.rollout(windows, params, horizon=1, correction=ConstantTorque(probe))[:, 0, columns] / scale
         response[:, :, j] = (pushed - free) / probe_nm
     return x, missing, response
 
@@ -163,7 +171,7 @@ def train_correction(x: np.ndarray, missing: np.ndarray, response: np.ndarray, c
         opt.step()
     with torch.no_grad():
         final, torque = float(loss_fn()), net(xt)
-    return net, {"samples": int(missing.shape[0]), "missing_joint_vel_rms": float(np.sqrt((missing**2).mean())),
+    return net, {"samples": int(missing.shape[0]), "missing_rms": float(np.sqrt((missing**2).mean())),
                  "fit_rmse": float(np.sqrt(final)), "torque_rms_nm": float(torque.pow(2).mean().sqrt())}
 
 
@@ -173,7 +181,7 @@ def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsPa
     """Train the residual torque network on one-step windows of the fitting episodes, on top of `params`."""
     for _ in range(3):  # leave out rows where the simulator itself blows up (rare; the count is reported)
         try:
-            x, missing, response = training_targets(resim, train, params, config.history)
+            x, missing, response = training_targets(resim, train, params, config.history, observed=config.observed)
             break
         except SimulationDiverged as err:
             train = train.subset(~err.windows)
