@@ -165,7 +165,7 @@ class DatasetWriter:
                 tail = value.shape[1:]
                 chunks = (_CHUNK_ROWS, *tail) if all(tail) and np.prod(tail) <= 4096 else True
                 steps.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=value.dtype,
-                                     chunks=chunks, compression="lzf")
+                                     chunks=chunks)
                 self._widths[name] = (tail, value.dtype)
         if first:  # every dataset exists now: from here on, HDF5 orders its writes so a crash leaves a readable file
             self._file.swmr_mode = True
