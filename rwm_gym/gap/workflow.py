@@ -253,6 +253,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)")
     parser.add_argument("--max-effects", type=int, default=FitConfig.max_effects,
                         help="forward selection names at most this many effects")
+    parser.add_argument("--joint-candidates", type=int, default=FitConfig.joint_candidates,
+                        help="at later selection steps, the best candidates also refitted together with the named "
+                             "effects (0: each fitted on top of them, frozen)")
     parser.add_argument("--learned-correction", action=argparse.BooleanOptionalAction,
                         default=GapConfig.learned_correction,
                         help="learn a residual joint torque when a gap above the noise floor remains")
@@ -293,11 +296,14 @@ def run(args: argparse.Namespace) -> int:
         unknown = sorted(set(scopes) - set(SCOPES[1:]))
         if unknown:
             raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
+        if args.joint_candidates < 0:
+            raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
                          config=GapConfig(val_fraction=args.val_fraction,
                                           learned_correction=args.learned_correction,
                                           solver=solver_option(args.solver_iterations)),
-                         fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects), sensor_noise=noise,
+                         fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects,
+                                              joint_candidates=args.joint_candidates), sensor_noise=noise,
                          world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
     except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors
         print(f"rwm-gym gap: {err}", file=sys.stderr)
