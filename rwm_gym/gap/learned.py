@@ -12,7 +12,7 @@ again with a probe torque on each joint, which gives those velocities' response 
 included). The network is fitted so that response @ torque matches the missing velocities (least squares, each
 channel in units of the spec's state std). Fitted to the joint velocities alone, a torque in a stance leg is not
 observable (the contact holds the joint, the body moves instead); the network then put arbitrary torques there and
-made the held-out gap larger on three of four cases tried (`LearnedCorrectionConfig.observed`). The correction is
+made the held-out gap larger on two of the four cases tried (up to twice as large) (`LearnedCorrectionConfig.observed`). The correction is
 applied in re-simulation as a joint torque (`qfrc_applied`) held over each policy step (`resim.TorqueCorrection`),
 and judged by the held-out gap like any candidate. It lives in the report and `learned_correction.safetensors`, not in the corrected MJCF.
 """
@@ -117,7 +117,8 @@ class ConstantTorque:
 
 
 def training_targets(resim: Resimulator, windows: Windows, params: PhysicsParams, history: int, probe_nm: float = 1.0,
-                     observed: tuple[str, ...] = ("joint_vel",)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     observed: tuple[str, ...] = LearnedCorrectionConfig.observed
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """From one-step windows (horizon 1, warmup history-1): inputs (B, A, F), what the simulator misses after one
     policy step in the `observed` state groups (B, O) in state-std units, and their response to a joint torque held
     over that step (B, O, A) per N·m, probed with `probe_nm` on each joint in turn (contacts included)."""
