@@ -65,6 +65,10 @@ def main() -> int:
     print(f"shipped MBPO-PPO policy (trained in imagination, {mbpo['physics_samples']['counted']:,} physics samples): "
           f"tracking {mbpo['score']['tracking']:.3f}, falls {mbpo['score']['falls']}/{mbpo['score']['episodes']} "
           "(from its JSON)")
+    scratch = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    print(f"shipped policy from scratch in imagination ({scratch['imagined_steps']:,} imagined steps in MBPO's model, "
+          f"no physics): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
+          f"{scratch['score']['episodes']} (from its JSON)")
     if args.video:
         try:
             gif, _ = record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")
