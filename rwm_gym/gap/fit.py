@@ -260,8 +260,9 @@ def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Wi
 
 
 MIN_BLOCKS = 8
-"""Blocks a significance test needs: the exact one-sided Wilcoxon test on n blocks cannot give p below 2^-n, so with
-6 blocks (short held-out episodes of a robot that falls) no gap, however large, could reach p < 0.01."""
+"""Blocks `block_ids` halves the block length for: the exact one-sided Wilcoxon test on n blocks cannot give p below
+2^-n, so with 6 blocks no gap, however large, could reach p < 0.01. Where even one window per block leaves too few,
+`paired_p_value` falls back to a t-test on log ratios."""
 
 
 def block_ids(windows: Windows, block_rows: int) -> np.ndarray:
