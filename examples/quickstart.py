@@ -1,20 +1,25 @@
-"""Quick start: a policy learned from scratch inside the shipped world model, then judged in physics.
+"""Quick start: a policy learned from scratch inside a shipped world model, then judged in physics.
 
     pip install . && python examples/quickstart.py
 
-1. PPO (Stable-Baselines3 with RWM's settings: 128-128-128 ELU actor and critic, initial std 1, lr 1e-3 with a KL
-   target) trains a fresh policy in `RWM-AnymalD-v0`, the shipped ANYmal D world model: 4096 imagined robots stepped
-   in one forward pass, 2 s episodes that each restart from a real 32-step history (PPO bootstraps at the time limit).
-   No cloning, no physics sample beyond the world model's own dataset. The run lives in `--run-dir`: stop it at any
-   time and run the same command again to continue.
+1. PPO (Stable-Baselines3 with RWM's settings: 128-128-128 ELU actor and critic, lr 1e-3 with a KL target) trains a
+   fresh policy in the shipped MBPO world model (`assets/checkpoints/anymal_d_rwm_mbpo.safetensors`, the default model
+   fine-tuned by 25 MBPO iterations): 4096 imagined robots stepped in one forward pass, 1 s episodes that each restart
+   from a real history, the RWM-U uncertainty penalty, step rewards clipped at 0 (`--positive-reward-only`: with
+   negative steps PPO learns to end its episodes) and an initial action std of 0.37. No cloning, no physics sample
+   beyond the world model's own dataset. The run lives in `--out`/run: stop it at any time and run the same command
+   again to continue; a larger `--timesteps` continues a finished run.
 2. The policy is scored in physics (MuJoCo, `AnymalD-MuJoCo-v0`) with `rwm-gym score`'s tracking score (18 commands x
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
-3. A GIF of the policy walking (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
+3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON) with this
+   run's point on it (`curve.png`), the budget at which those seeds reached tracking 0.7, a GIF of the policy walking
+   (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
 
-Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, score.json/.md/.png,
-walk.gif and walk.png. What budgets reached on 2 CPU cores is in the README: so far no budget walks (35 M imagined steps
-still fell in 48 of 54 physics episodes); the default 3 M shows the pipeline end to end in about 10 minutes.
+Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
+and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
+12 M steps); the budget that walks is `--timesteps 40000000` (README: about 2 h on one CPU thread, 12 min on a GPU
+with `--device cuda`).
 """
 
 from __future__ import annotations
@@ -27,14 +32,20 @@ from pathlib import Path
 
 WALKING = 0.7
 """Tracking score a policy must reach to be called walking (the zero-action floor is 0.23, the scripted trot 0.63)."""
+MODEL = "anymal_d_rwm_mbpo.safetensors"
+"""The shipped world model the recipe trains in (its reset windows ship beside it and are found from its metadata)."""
+RECIPE = ["--episode-steps", "50", "--uncertainty-penalty", "10", "--uncertainty-floor", "0.02",
+          "--uncertainty-halt", "0.06", "--positive-reward-only", "--log-std-init", "-1"]
+"""The from-scratch settings of the shipped imagination policy (`anymal_d_ppo_imagination.json`, key `ppo`/`env`)."""
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--timesteps", type=int, default=3_000_000,
-                        help="PPO budget in imagined env steps (3 M: about 10 min on 2 CPU cores; see the README)")
+    parser.add_argument("--timesteps", type=int, default=2_000_000,
+                        help="PPO budget in imagined env steps (2 M fits 10 min on 2 CPU cores; 40 M walks: README)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--num-envs", type=int, default=4096, help="imagined robots stepped together")
+    parser.add_argument("--device", default="cpu", help="where PPO and the world model run (cuda on a GPU)")
     parser.add_argument("--score-seeds", type=int, default=3, help="physics episodes per scoring command")
     parser.add_argument("--score-steps", type=int, default=None, help="policy steps per scoring episode (default 20 s)")
     parser.add_argument("--threads", default="1", help="torch CPU threads (default 1: fastest on a small shared CPU)")
@@ -47,28 +58,35 @@ def main() -> int:
     from rwm_gym.resources import assets_dir
     from rwm_gym.rl.score import record_walk, score, summary_line, zero_policy
 
-    code = cli(["ppo", "--in", "imagination", "--num-envs", str(args.num_envs), "--n-steps", "24", "--episode-steps", "100",
-                "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"), "--save-every", "4",
-                "--snapshot-every", "32", "--threads", args.threads, "--seed", str(args.seed),
-                "--out", str(args.out / "policy.zip")])
+    code = cli(["ppo", "--in", "imagination", "--checkpoint", str(assets_dir() / "checkpoints" / MODEL), *RECIPE,
+                "--num-envs", str(args.num_envs), "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"),
+                "--save-every", "5", "--snapshot-every", "20", "--device", args.device, "--threads", args.threads,
+                "--seed", str(args.seed), "--no-eval", "--out", str(args.out / "policy.zip")])
     if code:
         return code
     policy = args.out / "policy.zip"
     options = dict(seeds=args.score_seeds, steps=args.score_steps)
     result, floor = score(str(policy), **options), score(zero_policy, **options)
-    shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_physics.json").read_text())["score"]
+    policies = assets_dir() / "policies"
+    shipped = json.loads((policies / "anymal_d_ppo_physics.json").read_text())["score"]
+    scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
     print(summary_line(f"this policy (PPO in imagination, {args.timesteps:,} imagined steps)", result))
     print(summary_line("zero-action floor (stands still)", floor))
     print(f"shipped physics PPO policy (36 M physics steps): tracking {shipped['tracking']:.3f}, "
           f"falls {shipped['falls']}/{shipped['episodes']} (from its JSON)")
-    mbpo = json.loads((assets_dir() / "policies" / "anymal_d_mbpo_ppo.json").read_text())
+    mbpo = json.loads((policies / "anymal_d_mbpo_ppo.json").read_text())
     print(f"shipped MBPO-PPO policy (trained in imagination, {mbpo['physics_samples']['counted']:,} physics samples): "
           f"tracking {mbpo['score']['tracking']:.3f}, falls {mbpo['score']['falls']}/{mbpo['score']['episodes']} "
           "(from its JSON)")
-    scratch = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
-    print(f"shipped policy from scratch in imagination ({scratch['imagined_steps']:,} imagined steps in MBPO's model, "
-          f"no physics): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
+    print(f"shipped policy from scratch in imagination (this recipe, {scratch['imagined_steps']:,} imagined steps, "
+          f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")
+    for run in scratch["seeds"]:
+        reached = next((r["timesteps"] for r in run["curve"] if r["tracking"] >= WALKING), None)
+        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/54 falls at "
+              f"{run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
+              + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
+    print(f"curve: {plot_curve(scratch['seeds'], args.timesteps, result.tracking, floor.tracking, args.out / 'curve.png')}")
     if args.video:
         try:
             gif, _ = record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")
@@ -81,6 +99,33 @@ def main() -> int:
           + f": tracking {result.tracking:.3f} ({ratio:.0%} of the physics-trained policy, floor {floor.tracking:.3f}),"
           f" {result.falls}/{result.episodes} falls; walking means >= {WALKING} with at most 1 fall")
     return 0
+
+
+def plot_curve(seeds: list[dict], timesteps: int, tracking: float, floor: float, path: Path) -> Path:
+    """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rwm_gym.atomic import atomic_write
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for run in seeds:
+        ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], ".-",
+                label=f"seed {run['seed']} (shipped recipe)")
+    ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label="this run")
+    ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
+    ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
+    ax.set_xlabel("imagined env steps (M)")
+    ax.set_ylabel("tracking score in physics")
+    ax.set_title("PPO from scratch in the shipped MBPO world model, ANYmal D")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)
+    return path
 
 
 if __name__ == "__main__":

@@ -105,3 +105,23 @@ def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
     assert meta["score"]["tracking"] > meta["score"]["floor"]["tracking"] + 0.4
     forward = evaluate_policy(str(path), commands=[(1.0, 0.0, 0.0)], seeds=[0], steps=150)
     assert forward.falls == 0 and forward.tracking > 0.6
+
+
+def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
+    """The from-scratch policy's JSON records every seed of its recipe (the shipped one is the best by physics score,
+    each curve ends at that seed's final score), and its world model ships with the reset windows it names."""
+    import json
+
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.resources import assets_dir
+
+    meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    seeds = {run["seed"]: run for run in meta["seeds"]}
+    assert len(seeds) >= 3 and meta["seed"] == max(seeds, key=lambda s: seeds[s]["tracking"])
+    assert seeds[meta["seed"]]["tracking"] == meta["score"]["tracking"]
+    for run in seeds.values():
+        assert run["curve"][-1]["timesteps"] == run["imagined_steps"]
+        assert run["curve"][-1]["falls"] == run["falls"]
+    checkpoint = assets_dir() / meta["world_model"]["checkpoint"].removeprefix("assets/")
+    reset = checkpoint.parent / read_meta(checkpoint).extras["reset_data"]
+    assert reset.is_file() and meta["env"]["checkpoint"] == meta["world_model"]["checkpoint"]
