@@ -12,7 +12,8 @@ import pytest
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 SNIPPETS = re.findall(r"```python\n(.*?)```", README.read_text(), re.DOTALL)
-TINY_BUDGETS = {"learn(200_000)": "learn(6_144)"}  # one rollout of the SB3 snippet's 256 envs
+TINY_BUDGETS = {"learn(200_000)": "learn(6_144)",  # one rollout of the SB3 snippet's 256 envs
+                "num_envs=4096": "num_envs=16", "timesteps=40_000_000": "timesteps=384"}  # the recipe's
 NEEDS_EARLIER_STEPS = {"acrobot.safetensors": "the acrobot model of the CLI steps above it (tests/test_new_robot.py)"}
 
 
@@ -20,7 +21,7 @@ def cases():
     text = README.read_text()
     for code in SNIPPETS:
         line = text[:text.index(code)].count("\n") + 1
-        marks = [pytest.mark.slow] if ".learn(" in code else []  # trains: a few CPU seconds more
+        marks = [pytest.mark.slow] if "learn(" in code else []  # trains: a few CPU seconds more
         yield pytest.param(code, id=f"README-line-{line}", marks=marks)
 
 
@@ -33,6 +34,8 @@ def test_python_snippet_runs_when_pasted_alone(code: str, tmp_path: Path) -> Non
     for needed, why in NEEDS_EARLIER_STEPS.items():
         if needed in code:
             pytest.skip(f"needs {why}")
+    if "from rsl_rl" in code:
+        pytest.importorskip("rsl_rl", reason="the rsl_rl snippet needs the optional extra: pip install \".[rsl-rl]\"")
     for full, tiny in TINY_BUDGETS.items():
         code = code.replace(full, tiny)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(README.parent)}  # this checkout's package
