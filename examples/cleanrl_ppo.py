@@ -1,6 +1,12 @@
 """PPO in imagination without Stable-Baselines3: a CleanRL-style single file on the Gymnasium vector env.
 
     python examples/cleanrl_ppo.py --total-steps 500000 --num-envs 256
+    python examples/cleanrl_ppo.py --checkpoint assets/checkpoints/anymal_d_rwm_mbpo.safetensors --num-envs 4096 \
+        --episode-steps 50 --uncertainty-penalty 10 --uncertainty-floor 0.02 --uncertainty-halt 0.06 \
+        --positive-reward-only --log-std-init -1 --learning-rate 1e-3 --total-steps 40000000
+
+The second line is the walking recipe's env and reward settings (`rwm-gym ppo` adds a KL-adaptive learning rate this
+loop does not have; it was not run to 40 M steps).
 
 Everything is in this file and reads top to bottom: the batched imagined env `RWM-AnymalD-v0` (one world-model forward
 pass steps every env, `gym.make_vec(..., vectorization_mode="vector_entry_point")`), a Gaussian actor and a critic,
@@ -42,6 +48,16 @@ class Args:
     """Env steps in all."""
     episode_steps: int = 250
     """Time limit of an imagined episode (policy steps)."""
+    uncertainty_penalty: float = 0.0
+    """RWM-U: reward -lambda * max(u - floor, 0) * dt for the ensemble disagreement u (imagined envs only)."""
+    uncertainty_floor: float = 0.0
+    """Disagreement left free by the penalty."""
+    uncertainty_halt: float = 0.0
+    """End an imagined episode (terminated) where the disagreement exceeds this; 0: never."""
+    positive_reward_only: bool = False
+    """Clip every step's reward at 0 from below (legged_gym's clip): with negative steps PPO learns to end episodes."""
+    log_std_init: float = 0.0
+    """Initial log std of the Gaussian actor (-1: std 0.37, the walking recipe's)."""
     learning_rate: float = 3e-4
     """Adam learning rate."""
     gamma: float = 0.99
@@ -80,13 +96,13 @@ def mlp(inputs: int, outputs: int, out_gain: float) -> nn.Sequential:
 class Agent(nn.Module):
     """Gaussian actor (state-independent log std) and critic on observations scaled by the task's fixed constants."""
 
-    def __init__(self, obs_mean: list[float], obs_std: list[float], actions: int):
+    def __init__(self, obs_mean: list[float], obs_std: list[float], actions: int, log_std_init: float = 0.0):
         super().__init__()
         self.register_buffer("obs_mean", torch.tensor(obs_mean))
         self.register_buffer("obs_std", torch.tensor(obs_std))
         self.actor = mlp(len(obs_mean), actions, 0.01)
         self.critic = mlp(len(obs_mean), 1, 1.0)
-        self.log_std = nn.Parameter(torch.zeros(actions))
+        self.log_std = nn.Parameter(torch.full((actions,), log_std_init))
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         return self.critic((obs - self.obs_mean) / self.obs_std).squeeze(-1)
@@ -101,13 +117,15 @@ class Agent(nn.Module):
 
 def main(args: Args) -> dict:
     torch.manual_seed(args.seed)
-    kwargs = {"episode_steps": args.episode_steps} if args.env_id.startswith("RWM-") else {}
+    kwargs = {}
     if args.env_id.startswith("RWM-"):
-        kwargs["checkpoint"] = args.checkpoint
+        kwargs = {"checkpoint": args.checkpoint, "episode_steps": args.episode_steps,
+                  "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
+                  "uncertainty_halt": args.uncertainty_halt}
     envs = gym.make_vec(args.env_id, num_envs=args.num_envs, vectorization_mode="vector_entry_point", **kwargs)
     n, obs_dim = args.num_envs, envs.single_observation_space.shape[0]
     act_dim = envs.single_action_space.shape[0]
-    agent = Agent(*observation_scale(envs.unwrapped.core.spec), act_dim)
+    agent = Agent(*observation_scale(envs.unwrapped.core.spec), act_dim, args.log_std_init)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
 
     obs_buf = torch.zeros(args.num_steps, n, obs_dim)
@@ -128,6 +146,8 @@ def main(args: Args) -> dict:
             next_obs, reward, terminated, truncated, infos = envs.step(action.clamp(-1, 1).numpy())
             episode_return += reward
             reward = torch.as_tensor(reward, dtype=torch.float32)
+            if args.positive_reward_only:
+                reward = reward.clamp(min=0.0)
             if "_final_obs" in infos:  # bootstrap through time limits: the episode did not end, it was cut
                 cut = np.flatnonzero(infos["_final_obs"] & truncated)
                 if len(cut):
