@@ -70,7 +70,8 @@ def main() -> int:
     policies = assets_dir() / "policies"
     shipped = json.loads((policies / "anymal_d_ppo_physics.json").read_text())["score"]
     scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
-    print(summary_line(f"this policy (PPO in imagination, {args.timesteps:,} imagined steps)", result))
+    steps = json.loads((args.out / "run" / "state.json").read_text())["timesteps"]  # whole rollouts: >= --timesteps
+    print(summary_line(f"this policy (PPO in imagination, {steps:,} imagined steps)", result))
     print(summary_line("zero-action floor (stands still)", floor))
     print(f"shipped physics PPO policy (36 M physics steps): tracking {shipped['tracking']:.3f}, "
           f"falls {shipped['falls']}/{shipped['episodes']} (from its JSON)")
@@ -86,7 +87,7 @@ def main() -> int:
         print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/54 falls at "
               f"{run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
               + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
-    print(f"curve: {plot_curve(scratch['seeds'], args.timesteps, result.tracking, floor.tracking, args.out / 'curve.png')}")
+    print(f"curve: {plot_curve(scratch['seeds'], steps, result.tracking, floor.tracking, args.out / 'curve.png')}")
     if args.video:
         try:
             gif, _ = record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")
