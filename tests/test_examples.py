@@ -45,7 +45,7 @@ def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
     example = load_example("cleanrl_ppo")
     assert torch.allclose(example.Agent([0.0] * 48, [1.0] * 48, 12, log_std_init=-1.0).log_std, torch.full((12,), -1.0))
     recipe = ["--checkpoint", "assets/checkpoints/anymal_d_rwm_mbpo.safetensors", "--num-envs", "8", "--num-steps",
-              "8", "--total-steps", "192", "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9",
+              "8", "--total-steps", "64", "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9",
               "--log-std-init", "-1", "--out", str(tmp_path / "actor.pt")]
     recipe[1] = str(EXAMPLES.parent / recipe[1])
     clipped = example.main(example.parse_args([*recipe, "--positive-reward-only"]))["mean_step_reward"]
