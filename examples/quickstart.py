@@ -84,7 +84,7 @@ def main() -> int:
           f"{scratch['score']['episodes']} (from its JSON)")
     for run in scratch["seeds"]:
         reached = next((r["timesteps"] for r in run["curve"] if r["tracking"] >= WALKING), None)
-        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/54 falls at "
+        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/{scratch['score']['episodes']} falls at "
               f"{run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
               + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
     print(f"curve: {plot_curve(scratch['seeds'], steps, result.tracking, floor.tracking, args.out / 'curve.png')}")
@@ -123,7 +123,6 @@ def plot_curve(seeds: list[dict], timesteps: int, tracking: float, floor: float,
     ax.set_title("PPO from scratch in the shipped MBPO world model, ANYmal D")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
     return path
