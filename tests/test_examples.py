@@ -42,12 +42,14 @@ def test_cleanrl_ppo_trains_on_the_imagined_vector_env(tmp_path):
 def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
     """The recipe's options reach the env and the loop: a halt below any disagreement ends every imagined episode
     after one step (terminated, so nothing is bootstrapped), and only with the clip are all step rewards >= 0."""
+    from rwm_gym.resources import assets_dir
+
     example = load_example("cleanrl_ppo")
     assert torch.allclose(example.Agent([0.0] * 48, [1.0] * 48, 12, log_std_init=-1.0).log_std, torch.full((12,), -1.0))
-    recipe = ["--checkpoint", "assets/checkpoints/anymal_d_rwm_mbpo.safetensors", "--num-envs", "8", "--num-steps",
-              "8", "--total-steps", "64", "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9",
-              "--log-std-init", "-1", "--out", str(tmp_path / "actor.pt")]
-    recipe[1] = str(EXAMPLES.parent / recipe[1])
+    model = assets_dir() / "checkpoints" / "anymal_d_rwm_mbpo.safetensors"
+    recipe = ["--checkpoint", str(model), "--num-envs", "8", "--num-steps", "8", "--total-steps", "64",
+              "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9", "--log-std-init", "-1",
+              "--out", str(tmp_path / "actor.pt")]
     clipped = example.main(example.parse_args([*recipe, "--positive-reward-only"]))["mean_step_reward"]
     raw = example.main(example.parse_args(recipe))["mean_step_reward"]
     assert min(clipped) >= 0.0 > min(raw)
