@@ -32,11 +32,6 @@ from pathlib import Path
 
 WALKING = 0.7
 """Tracking score a policy must reach to be called walking (the zero-action floor is 0.23, the scripted trot 0.63)."""
-MODEL = "anymal_d_rwm_mbpo.safetensors"
-"""The shipped world model the recipe trains in (its reset windows ship beside it and are found from its metadata)."""
-RECIPE = ["--episode-steps", "50", "--uncertainty-penalty", "10", "--uncertainty-floor", "0.02",
-          "--uncertainty-halt", "0.06", "--positive-reward-only", "--log-std-init", "-1"]
-"""The from-scratch settings of the shipped imagination policy (`anymal_d_ppo_imagination.json`, key `ppo`/`env`)."""
 
 
 def main() -> int:
@@ -58,8 +53,10 @@ def main() -> int:
     from rwm_gym.resources import assets_dir
     from rwm_gym.rl.score import record_walk, score, summary_line, zero_policy
 
-    code = cli(["ppo", "--in", "imagination", "--checkpoint", str(assets_dir() / "checkpoints" / MODEL), *RECIPE,
-                "--num-envs", str(args.num_envs), "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"),
+    policies = assets_dir() / "policies"
+    scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
+    code = cli(["ppo", "--in", "imagination", *recipe(scratch, assets_dir()), "--num-envs", str(args.num_envs),
+                "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"),
                 "--save-every", "5", "--snapshot-every", "20", "--device", args.device, "--threads", args.threads,
                 "--seed", str(args.seed), "--no-eval", "--out", str(args.out / "policy.zip")])
     if code:
@@ -67,9 +64,7 @@ def main() -> int:
     policy = args.out / "policy.zip"
     options = dict(seeds=args.score_seeds, steps=args.score_steps)
     result, floor = score(str(policy), **options), score(zero_policy, **options)
-    policies = assets_dir() / "policies"
     shipped = json.loads((policies / "anymal_d_ppo_physics.json").read_text())["score"]
-    scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
     steps = json.loads((args.out / "run" / "state.json").read_text())["timesteps"]  # whole rollouts: >= --timesteps
     print(summary_line(f"this policy (PPO in imagination, {steps:,} imagined steps)", result))
     print(summary_line("zero-action floor (stands still)", floor))
@@ -82,10 +77,11 @@ def main() -> int:
     print(f"shipped policy from scratch in imagination (this recipe, {scratch['imagined_steps']:,} imagined steps, "
           f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")
+    episodes = scratch["score"]["episodes"]
     for run in scratch["seeds"]:
         reached = next((r["timesteps"] for r in run["curve"] if r["tracking"] >= WALKING), None)
-        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/{scratch['score']['episodes']} falls at "
-              f"{run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
+        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/{episodes} falls "
+              f"at {run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
               + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
     print(f"curve: {plot_curve(scratch['seeds'], steps, result.tracking, floor.tracking, args.out / 'curve.png')}")
     if args.video:
@@ -100,6 +96,18 @@ def main() -> int:
           + f": tracking {result.tracking:.3f} ({ratio:.0%} of the physics-trained policy, floor {floor.tracking:.3f}),"
           f" {result.falls}/{result.episodes} falls; walking means >= {WALKING} with at most 1 fall")
     return 0
+
+
+def recipe(scratch: dict, assets: Path) -> list[str]:
+    """`rwm-gym ppo` options for the shipped from-scratch policy's world model and settings, read from its JSON (the
+    recipe's numbers live there once): the model, its imagined-episode options, the reward clip and initial std."""
+    options = ["--checkpoint", str(assets / scratch["world_model"]["checkpoint"].removeprefix("assets/"))]
+    for name, value in scratch["env"]["imagination"].items():
+        if value is not None:  # reset_data None: the windows the checkpoint names
+            options.append(f"--{name.replace('_', '-')}={value}")
+    if scratch["ppo"]["positive_reward_only"]:
+        options.append("--positive-reward-only")
+    return options + [f"--log-std-init={scratch['ppo']['log_std_init']}"]
 
 
 def plot_curve(seeds: list[dict], timesteps: int, tracking: float, floor: float, path: Path) -> Path:

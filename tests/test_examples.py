@@ -71,6 +71,11 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert "shipped MBPO-PPO policy" in run.stdout and "shipped policy from scratch in imagination" in run.stdout
     state = json.loads((out / "run" / "state.json").read_text())
     assert state["timesteps"] >= 64 and (out / "policy.zip").is_file()
+    from rwm_gym.resources import assets_dir
+
+    shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    assert state["ppo"] == {**shipped["ppo"], "num_envs": 8}  # the shipped from-scratch policy's recipe
+    assert {k: v for k, v in shipped["env"]["imagination"].items() if v is not None} == state["env"]["imagination"]
     # the same command again finds the run finished instead of starting over
     again = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
                            env=env, timeout=600)
