@@ -24,7 +24,7 @@ from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.physics.backlash import DeadBand
 from rwm_gym.physics.locomotion import LocomotionEnv
-from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, build_model
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -92,6 +92,23 @@ def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
         mujoco.mj_step(model, data, 40)
         runs.append(data.qpos.copy())
     np.testing.assert_allclose(runs[0], runs[1], atol=2e-3)  # MJCF holds 6 significant digits
+
+
+@pytest.mark.parametrize("params", [
+    PhysicsParams(joint_friction=1.3, joint_damping=0.7, armature=tuple(np.linspace(0.0, 0.1, 12))),
+    PhysicsParams(payload_mass=3.0, payload_com=(0.1, 0.0, 0.05), ground_friction=0.4, motor_strength=0.8),
+    PhysicsParams(action_delay=0.005, kp_scale=1.2, kd_scale=0.5, torque_limit=50.0)])
+def test_model_cache_gives_the_compiled_model(params):
+    """The gap fit's cache writes parameters into a once-compiled structure; every field must equal a fresh compile."""
+    cache = ModelCache(SPEC, solver=CONVERGED_SOLVER)
+    cache(PhysicsParams(payload_mass=9.0, ground_friction=1.0, action_delay=params.action_delay))  # a used template
+    cached, compiled = cache(params), build_model(SPEC, params=params, solver=CONVERGED_SOLVER)
+    fields = [n for n in dir(compiled) if not n.startswith("_") and isinstance(getattr(compiled, n), np.ndarray)]
+    assert len(fields) > 100
+    for name in fields:
+        np.testing.assert_allclose(getattr(cached, name), getattr(compiled, name), rtol=1e-12, err_msg=name)
+    for name in ("meaninertia", "meanmass", "meansize", "extent"):
+        assert getattr(cached.stat, name) == pytest.approx(getattr(compiled.stat, name), rel=1e-12), name
 
 
 def test_backlash_is_a_dead_band_of_the_position_error():

@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, SolverSettings, build_model, dead_band
+from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, SolverSettings, dead_band
 from rwm_gym.physics.robot import RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator
 from rwm_gym.spec import TaskSpec
@@ -114,9 +114,11 @@ class Resimulator:
     def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, nthread: int = 0,
                  solver: SolverSettings | None = CONVERGED_SOLVER):
         self.spec, self.xml_file, self.nthread, self.solver = spec, xml_file, nthread, solver
+        self.models = ModelCache(spec, xml_file, solver)
 
     def model(self, params: PhysicsParams) -> mujoco.MjModel:
-        return build_model(self.spec, self.xml_file, params, self.solver)
+        """`build_model(spec, xml_file, params, solver)`, from a once-compiled structure (`ModelCache`)."""
+        return self.models(params)
 
     def rollout(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
                 correction: TorqueCorrection | None = None) -> np.ndarray:

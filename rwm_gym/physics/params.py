@@ -9,6 +9,7 @@ actuator delay natively), so the single env, the batched env and `mujoco.sysid` 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -119,6 +120,46 @@ CONVERGED_SOLVER = SolverSettings(iterations=100, ls_iterations=50)
 """MuJoCo's default iteration counts (no-slip as in the MJCF): each physics step solved to convergence."""
 
 
+PAYLOAD_INERTIA = 1e-4
+"""The payload's principal inertia per kg (m²): a compact point-like mass."""
+
+
+@dataclass(frozen=True)
+class JointFigures:
+    """What `params` puts into each actuated joint and its actuator (spec order), and the delay in physics steps."""
+
+    gain: np.ndarray
+    """(n,) actuator gainprm[0]: strength * kp."""
+    bias: np.ndarray
+    """(n, 3) actuator biasprm[:3]: force = gain * target + bias . (1, q, qdot)."""
+    limit: np.ndarray
+    """(n,) torque saturation (N·m)."""
+    friction: np.ndarray
+    """(n,) frictionloss added to the MJCF's (N·m)."""
+    damping: np.ndarray
+    """(n,) damping added to the MJCF's (N·m·s/rad)."""
+    armature: np.ndarray
+    """(n,) armature added to the MJCF's (kg·m²)."""
+    delay_steps: int
+
+    @classmethod
+    def of(cls, spec: TaskSpec, params: PhysicsParams) -> JointFigures:
+        act = spec.actuator
+        n = len(act.joints)
+        kp = act.kp * per_joint(params.kp_scale, n, "kp_scale")
+        kd = act.kd * per_joint(params.kd_scale, n, "kd_scale")
+        strength = per_joint(params.motor_strength, n, "motor_strength")
+        limit = per_joint(act.effort_limit if params.torque_limit is None else params.torque_limit, n, "torque_limit")
+        delay_steps = params.action_delay / spec.physics_dt
+        if params.action_delay < 0 or abs(delay_steps - round(delay_steps)) > 1e-6:
+            raise ValueError(f"action_delay {params.action_delay} s is not a non-negative multiple of "
+                             f"{spec.physics_dt} s")
+        bias = np.stack([np.zeros(n), -strength * kp, -strength * kd], axis=1)
+        return cls(strength * kp, bias, limit, per_joint(params.joint_friction, n, "joint_friction"),
+                   per_joint(params.joint_damping, n, "joint_damping"), per_joint(params.armature, n, "armature"),
+                   int(round(delay_steps)))
+
+
 def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None,
                 solver: SolverSettings | None = None) -> mujoco.MjModel:
     """Compile the robot of `spec` (or `xml_file`) with the spec's actuator figures and `params` applied.
@@ -138,37 +179,26 @@ def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: Physi
     mj = mujoco.MjSpec.from_file(str(path))
     if solver is not None:
         solver.apply(mj)
-    act = spec.actuator
-    n = len(act.joints)
-    kp = act.kp * per_joint(params.kp_scale, n, "kp_scale")
-    kd = act.kd * per_joint(params.kd_scale, n, "kd_scale")
-    strength = per_joint(params.motor_strength, n, "motor_strength")
-    limit = per_joint(act.effort_limit if params.torque_limit is None else params.torque_limit, n, "torque_limit")
-    friction = per_joint(params.joint_friction, n, "joint_friction")
-    damping = per_joint(params.joint_damping, n, "joint_damping")
-    armature = per_joint(params.armature, n, "armature")
-    delay_steps = params.action_delay / spec.physics_dt
-    if params.action_delay < 0 or abs(delay_steps - round(delay_steps)) > 1e-6:
-        raise ValueError(f"action_delay {params.action_delay} s is not a non-negative multiple of {spec.physics_dt} s")
-    for i, name in enumerate(act.joints):
+    figures = JointFigures.of(spec, params)
+    for i, name in enumerate(spec.actuator.joints):
         actuator, joint = mj.actuator(name), mj.joint(name)
         if actuator is None or joint is None:
             raise ValueError(f"{path}: no joint and position actuator named {name!r} (task spec {spec.name})")
         # Position actuator: force = strength * (kp * (target - q) - kd * qdot), saturated at +-limit.
-        actuator.gainprm[0] = strength[i] * kp[i]
-        actuator.biasprm[:3] = [0.0, -strength[i] * kp[i], -strength[i] * kd[i]]
+        actuator.gainprm[0] = figures.gain[i]
+        actuator.biasprm[:3] = figures.bias[i]
         actuator.forcelimited = True
-        actuator.forcerange = [-limit[i], limit[i]]
-        if round(delay_steps) > 0:
+        actuator.forcerange = [-figures.limit[i], figures.limit[i]]
+        if figures.delay_steps > 0:
             actuator.delay = float(params.action_delay)
-            actuator.nsample = int(round(delay_steps)) + 1
-        joint.frictionloss += friction[i]
-        joint.damping += damping[i]
-        joint.armature += armature[i]
+            actuator.nsample = figures.delay_steps + 1
+        joint.frictionloss += figures.friction[i]
+        joint.damping += figures.damping[i]
+        joint.armature += figures.armature[i]
     if params.payload_mass > 0:
         base = mj.body(spec.base_body)
         payload = base.add_body(name="payload", pos=list(params.payload_com), mass=params.payload_mass)
-        payload.inertia = [1e-4 * params.payload_mass] * 3  # a compact point-like mass (kg·m²)
+        payload.inertia = [PAYLOAD_INERTIA * params.payload_mass] * 3
         payload.explicitinertial = True
         payload.ipos = [0.0, 0.0, 0.0]  # else the compiler places the mass at 2 x payload_com and to_xml drops it
     if params.ground_friction is not None:
@@ -178,6 +208,54 @@ def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: Physi
         floor.friction[0] = params.ground_friction
         floor.priority = 1  # MuJoCo mixes two geoms' friction by max; a higher priority makes the floor's count
     return mj
+
+
+class ModelCache:
+    """`build_model` for many parameter sets of one robot, without compiling each.
+
+    Fitting a sim-to-real gap re-simulates hundreds of candidate parameter sets, and compiling each took a sixth of a
+    fit's time. Each structure (payload or not, delay in physics steps, floor friction or not) is compiled once; the
+    figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the compiler derives from
+    them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The result equals
+    `build_model(spec, xml_file, params, solver)` field for field, up to rounding (tests/test_physics_params.py).
+    """
+
+    def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None):
+        self.spec, self.xml_file, self.solver = spec, xml_file, solver
+        self._templates: dict[tuple[bool, int, bool], mujoco.MjModel] = {}
+
+    def __call__(self, params: PhysicsParams | None = None) -> mujoco.MjModel:
+        params = params or PhysicsParams()
+        figures = JointFigures.of(self.spec, params)
+        key = (params.payload_mass > 0, figures.delay_steps, params.ground_friction is not None)
+        if key not in self._templates:
+            structure = PhysicsParams(action_delay=params.action_delay, payload_mass=1.0 if key[0] else 0.0,
+                                      ground_friction=1.0 if key[2] else None)
+            self._templates[key] = build_model(self.spec, self.xml_file, structure, self.solver)
+        template = self._templates[key]
+        model = copy.copy(template)
+        obj = mujoco.mjtObj
+        actuators = [mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, n) for n in self.spec.actuator.joints]
+        dofs = model.jnt_dofadr[[mujoco.mj_name2id(model, obj.mjOBJ_JOINT, n) for n in self.spec.actuator.joints]]
+        model.actuator_gainprm[actuators, 0] = figures.gain
+        model.actuator_biasprm[actuators, :3] = figures.bias
+        model.actuator_forcerange[actuators] = np.stack([-figures.limit, figures.limit], axis=1)
+        model.dof_frictionloss[dofs] = template.dof_frictionloss[dofs] + figures.friction
+        model.dof_damping[dofs] = template.dof_damping[dofs] + figures.damping
+        model.dof_dampingpoly[dofs] = template.dof_dampingpoly[dofs] + figures.damping[:, None]
+        model.dof_armature[dofs] = template.dof_armature[dofs] + figures.armature
+        if key[0]:
+            body = mujoco.mj_name2id(model, obj.mjOBJ_BODY, "payload")
+            model.body_mass[body] = params.payload_mass
+            model.body_inertia[body] = PAYLOAD_INERTIA * params.payload_mass
+            model.body_pos[body] = params.payload_com
+        if key[2]:
+            model.geom_friction[mujoco.mj_name2id(model, obj.mjOBJ_GEOM, "floor"), 0] = params.ground_friction
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+        # The compiler's statistics that mj_setConst leaves alone; the solver scales its tolerance by meaninertia.
+        model.stat.meaninertia = model.dof_M0.mean()
+        model.stat.meanmass = model.body_mass[1:].mean()
+        return model
 
 
 def dead_band(spec: TaskSpec, model: mujoco.MjModel, params: PhysicsParams | None) -> DeadBand | None:
