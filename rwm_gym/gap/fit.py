@@ -50,12 +50,8 @@ class FitConfig:
     """Each parameter beyond the first inflates the remaining gap by this fraction in the score."""
     significance: float = 0.01
     """p-value under which a reduction of the held-out gap is significant."""
-    min_explained: float = 0.3
-    """Explained fraction an effect needs to be named."""
     ambiguity_ratio: float = 0.25
     """A different effect whose penalised remaining gap is within this factor of the best's makes it `unexplained`."""
-    min_moved: float = 0.1
-    """Explained fraction above which a gap counts as real (`unexplained` rather than `none`) even untested."""
     block_rows: int = 25
     """Rows of an episode pooled into one sample of the significance test."""
     refine_top: int = 3
@@ -63,7 +59,7 @@ class FitConfig:
     max_effects: int = 3
     """Forward selection names at most this many effects."""
     min_excess_explained: float = 0.3
-    """An effect added after the first must explain this share of the gap still above the noise floor."""
+    """Share of the gap still above the noise floor that an effect must explain to be named."""
     scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
     """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`)."""
     group_sweeps: int = 2
@@ -73,6 +69,9 @@ class FitConfig:
     scoped_effects: int = 2
     """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
     joints may explain little in its global form and rank below another joint effect that mimics it there."""
+    every_scope: bool = True
+    """Where step 1 would call the gap `unexplained`, first fit every joint effect in its scopes, also those whose
+    global form explains nothing (`scope.every_scope`): an effect in one joint type alone can look like that."""
     joint_candidates: int = 2
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second

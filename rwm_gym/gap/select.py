@@ -1,15 +1,21 @@
 """Name the effects behind a gap: forward selection over the vocabulary and its scopes, then a joint refit.
 
 Step k starts from the simulator with the k-1 effects named so far. If its held-out gap is not significantly above the
-sensor-noise floor (`noise_floor`), selection stops: at step 1 the verdict is `none`. Otherwise every effect not yet
-named is fitted and scored on top of it (`fit.fit_all`), the best joint effect also in its scopes
-(`scope.scope_candidates`), and the best-scoring candidate is named when
+sensor-noise floor (`noise_floor`), selection stops, except at step 1: a test of the whole gap against the floor is
+weak where an effect shows in a few windows only (a 0.5x torque limit, a small backlash), so step 1 fits the
+candidates anyway and asks each one's own held-out reduction, at `FitConfig.significance` divided by the number of
+candidates (Bonferroni); if none passes, the verdict is `none`. Otherwise every effect not yet named is fitted and
+scored on top of it (`fit.fit_all`), the best joint effect also in its scopes (`scope.scope_candidates`), and the
+best-scoring candidate is named when
 
 - its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
-- it explains enough: at step 1, `min_explained` of the gap; later, `min_excess_explained` of the gap still above
-  the floor (a second effect only has the rest to explain),
+- it explains `min_excess_explained` of the gap above the floor (the floor itself no effect can remove; measured
+  against the whole gap, an effect near the floor could never reach it),
 - no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
   within `ambiguity_ratio` of the best's.
+
+Before step 1 calls a gap above the floor `unexplained`, every joint effect is fitted in its scopes too
+(`scope.every_scope`), also those whose global form explained nothing.
 
 At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
 of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
@@ -29,7 +35,7 @@ from rwm_gym.gap.effects import Effect
 from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_all, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
-from rwm_gym.gap.scope import scope_candidates
+from rwm_gym.gap.scope import every_scope, scope_candidates
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
 
@@ -75,7 +81,7 @@ def _related(a: Effect, b: Effect) -> bool:
     return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
 
 
-def name_step(candidates: list[Candidate], config: FitConfig, first: bool
+def name_step(candidates: list[Candidate], config: FitConfig, significance: float
               ) -> tuple[Candidate | None, str, Candidate | None]:
     """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
     pick is None)."""
@@ -83,18 +89,24 @@ def name_step(candidates: list[Candidate], config: FitConfig, first: bool
     if not ranked:
         return None, "every candidate blew up the simulation", None
     effect, best = ranked[0]
-    share, needed = ((best.explained_fraction, config.min_explained) if first else
-                     (best.excess_explained, config.min_excess_explained))
-    what = "of the gap" if first else "of the gap above the noise floor"
-    if best.p_value >= config.significance or share < needed:
-        return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} {what} "
-                      f"(p={best.p_value:.2g}; needs {needed:.0%} and p<{config.significance})"), None
+    share, needed = best.excess_explained, config.min_excess_explained
+    if best.p_value >= significance or not share >= needed:  # NaN share: the gap is not above the floor
+        return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} of the gap above the noise "
+                      f"floor (p={best.p_value:.2g}; needs {needed:.0%} and p<{significance:.2g})"), None
     for other_effect, other in ranked[1:]:
         if not _related(effect, other_effect) and \
                 1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
             return None, (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
                           f"({other.explained_fraction:.0%}) explain the gap alike"), (other_effect, other)
-    return ranked[0], f"explains {share:.0%} {what} (p={best.p_value:.2g})", None
+    return ranked[0], f"explains {share:.0%} of the gap above the noise floor (p={best.p_value:.2g})", None
+
+
+def judge(candidates: list[Candidate], gap: float, excess: float, config: FitConfig, significance: float
+          ) -> tuple[Candidate | None, str, Candidate | None]:
+    """`name_step` after setting each candidate's share of the gap above the floor (`excess` = gap - floor)."""
+    for _, fit in candidates:
+        fit.excess_explained = (gap - fit.gap_mean) / excess if excess > 0 else float("nan")
+    return name_step(candidates, config, significance)
 
 
 def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
@@ -129,23 +141,35 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         test = compare_with_floor(current, floor, held, config.block_rows, floor_config)
         step: dict = {"gap": float(current.mean()), "floor_test": test, "candidates": [], "named": None}
         steps.append(step)
-        if not test["above_floor"]:
+        below = not test["above_floor"]
+        if below:
             reason = (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
                       f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
-            break
+            if k > 0:
+                break
         remaining = {n: e for n, e in effects.items() if n not in {e.name for e, _ in named}}
         fits = fit_all(remaining, resim, train, held, params, current, config, progress)
         candidates = [(remaining[f.effect], f) for f in fits]
         candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
         if named and config.joint_candidates:
             candidates = joint_candidates(candidates, named, earlier, resim, train, held, base, current, config)
-        earlier = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
         excess = float(current.mean() - np.nanmean(floor))
-        for _, fit in candidates:
-            fit.excess_explained = (float(current.mean()) - fit.gap_mean) / excess if excess > 0 else float("nan")
+        tested = sum(f.status == "ok" for _, f in candidates)
+        significance = config.significance / max(tested, 1) if below else config.significance
+        pick, decision, rival = judge(candidates, float(current.mean()), excess, config, significance)
+        if pick is None and rival is None and k == 0 and not below and config.every_scope:
+            scoped = {f.effect for _, f in candidates if f.scope != "global"}
+            more = every_scope(fits, scoped, remaining, spec, resim, train, held, params, current, config)
+            if more:
+                candidates += more
+                pick, decision, rival = judge(candidates, float(current.mean()), excess, config, significance)
+        earlier = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
         step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]
-        pick, reason, rival = name_step(candidates, config, first=k == 0)
-        if rival is not None:
+        if below:
+            decision = (f"{reason}; each candidate's own reduction tested at p < {significance:.2g} "
+                        f"({config.significance} over {tested} candidates, Bonferroni): {decision}")
+        reason = decision
+        if rival is not None and not below:
             best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score)
             resolved = resolve_rivals(best, rival, resim, train, held, named_params(named, best, base, params),
                                       current, floor, config)
