@@ -164,7 +164,9 @@ def settings(args: argparse.Namespace) -> dict:
     # version 10: where the whole gap is not above the noise floor, step 1 still tests each candidate's own reduction
     #             (Bonferroni over the step's candidates); at every step a candidate must explain 30 % of the gap above
     #             the floor, not of the whole gap (select); re-simulation models come from one compile (ModelCache)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 10}
+    # version 11: rivals are alike in the penalised gap they leave above the floor, not in the whole gap they leave
+    #             (select.name_step); only a case whose last step ends on an ambiguity can differ from version 10
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 11}
 
 
 def summarise(rows: list[dict]) -> dict:

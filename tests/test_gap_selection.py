@@ -404,3 +404,26 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     assert run(FitConfig(every_scope=False)).verdict == "unexplained" and len(calls) == 1
     above[0] = False
     assert run().verdict == "none" and len(calls) == 1
+
+
+@pytest.mark.parametrize("floor,best_explains,rival_explains,ambiguous", [
+    (0.43, 0.18, 0.0, False),   # ground friction at half its default on walking data: a gap 2.3x the floor
+    (0.02, 0.50, 0.45, True),   # far above the floor: half the gap and 45 % of it are alike
+    (0.43, 0.18, 0.15, True),   # ... and near it, 18 % and 15 %
+])
+def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_explains, rival_explains, ambiguous):
+    """A candidate that explains nothing is no rival of one that removes a third of what lies above the floor, however
+    close the floor is: the remaining gaps are compared above it."""
+    from rwm_gym.gap.fit import CandidateFit
+    from rwm_gym.gap.select import name_step
+
+    def fitted(name, explained, p_value):
+        fit = CandidateFit(name, [name], ["1"], [0.0], [0.1], 0.0, gap_mean=1.0 - explained,
+                           explained_fraction=explained, score=explained, p_value=p_value)
+        fit.excess_explained = explained / (1.0 - floor)
+        return (EFFECTS[name], fit)
+
+    candidates = [fitted("ground_friction", best_explains, 4e-4), fitted("action_delay", rival_explains, 0.5)]
+    pick, reason, rival = name_step(candidates, FitConfig(), 0.01, 1.0, floor)
+    assert (pick is None) == ambiguous and (rival is not None) == ambiguous, reason
+    assert ("ambiguous" in reason) == ambiguous

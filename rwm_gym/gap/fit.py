@@ -51,7 +51,8 @@ class FitConfig:
     significance: float = 0.01
     """p-value under which a reduction of the held-out gap is significant."""
     ambiguity_ratio: float = 0.25
-    """A different effect whose penalised remaining gap is within this factor of the best's makes it `unexplained`."""
+    """A different effect whose penalised remaining gap above the noise floor is within this factor of the best's makes
+    it `unexplained`."""
     block_rows: int = 25
     """Rows of an episode pooled into one sample of the significance test."""
     refine_top: int = 3

@@ -81,10 +81,12 @@ def _related(a: Effect, b: Effect) -> bool:
     return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
 
 
-def name_step(candidates: list[Candidate], config: FitConfig, significance: float
+def name_step(candidates: list[Candidate], config: FitConfig, significance: float, gap: float, floor: float
               ) -> tuple[Candidate | None, str, Candidate | None]:
     """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
-    pick is None)."""
+    pick is None); `gap` and `floor` are the means of the step's gap and of its noise floor. Alike: the rival's
+    penalised remaining gap above the floor is within `ambiguity_ratio` of the best's (measured from zero, an effect
+    that explains a third of a gap twice the floor had every candidate that explains nothing as its rival)."""
     ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
     if not ranked:
         return None, "every candidate blew up the simulation", None
@@ -93,9 +95,13 @@ def name_step(candidates: list[Candidate], config: FitConfig, significance: floa
     if best.p_value >= significance or not share >= needed:  # NaN share: the gap is not above the floor
         return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} of the gap above the noise "
                       f"floor (p={best.p_value:.2g}; needs {needed:.0%} and p<{significance:.2g})"), None
+
+    def left_above_floor(fit: CandidateFit) -> float:
+        return (1.0 - fit.score) * gap - floor
+
     for other_effect, other in ranked[1:]:
         if not _related(effect, other_effect) and \
-                1.0 - other.score < (1.0 - best.score) * (1.0 + config.ambiguity_ratio):
+                left_above_floor(other) < left_above_floor(best) * (1.0 + config.ambiguity_ratio):
             return None, (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
                           f"({other.explained_fraction:.0%}) explain the gap alike"), (other_effect, other)
     return ranked[0], f"explains {share:.0%} of the gap above the noise floor (p={best.p_value:.2g})", None
@@ -106,7 +112,7 @@ def judge(candidates: list[Candidate], gap: float, excess: float, config: FitCon
     """`name_step` after setting each candidate's share of the gap above the floor (`excess` = gap - floor)."""
     for _, fit in candidates:
         fit.excess_explained = (gap - fit.gap_mean) / excess if excess > 0 else float("nan")
-    return name_step(candidates, config, significance)
+    return name_step(candidates, config, significance, gap, gap - excess)
 
 
 def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
