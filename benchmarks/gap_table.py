@@ -165,8 +165,10 @@ def settings(args: argparse.Namespace) -> dict:
     #             (Bonferroni over the step's candidates); at every step a candidate must explain 30 % of the gap above
     #             the floor, not of the whole gap (select); re-simulation models come from one compile (ModelCache)
     # version 11: rivals are alike in the penalised gap they leave above the floor, not in the whole gap they leave
-    #             (select.name_step); only a case whose last step ends on an ambiguity can differ from version 10
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 11}
+    #             (select.name_step); any step that ended on an ambiguity can differ, so every case reruns
+    # version 12: a scoped form that could not beat the step's best candidate even with no gap left is not fitted
+    #             (scope._scoped_fits); it could never be named, so no verdict should differ from version 11
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 12}
 
 
 def summarise(rows: list[dict]) -> dict:

@@ -427,3 +427,28 @@ def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_expl
     pick, reason, rival = name_step(candidates, FitConfig(), 0.01, 1.0, floor)
     assert (pick is None) == ambiguous and (rival is not None) == ambiguous, reason
     assert ("ambiguous" in reason) == ambiguous
+
+
+@pytest.mark.parametrize("to_beat,fitted_scopes", [(-1.0, ["leg", "joint_type"]), (0.87, ["joint_type"]),
+                                                   (0.95, [])])
+def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, to_beat, fitted_scopes):
+    """A scoped form scores at most 1 less its charge (per leg 4 values: 0.85, per joint type 3: 0.90) even if it left
+    no gap at all; where the step's best candidate already scores more, fitting it could never change the verdict."""
+    from rwm_gym.gap import scope
+    from rwm_gym.gap.fit import CandidateFit
+
+    fitted = []
+
+    def fake_fit(form, *args, **kwargs):
+        fitted.append(form.scope)
+        return CandidateFit(form.name, [], [], [0.0] * len(form.parameters), [], 0.0, scope=form.scope)
+
+    def fake_score(fit, *args):
+        fit.score = 0.5
+
+    monkeypatch.setattr(scope, "fit_coordinatewise", fake_fit)
+    monkeypatch.setattr(scope, "score_fit", fake_score)
+    best = CandidateFit("joint_friction", ["f"], ["N m"], [1.0], [0.1], 0.0, score=0.6)
+    out = scope._scoped_fits(best, EFFECTS["joint_friction"], SPEC, None, [], None, PhysicsParams(), None,
+                             FitConfig(), to_beat)
+    assert fitted == fitted_scopes and [f.scope for _, f in out] == fitted_scopes

@@ -192,8 +192,9 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
                      and f.explained_fraction > 0),
                     key=lambda f: -f.score)
     out: list[tuple[Effect, CandidateFit]] = []
+    top = max((f.score for f in fits if f.status == "ok"), default=-np.inf)
     for best in ranked[:config.scoped_effects]:
-        out += _scoped_fits(best, effects[best.effect], spec, resim, train, heldout, base, before, config)
+        out += _scoped_fits(best, effects[best.effect], spec, resim, train, heldout, base, before, config, top)
     joint = outlying_joint(spec, resim, train, base) if "joint" in config.scopes else None
     if joint is not None:
         out += _single_joint_fits(joint, effects, spec, resim, train, heldout, base, before, config)
@@ -234,15 +235,16 @@ def _single_joint_fits(joint: int, effects: dict[str, Effect], spec: TaskSpec, r
 
 
 def _scoped_fits(best: CandidateFit, effect: Effect, spec: TaskSpec, resim: Resimulator, train: Windows,
-                 heldout: Windows, base: PhysicsParams, before: np.ndarray,
-                 config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+                 heldout: Windows, base: PhysicsParams, before: np.ndarray, config: FitConfig,
+                 to_beat: float = -np.inf) -> list[tuple[Effect, CandidateFit]]:
     """`effect` (whose global fit is `best`) fitted per leg and per joint type, and per joint where a group form beat
-    the global one and the data suffice."""
+    the global one and the data suffice. A form is not fitted where its best possible score (no gap left, less its
+    charge) cannot beat `to_beat`, the step's best candidate so far: it could never be named."""
     p = effect.parameters[0]
     out: list[tuple[Effect, CandidateFit]] = []
     for scope in (s for s in config.scopes if s != "joint"):
         form = scoped(effect, spec, scope)
-        if form is None:
+        if form is None or 1.0 - SCOPE_CHARGE * (len(form.parameters) - 1) <= to_beat:
             continue
         start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
         fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
