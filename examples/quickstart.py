@@ -55,7 +55,7 @@ def main() -> int:
 
     policies = assets_dir() / "policies"
     scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
-    code = cli(["ppo", "--in", "imagination", *recipe(scratch, assets_dir()), "--num-envs", str(args.num_envs),
+    code = cli(["ppo", "--in", "imagination", *recipe(scratch), "--num-envs", str(args.num_envs),
                 "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"),
                 "--save-every", "5", "--snapshot-every", "20", "--device", args.device, "--threads", args.threads,
                 "--seed", str(args.seed), "--no-eval", "--out", str(args.out / "policy.zip")])
@@ -98,10 +98,12 @@ def main() -> int:
     return 0
 
 
-def recipe(scratch: dict, assets: Path) -> list[str]:
+def recipe(scratch: dict) -> list[str]:
     """`rwm-gym ppo` options for the shipped from-scratch policy's world model and settings, read from its JSON (the
     recipe's numbers live there once): the model, its imagined-episode options, the reward clip and initial std."""
-    options = ["--checkpoint", str(assets / scratch["world_model"]["checkpoint"].removeprefix("assets/"))]
+    from rwm_gym.resources import shipped_file
+
+    options = ["--checkpoint", str(shipped_file(scratch["world_model"]["checkpoint"]))]
     for name, value in scratch["env"]["imagination"].items():
         if value is not None:  # reset_data None: the windows the checkpoint names
             options.append(f"--{name.replace('_', '-')}={value}")

@@ -29,3 +29,12 @@ def specs_dir() -> Path:
 def assets_dir() -> Path:
     """Folder of the robot models and shipped checkpoints."""
     return _data_dir("assets")
+
+
+def shipped_file(repository_path: str) -> Path:
+    """A shipped file named by its path in the repository, as the shipped JSON files record it
+    ("assets/checkpoints/x.safetensors"), wherever the data folders live."""
+    folder, _, rest = repository_path.partition("/")
+    if folder not in ("assets", "envs") or not rest:
+        raise ValueError(f"{repository_path!r} is not a path under assets/ or envs/")
+    return _data_dir(folder) / rest

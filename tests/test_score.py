@@ -113,7 +113,7 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     import json
 
     from rwm_gym.model.checkpoint import read_meta
-    from rwm_gym.resources import assets_dir
+    from rwm_gym.resources import assets_dir, shipped_file
 
     meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
     seeds = {run["seed"]: run for run in meta["seeds"]}
@@ -122,6 +122,8 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     for run in seeds.values():
         assert run["curve"][-1]["timesteps"] == run["imagined_steps"]
         assert run["curve"][-1]["falls"] == run["falls"]
-    checkpoint = assets_dir() / meta["world_model"]["checkpoint"].removeprefix("assets/")
+    checkpoint = shipped_file(meta["world_model"]["checkpoint"])
     reset = checkpoint.parent / read_meta(checkpoint).extras["reset_data"]
     assert reset.is_file() and meta["env"]["checkpoint"] == meta["world_model"]["checkpoint"]
+    with pytest.raises(ValueError, match="not a path under assets/ or envs/"):
+        shipped_file("checkpoints/anymal_d_rwm_mbpo.safetensors")

@@ -107,12 +107,13 @@ def name_step(candidates: list[Candidate], config: FitConfig, significance: floa
     return ranked[0], f"explains {share:.0%} of the gap above the noise floor (p={best.p_value:.2g})", None
 
 
-def judge(candidates: list[Candidate], gap: float, excess: float, config: FitConfig, significance: float
+def judge(candidates: list[Candidate], gap: float, floor: float, config: FitConfig, significance: float
           ) -> tuple[Candidate | None, str, Candidate | None]:
-    """`name_step` after setting each candidate's share of the gap above the floor (`excess` = gap - floor)."""
+    """`name_step` after setting each candidate's share of the gap above the floor (`gap`, `floor`: the means)."""
+    excess = gap - floor
     for _, fit in candidates:
         fit.excess_explained = (gap - fit.gap_mean) / excess if excess > 0 else float("nan")
-    return name_step(candidates, config, significance, gap, gap - excess)
+    return name_step(candidates, config, significance, gap, floor)
 
 
 def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
@@ -159,16 +160,16 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
         if named and config.joint_candidates:
             candidates = joint_candidates(candidates, named, earlier, resim, train, held, base, current, config)
-        excess = float(current.mean() - np.nanmean(floor))
+        gap, floor_mean = float(current.mean()), float(np.nanmean(floor))
         tested = sum(f.status == "ok" for _, f in candidates)
         significance = config.significance / max(tested, 1) if below else config.significance
-        pick, decision, rival = judge(candidates, float(current.mean()), excess, config, significance)
+        pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
         if pick is None and rival is None and k == 0 and not below and config.every_scope:
             scoped = {f.effect for _, f in candidates if f.scope != "global"}
             more = every_scope(fits, scoped, remaining, spec, resim, train, held, params, current, config)
             if more:
                 candidates += more
-                pick, decision, rival = judge(candidates, float(current.mean()), excess, config, significance)
+                pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
         earlier = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
         step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]
         if below:
