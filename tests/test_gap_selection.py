@@ -357,6 +357,85 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
         assert "Bonferroni" in selection.reason and "p < 0.0025" in selection.reason
 
 
+@pytest.mark.parametrize("cross_p,with_cross,named", [
+    (1e-4, True, True),     # fails on the held-out third alone (p=5e-3 > 0.0025), passes on every episode
+    (5e-3, True, False),    # the cross-fitted test is not stronger: none
+    (1e-4, False, False),   # no swapped windows: the held-out test alone decides
+])
+def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypatch, cross_p, with_cross, named):
+    """A 0.5x torque limit removes most of a gap near the floor, but three held-out episodes hold too few blocks for
+    p < 0.01 over the step's candidates. The best candidate is then tested on every episode (2-fold cross-fitting),
+    and named if that test passes at the same Bonferroni level; the reason says which test decided."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def fits(effects, *args):
+        out = []
+        for i, name in enumerate(effects):
+            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=0.75 if i == 0 else 1.0,
+                               p_value=5e-3 if i == 0 else 1.0)
+            fit.explained_fraction = fit.score = 1.0 - fit.gap_mean
+            out.append(fit)
+        return out
+
+    tested = []
+    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
+        "gap": float(gap.mean()), "floor": 0.8, "ratio": 1.25, "p_value": 0.3, "above_floor": False})
+    monkeypatch.setattr(select, "fit_all", fits)
+    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.75))
+    monkeypatch.setattr(select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect)
+                        or cross_p)
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
+    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
+    cross = select.CrossFit(None, None) if with_cross else None
+    selection = select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
+                                      np.full((20, 3), 0.8), FitConfig(), progress=False, cross=cross)
+    assert tested == (["torque_limit"] if with_cross else [])
+    assert selection.verdict == ("torque_limit" if named else "none"), selection.reason
+    assert ("cross-fitted p=" in selection.reason) == with_cross
+
+
+def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):
+    """The swapped fit is made on the held-out episodes' windows and scored on the fitting episodes' ones; the test
+    pools both, so it runs on the blocks of every episode."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+    from rwm_gym.gap.resim import Windows
+
+    def windows(episodes, rows=4):
+        w = len(episodes) * rows
+        return Windows(np.repeat(episodes, rows), np.tile(np.arange(rows) * 25, len(episodes)), np.zeros((w, 3, 2)),
+                       np.zeros((w, 3, 2)), np.zeros((w, 27, 12)), np.zeros((w, 5)), np.zeros((w, 25, 5)),
+                       np.zeros((w, 4)), horizon=25, warmup=2)
+
+    held, fit_here, score_here = windows([7, 8]), windows([7, 8]), windows([0, 1, 2, 3])
+    fitted_on, seen = [], {}
+    effect = EFFECTS["torque_limit"]
+
+    def fake_fit(effect, resim, train, base, config, start, bracket):
+        fitted_on.append(train)
+        return CandidateFit(effect.name, ["t"], ["N·m"], [50.0], [1.0], 0.0)
+
+    def fake_p(larger, smaller, both, block_rows, significance):
+        seen.update(larger=larger, smaller=smaller, episodes=set(both.episode.tolist()))
+        return 1e-5
+
+    rollout_of = {id(held): 1.0, id(score_here): 2.0}
+    monkeypatch.setattr(select, "fit_effect", fake_fit)
+    monkeypatch.setattr(select, "paired_p_value", fake_p)
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, w: np.full((len(w), 3), sim))
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda w, params: rollout_of[id(w)] * (
+        0.5 if params.torque_limit is not None else 1.0))
+    candidate = (effect, CandidateFit("torque_limit", ["t"], ["N·m"], [56.0], [1.0], 0.0))
+    p = select.cross_fitted_p_value(candidate, resim, held, select.CrossFit(fit_here, score_here), PhysicsParams(),
+                                    np.ones((len(held), 3)), FitConfig(), 0.001)
+    assert p == 1e-5 and fitted_on == [fit_here]
+    assert seen["episodes"] == {0, 1, 2, 3, 7, 8}
+    np.testing.assert_allclose(seen["larger"], [1.0] * 8 + [2.0] * 16)   # nominal: held, then the fitting episodes
+    np.testing.assert_allclose(seen["smaller"], [0.5] * 8 + [1.0] * 16)  # with the effect at each direction's fit
+
+
 def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeypatch):
     """Armature in the hip flexion joints alone: no global form explains anything, so none was scoped and the gap was
     `unexplained`. Before saying so, step 1 fits every joint effect in its scopes; a gap near the floor (nothing to

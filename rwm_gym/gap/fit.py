@@ -99,6 +99,9 @@ class CandidateFit:
     """Share of the gap above the noise floor that this candidate removes (set by `select`)."""
     score: float = float("nan")
     p_value: float = 1.0
+    cross_fitted_p_value: float = float("nan")
+    """Near the noise floor only: the test of the reduction on every measured episode, each scored by a fit that did
+    not see it (`select.cross_fitted_p_value`); when set, it decides instead of `p_value`."""
     scope: str = "global"
     """"global" (one value for all joints), "leg", "joint_type" or "joint" (`rwm_gym.gap.scope`)."""
     rejected: list[str] = field(default_factory=list)

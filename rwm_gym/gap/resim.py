@@ -43,6 +43,9 @@ class SimulationDiverged(RuntimeError):
         self.reason, self.windows = reason, windows
 
 
+WINDOW_ARRAYS = ("episode", "start", "qpos", "qvel", "actions", "state0", "target", "contact0")
+
+
 @dataclass(frozen=True)
 class Windows:
     """W measured windows of `horizon` transitions, each preceded by `warmup` replayed transitions."""
@@ -69,17 +72,23 @@ class Windows:
     def __len__(self) -> int:
         return len(self.start)
 
+    def join(self, other: Windows) -> Windows:
+        """These windows followed by `other`'s (same horizon and warm-up)."""
+        if (other.horizon, other.warmup) != (self.horizon, self.warmup):
+            raise ValueError(f"cannot join windows of horizon/warm-up {self.horizon}/{self.warmup} and "
+                             f"{other.horizon}/{other.warmup}")
+        take = {k: np.concatenate([getattr(self, k), getattr(other, k)]) for k in WINDOW_ARRAYS}
+        return Windows(**take, horizon=self.horizon, warmup=self.warmup)
+
     def subset(self, mask: np.ndarray) -> Windows:
         """The windows where `mask` (W,) holds."""
-        take = {k: getattr(self, k)[mask] for k in ("episode", "start", "qpos", "qvel", "actions", "state0",
-                                                    "target", "contact0")}
+        take = {k: getattr(self, k)[mask] for k in WINDOW_ARRAYS}
         return Windows(**take, horizon=self.horizon, warmup=self.warmup)
 
 
 def make_windows(dataset: Dataset, episodes: np.ndarray, horizon: int, stride: int, warmup: int = 2) -> Windows:
     """Every `stride`-th window of `horizon` transitions in the given episodes (none crosses an episode's end)."""
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "start", "qpos", "qvel", "actions", "state0",
-                                                          "target", "contact0")}
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in WINDOW_ARRAYS}
     for e in np.asarray(episodes, int):
         ep = dataset.episode(int(e))
         rows = len(ep["state"])

@@ -35,7 +35,7 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import SCOPES
-from rwm_gym.gap.select import Selection, select_effects
+from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
@@ -96,8 +96,14 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     before = gap_per_window(spec, nominal_sim, held)
     floor = noise_floor(resim, held, base, sensor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
+    cross = None
+    if not floor_test["above_floor"]:  # near the floor, step 1 tests its best candidate on every episode
+        cross = CrossFit(drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
+                                                           config.warmup), base, measured)[0],
+                         drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride,
+                                                           config.warmup), base, measured)[0])
     selection = select_effects(effects, spec, resim, train, held, base, before, floor, fit_config, floor_config,
-                               progress)
+                               progress, cross)
     corrected_params, after = selection.params, selection.gap_after
     residual = compare_with_floor(after, floor, held, fit_config.block_rows, floor_config)
     learned = None
