@@ -1,12 +1,25 @@
 """Reproduce the ANYmal D world model shipped in `assets/checkpoints/` (the default of `RWM-AnymalD-v0`).
 
-The shipped model (95 min on one CPU thread of the shared 2-core machine, 6,707 iterations x 256 windows):
+The shipped model is made in three stages, on one CPU thread of the shared 2-core machine:
 
-    rwm-gym ppo --in physics --num-envs 4096 --n-steps 24 --timesteps 60000000 --run-dir runs/ppo_physics \
-        --save-every 4 --snapshot-every 8 --record-every 32 --threads 1 --seed 0       # the teacher (~75 min)
-    python examples/make_teacher_data.py --run-dir runs/ppo_physics --out data/teacher
-    python examples/make_default_checkpoint.py --out assets/checkpoints --data data/teacher/experience.h5 \
-        --batch-size 256 --branches 4 --branch-stride 8 --unit-gravity --joint-limits --minutes 95 --iterations 0
+1. Trained from scratch on the physics PPO teacher's experience (95 min, 6,707 iterations x 256 windows):
+
+       rwm-gym ppo --in physics --num-envs 4096 --n-steps 24 --timesteps 60000000 --run-dir runs/ppo_physics \
+           --save-every 4 --snapshot-every 8 --record-every 32 --threads 1 --seed 0       # the teacher (~75 min)
+       python examples/make_teacher_data.py --run-dir runs/ppo_physics --out data/teacher
+       python examples/make_default_checkpoint.py --out runs/wm_default --data data/teacher/experience.h5 \
+           --batch-size 256 --branches 4 --branch-stride 8 --unit-gravity --joint-limits --minutes 95 --iterations 0
+
+2. Fine-tuned in six iterations of the MBPO loop (README, "Policies": the `rwm-gym mbpo` command of the sixth
+   session, `--iterations 6`, from stage 1's model; `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
+
+3. Fine-tuned on that mix with 32-step forecasts (80 min, 1,409 iterations x 256 windows; `--init` trains on the
+   `--data` files alone and keeps the model's config):
+
+       python examples/make_default_checkpoint.py --out runs/wm_f32 --init runs/mbpoM/model_6.safetensors \
+           --data data/base/mix.h5 --forecast 32 --lr 3e-4 --batch-size 256 --branches 4 --branch-stride 8 \
+           --minutes 80 --iterations 0
+       cp runs/wm_f32/anymal_d_rwm.safetensors runs/wm_f32/anymal_d_reset.h5 assets/checkpoints/
 
 Collects physics data with fixed seeds (correlated random actions, and the scripted trot with two levels of action
 noise under random commands), adds any `--data` files of the same task (the physics PPO teacher's experience: 4,798
@@ -28,7 +41,7 @@ import torch
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import merge_datasets
 from rwm_gym.imagination.reset_data import make_reset_data
-from rwm_gym.model.checkpoint import load_checkpoint, save_checkpoint
+from rwm_gym.model.checkpoint import load_checkpoint, read_meta, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
@@ -57,35 +70,47 @@ def main() -> None:
     parser.add_argument("--ensemble", type=int, default=5, help="state heads")
     parser.add_argument("--unit-gravity", action="store_true", help="ModelConfig.unit_gravity")
     parser.add_argument("--joint-limits", action="store_true", help="ModelConfig.joint_limits")
+    parser.add_argument("--init", type=Path, default=None, metavar="CKPT",
+                        help="fine-tune this checkpoint on the --data files alone (no collected mix)")
+    parser.add_argument("--forecast", type=int, default=8, help="forecast steps per training window")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate at the start of the schedule")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core CPU)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    for extra in args.data:
+    for extra in args.data + ([args.init] if args.init else []):
         if not extra.exists():
-            parser.error(f"--data {extra}: no such file")
+            parser.error(f"{extra}: no such file")
+    if args.init and not args.data:
+        parser.error("--init fine-tunes on the --data files: give at least one")
     torch.set_num_threads(args.threads)
 
-    parts = []
-    for policy, episodes, steps, noise, seed in DATA_MIX:
+    parts, mix = [], () if args.init else DATA_MIX
+    for policy, episodes, steps, noise, seed in mix:
         path = args.data_dir / f"{policy}_noise{noise}_seed{seed}.h5"
         if not path.exists():
             collect("AnymalD-MuJoCo-v0", policy, episodes, path, seed=seed, num_envs=16, action_noise=noise,
                     max_steps=steps)
         parts.append(path)
-    name = "anymal_d_mix" + "".join(f"+{extra.stem}" for extra in args.data)
-    data = args.data_dir / f"{name}.h5"
-    if not data.exists():
+    name = ("" if args.init else "anymal_d_mix") + "".join(f"+{extra.stem}" for extra in args.data)
+    data = args.data_dir / f"{name.lstrip('+')}.h5"
+    if args.init and len(args.data) == 1:
+        data = args.data[0]
+    elif not data.exists():
         merge_datasets(parts + list(args.data), data)
 
     spec = load_spec("anymal_d")
     checkpoint = args.out / "anymal_d_rwm.safetensors"
     config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
-                         branches=args.branches, branch_stride=args.branch_stride, device=args.device, seed=0, val_every=250, checkpoint_every=250)
-    model_config = model_config_for("rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity,
-                                    joint_limits=args.joint_limits)
-    train(data, model_config, config, checkpoint, resume=True)
+                         branches=args.branches, branch_stride=args.branch_stride, forecast=args.forecast, lr=args.lr,
+                         device=args.device, seed=0, val_every=250, checkpoint_every=250)
+    if args.init:
+        model_config = read_meta(args.init).model_config
+    else:
+        model_config = model_config_for("rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity,
+                                        joint_limits=args.joint_limits)
+    train(data, model_config, config, checkpoint, resume=True, init=args.init)
 
-    reset_sources = [parts[1], *args.data]
+    reset_sources = [*parts[1:2], *args.data]
     if len(reset_sources) > 1:
         if not (args.data_dir / f"reset_sources_{name}.h5").exists():
             merge_datasets(reset_sources, args.data_dir / f"reset_sources_{name}.h5")
@@ -93,7 +118,7 @@ def main() -> None:
     reset = make_reset_data(reset_sources[0], args.out / "anymal_d_reset.h5", episodes=24, rows=160, seed=0)
     model, meta = load_checkpoint(checkpoint)
     extras = {"reset_data": reset.name, "made_by": "python examples/make_default_checkpoint.py " + " ".join(sys.argv[1:]),
-              "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in DATA_MIX]
+              "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in mix]
               + [{"file": str(extra)} for extra in args.data]}
     save_checkpoint(checkpoint, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
                     stats=meta.stats, extras=extras)

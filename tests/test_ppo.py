@@ -129,14 +129,16 @@ def test_imagined_return_rises_on_the_shipped_model():
 
     Episodes last one rollout (24 steps) and resets desynchronise them, so the reward of a rollout follows a pattern
     of period 5 rollouts; we compare whole periods. The critic warm-up keeps the actor frozen, so its two periods
-    measure the initial policy; after 15 updates the last period must beat both.
+    measure the initial policy; after 25 updates the last period must beat both (on the default model of the
+    thirteenth session the mean step reward of the third period of five is 10 % above the initial one, of the fifth
+    20 %).
     """
     config = PPOConfig(num_envs=64, n_steps=24, net_arch=(64, 64), learning_rate=3e-3, target_kl=0.0, ent_coef=0.0)
     env = make_env("imagination", config.num_envs, checkpoint=None, seed=0, env_kwargs={"episode_steps": 24})
     model = make_ppo(env, config, seed=0)
     rollout = config.num_envs * config.n_steps
     before = [row["mean_step_reward"] for row in warm_up_critic(model, 10 * rollout, progress=False).log]
-    after = [row["mean_step_reward"] for row in learn(model, timesteps=15 * rollout, target_kl=0.0,
+    after = [row["mean_step_reward"] for row in learn(model, timesteps=25 * rollout, target_kl=0.0,
                                                        progress=False).log]
     initial = max(np.mean(before[:5]), np.mean(before[5:10]))
     assert np.mean(after[-5:]) > initial + 0.1 * abs(initial), (before, after)
