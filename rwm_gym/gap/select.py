@@ -7,9 +7,8 @@ candidates anyway and asks each one's own held-out reduction, at `FitConfig.sign
 candidates (Bonferroni). One held-out third of the episodes holds few blocks, so the best candidate, if it fails only
 that test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold cross-fitting); the test
 then runs on every measured episode, each scored by a fit that did not see it. If none passes, the verdict is `none`.
-Otherwise every effect not yet named is fitted and
-scored on top of it (`fit.fit_all`), the best joint effect also in its scopes (`scope.scope_candidates`), and the
-best-scoring candidate is named when
+Otherwise every effect not yet named is fitted and scored on top of it (`fit.fit_all`), the best joint effect also in
+its scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
 
 - its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
 - it explains `min_excess_explained` of the gap above the floor (the floor itself no effect can remove; measured
@@ -135,7 +134,7 @@ def cross_fitted_p_value(candidate: Candidate, resim: Resimulator, held: Windows
                          params: PhysicsParams, before: np.ndarray, config: FitConfig, significance: float) -> float:
     """One-sided p that `candidate` lowers the gap (`before` (W, 3): held-out, of `params`) on every measured episode:
     the held-out windows at its values, the fitting episodes' windows at its values fitted again on the held-out
-    episodes. 2-fold cross-fitting: no window is scored by a fit that saw it, and the test has three times the
+    episodes. 2-fold cross-fitting: no window is scored by a fit that saw it, and the test has about three times the
     blocks of the held-out third alone."""
     effect, fit = candidate
     first = effect.parameters[0]
