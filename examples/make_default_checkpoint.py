@@ -91,11 +91,9 @@ def main() -> None:
             collect("AnymalD-MuJoCo-v0", policy, episodes, path, seed=seed, num_envs=16, action_noise=noise,
                     max_steps=steps)
         parts.append(path)
-    name = ("" if args.init else "anymal_d_mix") + "".join(f"+{extra.stem}" for extra in args.data)
-    data = args.data_dir / f"{name.lstrip('+')}.h5"
-    if args.init and len(args.data) == 1:
-        data = args.data[0]
-    elif not data.exists():
+    name = ("finetune" if args.init else "anymal_d_mix") + "".join(f"+{extra.stem}" for extra in args.data)
+    data = args.data[0] if args.init and len(args.data) == 1 else args.data_dir / f"{name}.h5"
+    if not data.exists():
         merge_datasets(parts + list(args.data), data)
 
     spec = load_spec("anymal_d")
