@@ -247,7 +247,8 @@ def test_cli_without_effect_says_none(tmp_path, capsys):
 
 
 _KNOWN_LIMITS = {
-    ("torque_limit", 0.5): "56 N·m is reached in few windows: its own test misses p < 0.01 / candidates, so none",
+    ("torque_limit", 0.5): "56 N·m is reached in few windows: on 6 episodes even the cross-fitted test misses "
+                           "p < 0.01 / candidates (p = 0.004), so none; the grid's 9 episodes name it",
     ("torque_limit", 2.0): "clipped to 8 N·m the robot collapses: no episode is long enough for held-out windows",
     ("backlash", 0.5): "0.015 rad lies at the sensor-noise floor: named on the grid's 9 episodes, not always on 6",
 }
