@@ -43,6 +43,7 @@ def test_a_trotting_policy_scores_above_standing_still_on_forward_commands():
     walking = evaluate_policy(gait.act, commands=commands, seeds=[0], steps=150)
     standing = evaluate_policy(zero_policy, commands=commands, seeds=[0], steps=150)
     assert walking.falls == 0 and standing.falls == 0
+    assert walking.commands[0].disagreement is None  # physics has no ensemble
     assert walking.tracking > standing.tracking + 0.1
 
 
@@ -85,6 +86,8 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     moving, still = score("zero", reset_data=trotting, **options), score("zero", reset_data=standing, **options)
     assert np.hypot(*moving.commands[0].achieved[:2]) > 0.15 > 0.1 > np.hypot(*still.commands[0].achieved[:2])
     assert still.falls == 0
+    # inside a model the RWM-U signal comes with each command's score: the ensemble disagreement, small but not zero
+    assert all(0 < c.disagreement < 0.5 for c in moving.commands + still.commands)
     with pytest.raises(SystemExit, match="--reset-data applies to --checkpoint"):
         main(["score", "--policy", "zero", "--reset-data", str(standing), "--out", str(tmp_path / "out")])
     with pytest.raises(SystemExit, match="missing.h5: no such file"):

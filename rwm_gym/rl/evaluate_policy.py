@@ -75,6 +75,10 @@ class CommandResult:
     """Mean (vx, vy, yaw rate) over the settled steps (0 after a fall)."""
     achieved_std: tuple[float, float, float]
     """Std of the per-seed means of (vx, vy, yaw rate)."""
+    disagreement: float | None = None
+    """In a world model that reports it: the mean ensemble disagreement over the steps before a fall, the signal the
+    RWM-U penalty acts on (a policy that exploits the model where this stays low is invisible to the penalty).
+    None in physics."""
 
 
 @dataclass(frozen=True)
@@ -150,13 +154,17 @@ def evaluate_policy(
     lin, ang = task.state_slices["base_lin_vel"], task.state_slices["base_ang_vel"]
     alive = np.ones(n, dtype=bool)
     returns, counted, tracking = np.zeros(n), np.zeros(n), np.zeros(n)
+    disagreement, alive_steps = None, np.zeros(n)
     sums = {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")}
     cmd = core.command.astype(np.float64)
     cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
     direction = np.divide(cmd[:, :2], cmd_norm[:, None], out=np.zeros((n, 2)), where=cmd_norm[:, None] > 0)
     for t in range(steps):
-        obs, reward, terminated, _, _ = core.step(np.clip(act(obs), -1.0, 1.0))
+        obs, reward, terminated, _, info = core.step(np.clip(act(obs), -1.0, 1.0))
         returns += np.where(alive, reward, 0.0)
+        if "uncertainty" in info:
+            disagreement = (0.0 if disagreement is None else disagreement) + np.where(alive, info["uncertainty"], 0.0)
+            alive_steps += alive
         alive &= ~terminated
         state = core.current.state if hasattr(core, "current") else core.state
         tracking += np.where(alive, tracking_terms(task, state, cmd), 0.0)
@@ -182,6 +190,7 @@ def evaluate_policy(
             yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~alive[m]).sum()),
             distance=float(sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
             achieved_std=tuple(float(x) for x in achieved.std(0)),
+            disagreement=None if disagreement is None else float(disagreement[m].sum() / alive_steps[m].sum()),
         ))
     return Evaluation(
         commands=rows, tracking=float(tracking.mean() / steps),

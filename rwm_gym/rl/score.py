@@ -62,7 +62,7 @@ def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int =
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
         core = ImaginedCore(checkpoint, len(commands) * seeds, reset_data=reset_data,
-                            options=ImaginationOptions(resample_commands=False))
+                            options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
     return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
 
 
