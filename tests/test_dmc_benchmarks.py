@@ -1,5 +1,5 @@
 """Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
-benchmarks/exploitation.py), tiny budgets."""
+benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py), tiny budgets."""
 
 from __future__ import annotations
 
@@ -87,3 +87,28 @@ def test_exploitation_tilt_saturation_and_foresight() -> None:
     view = exploitation.foresight(model, meta, states, actions, 12)
     assert view["lead"] == 12 and view["tilt_physics"] < 5 and view["tilt_predicted"] < 10
     assert view["max_termination_probability"] < 0.5
+
+
+def test_ppo_seed_curves_draws_every_run_and_refuses_a_run_without_scores(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Several runs' scored snapshots in one figure and one CSV, rows sorted by steps; a run never scored is named."""
+    import csv
+    import sys
+
+    script = _script("ppo_seed_curves")
+    for seed, rows in enumerate(([(0, 0.23, 0), (3_000_000, 0.5, 4)], [(3_000_000, 0.1, 40), (0, 0.23, 0)])):
+        (tmp_path / f"run{seed}" / "curve").mkdir(parents=True)
+        with open(tmp_path / f"run{seed}" / "curve" / "curve.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg"])
+            w.writerows([t, 1.0, s, 0.0, falls, 54, 1.0] for t, s, falls in rows)
+    out = tmp_path / "fig" / "seeds"
+    monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "run0"), str(tmp_path / "run1"),
+                                      "--labels", "seed 0", "seed 1", "--out", str(out)])
+    script.main()
+    assert out.with_suffix(".png").stat().st_size > 0
+    table = list(csv.DictReader(out.with_suffix(".csv").open()))
+    assert [(r["run"], int(r["timesteps"]), r["falls"]) for r in table] == \
+        [("seed 0", 0, "0"), ("seed 0", 3_000_000, "4"), ("seed 1", 0, "0"), ("seed 1", 3_000_000, "40")]
+    monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "missing"), "--out", str(out)])
+    with pytest.raises(SystemExit, match="missing/curve/curve.csv: no such file"):
+        script.main()
