@@ -357,12 +357,14 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
         assert "Bonferroni" in selection.reason and "p < 0.0025" in selection.reason
 
 
-@pytest.mark.parametrize("cross_p,with_cross,named", [
-    (1e-4, True, True),     # fails on the held-out third alone (p=5e-3 > 0.0025), passes on every episode
-    (5e-3, True, False),    # the cross-fitted test is not stronger: none
-    (1e-4, False, False),   # no swapped windows: the held-out test alone decides
+@pytest.mark.parametrize("cross_p,with_cross,named,best_gap", [
+    (1e-4, True, True, 0.75),    # fails on the held-out third alone (p=5e-3 > 0.0025), passes on every episode
+    (5e-3, True, False, 0.75),   # the cross-fitted test is not stronger: none
+    (1e-4, False, False, 0.75),  # no swapped windows: the held-out test alone decides
+    (1e-4, True, False, 1.0),    # the best explains nothing (a nominal case): no second test, nothing built for it
 ])
-def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypatch, cross_p, with_cross, named):
+def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypatch, cross_p, with_cross, named,
+                                                                         best_gap):
     """A 0.5x torque limit removes most of a gap near the floor, but three held-out episodes hold too few blocks for
     p < 0.01 over the step's candidates. The best candidate is then tested on every episode (2-fold cross-fitting),
     and named if that test passes at the same Bonferroni level; the reason says which test decided."""
@@ -372,7 +374,7 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypa
     def fits(effects, *args):
         out = []
         for i, name in enumerate(effects):
-            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=0.75 if i == 0 else 1.0,
+            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=best_gap if i == 0 else 1.0,
                                p_value=5e-3 if i == 0 else 1.0)
             fit.explained_fraction = fit.score = 1.0 - fit.gap_mean
             out.append(fit)
@@ -388,12 +390,15 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypa
                         or cross_p)
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
-    cross = select.CrossFit(None, None) if with_cross else None
+    built = []
+    cross = (lambda: built.append(1) or select.CrossFit(None, None)) if with_cross else None
     selection = select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
                                       np.full((20, 3), 0.8), FitConfig(), progress=False, cross=cross)
-    assert tested == (["torque_limit"] if with_cross else [])
+    needed = with_cross and best_gap < 1.0
+    assert tested == (["torque_limit"] if needed else [])
+    assert built == ([1] if needed else [])  # the swapped windows are built once, and only when the test needs them
     assert selection.verdict == ("torque_limit" if named else "none"), selection.reason
-    assert ("cross-fitted p=" in selection.reason) == with_cross
+    assert ("cross-fitted p=" in selection.reason) == needed
 
 
 def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):

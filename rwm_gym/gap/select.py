@@ -29,6 +29,7 @@ their final values.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -174,11 +175,11 @@ def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train:
 
 def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows, held: Windows,
                    base: PhysicsParams, before: np.ndarray, floor: np.ndarray, config: FitConfig,
-                   floor_config: FloorConfig = FloorConfig(), progress: bool = True, cross: CrossFit | None = None
-                   ) -> Selection:
+                   floor_config: FloorConfig = FloorConfig(), progress: bool = True,
+                   cross: Callable[[], CrossFit] | None = None) -> Selection:
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
-    nominal held-out gap and its noise floor per window; `cross`: the swapped windows for a gap near the floor (None:
-    the held-out test alone)."""
+    nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
+    called once if step 1's best candidate needs them (None: the held-out test alone)."""
     named: list[Candidate] = []
     params, current, steps, reason, earlier = base, before, [], "", []
     for k in range(config.max_effects):
@@ -204,8 +205,8 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         if pick is None and rival is None and below and k == 0 and cross is not None:
             best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
             if best is not None and best[1].excess_explained >= config.min_excess_explained:
-                best[1].cross_fitted_p_value = cross_fitted_p_value(best, resim, held, cross, params, current, config,
-                                                                    significance)
+                best[1].cross_fitted_p_value = cross_fitted_p_value(best, resim, held, cross(), params, current,
+                                                                    config, significance)
                 pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
         if pick is None and rival is None and k == 0 and not below and config.every_scope:
             scoped = {f.effect for _, f in candidates if f.scope != "global"}

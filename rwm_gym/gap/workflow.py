@@ -97,11 +97,13 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     floor = noise_floor(resim, held, base, sensor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
     cross = None
-    if not floor_test["above_floor"]:  # near the floor, step 1 tests its best candidate on every episode
-        cross = CrossFit(drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
-                                                           config.warmup), base, measured)[0],
-                         drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride,
-                                                           config.warmup), base, measured)[0])
+    if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
+        def cross() -> CrossFit:  # built only if a candidate needs it (a nominal case's best explains nothing)
+            return CrossFit(
+                drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
+                                                  config.warmup), base, measured)[0],
+                drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup),
+                              base, measured)[0])
     selection = select_effects(effects, spec, resim, train, held, base, before, floor, fit_config, floor_config,
                                progress, cross)
     corrected_params, after = selection.params, selection.gap_after
