@@ -26,11 +26,10 @@ from pathlib import Path
 
 import torch
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import TrainConfig, build_model, model_config_for
 from rwm_gym.options import add_dataclass_options
-from rwm_gym.model.evaluate import write_json
 from rwm_gym.model.losses import SegmentLoss
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import sample_batch, train, train_step
@@ -195,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         results["curves"] = curves(data, options.kinds.split(",")[0], configs, options)
         plot(results, out / "val_vs_minutes.png")
     results["loadavg_end"] = Path("/proc/loadavg").read_text().split()[0]
-    write_json(results, out / "results.json")
+    write_json(out / "results.json", results)
     table = markdown(results, options)
     atomic_write(out / "results.md", lambda tmp: Path(tmp).write_text(table))
     print(table)

@@ -1,5 +1,5 @@
 """Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
-benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py), tiny budgets."""
+benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py), tiny budgets."""
 
 from __future__ import annotations
 
@@ -112,3 +112,20 @@ def test_ppo_seed_curves_draws_every_run_and_refuses_a_run_without_scores(tmp_pa
     monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "missing"), "--out", str(out)])
     with pytest.raises(SystemExit, match="missing/curve/curve.csv: no such file"):
         script.main()
+
+
+def test_trainer_benchmark_writes_throughput_curves_and_tables(tmp_path: Path) -> None:
+    """benchmarks/trainer.py end to end on a tiny budget: both arms timed, both curves trained, JSON, table and plot
+    written (its JSON write once took the arguments in the wrong order and lost a 20-minute run at the end)."""
+    from synthetic_dynamics import write_linear_dataset
+
+    data = write_linear_dataset(tmp_path / "linear.h5")
+    trainer = _script("trainer")
+    out = tmp_path / "out"
+    assert trainer.main(["--data", str(data), "--out", str(out), "--threads", "1", "--rounds", "1", "--steps", "1",
+                         "--minutes", "0.005", "--val-every", "1", "--new-branches", "4", "--new-stride", "8"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert [row["threads"] for row in results["throughput"]] == [1]
+    assert set(results["throughput"][0]["windows_per_s"]) == {"old", "new"}
+    assert set(results["curves"]) >= {"old", "new"}
+    assert (out / "results.md").read_text().count("|") > 10 and (out / "val_vs_minutes.png").stat().st_size > 0
