@@ -1,5 +1,6 @@
 """Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
-benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py), tiny budgets."""
+benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py,
+benchmarks/disagreement.py), tiny budgets."""
 
 from __future__ import annotations
 
@@ -129,3 +130,29 @@ def test_trainer_benchmark_writes_throughput_curves_and_tables(tmp_path: Path) -
     assert set(results["throughput"][0]["windows_per_s"]) == {"old", "new"}
     assert set(results["curves"]) >= {"old", "new"}
     assert (out / "results.md").read_text().count("|") > 10 and (out / "val_vs_minutes.png").stat().st_size > 0
+
+
+def test_disagreement_benchmark_measures_the_second_model_against_the_first(tmp_path: Path) -> None:
+    """benchmarks/disagreement.py on a tiny budget: per recorded source the model's error, its heads' disagreement and
+    a second model's; per policy the same inside the model. A model compared with itself disagrees by exactly 0."""
+    from rwm_gym.data.collect import collect
+    from rwm_gym.resources import assets_dir
+
+    bench = _script("disagreement")
+    data = collect("AnymalD-MuJoCo-v0", "zero", 2, tmp_path / "stand.h5", max_steps=40, num_envs=2, progress=False)
+    models = assets_dir() / "checkpoints"
+    common = ["--checkpoint", str(models / "anymal_d_rwm.safetensors"), "--data", str(data), "--history", "8",
+              "--horizon", "4", "--windows", "6", "--steps", "12", "--seeds", "1"]
+    bench.main(common + ["--second", str(models / "anymal_d_rwm_mbpo.safetensors"), "--policies", "zero",
+                         "--out", str(tmp_path / "two")])
+    report = json.loads((tmp_path / "two" / "disagreement.json").read_text())
+    (row,), (inside,) = report["data"], report["imagination"]
+    assert row["windows"] == 6 and row["error"] > 0 and row["heads"] > 0 and row["second_model"] > 0
+    assert inside["policy"] == "zero" and inside["episodes"] == 18 and inside["second_model_one_step"] > 0
+    bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--out", str(tmp_path / "same")])
+    same = json.loads((tmp_path / "same" / "disagreement.json").read_text())
+    assert same["data"][0]["second_model"] == 0.0 and same["data"][0]["corr_error_second_model"] is None
+    assert same["imagination"] == []
+    with pytest.raises(SystemExit):
+        bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--steps", "8",
+                             "--out", str(tmp_path / "bad")])
