@@ -190,7 +190,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         if below:
             reason = (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
                       f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
-            if k > 0 and cross is None:
+            if k > 0:
                 break
         remaining = {n: e for n, e in effects.items() if n not in {e.name for e, _ in named}}
         fits = fit_all(remaining, resim, train, held, params, current, config, progress)
@@ -202,7 +202,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         tested = sum(f.status == "ok" for _, f in candidates)
         significance = config.significance / max(tested, 1) if below else config.significance
         pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
-        if pick is None and rival is None and below and cross is not None:
+        if pick is None and rival is None and below and k == 0 and cross is not None:
             best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
             if best is not None and best[1].excess_explained >= config.min_excess_explained:
                 best[1].cross_fitted_p_value = cross_fitted_p_value(best, resim, held, cross(), params, current,

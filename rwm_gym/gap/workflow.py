@@ -96,7 +96,8 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     before = gap_per_window(spec, nominal_sim, held)
     floor = noise_floor(resim, held, base, sensor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
-    if True:
+    cross = None
+    if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
         def cross() -> CrossFit:  # built only if a candidate needs it (a nominal case's best explains nothing)
             return CrossFit(
                 drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
