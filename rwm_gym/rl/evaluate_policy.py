@@ -154,7 +154,8 @@ def evaluate_policy(
     lin, ang = task.state_slices["base_lin_vel"], task.state_slices["base_ang_vel"]
     alive = np.ones(n, dtype=bool)
     returns, counted, tracking = np.zeros(n), np.zeros(n), np.zeros(n)
-    disagreement, alive_steps = None, np.zeros(n)
+    disagreement: np.ndarray | None = None  # summed over each env's steps before a fall, where the core reports it
+    alive_steps = np.zeros(n)
     sums = {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")}
     cmd = core.command.astype(np.float64)
     cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
@@ -163,7 +164,8 @@ def evaluate_policy(
         obs, reward, terminated, _, info = core.step(np.clip(act(obs), -1.0, 1.0))
         returns += np.where(alive, reward, 0.0)
         if "uncertainty" in info:
-            disagreement = (0.0 if disagreement is None else disagreement) + np.where(alive, info["uncertainty"], 0.0)
+            disagreement = np.zeros(n) if disagreement is None else disagreement
+            disagreement += np.where(alive, info["uncertainty"], 0.0)
             alive_steps += alive
         alive &= ~terminated
         state = core.current.state if hasattr(core, "current") else core.state
