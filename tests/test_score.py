@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from rwm_gym.rl.evaluate_policy import evaluate_policy, scoring_commands, tracking_terms
+from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, scoring_commands, tracking_terms
 from rwm_gym.rl.score import zero_policy
 from rwm_gym.spec import load_spec
 
@@ -44,6 +44,7 @@ def test_a_trotting_policy_scores_above_standing_still_on_forward_commands():
     standing = evaluate_policy(zero_policy, commands=commands, seeds=[0], steps=150)
     assert walking.falls == 0 and standing.falls == 0
     assert walking.commands[0].disagreement is None  # physics has no ensemble
+    assert "disagreement" not in format_table(walking)
     assert walking.tracking > standing.tracking + 0.1
 
 
@@ -88,6 +89,7 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     assert still.falls == 0
     # inside a model the RWM-U signal comes with each command's score: the ensemble disagreement, small but not zero
     assert all(0 < c.disagreement < 0.5 for c in moving.commands + still.commands)
+    assert "| disagreement" in format_table(still).splitlines()[0]
     with pytest.raises(SystemExit, match="--reset-data applies to --checkpoint"):
         main(["score", "--policy", "zero", "--reset-data", str(standing), "--out", str(tmp_path / "out")])
     with pytest.raises(SystemExit, match="missing.h5: no such file"):

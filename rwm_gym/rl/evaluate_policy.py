@@ -204,15 +204,19 @@ def evaluate_policy(
 
 
 def format_table(evaluation: Evaluation) -> str:
-    """A plain-text table: one row per command and a mean row."""
+    """A plain-text table: one row per command and a mean row; in a world model that reports it, each command's mean
+    ensemble disagreement too."""
+    in_model = any(r.disagreement is not None for r in evaluation.commands)
     head = f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | " \
-           f"{'|dwz| rad/s':>11} | {'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}"
+           f"{'|dwz| rad/s':>11} | {'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}" + \
+           (" | disagreement" if in_model else "")
     lines = [head, "-" * len(head)]
     for r in evaluation.commands:
         cmd = "(" + ", ".join(f"{x:+.1f}" for x in r.command) + ")"
         got = "(" + ", ".join(f"{x:+.2f}" for x in r.achieved) + ")"
         lines.append(f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | "
-                     f"{r.yaw_rate_error:11.3f} | {r.falls:5d} | {r.distance:7.2f} | {got:>22}")
+                     f"{r.yaw_rate_error:11.3f} | {r.falls:5d} | {r.distance:7.2f} | {got:>22}"
+                     + (f" | {r.disagreement:12.4f}" if in_model else ""))
     e = evaluation
     lines.append("-" * len(head))
     lines.append(f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | "
