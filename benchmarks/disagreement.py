@@ -7,9 +7,10 @@ well that signal, and the disagreement with a second model (its own trunk), foll
    `--history` true rows, then `--horizon`-step mean forecasts. Per source: the model's error against the data, its
    heads' disagreement, and the second model's (half the mean |difference| of the two forecasts, the std of two
    points); their correlations with the error over windows and steps. All in normalised state units.
-2. Inside the model (`--policies`, SB3 zips, `random` or `zero`): imagined episodes on the scoring commands, from the
-   model's reset data. Per policy: the heads' disagreement along the imagined trajectory and the second model's
-   one-step disagreement (it reads the imagined history and predicts the next imagined state), every 8 steps.
+2. Inside the model (`--policies`: SB3 zips, `random`, `zero` or `gait`): imagined episodes on the scoring
+   commands, from the model's reset data. Per policy: the heads' disagreement along the imagined trajectory and the
+   second model's one-step disagreement (it reads the imagined history and predicts the next imagined state), every
+   8 steps.
 
 A signal that rises on the data but not inside the model means the policy's troubles lie in states that the model
 never predicts it reaches: a penalty cannot find them; physics data of them can.
@@ -71,18 +72,23 @@ def on_data(model, meta, second, second_meta, path: str, history: int, horizon: 
 
 @torch.no_grad()
 def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta, policy: str, history: int,
-                   steps: int, seeds: int) -> dict:
+                   steps: int, seeds: int, seed: int) -> dict:
     from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
+    from rwm_gym.policies.base import RandomPolicy
     from rwm_gym.rl.score import resolve_policy
     from rwm_gym.rl.evaluate_policy import scoring_commands
 
     commands = scoring_commands("anymal_d")
     pairs = [(c, s) for c in commands for s in range(seeds)]
     n = len(pairs)
-    act = (lambda obs: np.random.default_rng(0).normal(0.0, 0.37, (len(obs), 12)).astype(np.float32)) \
-        if policy == "random" else resolve_policy(policy, n)
     core = ImaginedCore(checkpoint, n, reset_data=reset_data,
                         options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
+    if policy == "random":  # the datasets' correlated random actions, one stream per episode
+        random_policy = RandomPolicy(core.spec, n)
+        random_policy.reset(np.arange(n), [np.random.default_rng([seed, k]) for k in range(n)])
+        act = random_policy.act
+    else:
+        act = resolve_policy(policy, n)
     obs = core.reset(np.arange(n), list(range(n)), np.asarray([c for c, _ in pairs], dtype=np.float32))
     states, actions, heads, alive, running = [core.state.copy()], [], [], np.ones(n, bool), []
     for _ in range(steps):
@@ -129,7 +135,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reset-data", default=None, help="histories of its imagined episodes (default: its own)")
     parser.add_argument("--second", required=True, help="a separately trained world model of the same task")
     parser.add_argument("--data", nargs="*", default=[], help="recorded episodes (HDF5), each a source")
-    parser.add_argument("--policies", nargs="*", default=[], help="SB3 zips, 'random' or 'zero', run inside the model")
+    parser.add_argument("--policies", nargs="*", default=[],
+                        help="SB3 zips, 'random' (the datasets' correlated random actions), 'zero' or 'gait', run "
+                             "inside the model")
     parser.add_argument("--history", type=int, default=32)
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--windows", type=int, default=256)
@@ -148,7 +156,8 @@ def main(argv: list[str] | None = None) -> None:
               "data": [on_data(model, meta, second, second_meta, path, args.history, args.horizon, args.windows,
                                args.seed) for path in args.data],
               "imagination": [in_imagination(args.checkpoint, args.reset_data, second, second_meta, policy,
-                                             args.history, args.steps, args.seeds) for policy in args.policies]}
+                                             args.history, args.steps, args.seeds, args.seed)
+                              for policy in args.policies]}
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "disagreement.json", report)
     table = markdown(report)

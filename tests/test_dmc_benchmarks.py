@@ -143,12 +143,13 @@ def test_disagreement_benchmark_measures_the_second_model_against_the_first(tmp_
     models = assets_dir() / "checkpoints"
     common = ["--checkpoint", str(models / "anymal_d_rwm.safetensors"), "--data", str(data), "--history", "8",
               "--horizon", "4", "--windows", "6", "--steps", "12", "--seeds", "1"]
-    bench.main(common + ["--second", str(models / "anymal_d_rwm_mbpo.safetensors"), "--policies", "zero",
+    bench.main(common + ["--second", str(models / "anymal_d_rwm_mbpo.safetensors"), "--policies", "zero", "random",
                          "--out", str(tmp_path / "two")])
     report = json.loads((tmp_path / "two" / "disagreement.json").read_text())
-    (row,), (inside,) = report["data"], report["imagination"]
+    (row,), (still, moving) = report["data"], report["imagination"]
     assert row["windows"] == 6 and row["error"] > 0 and row["heads"] > 0 and row["second_model"] > 0
-    assert inside["policy"] == "zero" and inside["episodes"] == 18 and inside["second_model_one_step"] > 0
+    assert [still["policy"], moving["policy"]] == ["zero", "random"] and still["episodes"] == 18
+    assert still["second_model_one_step"] > 0 and moving["heads"] > still["heads"]  # random actions: more to disagree on
     bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--out", str(tmp_path / "same")])
     same = json.loads((tmp_path / "same" / "disagreement.json").read_text())
     assert same["data"][0]["second_model"] == 0.0 and same["data"][0]["corr_error_second_model"] is None
