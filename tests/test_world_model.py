@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from rwm_gym.model import MODEL_KINDS, Prediction, WorldModel, build_model, model_config_for
+from rwm_gym.model import gru_step as gru_step_module
 from rwm_gym.model.config import ModelConfig, TrainConfig
 from rwm_gym.model.losses import window_loss
 from rwm_gym.model.windows import Window
@@ -81,6 +82,27 @@ def test_rwm_sequence_kernel_equals_stepping() -> None:
     torch.testing.assert_close(Prediction.stack(stepped).termination_logit, seq.termination_logit)
     for a, b in zip(h, hidden):
         torch.testing.assert_close(a, b)
+
+
+def test_fused_inference_step_equals_the_autograd_step_across_row_blocks(monkeypatch) -> None:
+    """`RWM.step` without autograd runs `gru_step`'s fused cell, in row blocks on the CPU: the same hidden states and
+    predictions as `nn.GRU` (the autograd path), for 2 layers and a batch that spans uneven blocks."""
+    monkeypatch.setattr(gru_step_module, "ROWS_PER_BLOCK", 4)
+    model = tiny("rwm", ensemble_size=2, num_layers=2).eval()
+    window = random_window(11, 5)
+    member = torch.arange(11) % 2
+    h_grad = h_fused = model.initial_hidden(11)
+    for t in range(5):
+        h_grad, p_grad = model.step(h_grad, window.states[:, t], window.actions[:, t], member)
+        with torch.no_grad():
+            h_fused, p_fused = model.step(h_fused, window.states[:, t], window.actions[:, t], member)
+        assert p_grad.state_mean.requires_grad and not p_fused.state_mean.requires_grad
+        torch.testing.assert_close(p_fused.state_mean, p_grad.state_mean.detach())
+        torch.testing.assert_close(p_fused.contact_logits, p_grad.contact_logits.detach())
+        for a, b in zip(h_fused, h_grad):
+            assert a.shape == (11, 2, 16)
+            torch.testing.assert_close(a, b.detach())
+    assert not torch.equal(h_fused[0][:, 0], h_fused[0][:, 1])  # the layers are kept apart, not copied
 
 
 @pytest.mark.parametrize("already", [0, 2])

@@ -13,6 +13,7 @@ from torch.func import functional_call
 
 from rwm_gym.model.base import Hidden, Prediction, WorldModel
 from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.gru_step import gru_step
 from rwm_gym.model.heads import Heads
 
 
@@ -63,8 +64,14 @@ class RWM(WorldModel):
 
     def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
-        hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
-        return hidden, prediction.map(lambda t: t.squeeze(1))
+        """Without autograd (imagination, forecasts under no_grad) the GRUs run `gru_step`'s fused cell; with it,
+        `nn.GRU` (the same numbers to float rounding)."""
+        if torch.is_grad_enabled():
+            hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
+            return hidden, prediction.map(lambda t: t.squeeze(1))
+        x = torch.cat([state, action], dim=-1)
+        hidden = (gru_step(self.state_gru, x, hidden[0]), gru_step(self.privileged_gru, x, hidden[1]))
+        return hidden, self.heads(hidden[0][:, -1], hidden[1][:, -1], state, member)
 
     def _layer_by_layer(self, gru: nn.GRU, x: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         """Every layer's hidden state after every step: x (B, T, in), hidden (B, L, H) -> (B, T, L, H). Same kernel
