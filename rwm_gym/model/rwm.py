@@ -21,6 +21,8 @@ class RWM(WorldModel):
     """Hidden = (state GRU, privileged GRU), each (B, num_layers, hidden_size): batch first, unlike `nn.GRU`."""
 
     warm_hidden_reads_member = False  # the GRUs read states and actions only; the heads come after them
+    fused_step = True
+    """`step` without autograd runs `gru_step`'s fused cell (off: `nn.GRU`, as `benchmarks/imagination.py` compares)."""
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__(config)
@@ -66,7 +68,7 @@ class RWM(WorldModel):
              next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
         """Without autograd (imagination, forecasts under no_grad) the GRUs run `gru_step`'s fused cell; with it,
         `nn.GRU` (the same numbers to float rounding)."""
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled() or not self.fused_step:
             hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
             return hidden, prediction.map(lambda t: t.squeeze(1))
         x = torch.cat([state, action], dim=-1)
