@@ -49,7 +49,7 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4), sharex=True)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6), sharex=True)
     for name, curve in curves.items():
         x = [r["timesteps"] / 1e6 for r in curve]
         ax.plot(x, [r["tracking"] for r in curve], ".-", label=name)
@@ -63,9 +63,11 @@ def main() -> None:
     bx.set_ylabel(f"falls in {episodes} physics episodes")
     for a in (ax, bx):
         a.set_xlabel(f"{args.trained_in} env steps (M)")
-    ax.legend(fontsize=8)
+    handles, labels = ax.get_legend_handles_labels()
+    rows = -(-len(handles) // 4)  # below both panels, four to a row: the curves stay uncovered
+    fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4)
     fig.suptitle(args.title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.06 * rows, 1, 1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out.with_suffix(".png"), dpi=100)
     plt.close(fig)
