@@ -11,8 +11,8 @@ env-steps/s and PPO's own update cost, all measured in one run.
   this run with the same threads; ceiling env-steps/s = GFLOP/s / FLOP per env-step.
 - Imagined and physics rates step random actions in [-0.3, 0.3] and restart finished envs, as a learner would;
   imagined restarts take each window's cached warm-up state (`ImaginationOptions.warm_up_cache_mb`), and the rate
-  with a full warm-up on every restart is printed beside it, as is the rate with `nn.GRU`'s own step in place of the fused
-  cell (`RWM.fused_step` off). Physics runs on `mujoco.batch` with `--threads` threads.
+  with a full warm-up on every restart is printed beside it, as is the rate with `nn.GRU`'s own step in place of
+  the fused cell (`RWM.fused_step` off). Physics runs on `mujoco.batch` with `--threads` threads.
 - PPO: SB3's `collect_rollouts` and `train` timed separately for `--ppo-rollouts` rollouts of `rwm_gym.rl.ppo`'s
   defaults (n_steps 24, 5 epochs x 4 minibatches) at the same envs, in imagination.
 Prints a table and writes JSON (`--out`).
@@ -130,10 +130,10 @@ def main() -> None:
                                            uncertainty_penalty=args.uncertainty_penalty), args.seconds)
         uncached = rate(make_imagined_core(args.checkpoint, n, device=args.device, warm_up_cache_mb=0.0,
                                            uncertainty_penalty=args.uncertainty_penalty), args.seconds)
-        unfused = make_imagined_core(args.checkpoint, n, device=args.device,
-                                     uncertainty_penalty=args.uncertainty_penalty)
-        unfused.model.fused_step = False
-        unfused = rate(unfused, args.seconds)
+        unfused_core = make_imagined_core(args.checkpoint, n, device=args.device,
+                                          uncertainty_penalty=args.uncertainty_penalty)
+        unfused_core.model.fused_step = False
+        unfused = rate(unfused_core, args.seconds)
         physics = rate(make_core("anymal_d", n, nthread=args.threads), args.seconds)
         rows.append({"envs": n, "imagined_steps_per_s": imagined, "ceiling_fraction": imagined / ceiling,
                      "imagined_steps_per_s_warm_up_every_reset": uncached, "imagined_steps_per_s_nn_gru": unfused,

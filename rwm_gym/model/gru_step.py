@@ -1,10 +1,10 @@
 """One step of a stacked `nn.GRU` for inference, written out so the imagined env's step runs near matmul speed.
 
 `nn.GRU` on one time step took 1.45x the time of its matrix products alone on the development CPU (4096 rows, one
-thread: 116 against 80 ms for two layers; sequence set-up, layout copies, separate gate kernels). Here each layer is two `addmm`s and a few in-place gate operations,
-over blocks of rows small enough for the gate arithmetic to stay in cache. Same equations and weights as PyTorch's
-GRU (r, z, n gate order; n = tanh(W_in x + b_in + r * (W_hn h + b_hn)); h' = n + z * (h - n)); no autograd: use it
-under `torch.no_grad()` / `torch.inference_mode()` only.
+thread: 116 against 80 ms for two layers; sequence set-up, layout copies, separate gate kernels). Here each layer is
+two `addmm`s and a few in-place gate operations, over blocks of rows small enough for the gate arithmetic to stay in
+cache. Same equations and weights as PyTorch's GRU (r, z, n gate order; n = tanh(W_in x + b_in + r * (W_hn h +
+b_hn)); h' = n + z * (h - n)); no autograd: use it under `torch.no_grad()` / `torch.inference_mode()` only.
 """
 
 from __future__ import annotations
