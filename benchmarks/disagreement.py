@@ -72,9 +72,8 @@ def on_data(model, meta, second, second_meta, path: str, history: int, horizon: 
 
 @torch.no_grad()
 def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta, policy: str, history: int,
-                   steps: int, seeds: int, seed: int) -> dict:
+                   steps: int, seeds: int) -> dict:
     from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
-    from rwm_gym.policies.base import RandomPolicy
     from rwm_gym.rl.score import resolve_policy
     from rwm_gym.rl.evaluate_policy import scoring_commands
 
@@ -83,12 +82,7 @@ def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta,
     n = len(pairs)
     core = ImaginedCore(checkpoint, n, reset_data=reset_data,
                         options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
-    if policy == "random":  # the datasets' correlated random actions, one stream per episode
-        random_policy = RandomPolicy(core.spec, n)
-        random_policy.reset(np.arange(n), [np.random.default_rng([seed, k]) for k in range(n)])
-        act = random_policy.act
-    else:
-        act = resolve_policy(policy, n)
+    act = resolve_policy(policy, n)
     obs = core.reset(np.arange(n), list(range(n)), np.asarray([c for c, _ in pairs], dtype=np.float32))
     states, actions, heads, alive, running = [core.state.copy()], [], [], np.ones(n, bool), []
     for _ in range(steps):
@@ -156,8 +150,7 @@ def main(argv: list[str] | None = None) -> None:
               "data": [on_data(model, meta, second, second_meta, path, args.history, args.horizon, args.windows,
                                args.seed) for path in args.data],
               "imagination": [in_imagination(args.checkpoint, args.reset_data, second, second_meta, policy,
-                                             args.history, args.steps, args.seeds, args.seed)
-                              for policy in args.policies]}
+                                             args.history, args.steps, args.seeds) for policy in args.policies]}
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "disagreement.json", report)
     table = markdown(report)

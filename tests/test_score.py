@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, scoring_commands, tracking_terms
-from rwm_gym.rl.score import zero_policy
+from rwm_gym.rl.score import resolve_policy, zero_policy
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -46,6 +46,18 @@ def test_a_trotting_policy_scores_above_standing_still_on_forward_commands():
     assert walking.commands[0].disagreement is None  # physics has no ensemble
     assert "disagreement" not in format_table(walking)
     assert walking.tracking > standing.tracking + 0.1
+
+
+def test_scripted_names_resolve_to_seeded_policies_one_stream_per_env():
+    """'random' is the datasets' correlated random policy: env k draws from generator k, so two resolutions act alike,
+    envs differ, and actions stay in [-1, 1]; 'zero' is the floor."""
+    obs = np.zeros((4, 48), dtype=np.float32)
+    first, second = resolve_policy("random", 4), resolve_policy("random", 4)
+    a, b = first(obs), second(obs)
+    np.testing.assert_array_equal(a, b)
+    assert a.shape == (4, 12) and np.abs(a).max() <= 1.0 and not np.allclose(a[0], a[1])
+    assert not np.allclose(first(obs), a)  # the actions move from step to step
+    assert resolve_policy("zero", 4) is zero_policy
 
 
 def test_a_fall_scores_zero_for_the_rest_of_the_episode():

@@ -33,21 +33,23 @@ def zero_policy(obs: np.ndarray) -> np.ndarray:
     return np.zeros((len(obs), 12), dtype=np.float32)
 
 
-SCRIPTED = ("zero", "gait")
-"""Policies `--policy` also takes by name: the zero-action floor and the scripted trot (`rwm_gym.policies.gait`)."""
+SCRIPTED = ("zero", "gait", "random")
+"""Policies `--policy` also takes by name: the zero-action floor, the scripted trot (`rwm_gym.policies.gait`) and the
+datasets' correlated random actions (`rwm_gym.policies.base.RandomPolicy`)."""
 
 
 def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
-    """A policy function for `num_envs` envs from a name in `SCRIPTED`, a zip path, an SB3 model or a callable."""
+    """A policy function for `num_envs` envs from a name in `SCRIPTED` (env k draws from generator k), a zip path, an
+    SB3 model or a callable."""
     if isinstance(policy, str) and policy == "zero":
         return zero_policy
-    if isinstance(policy, str) and policy == "gait":
-        from rwm_gym.policies.gait import GaitPolicy
+    if isinstance(policy, str) and policy in SCRIPTED:
+        from rwm_gym.policies.base import make_policy
         from rwm_gym.spec import load_spec
 
-        gait = GaitPolicy(load_spec(spec), num_envs)
-        gait.reset(np.arange(num_envs), [np.random.default_rng(k) for k in range(num_envs)])
-        return gait.act
+        scripted = make_policy(policy, load_spec(spec), num_envs)
+        scripted.reset(np.arange(num_envs), [np.random.default_rng(k) for k in range(num_envs)])
+        return scripted.act
     return as_policy(policy)
 
 
@@ -111,7 +113,8 @@ def summary_line(name: str, e: Evaluation) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", required=True,
-                        help="SB3 .zip policy to score, or 'zero' (zero-action floor) or 'gait' (the scripted trot)")
+                        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
+                             "or 'random' (correlated random actions)")
     parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
     parser.add_argument("--checkpoint", default=None,
                         help="score in this world model (the imagined env) instead of physics, same commands and seeds")
