@@ -172,7 +172,9 @@ def settings(args: argparse.Namespace) -> dict:
     # version 13: near the floor, step 1's best candidate that fails only its held-out test is tested again on every
     #             episode, 2-fold cross-fitted (select.cross_fitted_p_value); only cases whose whole gap is not above
     #             the floor can differ from version 12
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 13}
+    # version 14: the learned correction is a linear residual torque per joint type, fitted through 5-step
+    #             re-simulation (gap.learned); only cases with a learned correction can differ from version 13
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 14}
 
 
 def summarise(rows: list[dict]) -> dict:

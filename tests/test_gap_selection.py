@@ -3,6 +3,7 @@ two effects named in order, an effect outside the vocabulary (unexplained, then 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -15,6 +16,8 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
+from rwm_gym.gap.learned import (LearnedCorrectionConfig, LinearResidualTorque, group_matrix, load_correction,
+                                 save_correction)
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows
@@ -121,8 +124,8 @@ def test_two_effects_are_named_in_order_with_their_shares(tmp_path):
 
 def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     """A knee spring is no effect of the vocabulary: the gap is far above the noise floor, nothing is named (not
-    `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned. Walking data:
-    on excitation data the learned torque explains less (13 % in the benchmark grid)."""
+    `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned, and its knee
+    weight is the spring (N·m per rad of deflection), while the other joint types get none. Walking data."""
     xml = write_spring_model(SPEC, tmp_path / "spring.xml", "KFE", 30.0)
     data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, env_kwargs={"xml_file": str(xml)},
                          policy="gait", progress=False)
@@ -132,7 +135,11 @@ def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     learned = report["learned_correction"]
     assert learned["status"] == "ok" and "not a named effect" in learned["kind"]
     assert learned["gap_after"] <= 0.5 * learned["gap_before"] and learned["kept"]
-    assert (tmp_path / "report" / "learned_correction.safetensors").is_file()
+    weights = learned["training"]["weights"]
+    assert abs(weights["KFE"]["deflection (N·m/rad)"] + 30.0) <= 0.25 * 30.0, weights
+    assert max(abs(weights[g]["deflection (N·m/rad)"]) for g in ("HAA", "HFE")) < 5.0, weights
+    saved = load_correction(tmp_path / "report" / "learned_correction.safetensors", SPEC)
+    assert saved.weights[2, 0] == pytest.approx(weights["KFE"]["deflection (N·m/rad)"], abs=1e-4)
     assert "Learned correction (not a named effect)" in (tmp_path / "report" / "report.md").read_text()
 
 
@@ -536,3 +543,31 @@ def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, 
     out = scope._scoped_fits(best, EFFECTS["joint_friction"], SPEC, None, [], None, PhysicsParams(), None,
                              FitConfig(), to_beat)
     assert fitted == fitted_scopes and [f.scope for _, f in out] == fitted_scopes
+
+
+def test_learned_torque_is_the_groups_linear_law_and_round_trips(tmp_path):
+    """Each joint gets its group's weights on (deflection, position error, velocity, 1); the file keeps them and
+    refuses another robot's joints or another format with a one-line error."""
+    names, membership = group_matrix(SPEC, "joint_type")
+    assert names == ["HAA", "HFE", "KFE"] and membership.sum(0).tolist() == [4.0, 4.0, 4.0]
+    weights = np.zeros((3, 4))
+    weights[1] = [-20.0, 0.0, -1.5, 2.0]  # HFE: a spring, a damper and an offset
+    default = np.asarray(SPEC.actuator.default_pose)
+    correction = LinearResidualTorque(weights, membership, default)
+    rng = np.random.default_rng(0)
+    q, qd = default + rng.normal(0, 0.2, (5, 12)), rng.normal(0, 1.0, (5, 12))
+    torque = correction.torque(q, qd, default)
+    hfe = membership[:, 1] > 0
+    np.testing.assert_allclose(torque[:, hfe], -20.0 * (q - default)[:, hfe] - 1.5 * qd[:, hfe] + 2.0)
+    assert not torque[:, ~hfe].any()
+    save_correction(correction, tmp_path / "c.safetensors", LearnedCorrectionConfig(), SPEC)
+    np.testing.assert_array_equal(load_correction(tmp_path / "c.safetensors", SPEC).torque(q, qd, default), torque)
+    other = dataclasses.replace(SPEC, actuator=dataclasses.replace(SPEC.actuator,
+                                                                   joints=tuple(reversed(SPEC.actuator.joints))))
+    with pytest.raises(ValueError, match="joints differ"):
+        load_correction(tmp_path / "c.safetensors", other)
+    from safetensors.numpy import save_file
+
+    save_file({"weights": weights}, str(tmp_path / "w.safetensors"))
+    with pytest.raises(ValueError, match="not a learned correction"):
+        load_correction(tmp_path / "w.safetensors", SPEC)

@@ -94,6 +94,11 @@ def markdown(report: dict) -> str:
             lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
                          f"({learned['explained_fraction']:.1%} of what the named effects left, "
                          f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+            weights = learned["training"]["weights"]
+            terms = list(next(iter(weights.values())))
+            lines.append("| joints | " + " | ".join(terms) + " |\n|---|" + "---|" * len(terms))
+            lines += [f"| {group} | " + " | ".join(f"{w[t]:.3g}" for t in terms) + " |" for group, w in weights.items()]
+            lines.append("")
         else:
             lines.append(f"{learned['status']}\n")
     lines.append("## Identifiability from these data\n")

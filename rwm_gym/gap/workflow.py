@@ -33,7 +33,7 @@ from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction,
 from rwm_gym.gap.measured import SensorNoise, solver_option
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
-from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
 from rwm_gym.gap.scope import SCOPES
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
@@ -110,8 +110,8 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     residual = compare_with_floor(after, floor, held, fit_config.block_rows, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
-        learned = learned_section(resim, data, train_ids, held, corrected_params, after, floor, out, learned_config,
-                                  fit_config, floor_config)
+        learned = learned_section(resim, train, held, corrected_params, after, floor, out, learned_config, fit_config,
+                                  floor_config)
     corrected_sim = resim.rollout(held, corrected_params) if selection.named else nominal_sim
 
     plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
@@ -199,24 +199,24 @@ def rejections(selection: Selection) -> list[dict]:
     return out
 
 
-def learned_section(resim: Resimulator, data: Dataset, train_ids: np.ndarray, held, params, after: np.ndarray,
-                    floor: np.ndarray, out: Path, config: LearnedCorrectionConfig, fit_config: FitConfig,
-                    floor_config: FloorConfig) -> dict:
-    """Fit the residual torque network on the fitting episodes and judge it on the held-out windows."""
-    one_step = make_windows(data, train_ids, 1, config.stride, config.history - 1)
+def learned_section(resim: Resimulator, train: Windows, held: Windows, params, after: np.ndarray, floor: np.ndarray,
+                    out: Path, config: LearnedCorrectionConfig, fit_config: FitConfig, floor_config: FloorConfig
+                    ) -> dict:
+    """Fit the residual torque on the effects' fitting windows and judge it on the held-out windows."""
     try:
-        correction, net, info = fit_learned_correction(resim, one_step, params, config)
+        correction, info = fit_learned_correction(resim, train, params, config)
     except SimulationDiverged as err:
         return {"kind": "learned", "status": f"rejected: {err.reason}", "config": dataclasses.asdict(config)}
     path = out / "learned_correction.safetensors"
-    save_correction(net, path, config, list(resim.spec.actuator.joints))
+    save_correction(correction, path, config, resim.spec)
     try:
         corrected = gap_per_window(resim.spec, resim.rollout(held, params, correction=correction), held)
     except SimulationDiverged as err:
         return {"kind": "learned", "status": f"rejected: the simulation blows up with it ({err.reason})",
                 "path": str(path), "training": info, "config": dataclasses.asdict(config)}
     p_value = paired_p_value(after.mean(1), corrected.mean(1), held, fit_config.block_rows, fit_config.significance)
-    return {"kind": "learned residual joint torque (actuator-network style MLP), not a named effect",
+    return {"kind": f"learned residual joint torque (linear in each joint's state, per {config.scope}), not a named "
+                    "effect",
             "status": "ok", "gap_before": float(after.mean()), "gap_after": float(corrected.mean()),
             "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
             "p_value": p_value, "kept": bool(p_value < fit_config.significance and corrected.mean() < after.mean()),
