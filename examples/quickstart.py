@@ -12,9 +12,9 @@
 2. The policy is scored in physics (MuJoCo, `AnymalD-MuJoCo-v0`) with `rwm-gym score`'s tracking score (18 commands x
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
-3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON) with this
-   run's point on it (`curve.png`), the budget at which those seeds reached tracking 0.7, a GIF of the policy walking
-   (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
+3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
+   the same at 1024 envs) with this run's point on it (`curve.png`), the budget at which those seeds reached tracking
+   0.7, a GIF of the policy walking (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
 
 Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
 and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
@@ -39,7 +39,8 @@ def main() -> int:
     parser.add_argument("--timesteps", type=int, default=2_000_000,
                         help="PPO budget in imagined env steps (2 M fits 10 min on 2 CPU cores; 40 M walks: README)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--num-envs", type=int, default=4096, help="imagined robots stepped together")
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help="imagined robots stepped together (default: the recipe's, from the shipped policy's JSON)")
     parser.add_argument("--device", default="cpu", help="where PPO and the world model run (cuda on a GPU)")
     parser.add_argument("--score-seeds", type=int, default=3, help="physics episodes per scoring command")
     parser.add_argument("--score-steps", type=int, default=None, help="policy steps per scoring episode (default 20 s)")
@@ -55,7 +56,8 @@ def main() -> int:
 
     policies = assets_dir() / "policies"
     scratch = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
-    code = cli(["ppo", "--in", "imagination", *recipe(scratch), "--num-envs", str(args.num_envs),
+    num_envs = args.num_envs or scratch["ppo"]["num_envs"]
+    code = cli(["ppo", "--in", "imagination", *recipe(scratch), "--num-envs", str(num_envs),
                 "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"),
                 "--save-every", "5", "--snapshot-every", "20", "--device", args.device, "--threads", args.threads,
                 "--seed", str(args.seed), "--no-eval", "--out", str(args.out / "policy.zip")])
@@ -78,12 +80,19 @@ def main() -> int:
           f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")
     episodes = scratch["score"]["episodes"]
-    for run in scratch["seeds"]:
-        reached = next((r["timesteps"] for r in run["curve"] if r["tracking"] >= WALKING), None)
-        print(f"  the recipe's seed {run['seed']}: tracking {run['tracking']:.3f} with {run['falls']}/{episodes} falls "
-              f"at {run['imagined_steps'] / 1e6:.1f} M steps; tracking >= {WALKING} first at "
-              + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
-    print(f"curve: {plot_curve(scratch['seeds'], steps, result.tracking, floor.tracking, args.out / 'curve.png')}")
+    recipes = [(scratch["ppo"]["num_envs"], scratch["seeds"])]
+    recipes += [(other["num_envs"], other["seeds"]) for other in scratch.get("other_recipes", [])]
+    for envs, seeds in recipes:
+        for run in seeds:
+            curve = run["curve"]
+            reached = next((r["timesteps"] for r in curve if r["tracking"] >= WALKING), None)
+            peak = max(curve, key=lambda r: r["tracking"])
+            print(f"  the recipe at {envs} envs, seed {run['seed']}: tracking {run['tracking']:.3f} with "
+                  f"{run['falls']}/{episodes} falls at {run['imagined_steps'] / 1e6:.1f} M steps (best snapshot "
+                  f"{peak['tracking']:.3f} at {peak['timesteps'] / 1e6:.1f} M); tracking >= {WALKING} first at "
+                  + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
+    curve = plot_curve(scratch, num_envs, steps, result.tracking, floor.tracking, args.out / "curve.png")
+    print(f"curve: {curve}")
     if args.video:
         try:
             gif, _ = record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")
@@ -112,8 +121,10 @@ def recipe(scratch: dict) -> list[str]:
     return options + [f"--log-std-init={scratch['ppo']['log_std_init']}"]
 
 
-def plot_curve(seeds: list[dict], timesteps: int, tracking: float, floor: float, path: Path) -> Path:
-    """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point."""
+def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
+    """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point; the
+    legend names each curve's imagined envs and this run's, so a point from another setting is not read as the
+    recipe's."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -122,10 +133,13 @@ def plot_curve(seeds: list[dict], timesteps: int, tracking: float, floor: float,
     from rwm_gym.atomic import atomic_write
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for run in seeds:
-        ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], ".-",
-                label=f"seed {run['seed']} (shipped recipe)")
-    ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label="this run")
+    recipes = [(scratch["ppo"]["num_envs"], scratch["seeds"], ".-")]
+    recipes += [(other["num_envs"], other["seeds"], ":") for other in scratch.get("other_recipes", [])]
+    for envs, seeds, style in recipes:
+        for run in seeds:
+            ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], style,
+                    label=f"seed {run['seed']}, {envs} envs" + (" (shipped recipe)" if style == ".-" else ""))
+    ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
     ax.set_xlabel("imagined env steps (M)")
