@@ -80,9 +80,7 @@ def main() -> int:
           f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")
     episodes = scratch["score"]["episodes"]
-    recipes = [(scratch["ppo"]["num_envs"], scratch["seeds"])]
-    recipes += [(other["num_envs"], other["seeds"]) for other in scratch.get("other_recipes", [])]
-    for envs, seeds in recipes:
+    for envs, seeds in measured_recipes(scratch):
         for run in seeds:
             curve = run["curve"]
             reached = next((r["timesteps"] for r in curve if r["tracking"] >= WALKING), None)
@@ -121,6 +119,13 @@ def recipe(scratch: dict) -> list[str]:
     return options + [f"--log-std-init={scratch['ppo']['log_std_init']}"]
 
 
+def measured_recipes(scratch: dict) -> list[tuple[int, list[dict]]]:
+    """(imagined envs, seeds with their physics curves) of the shipped recipe first, then of the other settings
+    measured beside it (the JSON's `other_recipes`)."""
+    return [(scratch["ppo"]["num_envs"], scratch["seeds"])] + [
+        (other["num_envs"], other["seeds"]) for other in scratch.get("other_recipes", [])]
+
+
 def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
     """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point; the
     legend names each curve's imagined envs and this run's, so a point from another setting is not read as the
@@ -133,12 +138,10 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     from rwm_gym.atomic import atomic_write
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    recipes = [(scratch["ppo"]["num_envs"], scratch["seeds"], ".-")]
-    recipes += [(other["num_envs"], other["seeds"], ":") for other in scratch.get("other_recipes", [])]
-    for envs, seeds, style in recipes:
+    for i, (envs, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
-            ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], style,
-                    label=f"seed {run['seed']}, {envs} envs" + (" (shipped recipe)" if style == ".-" else ""))
+            ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
+                    ":" if i else ".-", label=f"seed {run['seed']}, {envs} envs" + ("" if i else " (shipped recipe)"))
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
