@@ -32,6 +32,7 @@ from safetensors.torch import save_file
 from scipy import optimize
 
 from rwm_gym.atomic import atomic_write
+from rwm_gym.gap.fit import BLOW_UP_RESIDUAL
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.gap.scope import joint_groups
 from rwm_gym.physics.params import PhysicsParams
@@ -41,8 +42,6 @@ VERSION = 2
 FEATURES: tuple[tuple[str, str], ...] = (("deflection", "N·m/rad"), ("position_error", "N·m/rad"),
                                          ("velocity", "N·m·s/rad"), ("offset", "N·m"))
 """The torque's terms, in the order of `joint_features`, with the unit of each weight."""
-BLOW_UP_RESIDUAL = 1e3
-"""Residual of every channel at weights where the simulation blows up (the least-squares search backs off)."""
 
 
 @dataclass(frozen=True)
