@@ -11,6 +11,7 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import rwm_gym  # noqa: F401
 from rwm_gym.data.collect import collect
+from rwm_gym.imagination.core import tilt_degrees
 from rwm_gym.imagination.env import ImaginedEnv
 from rwm_gym.imagination.reset_data import make_reset_data
 from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
@@ -161,6 +162,28 @@ def test_the_penalty_charges_only_disagreement_above_the_floor(checkpoint):
     charged, _, _ = _first_step(checkpoint, uncertainty_penalty=10.0, uncertainty_floor=floor)
     expected = plain - 10.0 * np.maximum(u - floor, 0.0) * load_spec("anymal_d").policy_dt
     np.testing.assert_allclose(charged, expected, atol=1e-6)
+
+
+def test_tilt_degrees_is_the_angle_from_upright():
+    gravity = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2.0], [0.5, 0.0, -0.5]])
+    np.testing.assert_allclose(tilt_degrees(gravity), [0.0, 90.0, 180.0, 45.0], atol=1e-9)
+
+
+def test_fall_tilt_ends_episodes_where_the_predicted_base_tips_over(checkpoint):
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=4)
+    venv.seed(0)
+    venv.reset()
+    venv.step(np.zeros((4, 12), dtype=np.float32))
+    gravity = venv.core.state[:, load_spec("anymal_d").state_slices["projected_gravity"]]
+    tilt = tilt_degrees(gravity)  # the first step's predicted tilt, the same for the same seed
+    threshold = float(np.median(tilt))
+    _, dones, infos = _first_step(checkpoint, fall_tilt=threshold)
+    tipped = np.array([info["fall_tilt"] for info in infos])
+    np.testing.assert_array_equal(tipped, tilt > threshold)
+    assert tipped.any() and (~tipped).any() and dones[tipped].all()
+    assert not any(info["TimeLimit.truncated"] for info, t in zip(infos, tipped) if t)  # no bootstrap
+    _, _, untouched = _first_step(checkpoint)
+    assert not any(info["fall_tilt"] for info in untouched)  # off by default
 
 
 def test_the_halt_ends_episodes_where_the_ensemble_disagrees(checkpoint):

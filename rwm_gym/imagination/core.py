@@ -58,6 +58,11 @@ class ImaginationOptions:
     uncertainty_halt: float = 0.0
     """End an episode (terminated, no bootstrap) where u exceeds this (0: never): MOReL's halt, so a policy cannot
     collect reward in states the model does not know."""
+    fall_tilt: float = 0.0
+    """End an episode (terminated, no bootstrap) where the predicted base tilts more than this many degrees from
+    upright (0: never; needs a projected_gravity state group). The model's termination head fires on predicted base
+    contact, late or never, while its own predicted tilt already shows a fall: the RWM-AnymalD physics teacher stays
+    within 9 degrees, and in physics no episode past 30 degrees recovers (benchmarks/RESULTS.md)."""
     random_first_episode_length: bool = False
     """Start each env's first episode at a random elapsed step in [0, episode_steps), drawn from its own generator
     (rsl_rl's `init_at_random_ep_len`): without it, N envs with an equal time limit all restart on the same step, and
@@ -76,6 +81,13 @@ class ImaginationOptions:
     warm_up_cache_mb: float = 512.0
     """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
     reset); models whose warm-up reads the ensemble member always warm up."""
+
+
+def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
+    """(N,) angle between the base's z axis and up, from the gravity direction in the base frame (N, 3)."""
+    g = np.asarray(projected_gravity, dtype=np.float64)
+    cos = -g[:, 2] / np.maximum(np.linalg.norm(g, axis=1), 1e-9)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class ImaginedCore:
@@ -108,6 +120,9 @@ class ImaginedCore:
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
         self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
                                     reward_fn=reward_fn, termination_fn=termination_fn)
+        if self.options.fall_tilt > 0 and "projected_gravity" not in self.spec.state_slices:
+            raise ValueError(f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which "
+                             f"{self.spec.name} has not")
         if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
             raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
                              f"{self.spec.name} has not")
@@ -232,12 +247,16 @@ class ImaginedCore:
         if self.options.uncertainty_penalty > 0:
             excess = np.maximum(self.uncertainty - self.options.uncertainty_floor, 0.0)
             reward = reward - self.options.uncertainty_penalty * excess * self.spec.policy_dt
+        tipped = np.zeros(self.num_envs, dtype=bool)
+        if self.options.fall_tilt > 0:
+            tipped = tilt_degrees(next_state[:, self.spec.state_slices["projected_gravity"]]) > self.options.fall_tilt
+            terminated |= tipped
         halted = np.zeros(self.num_envs, dtype=bool)
         if self.options.uncertainty_halt > 0:
             halted = self.uncertainty > self.options.uncertainty_halt
             terminated |= halted
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted,
+        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted, "fall_tilt": tipped,
                 **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
                 **{f"reward/{k}": v for k, v in terms.items()}}
 

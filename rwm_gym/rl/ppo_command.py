@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="disagreement the penalty leaves free (the model's level on its own data, ~0.02)")
     parser.add_argument("--uncertainty-halt", type=float, default=0.0,
                         help="end an imagined episode where the disagreement exceeds this (0: never; MOReL's halt)")
+    parser.add_argument("--fall-tilt", type=float, default=0.0,
+                        help="end an imagined episode where the predicted base tilts past this many degrees (0: "
+                             "never; the model's termination head alone)")
     parser.add_argument("--random-first-episode-length", action="store_true",
                         help="start each imagined env's first episode at a random step of its time limit, so restarts "
                              "spread over time (rsl_rl's init_at_random_ep_len)")
@@ -100,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
     imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
-                           "random_first_episode_length")
+                           "fall_tilt", "random_first_episode_length")
     imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
     if imagined and args.where != "imagination":
         raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
