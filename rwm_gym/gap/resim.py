@@ -8,11 +8,13 @@ state that is not in qpos/qvel, such as the actuator's delay buffer, holds the m
 A candidate parameter can make MuJoCo's integration blow up; MuJoCo then counts a warning in `mjData.warning`, prints
 it once and resets the simulation, which would pass unnoticed as a plausible state. `rollout` reads the batch's warning
 counters (and checks the states are finite) and raises `SimulationDiverged` with the reason, so the fit can reject the
-parameters and say why.
+parameters and say why; MuJoCo's own print is held back meanwhile (the reason carries it).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -33,6 +35,19 @@ DIVERGENCE_WARNINGS: dict[int, str] = {
     int(mujoco.mjtWarning.mjWARN_BADCTRL): "Nan, Inf or huge value in CTRL",
 }
 """MuJoCo warnings that mean the simulation blew up (and was reset by MuJoCo)."""
+
+
+@contextmanager
+def held_warnings() -> Iterator[list[str]]:
+    """MuJoCo's warning messages of the block, collected instead of printed to stdout and MUJOCO_LOG.TXT (the
+    warning counters in mjData count as before)."""
+    messages: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(messages.append)
+    try:
+        yield messages
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 class SimulationDiverged(RuntimeError):
@@ -162,22 +177,23 @@ class Resimulator:
 
         sim.reset(np.arange(n), keyframe, windows.qpos[:, 0], windows.qvel[:, 0])
         warnings_before = np.array(sim.batch.warning[:, :, 1])
-        for i in range(k):
-            if i > 0:
-                qpos[:], qvel[:] = windows.qpos[:, i], windows.qvel[:, i]
-                sim.batch.forward()
-            step(windows.actions[:, i])
-        if k > 0:
-            qpos[:], qvel[:] = windows.qpos[:, k], windows.qvel[:, k]
-            sim.batch.forward()
         out = {"state": np.empty((n, horizon, spec.state_dim)), "qpos": np.empty((n, horizon, model.nq)),
                "qvel": np.empty((n, horizon, model.nv)), "joint_torque": np.empty((n, horizon, spec.action_dim))}
-        for h in range(horizon):
-            step(windows.actions[:, k + h])
-            arrays = sim.arrays()
-            out["state"][:, h] = measure(layout, spec, **arrays).state
-            out["qpos"][:, h], out["qvel"][:, h] = arrays["qpos"], arrays["qvel"]
-            out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]
+        with held_warnings():
+            for i in range(k):
+                if i > 0:
+                    qpos[:], qvel[:] = windows.qpos[:, i], windows.qvel[:, i]
+                    sim.batch.forward()
+                step(windows.actions[:, i])
+            if k > 0:
+                qpos[:], qvel[:] = windows.qpos[:, k], windows.qvel[:, k]
+                sim.batch.forward()
+            for h in range(horizon):
+                step(windows.actions[:, k + h])
+                arrays = sim.arrays()
+                out["state"][:, h] = measure(layout, spec, **arrays).state
+                out["qpos"][:, h], out["qvel"][:, h] = arrays["qpos"], arrays["qvel"]
+                out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]
         check_diverged(np.array(sim.batch.warning[:, :, 1]) - warnings_before, out["state"])
         return out
 
