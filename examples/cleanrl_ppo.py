@@ -54,6 +54,8 @@ class Args:
     """Disagreement left free by the penalty."""
     uncertainty_halt: float = 0.0
     """End an imagined episode (terminated) where the disagreement exceeds this; 0: never."""
+    fall_tilt: float = 0.0
+    """End an imagined episode (terminated) where the predicted base tilts past this many degrees; 0: never."""
     positive_reward_only: bool = False
     """Clip every step's reward at 0 from below (legged_gym's clip): with negative steps PPO learns to end episodes."""
     log_std_init: float = 0.0
@@ -121,7 +123,7 @@ def main(args: Args) -> dict:
     if args.env_id.startswith("RWM-"):
         kwargs = {"checkpoint": args.checkpoint, "episode_steps": args.episode_steps,
                   "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
-                  "uncertainty_halt": args.uncertainty_halt}
+                  "uncertainty_halt": args.uncertainty_halt, "fall_tilt": args.fall_tilt}
     envs = gym.make_vec(args.env_id, num_envs=args.num_envs, vectorization_mode="vector_entry_point", **kwargs)
     n, obs_dim = args.num_envs, envs.single_observation_space.shape[0]
     act_dim = envs.single_action_space.shape[0]

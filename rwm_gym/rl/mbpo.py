@@ -51,6 +51,9 @@ class MBPOConfig:
     """Disagreement the penalty leaves free (`ImaginationOptions.uncertainty_floor`)."""
     uncertainty_halt: float = 0.0
     """End an imagined episode where the disagreement exceeds this (0: never; `ImaginationOptions.uncertainty_halt`)."""
+    fall_tilt: float = 0.0
+    """End an imagined episode where the predicted base tilts past this many degrees (0: never;
+    `ImaginationOptions.fall_tilt`)."""
     random_first_episode_length: bool = False
     """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
     collect_episodes: int = 32
@@ -117,7 +120,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     ppo_config = PPOConfig(num_envs=config.num_envs)
     env_kwargs = {"episode_steps": config.imagined_episode_steps,
                   "uncertainty_penalty": config.uncertainty_penalty, "uncertainty_floor": config.uncertainty_floor,
-                  "uncertainty_halt": config.uncertainty_halt,
+                  "uncertainty_halt": config.uncertainty_halt, "fall_tilt": config.fall_tilt,
                   "random_first_episode_length": config.random_first_episode_length}
 
     def model_path(k: int) -> Path:
