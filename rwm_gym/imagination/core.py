@@ -256,7 +256,8 @@ class ImaginedCore:
             halted = self.uncertainty > self.options.uncertainty_halt
             terminated |= halted
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted, "fall_tilt": tipped,
+        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted,
+                "fall_tilt": tipped,
                 **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
                 **{f"reward/{k}": v for k, v in terms.items()}}
 
