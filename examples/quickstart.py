@@ -80,12 +80,12 @@ def main() -> int:
           f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")
     episodes = scratch["score"]["episodes"]
-    for envs, seeds in measured_recipes(scratch):
+    for setting, seeds in measured_recipes(scratch):
         for run in seeds:
             curve = run["curve"]
             reached = next((r["timesteps"] for r in curve if r["tracking"] >= WALKING), None)
             peak = max(curve, key=lambda r: r["tracking"])
-            print(f"  the recipe at {envs} envs, seed {run['seed']}: tracking {run['tracking']:.3f} with "
+            print(f"  the recipe at {setting}, seed {run['seed']}: tracking {run['tracking']:.3f} with "
                   f"{run['falls']}/{episodes} falls at {run['imagined_steps'] / 1e6:.1f} M steps (best snapshot "
                   f"{peak['tracking']:.3f} at {peak['timesteps'] / 1e6:.1f} M); tracking >= {WALKING} first at "
                   + (f"{reached / 1e6:.1f} M steps" if reached is not None else "no snapshot"))
@@ -119,11 +119,13 @@ def recipe(scratch: dict) -> list[str]:
     return options + [f"--log-std-init={scratch['ppo']['log_std_init']}"]
 
 
-def measured_recipes(scratch: dict) -> list[tuple[int, list[dict]]]:
-    """(imagined envs, seeds with their physics curves) of the shipped recipe first, then of the other settings
-    measured beside it (the JSON's `other_recipes`)."""
-    return [(scratch["ppo"]["num_envs"], scratch["seeds"])] + [
-        (other["num_envs"], other["seeds"]) for other in scratch.get("other_recipes", [])]
+def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
+    """(setting, seeds with their physics curves) of the shipped recipe first, then of the other settings measured
+    beside it (the JSON's `other_recipes`); a setting names the imagined envs and the fall tilt where one was set."""
+    shipped = (scratch["ppo"]["num_envs"], scratch["env"]["imagination"].get("fall_tilt"), scratch["seeds"])
+    others = [(other["num_envs"], other.get("fall_tilt"), other["seeds"]) for other in scratch.get("other_recipes", [])]
+    return [(f"{envs} envs" + (f", fall tilt {tilt:g} deg" if tilt else ""), seeds)
+            for envs, tilt, seeds in [shipped, *others]]
 
 
 def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
@@ -138,10 +140,10 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     from rwm_gym.atomic import atomic_write
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for i, (envs, seeds) in enumerate(measured_recipes(scratch)):
+    for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
             ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
-                    ":" if i else ".-", label=f"seed {run['seed']}, {envs} envs" + ("" if i else " (shipped recipe)"))
+                    ":" if i else ".-", label=f"seed {run['seed']}, {setting}" + ("" if i else " (shipped recipe)"))
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")

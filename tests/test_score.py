@@ -130,9 +130,11 @@ def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
 
 def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     """The from-scratch policy's JSON records every seed of its recipe (the shipped one is the best by physics score,
-    each curve ends at that seed's final score) and of the other measured recipes (each a different number of imagined
-    envs), and its world model ships with the reset windows it names."""
+    each curve ends at that seed's final score) and of the other measured recipes (each a different setting, and the
+    quick start tells them apart), and its world model ships with the reset windows it names."""
     import json
+
+    from script_loader import EXAMPLES, load_script
 
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.resources import assets_dir, shipped_file
@@ -142,7 +144,8 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     assert len(seeds) >= 3 and meta["seed"] == max(seeds, key=lambda s: seeds[s]["tracking"])
     assert seeds[meta["seed"]]["tracking"] == meta["score"]["tracking"]
     others = meta.get("other_recipes", [])
-    assert len({meta["ppo"]["num_envs"], *(other["num_envs"] for other in others)}) == 1 + len(others)
+    settings = [setting for setting, _ in load_script(EXAMPLES / "quickstart.py", "example_quickstart").measured_recipes(meta)]
+    assert len(set(settings)) == len(settings) == 1 + len(others)  # each curve's setting is told apart
     for run in [*seeds.values(), *(run for other in others for run in other["seeds"])]:
         assert run["curve"][-1]["timesteps"] == run["imagined_steps"]
         assert run["curve"][-1]["falls"] == run["falls"]
