@@ -13,8 +13,9 @@
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
 3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
-   the same at 1024 envs) with this run's point on it (`curve.png`), the budget at which those seeds reached tracking
-   0.7, a GIF of the policy walking (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
+   the same at 1024 envs; dashed: 1024 envs with `--fall-tilt 30`) with this run's point on it (`curve.png`), the
+   budget at which those seeds reached tracking 0.7, a GIF of the policy walking (`--video`, needs offscreen GL:
+   `MUJOCO_GL=egl`) and a one-line verdict.
 
 Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
 and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
@@ -143,14 +144,15 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
             ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
-                    ":" if i else ".-", label=f"seed {run['seed']}, {setting}" + ("" if i else " (shipped recipe)"))
+                    (".-", ":", "--")[min(i, 2)], label=f"seed {run['seed']}, {setting}"
+                    + ("" if i else " (shipped recipe)"))
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
     ax.set_xlabel("imagined env steps (M)")
     ax.set_ylabel("tracking score in physics")
     ax.set_title("PPO from scratch in the shipped MBPO world model, ANYmal D")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
