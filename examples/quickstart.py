@@ -131,7 +131,7 @@ def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
 
 def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
     """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point; the
-    legend names each curve's imagined envs and this run's, so a point from another setting is not read as the
+    legend names each curve's setting and this run's imagined envs, so a point from another setting is not read as the
     recipe's."""
     import matplotlib
 

@@ -556,7 +556,7 @@ def test_learned_torque_is_the_groups_linear_law_and_round_trips(tmp_path):
     weights = np.zeros((3, 4))
     weights[1] = [-20.0, 0.0, -1.5, 2.0]  # HFE: a spring, a damper and an offset
     default = np.asarray(SPEC.actuator.default_pose)
-    correction = LinearResidualTorque(weights, membership, default)
+    correction = LinearResidualTorque(weights, membership, default, names)
     rng = np.random.default_rng(0)
     q, qd = default + rng.normal(0, 0.2, (5, 12)), rng.normal(0, 1.0, (5, 12))
     torque = correction.torque(q, qd, default)
@@ -564,7 +564,9 @@ def test_learned_torque_is_the_groups_linear_law_and_round_trips(tmp_path):
     np.testing.assert_allclose(torque[:, hfe], -20.0 * (q - default)[:, hfe] - 1.5 * qd[:, hfe] + 2.0)
     assert not torque[:, ~hfe].any()
     save_correction(correction, tmp_path / "c.safetensors", LearnedCorrectionConfig(), SPEC)
-    np.testing.assert_array_equal(load_correction(tmp_path / "c.safetensors", SPEC).torque(q, qd, default), torque)
+    loaded = load_correction(tmp_path / "c.safetensors", SPEC)
+    np.testing.assert_array_equal(loaded.torque(q, qd, default), torque)
+    assert loaded.groups == names
     other = dataclasses.replace(SPEC, actuator=dataclasses.replace(SPEC.actuator,
                                                                    joints=tuple(reversed(SPEC.actuator.joints))))
     with pytest.raises(ValueError, match="joints differ"):

@@ -144,7 +144,8 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     assert len(seeds) >= 3 and meta["seed"] == max(seeds, key=lambda s: seeds[s]["tracking"])
     assert seeds[meta["seed"]]["tracking"] == meta["score"]["tracking"]
     others = meta.get("other_recipes", [])
-    settings = [setting for setting, _ in load_script(EXAMPLES / "quickstart.py", "example_quickstart").measured_recipes(meta)]
+    quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
+    settings = [setting for setting, _ in quickstart.measured_recipes(meta)]
     assert len(set(settings)) == len(settings) == 1 + len(others)  # each curve's setting is told apart
     for run in [*seeds.values(), *(run for other in others for run in other["seeds"])]:
         assert run["curve"][-1]["timesteps"] == run["imagined_steps"]

@@ -1,4 +1,4 @@
-"""A learned correction for what no effect names: a residual joint torque, linear in each joint's state, per joint group.
+"""A learned correction for what no effect names: a residual joint torque, linear in each joint's state, per group.
 
 When the gap stays significantly above the noise floor after the named effects (or nothing is named), the rest is
 learned, not named: every actuated joint j of group g gets the torque
@@ -10,13 +10,13 @@ names as in `gap.scope`), added in re-simulation as `qfrc_applied` held over eac
 (`resim.TorqueCorrection`). Its weights read as physics: N·m per rad of deflection from the default pose (a spring),
 per rad of position error (a gain), per rad/s (a damper), and N·m (an offset).
 
-The weights are fitted like the named effects: least squares of the normalised state error of re-simulated
-`FitConfig.fit_horizon`-step windows of the fitting episodes (the effects' own windows), through the simulator (`scipy.optimize.least_squares`), and judged
-by the held-out gap. Why this form and not a network fitted to one-step misses (the form until the sixteenth
-session): on excitation data one policy step of the grid's hidden hip spring moves the state by 0.4x the sensor noise
-(rms 0.033 against 0.082 in state-std units), and the simulator's response to small probe torques is far from linear
-(contacts stick): the sum of 1 N·m probes predicted the spring's one-step effect with correlation 0.31, and the
-network explained 3 % of the held-out gap. Over 5 steps the effect rises above the noise, and the twelve weights
+The weights are fitted like the named effects: least squares (`scipy.optimize.least_squares`) of the normalised state
+error of re-simulated `FitConfig.fit_horizon`-step windows of the fitting episodes (the effects' own windows), through
+the simulator, and judged by the held-out gap. Why this form and not a network fitted to one-step misses (the form until
+the sixteenth session): on excitation data one policy step of the grid's hidden hip spring moves the state by 0.4x the
+sensor noise (rms 0.033 against 0.082 in state-std units), and the simulator's response to small probe torques is far
+from linear (contacts stick): the sum of 1 N·m probes predicted the spring's one-step effect with correlation 0.31, and
+the network explained 3 % of the held-out gap. Over 5 steps the effect rises above the noise, and the twelve weights
 recover it: -22.3 N·m/rad for the true -20, 54 % of the held-out gap (the true spring itself: 57 %).
 """
 
@@ -73,10 +73,12 @@ def group_matrix(spec, scope: str) -> tuple[list[str], np.ndarray]:
 
 
 class LinearResidualTorque:
-    """The fitted torque as a `resim.TorqueCorrection`: weights (G, 4) per group, joints -> groups by `membership`."""
+    """The fitted torque as a `resim.TorqueCorrection`: weights (G, 4) per group named in `groups`, joints -> groups by
+    `membership` (A, G)."""
 
-    def __init__(self, weights: np.ndarray, membership: np.ndarray, default: np.ndarray):
+    def __init__(self, weights: np.ndarray, membership: np.ndarray, default: np.ndarray, groups: list[str]):
         self.weights, self.membership, self.default = np.asarray(weights), membership, default
+        self.groups = list(groups)
 
     def start(self, n: int) -> None:
         pass  # no history: the torque depends on the current joint state only
@@ -102,7 +104,7 @@ def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsPa
     rejected: list[str] = []
 
     def correction(x: np.ndarray) -> LinearResidualTorque:
-        return LinearResidualTorque(x.reshape(len(names), len(FEATURES)) * scales, membership, default)
+        return LinearResidualTorque(x.reshape(len(names), len(FEATURES)) * scales, membership, default, names)
 
     def residual(x: np.ndarray) -> np.ndarray:
         try:
@@ -128,9 +130,8 @@ def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsPa
 def save_correction(correction: LinearResidualTorque, path: Path, config: LearnedCorrectionConfig, spec) -> None:
     """safetensors weights (G, 4) and the joints' group matrix, with the format, config, joint and group names and
     the terms in the JSON metadata."""
-    names, _ = group_matrix(spec, config.scope)
     meta = {"format": FORMAT, "version": str(VERSION), "config": json.dumps(asdict(config)),
-            "joints": json.dumps(list(spec.actuator.joints)), "groups": json.dumps(names),
+            "joints": json.dumps(list(spec.actuator.joints)), "groups": json.dumps(correction.groups),
             "features": json.dumps([f"{term} ({unit})" for term, unit in FEATURES])}
     tensors = {"weights": torch.as_tensor(correction.weights, dtype=torch.float64).contiguous(),
                "membership": torch.as_tensor(correction.membership, dtype=torch.float64).contiguous()}
@@ -149,4 +150,4 @@ def load_correction(path: str | Path, spec) -> LinearResidualTorque:
         if json.loads(meta["joints"]) != list(spec.actuator.joints):
             raise ValueError(f"{path}: its joints differ from the task spec's {spec.name!r}")
         weights, membership = f.get_tensor("weights").numpy(), f.get_tensor("membership").numpy()
-    return LinearResidualTorque(weights, membership, np.asarray(spec.actuator.default_pose))
+    return LinearResidualTorque(weights, membership, np.asarray(spec.actuator.default_pose), json.loads(meta["groups"]))
