@@ -190,6 +190,44 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
         mbpo(data, tmp_path / "resumed", replace(config, model_lr=1e-3), **run)
 
 
+def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std(tiny_checkpoint, tmp_path,
+                                                                                   monkeypatch):
+    from rwm_gym.data.collect import collect
+    from rwm_gym.rl import ppo
+    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
+
+    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=40,
+                   progress=False)
+    seen = []
+    real_learn = ppo.learn
+
+    def learn(model, **kwargs):  # what PPO trains on: the env wrapper and the rewards it is given
+        rewards = []
+        venv = model.get_env()
+        step_wait = venv.step_wait
+
+        def record():
+            obs, reward, done, infos = step_wait()
+            rewards.append(reward.copy())
+            return obs, reward, done, infos
+
+        venv.step_wait = record
+        stats = real_learn(model, **kwargs)
+        seen.append((type(venv), np.concatenate(rewards)))
+        return stats
+
+    monkeypatch.setattr(ppo, "learn", learn)
+    config = MBPOConfig(iterations=1, ppo_timesteps=64, num_envs=8, imagined_episode_steps=20, collect_episodes=1,
+                        collect_steps=48, model_iterations=2, model_finetune=True, eval_seeds=1, eval_steps=10,
+                        positive_reward_only=True, log_std_init=-1.0)
+    report = mbpo(data, tmp_path / "mbpo", config, checkpoint=tiny_checkpoint, progress=False)
+    [(wrapper, rewards)] = seen
+    assert wrapper is ppo.PositiveReward and rewards.size and rewards.min() >= 0.0
+    assert report["ppo"]["positive_reward_only"] and report["ppo"]["log_std_init"] == -1.0
+    start = PPO.load(tmp_path / "mbpo" / "policy_0.zip")
+    assert np.allclose(start.policy.log_std.detach().numpy(), -1.0)
+
+
 def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
     from rwm_gym.rl.mbpo import MBPOConfig, _check_resume
 

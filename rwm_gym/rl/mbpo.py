@@ -56,6 +56,11 @@ class MBPOConfig:
     `ImaginationOptions.fall_tilt`)."""
     random_first_episode_length: bool = False
     """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
+    positive_reward_only: bool = False
+    """PPO sees each imagined step's reward clipped at 0 from below (`PPOConfig.positive_reward_only`); also for an
+    `init_policy`, whose zip does not carry it."""
+    log_std_init: float = 0.0
+    """Initial log std of a fresh policy (`PPOConfig.log_std_init`; an `init_policy` keeps its own)."""
     collect_episodes: int = 32
     """Physics episodes collected per iteration."""
     collect_steps: int = 250
@@ -106,7 +111,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     from rwm_gym.model.factory import model_config_for
     from rwm_gym.model.train import train
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
-    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.rl.ppo import PPOConfig, PositiveReward, learn, make_env, make_ppo, save_policy, warm_up_critic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,7 +122,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         _check_resume(report, config, report_path)
     starting = Dataset.load(data)
     spec = starting.spec()
-    ppo_config = PPOConfig(num_envs=config.num_envs)
+    ppo_config = PPOConfig(num_envs=config.num_envs, log_std_init=config.log_std_init,
+                           positive_reward_only=config.positive_reward_only)
     env_kwargs = {"episode_steps": config.imagined_episode_steps,
                   "uncertainty_penalty": config.uncertainty_penalty, "uncertainty_floor": config.uncertainty_floor,
                   "uncertainty_halt": config.uncertainty_halt, "fall_tilt": config.fall_tilt,
@@ -150,7 +156,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
                        env_kwargs={**env_kwargs, "reset_data": base})
         if init_policy is not None:
-            policy = PPO.load(init_policy, env=env, device=device)
+            policy = PPO.load(init_policy, env=PositiveReward(env) if config.positive_reward_only else env,
+                              device=device)
             if config.critic_warmup_steps:
                 warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
         else:
@@ -179,6 +186,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
             merge_datasets([base, *fresh_files], buffer)
         env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
                        seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
+        if config.positive_reward_only:
+            env = PositiveReward(env)
         policy = PPO.load(out / f"policy_{k - 1}.zip", env=env, device=device)  # the same path resumed or not
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
