@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rwm_gym.resources import assets_dir
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
+from rwm_gym.resources import assets_dir
 
 TEACHER = str(assets_dir() / "policies" / "anymal_d_ppo_physics.zip")
 
