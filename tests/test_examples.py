@@ -105,3 +105,30 @@ def test_rsl_rl_example_trains_in_imagination_and_scores_in_physics(tmp_path):
     assert result["imagined_steps"] == 4 * 24
     assert 0.0 <= result["tracking"] <= 1.0 and 0.0 <= result["floor"] <= 1.0
     assert (tmp_path / "model_0.pt").is_file()  # the runner's own checkpoint
+
+
+def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(tmp_path, monkeypatch, capsys):
+    """Each run's physics samples are its log's plus the `--prior` rows behind its start, as a fraction of the
+    shipped teacher's N_mf (its first curve point at tracking >= 0.80 with at most one fall)."""
+    import csv
+    import json
+
+    module = load_script(BENCHMARKS / "mbpo_samples.py", "bench_mbpo_samples")
+    assert module.n_mf(module.MODEL_FREE) == 32_243_712
+    run = tmp_path / "run"
+    run.mkdir()
+    log = [{"iteration": 0, "physics_samples": 1000, "tracking": 0.2, "falls": 0},
+           {"iteration": 1, "physics_samples": 3000, "tracking": 0.85, "falls": 2}]
+    (run / "mbpo.json").write_text(json.dumps({"log": log}))
+    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "500",
+                                      "--out", str(tmp_path / "fig")])
+    module.main()
+    rows = list(csv.DictReader((tmp_path / "fig.csv").open()))
+    assert [int(r["physics_samples"]) for r in rows] == [1500, 3500]
+    assert float(rows[1]["fraction_of_n_mf"]) == pytest.approx(3500 / 32_243_712)
+    assert (tmp_path / "fig.png").stat().st_size > 0
+    assert "best tracking 0.850 (2 falls) at iteration 1, 3,500 physics samples" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "1", "2",
+                                      "--out", str(tmp_path / "fig")])
+    with pytest.raises(SystemExit):
+        module.main()
