@@ -6,8 +6,8 @@
 `rwm-gym mbpo` counts the rows of its `--data` and of what it collects. A run that starts from a checkpoint or a
 policy made from other physics data has those rows behind it too: `--prior` adds them, per run, so the x axis is
 every physics sample the policy depends on. The model-free curve is the shipped physics PPO policy's
-(`assets/policies/anymal_d_ppo_physics_curve.csv`); N_mf is its samples when it first reached tracking 0.80. Writes OUT.png and OUT.csv
-(run, iteration, physics_samples, fraction_of_n_mf, tracking, falls).
+(`assets/policies/anymal_d_ppo_physics_curve.csv`); N_mf is its samples when it first reached tracking 0.80.
+Writes OUT.png and OUT.csv (run, iteration, physics_samples, fraction_of_n_mf, tracking, falls).
 """
 
 from __future__ import annotations
@@ -92,8 +92,9 @@ def main() -> None:
     print(f"N_mf {total:,}; wrote {png} and {table}")
     for label in labels:
         best = max((r for r in rows if r["run"] == label), key=lambda r: r["tracking"])
-        print(f"{label}: best tracking {best['tracking']:.3f} ({best['falls']} falls) at iteration {best['iteration']}, "
-              f"{best['physics_samples']:,} physics samples ({best['fraction_of_n_mf']:.1%} of N_mf)")
+        print(f"{label}: best tracking {best['tracking']:.3f} ({best['falls']} falls) at iteration "
+              f"{best['iteration']}, {best['physics_samples']:,} physics samples "
+              f"({best['fraction_of_n_mf']:.1%} of N_mf)")
 
 
 if __name__ == "__main__":

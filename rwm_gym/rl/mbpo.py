@@ -129,6 +129,9 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
                   "uncertainty_halt": config.uncertainty_halt, "fall_tilt": config.fall_tilt,
                   "random_first_episode_length": config.random_first_episode_length}
 
+    def trained_on(env):  # what a loaded policy learns from: the zip keeps PPO's settings, not the reward clip
+        return PositiveReward(env) if config.positive_reward_only else env
+
     def model_path(k: int) -> Path:
         return out / f"model_{k}.safetensors"
 
@@ -156,8 +159,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
                        env_kwargs={**env_kwargs, "reset_data": base})
         if init_policy is not None:
-            policy = PPO.load(init_policy, env=PositiveReward(env) if config.positive_reward_only else env,
-                              device=device)
+            policy = PPO.load(init_policy, env=trained_on(env), device=device)
             if config.critic_warmup_steps:
                 warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
         else:
@@ -186,9 +188,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
             merge_datasets([base, *fresh_files], buffer)
         env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
                        seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
-        if config.positive_reward_only:
-            env = PositiveReward(env)
-        policy = PPO.load(out / f"policy_{k - 1}.zip", env=env, device=device)  # the same path resumed or not
+        # the same path whether resumed or not
+        policy = PPO.load(out / f"policy_{k - 1}.zip", env=trained_on(env), device=device)
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)
