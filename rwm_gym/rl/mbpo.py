@@ -111,7 +111,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     from rwm_gym.model.factory import model_config_for
     from rwm_gym.model.train import train
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
-    from rwm_gym.rl.ppo import PPOConfig, PositiveReward, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.rl.ppo import PositiveReward, PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
