@@ -1,4 +1,4 @@
-"""The MBPO loop's base buffer: a physics mix of the ANYmal D task's ordinary motions (about 200 k rows, ~2 min).
+"""The MBPO loop's base buffer: a physics mix of the ANYmal D task's ordinary motions (about 200 k rows, ~1 min).
 
     python examples/make_base_mix.py --out data/base
 
@@ -34,7 +34,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("data/base"))
     parser.add_argument("--num-envs", type=int, default=16)
-    parser.add_argument("--overwrite", action="store_true", help="replace existing files in --out")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT/mix.h5 and its parts")
     args = parser.parse_args()
     mix = args.out / "mix.h5"
     if mix.exists() and not args.overwrite:
@@ -43,9 +43,15 @@ def main() -> None:
     parts = []
     for name, policy, episodes, max_steps, noise, seed in PARTS:
         part = args.out / f"{name}.h5"
-        if not part.exists() or args.overwrite:  # a part finished before an interruption is kept
+        finished = False
+        if part.exists() and not args.overwrite:  # this script's part from before an interruption, or a user's file?
+            found = Dataset.load(part)
+            if found.info.seed != seed:
+                raise SystemExit(f"{part} exists and is not this script's {name} part (pass --overwrite)")
+            finished = found.info.complete and found.num_episodes == episodes  # one cut short is collected again
+        if not finished:
             collect("AnymalD-MuJoCo-v0", policy, episodes, part, seed=seed, num_envs=args.num_envs,
-                    action_noise=noise, max_steps=max_steps, overwrite=args.overwrite)
+                    action_noise=noise, max_steps=max_steps, overwrite=True)
         parts.append(part)
         print(f"{name}: {Dataset.load(part).num_steps} rows")
     merge_datasets(parts, mix)
