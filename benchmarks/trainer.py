@@ -56,6 +56,8 @@ class Options:
     """Rows between branch starts of the new arm."""
     new_lr: float = 1e-3
     """Learning rate of the new arm (the old arm keeps the paper's 1e-3)."""
+    new_warmup_gradients: bool = True
+    """Backpropagate the new arm through its teacher-forced warm-up (off: through its forecasts only)."""
     curve_arms: str = "old,new"
     """Comma-separated arms whose validation curves are trained."""
     threads: str = "1,2"
@@ -77,7 +79,7 @@ def arms(options: Options) -> dict[str, TrainConfig]:
     return {"old": base,
             "new": TrainConfig(**{**base.to_dict(), "batch_size": options.new_batch,
                                   "branches": options.new_branches, "branch_stride": options.new_stride,
-                                  "lr": options.new_lr})}
+                                  "lr": options.new_lr, "warmup_gradients": options.new_warmup_gradients})}
 
 
 def throughput(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: Options, threads: int) -> dict:

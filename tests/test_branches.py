@@ -4,6 +4,7 @@ a run with branches resumes to the same weights."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -106,6 +107,43 @@ def test_branches_feed_back_their_own_samples_with_gradients(kind: str, monkeypa
         assert not torch.allclose(state, true_next[:, k - 1])
     prediction.state_mean[:, -1].sum().backward()
     assert model.heads.state.hidden.weight.grad.abs().sum() > 0
+
+
+TRUNCATABLE = [k for k in LEARNED if k != "rssm"]
+
+
+@pytest.mark.parametrize("kind", TRUNCATABLE)
+def test_without_warmup_gradients_the_loss_is_the_same_and_the_warmup_gets_none(kind: str) -> None:
+    """`warmup_gradients` off changes the gradients only: the same loss (first steps recomputed instead of read from
+    the pass), no gradient into the rows before the first branch's last true row, and gradients there when on."""
+    model = tiny(kind, ensemble=2)
+    full = TrainConfig(history=5, forecast=3, branches=3, branch_stride=2, batch_size=6)
+    truncated = TrainConfig(**{**full.to_dict(), "warmup_gradients": False})
+    window, member = random_window(2, full.segment_rows), torch.tensor([1, 0])
+    first = int(branch_starts(full)[0])
+    losses, warmup_grads = [], []
+    for config in (full, truncated):
+        states = window.states.clone().requires_grad_()
+        torch.manual_seed(5)
+        loss, _ = segment_loss(model, dataclasses.replace(window, states=states), config, 2.0, member)
+        loss.backward()
+        losses.append(loss.detach())
+        warmup_grads.append(states.grad[:, :first].abs().sum())
+        assert states.grad[:, first].abs().sum() > 0  # each branch's last true row still feeds its first step
+    torch.testing.assert_close(losses[1], losses[0], rtol=1e-5, atol=0)
+    assert warmup_grads[0] > 0 and warmup_grads[1] == 0
+
+
+def test_without_warmup_gradients_a_model_whose_warmup_has_its_own_loss_is_refused() -> None:
+    config = TrainConfig(history=4, forecast=2, warmup_gradients=False)
+    window = random_window(2, config.segment_rows)
+    with pytest.raises(ValueError, match="rssm"):
+        segment_loss(tiny("rssm"), window, config, 2.0)
+
+
+def test_configs_written_before_warmup_gradients_load_with_it_on() -> None:
+    legacy = {k: v for k, v in TrainConfig().to_dict().items() if k != "warmup_gradients"}
+    assert TrainConfig.from_dict(legacy).warmup_gradients is True
 
 
 def test_forecasts_past_an_episodes_end_do_not_count() -> None:

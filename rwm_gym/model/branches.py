@@ -7,8 +7,10 @@ branch_stride as its last true row (its history is rows 0..j_i, at least H of th
 j_i + F feeding back a reparameterised sample of its own prediction (mean + std * eps, gradients through it) with the
 true actions, exactly like `WorldModel.forecast`. All branches step together, one batched call per forecast step.
 
-Nothing is truncated: a branch's gradient flows through its forecast into the hidden state it started from and on
-through the teacher-forced pass, as in the paper's window. What differs: branch histories are longer than H (up to
+By default nothing is truncated: a branch's gradient flows through its forecast into the hidden state it started from
+and on through the teacher-forced pass, as in the paper's window. With `TrainConfig.warmup_gradients` off, the pass
+runs without autograd and every branch steps from its detached hidden state (its first step recomputed with
+gradients): truncated backpropagation at the forecast's start, the warm-up's backward pass saved. What differs: branch histories are longer than H (up to
 H + (branches - 1) * branch_stride rows) and the branches of a segment share data. When the model's predictions on
 known rows are forecasts (`hidden_trajectory` returns them: RWM, MLP), a branch's first step is read from the
 teacher-forced pass instead of being recomputed, so it costs F - 1 batched steps. With one branch the numbers equal
@@ -48,15 +50,19 @@ def branched_forecast(model: WorldModel, states: torch.Tensor, actions: torch.Te
     b * branches + i is branch i of segment b; for latent-variable models, the teacher-forced predictions (B, T, ...)
     of rows 1..T with their KL, for their own loss, else None).
     """
+    if not config.warmup_gradients and model.filters_with_next_state:
+        raise ValueError(f"warmup_gradients off does not apply to {model.config.kind}: its teacher-forced pass carries "
+                         "a loss of its own")
     starts = branch_starts(config).to(states.device)
     last = int(starts[-1])
     initial = model.initial_hidden(states.shape[0], states.device)
-    # The pass observes rows 0..last (first steps read from it) or 0..last - 1 (first steps recomputed): try the
-    # longer one only when the model can say its predictions are forecasts.
-    reuse = not model.filters_with_next_state
-    observed = last + 1 if reuse else last
-    trajectory, predictions = model.hidden_trajectory(initial, states[:, :observed], actions[:, :observed], member,
-                                                      next_states=states[:, 1:observed + 1])
+    # The pass observes rows 0..last or, for a model that filters with the next state, 0..last - 1. First steps are
+    # read from it where its predictions are forecasts that carry gradients, else recomputed.
+    observed = last if model.filters_with_next_state else last + 1
+    reuse = not model.filters_with_next_state and config.warmup_gradients
+    with torch.set_grad_enabled(torch.is_grad_enabled() and config.warmup_gradients):
+        trajectory, predictions = model.hidden_trajectory(initial, states[:, :observed], actions[:, :observed],
+                                                          member, next_states=states[:, 1:observed + 1])
     reuse = reuse and predictions is not None
     # hidden after rows 0..t sits at index t + 1 of `before` (index 0: the initial state)
     before = tuple(torch.cat([h0.unsqueeze(1), h], dim=1) for h0, h in zip(initial, trajectory, strict=True))

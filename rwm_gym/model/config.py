@@ -95,6 +95,10 @@ class TrainConfig:
     forecasts from its hidden states, batched (1: one window of H + F rows, the paper's recipe)."""
     branch_stride: int = 1
     """Rows between the starts of consecutive branches of a segment."""
+    warmup_gradients: bool = True
+    """Backpropagate through the teacher-forced warm-up, as the paper does. Off, the warm-up runs without autograd
+    and gradients flow through the F forecast steps only (truncated at each forecast's start): 1.7-2x the windows
+    per second (benchmarks/trainer.py). Not for models whose warm-up carries a loss of its own (rssm's KL)."""
     lr: float = 1e-3
     """Adam learning rate at the start of the schedule."""
     weight_decay: float = 0.0
@@ -167,7 +171,7 @@ class TrainConfig:
         return cls(**{**_TRAIN_LEGACY, **_checked(cls, data)})
 
 
-_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1}
+_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1, "warmup_gradients": True}
 """TrainConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 
