@@ -186,6 +186,19 @@ def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name
                            "corrected", "plots"}
 
 
+def test_a_robot_that_collapses_within_a_second_is_scored_on_the_steps_it_has(tmp_path):
+    """Torque limit at 8 N·m (10 % of the data sheet's): every episode ends in a fall after about 20 steps, shorter
+    than the last gap horizon (25). The held-out windows are cut to the shortest held-out episode, not refused."""
+    data = make_measured({"torque_limit": [8.0]}, 9, tmp_path / "m.h5", max_steps=150, progress=False)
+    assert max(Dataset.load(data).episode_lengths) < 2 + 1 + 25
+    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    assert report["gap_horizons"][:2] == [1, 5] and 5 < report["gap_horizons"][2] < 25
+    assert list(report["gap_before_per_horizon"]) == [str(h) for h in report["gap_horizons"]]
+    assert report["effect"] == "torque_limit", report["reason"]
+    assert abs(report["parameters"]["torque_limit"] - 8.0) <= 0.25 * (80.0 - 8.0)
+    assert report["gap_after"] <= 0.3 * report["gap_before"]
+
+
 def test_backlash_workflow_and_world_model_rows(tmp_path):
     """Backlash hidden: named, fitted, written as an env option; then the world-model rows with a tiny model."""
     report = _hidden_and_check(tmp_path, "backlash", episodes=EPISODES["backlash"],

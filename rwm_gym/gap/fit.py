@@ -36,6 +36,14 @@ GAP_HORIZONS: tuple[int, ...] = (1, 5, 25)
 """Steps ahead (policy steps) at which the gap is measured."""
 
 
+def gap_horizons(horizon: int) -> tuple[int, ...]:
+    """The steps at which windows of `horizon` steps are scored: `GAP_HORIZONS`, cut at the windows' horizon where
+    the episodes are too short for the last (a robot that falls within a second), with the horizon itself last."""
+    if horizon >= GAP_HORIZONS[-1]:
+        return GAP_HORIZONS
+    return tuple(h for h in GAP_HORIZONS if h < horizon) + (horizon,)
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """How candidates are fitted and judged."""
@@ -114,9 +122,9 @@ class CandidateFit:
 
 
 def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:
-    """(W, len(GAP_HORIZONS)) normalised MSE over channels at each horizon step."""
+    """(W, len(gap_horizons(windows.horizon))) normalised MSE over channels at each horizon step."""
     res = normalised_residual(spec, simulated, windows.target)
-    return np.stack([(res[:, h - 1] ** 2).mean(-1) for h in GAP_HORIZONS], axis=1)
+    return np.stack([(res[:, h - 1] ** 2).mean(-1) for h in gap_horizons(res.shape[1])], axis=1)
 
 
 BLOW_UP_RESIDUAL = 1e3
@@ -253,7 +261,7 @@ def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Wi
         fit.gap, fit.gap_mean, fit.explained_fraction, fit.score, fit.p_value = {}, float("nan"), float("nan"), \
             -float("inf"), 1.0
         return before
-    fit.gap = {h: float(v) for h, v in zip(GAP_HORIZONS, after.mean(0))}
+    fit.gap = {h: float(v) for h, v in zip(gap_horizons(heldout.horizon), after.mean(0))}
     fit.gap_mean = float(after.mean())
     fit.explained_fraction = 1.0 - fit.gap_mean / float(before.mean())
     remaining = (fit.gap_mean / float(before.mean())) * (1.0 + config.penalty_per_parameter * (len(fit.values) - 1))
@@ -320,7 +328,7 @@ def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
 def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams,
             before: np.ndarray, config: FitConfig, progress: bool = True) -> list[CandidateFit]:
     """Screen every effect (on top of `base`) on a coarse grid, refine the `refine_top` best, score all on held-out
-    windows against the per-window gap `before` (W, len(GAP_HORIZONS)) of `base`.
+    windows against the per-window gap `before` (W, len(gap_horizons(heldout.horizon))) of `base`.
 
     Returns the fits; unrefined ones sit at their best grid point with uncertainty NaN.
     """

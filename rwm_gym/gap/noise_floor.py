@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rwm_gym.gap.fit import GAP_HORIZONS, gap_per_window, paired_p_value, paired_test
+from rwm_gym.gap.fit import gap_horizons, gap_per_window, paired_p_value, paired_test
 from rwm_gym.gap.measured import SensorNoise, noisy_measurement
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.physics.params import PhysicsParams
@@ -45,7 +45,7 @@ class FloorConfig:
 
 def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noise: SensorNoise,
                 config: FloorConfig = FloorConfig()) -> np.ndarray:
-    """(W, len(GAP_HORIZONS)) gap of a simulator that is exactly right (`params`), through the sensor noise."""
+    """(W, len(gap_horizons(windows.horizon))) gap of a simulator that is exactly right (`params`), through the sensor noise."""
     spec = resim.spec
     model = resim.model(params)
     layout = RobotLayout.from_model(model, spec)
@@ -63,7 +63,7 @@ def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noi
                                          noise, rng)
         twin = dataclasses.replace(windows, qpos=qpos.reshape(n, k1, nq), qvel=qvel.reshape(n, k1, nv),
                                    target=target.reshape(n, h, -1))
-        gap = np.full((n, len(GAP_HORIZONS)), np.nan)  # NaN where the noisy twin blows up (left out of the test)
+        gap = np.full((n, len(gap_horizons(windows.horizon))), np.nan)  # NaN where the noisy twin blows up (left out of the test)
         try:
             gap[:] = gap_per_window(spec, resim.rollout(twin, params), twin)
         except SimulationDiverged as err:
@@ -84,7 +84,7 @@ def compare_with_floor(gap: np.ndarray, floor: np.ndarray, windows: Windows, blo
     p_value = paired_p_value(gap.mean(1), floor.mean(1), windows, block_rows, config.significance)
     return {"gap": float(gap.mean()), "floor": float(floor.mean()), "windows": int(keep.sum()),
             "windows_left_out": int((~keep).sum()),
-            "floor_per_horizon": {str(h): float(v) for h, v in zip(GAP_HORIZONS, floor.mean(0))},
+            "floor_per_horizon": {str(h): float(v) for h, v in zip(gap_horizons(windows.horizon), floor.mean(0))},
             "ratio": ratio, "p_value": p_value,
             "above_floor": bool(p_value < config.significance and ratio >= config.min_ratio),
             "test": f"{paired_test(windows, block_rows, config.significance)} of the gap against the floor, "

@@ -3,8 +3,9 @@
 report.json keys: `effect` (the first named effect, `none` or `unexplained`), `reason`, `scope` (of the first:
 `global`, `leg`, `joint_type`, `joint`, or null), `effects` (every named effect in order: scope, parameters, units,
 uncertainty, `share_of_explained_gap`), `parameters` / `units` / `uncertainty` (all named parameters, flat),
-`joint_refit`, `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over horizons 1, 5, 25
-steps on held-out episodes, after the named effects), `gap_before_per_horizon`, `gap_after_per_horizon`,
+`joint_refit`, `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
+1, 5 and 25 steps or fewer where the held-out episodes are shorter, after the named effects),
+`gap_before_per_horizon`, `gap_after_per_horizon`,
 `noise_floor` (the floor, the test of the nominal gap against it, the sensor-noise model), `residual` (the same test
 after the named effects), `identifiability` (per effect: signal at its default magnitude / floor), `where`,
 `selection_steps` (per step: floor test, candidates, decision), `candidates` (step 1's), `rejected` (parameter points

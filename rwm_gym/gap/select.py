@@ -58,7 +58,7 @@ class Selection:
     params: PhysicsParams
     """The corrected simulator: every named effect on top of the nominal one."""
     gap_after: np.ndarray
-    """(W, len(GAP_HORIZONS)) held-out gap of `params`."""
+    """(W, len(gap_horizons(held.horizon))) held-out gap of `params`."""
     shares: list[float] = field(default_factory=list)
     """Share of the explained gap per named effect."""
     steps: list[dict] = field(default_factory=list)
