@@ -84,8 +84,12 @@ class Options:
     batch_size: int = 64
     """Forecast windows per gradient step."""
     branches: int = 1
-    """Forecast branches per segment (1: the paper's windows, measured better per CPU minute in benchmarks/trainer.py
-    than 8 segments x 32 branches; benchmarks/RESULTS.md)."""
+    """Forecast branches per segment (1: the paper's windows; benchmarks/trainer.py measures the settings)."""
+    branch_stride: int = 1
+    """Rows between the branch starts of a segment."""
+    warmup_gradients: bool = True
+    """Backpropagate through the teacher-forced warm-up (off: through the forecasts only; rssm keeps it on, its
+    warm-up carries its KL loss)."""
     seed: int = 0
     device: str = "cpu"
     """torch device: cpu or cuda."""
@@ -175,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in tqdm(options.models.split(","), desc="models", unit="model", disable=not world.is_main):
         kind, train_fields, model_fields = MODELS[name]
         config = TrainConfig(**{**dict(batch_size=options.batch_size, branches=options.branches,
+                                       branch_stride=options.branch_stride,
+                                       warmup_gradients=options.warmup_gradients or kind == "rssm",
                                        iterations=options.iterations, minutes=options.minutes, seed=options.seed,
                                        device=options.device, val_every=max(1, options.iterations // 10 or 50),
                                        checkpoint_every=options.iterations or 10 ** 9), **train_fields})
