@@ -74,7 +74,9 @@ def main() -> int:
     print(f"shipped physics PPO policy (36 M physics steps): tracking {shipped['tracking']:.3f}, "
           f"falls {shipped['falls']}/{shipped['episodes']} (from its JSON)")
     mbpo = json.loads((policies / "anymal_d_mbpo_ppo.json").read_text())
-    print(f"shipped MBPO-PPO policy (trained in imagination, {mbpo['physics_samples']['counted']:,} physics samples): "
+    rows = mbpo["physics_samples"]
+    print(f"shipped MBPO-PPO policy (trained in imagination, {rows['counted']:,} physics samples: {rows['loop']:,} in "
+          f"its loop, {rows['before_the_loop']:,} before it): "
           f"tracking {mbpo['score']['tracking']:.3f}, falls {mbpo['score']['falls']}/{mbpo['score']['episodes']} "
           "(from its JSON)")
     print(f"shipped policy from scratch in imagination (this recipe, {scratch['imagined_steps']:,} imagined steps, "
