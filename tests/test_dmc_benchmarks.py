@@ -1,10 +1,11 @@
 """Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
-benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py,
+benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py, benchmarks/trainer_compare.py,
 benchmarks/disagreement.py), tiny budgets."""
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -115,7 +116,7 @@ def test_ppo_seed_curves_draws_every_run_and_refuses_a_run_without_scores(tmp_pa
         script.main()
 
 
-def test_trainer_benchmark_writes_throughput_curves_and_tables(tmp_path: Path) -> None:
+def test_trainer_benchmark_writes_throughput_curves_and_tables(tmp_path: Path, monkeypatch) -> None:
     """benchmarks/trainer.py end to end on a tiny budget: both arms timed, both curves trained, JSON, table and plot
     written (its JSON write once took the arguments in the wrong order and lost a 20-minute run at the end)."""
     from synthetic_dynamics import write_linear_dataset
@@ -124,12 +125,21 @@ def test_trainer_benchmark_writes_throughput_curves_and_tables(tmp_path: Path) -
     trainer = _script("trainer")
     out = tmp_path / "out"
     assert trainer.main(["--data", str(data), "--out", str(out), "--threads", "1", "--rounds", "1", "--steps", "1",
-                         "--minutes", "0.005", "--val-every", "1", "--new-branches", "4", "--new-stride", "8"]) == 0
+                         "--minutes", "0.005", "--val-every", "1", "--new-branches", "4", "--new-stride", "8",
+                         "--no-new-warmup-gradients"]) == 0
     results = json.loads((out / "results.json").read_text())
+    assert results["arms"]["new"]["warmup_gradients"] is False and results["arms"]["old"]["warmup_gradients"]
     assert [row["threads"] for row in results["throughput"]] == [1]
     assert set(results["throughput"][0]["windows_per_s"]) == {"old", "new"}
     assert set(results["curves"]) >= {"old", "new"}
     assert (out / "results.md").read_text().count("|") > 10 and (out / "val_vs_minutes.png").stat().st_size > 0
+    compare = _script("trainer_compare")  # the runs side by side: one row per arm, labelled by its setting
+    monkeypatch.setattr(sys, "argv", ["trainer_compare.py", str(out), "--out", str(tmp_path / "cmp")])
+    compare.main()
+    table = (tmp_path / "cmp.md").read_text()
+    assert "| out | old: 64 windows of 32 + 8 rows |" in table
+    assert "| out | new: 64 x 4 branches, stride 8, no warm-up gradients |" in table
+    assert (tmp_path / "cmp.png").stat().st_size > 0
 
 
 def test_disagreement_benchmark_measures_the_second_model_against_the_first(tmp_path: Path) -> None:

@@ -45,7 +45,8 @@ class FloorConfig:
 
 def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noise: SensorNoise,
                 config: FloorConfig = FloorConfig()) -> np.ndarray:
-    """(W, len(gap_horizons(windows.horizon))) gap of a simulator that is exactly right (`params`), through the sensor noise."""
+    """(W, len(gap_horizons(windows.horizon))) gap of a simulator that is exactly right (`params`), through the
+    sensor noise."""
     spec = resim.spec
     model = resim.model(params)
     layout = RobotLayout.from_model(model, spec)
@@ -63,7 +64,8 @@ def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noi
                                          noise, rng)
         twin = dataclasses.replace(windows, qpos=qpos.reshape(n, k1, nq), qvel=qvel.reshape(n, k1, nv),
                                    target=target.reshape(n, h, -1))
-        gap = np.full((n, len(gap_horizons(windows.horizon))), np.nan)  # NaN where the noisy twin blows up (left out of the test)
+        # NaN where the noisy twin blows up (left out of the test)
+        gap = np.full((n, len(gap_horizons(windows.horizon))), np.nan)
         try:
             gap[:] = gap_per_window(spec, resim.rollout(twin, params), twin)
         except SimulationDiverged as err:

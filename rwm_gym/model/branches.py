@@ -10,10 +10,11 @@ true actions, exactly like `WorldModel.forecast`. All branches step together, on
 By default nothing is truncated: a branch's gradient flows through its forecast into the hidden state it started from
 and on through the teacher-forced pass, as in the paper's window. With `TrainConfig.warmup_gradients` off, the pass
 runs without autograd and every branch steps from its detached hidden state (its first step recomputed with
-gradients): truncated backpropagation at the forecast's start, the warm-up's backward pass saved. What differs: branch histories are longer than H (up to
-H + (branches - 1) * branch_stride rows) and the branches of a segment share data. When the model's predictions on
-known rows are forecasts (`hidden_trajectory` returns them: RWM, MLP), a branch's first step is read from the
-teacher-forced pass instead of being recomputed, so it costs F - 1 batched steps. With one branch the numbers equal
+gradients): truncated backpropagation at the forecast's start, the warm-up's backward pass saved. What differs from
+the paper's windows: branch histories are longer than H (up to H + (branches - 1) * branch_stride rows) and the
+branches of a segment share data. When the model's predictions on known rows are forecasts that carry gradients
+(`hidden_trajectory` returns them: RWM, MLP), a branch's first step is read from the teacher-forced pass instead of
+being recomputed, so it costs F - 1 batched steps. With one branch the numbers equal
 `WorldModel.forecast` on an H + F window.
 """
 

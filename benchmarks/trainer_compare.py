@@ -1,0 +1,73 @@
+"""Several `benchmarks/trainer.py` runs on one plot: validation error against CPU minutes of every arm they trained.
+
+Each run's new arm is labelled by its setting (segments x branches, stride, warm-up gradients); the old arm (the
+paper's 64 windows of 32 + 8 rows) of each run is drawn too, so the spread between runs of the same setting shows.
+Writes `<out>.png` and `<out>.md` (error at 2.5 / 5 / 7.5 / 10 minutes, iterations, windows per second of the run's
+throughput rounds where it measured them).
+
+    python benchmarks/trainer_compare.py results/trainer19a results/trainer19d --out benchmarks/figures/trainer
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from rwm_gym.atomic import atomic_write, write_text  # noqa: E402
+
+MARKS = (2.5, 5.0, 7.5, 10.0)
+
+
+def label(options: dict, arm: str) -> str:
+    if arm == "old":
+        return "old: 64 windows of 32 + 8 rows"
+    segments = options["new_batch"] // options["new_branches"]
+    grads = "" if options.get("new_warmup_gradients", True) else ", no warm-up gradients"
+    return f"new: {segments} x {options['new_branches']} branches, stride {options['new_stride']}{grads}"
+
+
+def error_at(log: list[dict], minutes: float) -> float | None:
+    seen = [row["val_error"] for row in log if row["wall_s"] <= minutes * 60 and row.get("val_error") is not None]
+    return seen[-1] if seen else None
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="output folders of benchmarks/trainer.py")
+    parser.add_argument("--out", type=Path, required=True, help="path stem of the PNG and the table")
+    args = parser.parse_args()
+    rows = ["| run | arm | " + " | ".join(f"{m:g} min" for m in MARKS) + " | iterations | windows/s, 1 thread |",
+            "|---|---|" + "---|" * (len(MARKS) + 2)]
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for run in args.runs:
+        result = json.loads((run / "results.json").read_text())
+        rates = next((t["windows_per_s"] for t in result.get("throughput", [])
+                      if t["kind"] == "rwm" and t["threads"] == 1), {})
+        for arm, curve in result["curves"].items():
+            name = label(result["options"], arm)
+            log = [row for row in curve["log"] if row.get("val_error") is not None]
+            ax.plot([row["wall_s"] / 60 for row in log], [row["val_error"] for row in log],
+                    ls="--" if arm == "old" else "-", label=f"{run.name}, {name}")
+            marks = " | ".join("-" if (e := error_at(log, m)) is None else f"{e:.4f}" for m in MARKS)
+            rate = f"{rates[arm]:.0f}" if arm in rates else "-"
+            rows.append(f"| {run.name} | {name} | {marks} | {curve['iterations']:,} | {rate} |")
+    ax.set_xlabel("CPU minutes (one thread)")
+    ax.set_ylabel("validation error (8-step open-loop, relative L1)")
+    ax.set_ylim(top=0.5)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title("RWM trainer settings at equal CPU time")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(args.out.with_suffix(".png"), lambda tmp: fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png"))
+    write_text(args.out.with_suffix(".md"), "\n".join(rows) + "\n")
+    print("\n".join(rows))
+
+
+if __name__ == "__main__":
+    main()
