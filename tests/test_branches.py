@@ -12,6 +12,7 @@ import torch
 
 from rwm_gym.model import MODEL_KINDS, Prediction, build_model, model_config_for
 from rwm_gym.model.branches import branch_starts, branched_forecast
+from rwm_gym.model.checkpoint import read_meta
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.losses import segment_loss, window_loss
 from rwm_gym.model.train import train
@@ -173,12 +174,12 @@ def test_legacy_train_config_reads_as_one_branch() -> None:
         TrainConfig(batch_size=10, branches=4)
 
 
-@pytest.mark.parametrize("kind", ["rwm", "transformer"])
-def test_run_with_branches_resumes_to_the_same_weights(kind: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind,warmup_gradients", [("rwm", True), ("transformer", True), ("rwm", False)])
+def test_run_with_branches_resumes_to_the_same_weights(kind: str, warmup_gradients: bool, tmp_path: Path) -> None:
     data = write_linear_dataset(tmp_path / "linear.h5")
     config = model_config_for(kind, SPEC, **TINY, ensemble_size=2)
     run = TrainConfig(history=6, forecast=3, batch_size=12, branches=4, branch_stride=2, iterations=8, val_every=4,
-                      checkpoint_every=3, val_fraction=0.25)
+                      checkpoint_every=3, val_fraction=0.25, warmup_gradients=warmup_gradients)
     full = train(data, config, run, progress=False).model.state_dict()
 
     def interrupt_at_5(iteration: int, stats: dict) -> None:
@@ -191,3 +192,4 @@ def test_run_with_branches_resumes_to_the_same_weights(kind: str, tmp_path: Path
     resumed = train(data, config, run, out, resume=True, progress=False)
     assert resumed.stats["iterations"] == 8
     assert all(torch.equal(full[k], v) for k, v in resumed.model.state_dict().items())
+    assert read_meta(out).train_config.warmup_gradients is warmup_gradients  # saved with the run it describes
