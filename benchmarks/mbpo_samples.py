@@ -76,13 +76,13 @@ def main() -> None:
     ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
     ax.set(xscale="log", xlabel="physics samples behind the policy (M, log)", ylabel="physics tracking",
            title="MBPO-PPO against model-free PPO", ylim=(0, 1))
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.2))
     ax_falls.set(xscale="log", xlabel="physics samples behind the policy (M, log)", ylabel="falls in 54 episodes",
                  title="falls")
     fig.tight_layout()
     png, table = args.out.with_suffix(".png"), args.out.with_suffix(".csv")
     png.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(png, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    atomic_write(png, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
     plt.close(fig)
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(rows[0]))
