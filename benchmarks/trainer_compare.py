@@ -17,9 +17,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from rwm_gym.atomic import atomic_write, write_text  # noqa: E402
+from rwm_gym.atomic import atomic_write, write_text
 
 MARKS = (2.5, 5.0, 7.5, 10.0)
 
