@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -30,6 +30,7 @@ from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import TrainConfig, build_model, model_config_for
 from rwm_gym.options import add_dataclass_options
+from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.losses import SegmentLoss
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import sample_batch, train, train_step
@@ -90,8 +91,7 @@ def throughput(data: Dataset, kind: str, configs: dict[str, TrainConfig], option
     train_ids, _ = data.split_episodes(0.1, options.seed)
     setups = {}
     for name, config in configs.items():
-        if kind == "rssm":  # its warm-up carries its KL loss: it keeps the warm-up's gradients
-            config = replace(config, warmup_gradients=True)
+        config = train_config_for(kind, config)  # rssm keeps its warm-up gradients
         torch.manual_seed(options.seed)
         model = build_model(model_config_for(kind, spec, ensemble_size=options.ensemble_size)).train()
         params = list(model.parameters())
@@ -126,7 +126,7 @@ def curves(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: O
     return out
 
 
-def _error_at(log: list[dict], seconds: float) -> float | None:
+def error_at(log: list[dict], seconds: float) -> float | None:
     """The last validation error logged at or before `seconds`."""
     seen = [row["val_error"] for row in log if row["wall_s"] <= seconds]
     return seen[-1] if seen else None
@@ -153,7 +153,7 @@ def markdown(results: dict, options: Options) -> str:
                   "| arm | " + " | ".join(f"{m / 60:.1f} min" for m in marks) + " | iterations | windows |",
                   "|---" * (len(marks) + 3) + "|"]
         for name, curve in results["curves"].items():
-            cells = [_error_at(curve["log"], m) for m in marks]
+            cells = [error_at(curve["log"], m) for m in marks]
             lines.append(f"| {name} | " + " | ".join("-" if c is None else f"{c:.4f}" for c in cells)
                          + f" | {curve['iterations']} | {curve['windows']} |")
     return "\n".join(lines) + "\n"

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -19,22 +20,22 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+sys.path.insert(0, str(Path(__file__).parent))  # the trainer benchmark, a sibling script
+from trainer import error_at
+
 from rwm_gym.atomic import atomic_write, write_text
 
 MARKS = (2.5, 5.0, 7.5, 10.0)
 
 
-def label(options: dict, arm: str) -> str:
-    if arm == "old":
-        return "old: 64 windows of 32 + 8 rows"
-    segments = options["new_batch"] // options["new_branches"]
-    grads = "" if options.get("new_warmup_gradients", True) else ", no warm-up gradients"
-    return f"new: {segments} x {options['new_branches']} branches, stride {options['new_stride']}{grads}"
-
-
-def error_at(log: list[dict], minutes: float) -> float | None:
-    seen = [row["val_error"] for row in log if row["wall_s"] <= minutes * 60 and row.get("val_error") is not None]
-    return seen[-1] if seen else None
+def label(arm: str, config: dict) -> str:
+    """The arm's setting, read from the TrainConfig the run stored."""
+    if config["branches"] == 1:
+        setting = f"{config['batch_size']} windows of {config['history']} + {config['forecast']} rows"
+    else:
+        setting = (f"{config['batch_size'] // config['branches']} x {config['branches']} branches, "
+                   f"stride {config['branch_stride']}")
+    return f"{arm}: {setting}" + ("" if config["warmup_gradients"] else ", no warm-up gradients")
 
 
 def main() -> None:
@@ -50,11 +51,11 @@ def main() -> None:
         rates = next((t["windows_per_s"] for t in result.get("throughput", [])
                       if t["kind"] == "rwm" and t["threads"] == 1), {})
         for arm, curve in result["curves"].items():
-            name = label(result["options"], arm)
-            log = [row for row in curve["log"] if row.get("val_error") is not None]
+            name = label(arm, result["arms"][arm])
+            log = curve["log"]
             ax.plot([row["wall_s"] / 60 for row in log], [row["val_error"] for row in log],
                     ls="--" if arm == "old" else "-", label=f"{run.name}, {name}")
-            marks = " | ".join("-" if (e := error_at(log, m)) is None else f"{e:.4f}" for m in MARKS)
+            marks = " | ".join("-" if (e := error_at(log, 60 * m)) is None else f"{e:.4f}" for m in MARKS)
             rate = f"{rates[arm]:.0f}" if arm in rates else "-"
             rows.append(f"| {run.name} | {name} | {marks} | {curve['iterations']:,} | {rate} |")
     ax.set_xlabel("CPU minutes (one thread)")

@@ -33,6 +33,7 @@ from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
 from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.model import TrainConfig, distributed, model_config_for
+from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint, plot_running_mean
 from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.train import train
@@ -178,12 +179,12 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, dict] = {}
     for name in tqdm(options.models.split(","), desc="models", unit="model", disable=not world.is_main):
         kind, train_fields, model_fields = MODELS[name]
-        config = TrainConfig(**{**dict(batch_size=options.batch_size, branches=options.branches,
-                                       branch_stride=options.branch_stride,
-                                       warmup_gradients=options.warmup_gradients or kind == "rssm",
-                                       iterations=options.iterations, minutes=options.minutes, seed=options.seed,
-                                       device=options.device, val_every=max(1, options.iterations // 10 or 50),
-                                       checkpoint_every=options.iterations or 10 ** 9), **train_fields})
+        common = dict(batch_size=options.batch_size, branches=options.branches, branch_stride=options.branch_stride,
+                      warmup_gradients=options.warmup_gradients, iterations=options.iterations,
+                      minutes=options.minutes, seed=options.seed, device=options.device,
+                      val_every=max(1, options.iterations // 10 or 50),
+                      checkpoint_every=options.iterations or 10 ** 9)
+        config = train_config_for(kind, TrainConfig(**{**common, **train_fields}))  # rssm keeps warm-up gradients
         tic = time.perf_counter()
         trained = train(data, model_config_for(kind, spec, **model_fields), config, out / f"{name}.safetensors",
                         progress=False, overwrite=True, clock=clock)

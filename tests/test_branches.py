@@ -14,6 +14,7 @@ from rwm_gym.model import MODEL_KINDS, Prediction, build_model, model_config_for
 from rwm_gym.model.branches import branch_starts, branched_forecast
 from rwm_gym.model.checkpoint import read_meta
 from rwm_gym.model.config import TrainConfig
+from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.losses import segment_loss, window_loss
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import Window
@@ -140,6 +141,15 @@ def test_without_warmup_gradients_a_model_whose_warmup_has_its_own_loss_is_refus
     window = random_window(2, config.segment_rows)
     with pytest.raises(ValueError, match="rssm"):
         segment_loss(tiny("rssm"), window, config, 2.0)
+
+
+def test_one_trainer_setting_for_every_kind_keeps_rssms_warmup_gradients() -> None:
+    """`train_config_for`: what the benchmarks give every kind. Only a model whose warm-up carries its own loss
+    (rssm) gets its warm-up gradients back; the others train as configured."""
+    truncated = TrainConfig(warmup_gradients=False)
+    assert train_config_for("rssm", truncated).warmup_gradients is True
+    assert all(train_config_for(kind, truncated) is truncated for kind in TRUNCATABLE)
+    assert train_config_for("rssm", TrainConfig()) == TrainConfig()
 
 
 def test_configs_written_before_warmup_gradients_load_with_it_on() -> None:

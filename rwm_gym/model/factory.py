@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.baselines import MLPModel, NoChangeModel, TransformerModel
-from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.config import ModelConfig, TrainConfig
 from rwm_gym.model.constraints import StateConstraints
 from rwm_gym.model.rssm import RSSM
 from rwm_gym.model.rwm import RWM
@@ -21,6 +22,15 @@ def model_config_for(kind: str, spec: TaskSpec, **options: Any) -> ModelConfig:
     """A ModelConfig whose sizes come from the task spec; `options` set the other fields (e.g. ensemble_size=5)."""
     return ModelConfig(kind=kind, state_dim=spec.state_dim, action_dim=spec.action_dim,
                        contact_dim=spec.contact_dim, foot_dim=spec.foot_dim, **options)
+
+
+def train_config_for(kind: str, config: TrainConfig) -> TrainConfig:
+    """`config` as a model of `kind` can train with it: a model whose teacher-forced pass carries a loss of its own
+    (it filters with the true next state: rssm) keeps its warm-up gradients; every other kind takes `config` as it is.
+    For comparisons that give every kind one trainer setting."""
+    if MODEL_CLASSES[kind].filters_with_next_state and not config.warmup_gradients:
+        return replace(config, warmup_gradients=True)
+    return config
 
 
 def build_model(config: ModelConfig, spec: TaskSpec | None = None) -> WorldModel:
