@@ -74,6 +74,8 @@ def main() -> None:
                         help="fine-tune this checkpoint on the --data files alone (no collected mix)")
     parser.add_argument("--forecast", type=int, default=8, help="forecast steps per training window")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate at the start of the schedule")
+    parser.add_argument("--warmup-gradients", action=argparse.BooleanOptionalAction, default=True,
+                        help="backpropagate through the teacher-forced warm-up (TrainConfig.warmup_gradients)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core CPU)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
@@ -100,7 +102,8 @@ def main() -> None:
     checkpoint = args.out / "anymal_d_rwm.safetensors"
     config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
                          branches=args.branches, branch_stride=args.branch_stride, forecast=args.forecast, lr=args.lr,
-                         device=args.device, seed=0, val_every=250, checkpoint_every=250)
+                         warmup_gradients=args.warmup_gradients, device=args.device, seed=0, val_every=250,
+                         checkpoint_every=250)
     if args.init:
         model_config = read_meta(args.init).model_config
     else:
