@@ -1,6 +1,6 @@
 """Smoke tests of benchmarks (benchmarks/cross_robot.py, benchmarks/dmc_imagination.py, benchmarks/imagined_standing.py,
 benchmarks/exploitation.py, benchmarks/ppo_seed_curves.py, benchmarks/trainer.py, benchmarks/trainer_compare.py,
-benchmarks/disagreement.py), tiny budgets."""
+benchmarks/disagreement.py, benchmarks/evaluation_compare.py), tiny budgets."""
 
 from __future__ import annotations
 
@@ -167,3 +167,34 @@ def test_disagreement_benchmark_measures_the_second_model_against_the_first(tmp_
     with pytest.raises(SystemExit):
         bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--steps", "8",
                              "--out", str(tmp_path / "bad")])
+
+
+def test_evaluation_compare_puts_models_side_by_side_on_shared_windows(tmp_path: Path, capsys) -> None:
+    """benchmarks/evaluation_compare.py: each model's row per source, the floors once, a PNG; a model compared with
+    itself gets the same numbers; a folder without evaluation.json is refused in one line."""
+    from rwm_gym.cli import main
+    from rwm_gym.data.collect import collect
+    from rwm_gym.imagination.core import default_checkpoint
+    from rwm_gym.model.checkpoint import save_checkpoint
+    from rwm_gym.model.factory import build_model, model_config_for
+    from rwm_gym.spec import load_spec
+
+    data = collect("AnymalD-MuJoCo-v0", "zero", 2, tmp_path / "stand.h5", max_steps=40, num_envs=2, progress=False)
+    spec = load_spec("anymal_d")
+    still = save_checkpoint(tmp_path / "still.safetensors", build_model(model_config_for("no_change", spec)), spec)
+    for name, ckpt in (("a", default_checkpoint()), ("b", default_checkpoint()), ("still", still)):
+        assert main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), "--out", str(tmp_path / name),
+                     "--history", "8", "--horizons", "4", "16", "--max-windows", "8", "--noise", "--quiet"]) == 0
+    compare = _script("evaluation_compare")
+    runs = [f"shipped={tmp_path / 'a'}", f"again={tmp_path / 'b'}", f"no-change model={tmp_path / 'still'}"]
+    compare.main(runs + ["--out", str(tmp_path / "cmp")])
+    rows = (tmp_path / "cmp.md").read_text().splitlines()
+    assert rows[0].startswith("**stand** (2 episodes; windows per horizon: N=4: 8, N=16: 8")
+    shipped, again, model, floor = (next(r for r in rows if r.startswith(f"| {label} |"))
+                                    for label in ("shipped", "again", "no-change model", "*no change*"))
+    assert shipped.split("|")[2:] == again.split("|")[2:] and shipped != model
+    assert model.split("|")[2:] == floor.split("|")[2:]  # the no-change model is the floor, on the same windows
+    assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit):
+        compare.main([f"x={tmp_path}", "--out", str(tmp_path / "bad")])
+    assert "no evaluation.json" in capsys.readouterr().err
