@@ -68,9 +68,15 @@ def main(argv: list[str] | None = None) -> None:
     sources = [s for s in next(iter(runs.values())) if all(s in r for r in runs.values())]
     if not sources:
         parser.error("the runs share no held-out source")
+    for source in sources:  # the floors and the comparison hold only on the same windows
+        settings = {label: (r[source]["horizons"], r[source]["windows"], r[source]["episodes"])
+                    for label, r in runs.items()}
+        if len(set(map(repr, settings.values()))) > 1:
+            parser.error(f"{source}: the runs were not evaluated on the same windows (horizons, windows, episodes: "
+                         + "; ".join(f"{label} {value}" for label, value in settings.items()) + ")")
     columns = min(len(sources), 2)
-    fig, axes = plt.subplots(math.ceil(len(sources) / columns), columns, figsize=(6 * columns, 4 * math.ceil(
-        len(sources) / columns)), squeeze=False)
+    grid_rows = math.ceil(len(sources) / columns)
+    fig, axes = plt.subplots(grid_rows, columns, figsize=(6 * columns, 4 * grid_rows), squeeze=False)
     for ax, source in zip(axes.flat, sources):
         for label, result in runs.items():
             curve = result[source]["running_mean"]
@@ -88,6 +94,7 @@ def main(argv: list[str] | None = None) -> None:
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(args.out.with_suffix(".png"), lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+    plt.close(fig)
     rows = table(runs, sources)
     write_text(args.out.with_suffix(".md"), "\n".join(rows))
     print("\n".join(rows))

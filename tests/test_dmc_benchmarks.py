@@ -198,3 +198,9 @@ def test_evaluation_compare_puts_models_side_by_side_on_shared_windows(tmp_path:
     with pytest.raises(SystemExit):
         compare.main([f"x={tmp_path}", "--out", str(tmp_path / "bad")])
     assert "no evaluation.json" in capsys.readouterr().err
+    assert main(["evaluate", "--checkpoint", str(still), "--data", str(data), "--out", str(tmp_path / "short"),
+                 "--history", "8", "--horizons", "4", "--max-horizon", "8", "--max-windows", "8", "--noise",
+                 "--quiet"]) == 0
+    with pytest.raises(SystemExit):  # other horizons: other windows, so no shared floor
+        compare.main([f"shipped={tmp_path / 'a'}", f"short={tmp_path / 'short'}", "--out", str(tmp_path / "bad")])
+    assert "stand: the runs were not evaluated on the same windows" in capsys.readouterr().err
