@@ -15,6 +15,7 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import MODEL_KINDS, build_model, model_config_for
 from rwm_gym.model.checkpoint import CheckpointError, read_meta
 from rwm_gym.model.config import TrainConfig
+from rwm_gym.model.heads import soft_bound
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
@@ -136,6 +137,29 @@ def test_init_from_checkpoint_starts_from_its_weights(data: Path, tmp_path: Path
     other = model_config_for("rwm", SPEC, **{**TINY, "hidden_size": 8})
     with pytest.raises(CheckpointError, match="hidden_size"):
         train(data, other, tiny_step, init=first.path, progress=False)
+
+
+def test_reset_std_band_frees_the_std_of_a_fine_tune(data: Path, tmp_path: Path) -> None:
+    """An mse-trained model's std sits on its band's floor; the reset puts band and std where the options say before
+    the first step, keeps the predicted means, and needs a checkpoint to start from."""
+    config = model_config_for("rwm", SPEC, **{**TINY, "ensemble_size": 2})
+    first = train(data, config, FAST, tmp_path / "a.safetensors", progress=False)
+    frozen = TrainConfig(**{**FAST.to_dict(), "iterations": 1, "lr": 1e-9, "loss": "nll", "reset_std_band": True,
+                            "reset_log_std": -1.5})
+    tuned = train(data, config, frozen, init=first.path, progress=False).model
+    head = tuned.heads.state
+    torch.testing.assert_close(head.min_log_std.detach(), torch.full_like(head.min_log_std, config.log_std_min_init))
+    torch.testing.assert_close(head.max_log_std.detach(), torch.full_like(head.max_log_std, config.log_std_max_init))
+    x = torch.randn(5, 7, SPEC.state_dim + SPEC.action_dim)
+    states, actions = x[..., :SPEC.state_dim], x[..., SPEC.state_dim:]
+    with torch.no_grad():
+        before = first.model.forecast(states, actions, 1, sample=False, member=torch.zeros(5, dtype=torch.long))[0]
+        after = tuned.forecast(states, actions, 1, sample=False, member=torch.zeros(5, dtype=torch.long))[0]
+    expected = soft_bound(torch.tensor(-1.5), head.min_log_std.detach(), head.max_log_std.detach()).exp()
+    torch.testing.assert_close(after.state_std, expected.expand_as(after.state_std), atol=1e-5, rtol=0)
+    torch.testing.assert_close(after.state_mean, before.state_mean, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="reset_std_band"):
+        train(data, config, frozen, progress=False)
 
 
 def test_cli_init_takes_the_checkpoints_model_config(data: Path, tmp_path: Path, capsys) -> None:

@@ -134,6 +134,14 @@ class TrainConfig:
     """Weight of the foot-height MSE."""
     bound_weight: float = 0.01
     """Weight of the log-std band term sum(max_log_std) - sum(min_log_std)."""
+    reset_std_band: bool = False
+    """With `init`: put the state heads' learned log-std band back to the model config's initial limits and their
+    predicted log-std to `reset_log_std` first. Under the mse loss nothing pushes the std up: the band inverts and its
+    floor settles where the penalty on samples meets `bound_weight` (0.34 normalised units on ANYmal D, on every
+    channel of every state), so the sampled feedback is that noise, not the model's error. An nll fine-tune needs
+    the std free."""
+    reset_log_std: float = -2.3
+    """The log-std every state head predicts after `reset_std_band` (-2.3: 0.1 normalised units)."""
     kl_weight: float = 1.0
     """Weight of the RSSM KL term (posterior from the true next state vs prior)."""
     kl_free_nats: float = 1.0
@@ -172,7 +180,8 @@ class TrainConfig:
         return cls(**{**_TRAIN_LEGACY, **_checked(cls, data)})
 
 
-_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1, "warmup_gradients": True}
+_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1, "warmup_gradients": True, "reset_std_band": False,
+                 "reset_log_std": -2.3}
 """TrainConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 

@@ -89,6 +89,16 @@ class StateHead(nn.Module):
         residual, raw_log_std = out.split(self.state_dim, dim=-1)
         return last_state + residual, soft_bound(raw_log_std, self.min_log_std, self.max_log_std).exp()
 
+    @torch.no_grad()
+    def reset_band(self, log_std_min: float, log_std_max: float, log_std: float) -> None:
+        """Set the learned log-std limits of every channel, and make the heads predict `log_std` everywhere (the
+        log-std half of the output layer zeroed, its bias set): a fine-tune with another state loss starts from a
+        std of its own choosing instead of the old loss's."""
+        self.min_log_std.fill_(log_std_min)
+        self.max_log_std.fill_(log_std_max)
+        self.out.weight[..., self.state_dim:] = 0.0
+        self.out.bias[..., self.state_dim:] = log_std
+
     def bound_loss(self) -> torch.Tensor:
         """sum(max_log_std) - sum(min_log_std): keeps the learned band from widening without need."""
         return self.max_log_std.sum() - self.min_log_std.sum()

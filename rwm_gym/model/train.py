@@ -33,6 +33,7 @@ from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_trai
 from rwm_gym.model import distributed
 from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model
+from rwm_gym.model.heads import StateHead
 from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
@@ -191,6 +192,8 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
     """
     if out is not None and Path(out).exists() and not (resume or overwrite):
         raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
+    if config.reset_std_band and init is None:
+        raise ValueError("reset_std_band resets a fine-tuned model's log-std band: give the checkpoint to start from")
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     if not dataset.info.complete:
         warnings.warn(f"{dataset.path}: complete=false (its collection was interrupted); training on its "
@@ -232,6 +235,11 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
                 raise CheckpointError(f"{init}: cannot start from a model with another config ({difference})")
             model.load_state_dict(loaded.state_dict())
             provenance["init_checkpoint"] = str(init)
+            if config.reset_std_band:
+                for head in model.modules():
+                    if isinstance(head, StateHead):
+                        head.reset_band(model_config.log_std_min_init, model_config.log_std_max_init,
+                                        config.reset_log_std)
         if resume and out is not None and out.exists():
             stats = _resume(out, model, optimizer, config, provenance["sha256"], device, sampler)
         distributed.reseed_rank(config.seed, world, stats["iterations"])
