@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from rwm_gym.cli import main
-from rwm_gym.data.dataset import Dataset
+from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.model import build_model, model_config_for
-from rwm_gym.model.checkpoint import save_checkpoint
+from rwm_gym.model.checkpoint import read_meta, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.evaluate import EvalConfig, evaluate, evaluate_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, write_linear_dataset
+from synthetic_dynamics import SPEC, info_for, write_linear_dataset
 
 
 
@@ -60,6 +60,28 @@ def test_checkpoint_evaluation_uses_held_out_episodes_and_reports_noise(data: Pa
     assert set(result["noise"]) == {"0.2", "0.8"} and set(result["noise"]["0.8"]) == {"4", "16", "20"}
     everything = evaluate_checkpoint(out, data, config, all_episodes=True, progress=False)
     assert everything["episodes"] == 6
+
+
+def test_episodes_that_repeat_training_episodes_are_left_out(data: Path, tmp_path: Path) -> None:
+    """A held-out file collected with a training file's policy and seed repeats its episodes: those are not held out."""
+    out = tmp_path / "rwm.safetensors"
+    run = TrainConfig(history=8, forecast=4, batch_size=8, iterations=1, val_fraction=0.34)
+    train(data, model_config_for("rwm", SPEC, hidden_size=16, num_layers=1, head_hidden=16), run, out, progress=False)
+    provenance = read_meta(out).provenance
+    trained, fresh = Dataset.load(data), Dataset.load(write_linear_dataset(tmp_path / "fresh.h5", num_episodes=3,
+                                                                           seed=7))
+    mixed = tmp_path / "mixed.h5"  # one training episode, one validation episode, three new ones
+    write_dataset(mixed, info_for(SPEC), [trained.episode(provenance["train_episodes"][0]),
+                                          trained.episode(provenance["val_episodes"][0]),
+                                          *(fresh.episode(i) for i in range(3))])
+    config = EvalConfig(history=8, horizons=(4,), max_horizon=4, noise_levels=(), max_windows=64)
+    result = evaluate_checkpoint(out, mixed, config, progress=False)
+    assert result["episodes"] == 4 and "left out" in result["episode_set"]
+    assert evaluate_checkpoint(out, mixed, config, all_episodes=True, progress=False)["episodes"] == 5
+    also = evaluate_checkpoint(out, mixed, config, progress=False, training_data=[tmp_path / "fresh.h5"])
+    assert also["episodes"] == 1  # only the validation episode is new to both files
+    with pytest.raises(ValueError, match="repeats a training episode"):
+        evaluate_checkpoint(out, tmp_path / "fresh.h5", config, progress=False, training_data=[tmp_path / "fresh.h5"])
 
 
 def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, capsys) -> None:

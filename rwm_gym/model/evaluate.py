@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -211,18 +212,58 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     plt.close(fig)
 
 
+def _episode_key(dataset: Dataset, episode: int) -> bytes:
+    """An episode's first two rows of states and actions, as bytes: equal only for the same episode."""
+    rows = slice(dataset.episode_starts[episode], dataset.episode_starts[episode] + 2)
+    return dataset["state"][rows].tobytes() + dataset["action"][rows].tobytes()
+
+
+def episodes_seen_in(dataset: Dataset, episodes: np.ndarray, training: Dataset,
+                     training_episodes: np.ndarray | None = None) -> np.ndarray:
+    """Those of `episodes` that begin, bit for bit, like an episode of `training` (default: all of its episodes): a
+    held-out file collected with a training file's policy and seed repeats its episodes."""
+    ids = np.arange(training.num_episodes) if training_episodes is None else training_episodes
+    seen = {_episode_key(training, int(i)) for i in ids if training.episode_lengths[int(i)] >= 2}
+    return np.asarray([i for i in episodes if dataset.episode_lengths[i] >= 2 and _episode_key(dataset, i) in seen],
+                      dtype=np.int64)
+
+
+def _training_files(provenance: dict, others: Sequence[str | os.PathLike]) -> list[tuple[Dataset, np.ndarray | None]]:
+    """The files to check for repeated episodes: the checkpoint's training file with its training episodes, where it is
+    still at its recorded path with its recorded hash, and every file of `others` whole."""
+    files: list[tuple[Dataset, np.ndarray | None]] = []
+    source = provenance.get("dataset")
+    if source and provenance.get("train_episodes") and Path(source).is_file():
+        training = Dataset.load(source)
+        if training.file_hash() == provenance.get("sha256"):
+            files.append((training, np.asarray(provenance["train_episodes"], dtype=np.int64)))
+    return files + [(Dataset.load(path), None) for path in others]
+
+
 def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
-                        config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True) -> dict:
+                        config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True,
+                        training_data: Sequence[str | os.PathLike] = ()) -> dict:
     """Load a checkpoint and evaluate it on a dataset of the same task. When the dataset is the checkpoint's own
-    training file, only its held-out validation episodes are used (unless `all_episodes`)."""
+    training file, only its held-out validation episodes are used; from another file, episodes that repeat a training
+    episode of the checkpoint's recorded file or of `training_data` are left out. `all_episodes` keeps every one."""
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     spec = dataset.spec()
     model, meta = load_checkpoint(checkpoint, device=config.device, expect_spec=spec)
-    episodes, held_out = None, "all episodes of the file"
+    episodes, held_out = np.arange(dataset.num_episodes), "all episodes of the file"
     if not all_episodes and meta.provenance.get("sha256") == dataset.file_hash():
         episodes, held_out = np.asarray(meta.provenance["val_episodes"], dtype=np.int64), "validation episodes"
         if len(episodes) == 0:
             raise ValueError(f"{dataset.path}: the checkpoint was trained on this file with no held-out episodes")
+    elif not all_episodes:
+        for training, ids in _training_files(meta.provenance, training_data):
+            seen = episodes_seen_in(dataset, episodes, training, ids)
+            if len(seen) == len(episodes):
+                raise ValueError(f"{dataset.path}: every evaluated episode repeats a training episode of "
+                                 f"{training.path}; collect held-out data with another seed")
+            if len(seen):
+                episodes = np.setdiff1d(episodes, seen)
+                held_out = (f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes "
+                            f"of {training.path} left out")
     result = evaluate(model, dataset, meta.normalizer, spec, config, episodes, progress)
     return {"checkpoint": str(checkpoint), "model": meta.model_config.kind, "data": str(dataset.path),
             "episode_set": held_out, "config": asdict(config), **result}
@@ -243,7 +284,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=d.device, help="torch device")
     parser.add_argument("--seed", type=int, default=d.seed, help="seed of window choice and noise")
     parser.add_argument("--all-episodes", action="store_true",
-                        help="use every episode even if the file is the checkpoint's training data")
+                        help="use every episode, even of the checkpoint's training file or repeating its episodes")
+    parser.add_argument("--training-data", nargs="+", default=[], metavar="FILE",
+                        help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
+                             "evaluated episodes that repeat one of theirs are left out")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -255,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
                             device=args.device)
         for data in args.data:
             results[Path(data).stem] = evaluate_checkpoint(args.checkpoint, data, config, args.all_episodes,
-                                                           not args.quiet)
+                                                           not args.quiet, args.training_data)
     except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
         print(f"rwm-gym evaluate: {err}", file=sys.stderr)
         return 2
