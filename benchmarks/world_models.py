@@ -91,6 +91,8 @@ class Options:
     warmup_gradients: bool = True
     """Backpropagate through the teacher-forced warm-up (off: through the forecasts only; rssm keeps it on, its
     warm-up carries its KL loss)."""
+    loss: str = "mse"
+    """State loss of every model: mse (of reparameterised samples) or nll (Gaussian; the std then follows the error)."""
     seed: int = 0
     device: str = "cpu"
     """torch device: cpu or cuda."""
@@ -133,7 +135,8 @@ def markdown(results: dict, source: str, data: Dataset, options: Options, wall_s
         budget += (" or " if budget else "") + f"{options.minutes} {'CPU ' if options.cpu_clock else ''}minutes"
     lines = [f"Source {source}: {first['episodes']} held-out episodes ({first['episode_set']}). Trained on "
              f"{data.num_episodes} episodes / {data.num_steps} rows; {budget} per model, batch {options.batch_size} "
-             f"windows ({options.branches} branches per segment unless the row says otherwise), seed {options.seed}, "
+             f"windows ({options.branches} branches per segment unless the row says otherwise), {options.loss} state "
+             f"loss, seed {options.seed}, "
              f"device {options.device}, total {wall_s / 60:.1f} min. Relative L1 error of open-loop mean predictions "
              f"after {first['history']} true steps (lower is better); floors on the same windows.", "",
              "| model | " + " | ".join(f"N={h}" for h in horizons) + f" | max abs pred N={horizons[-1]} | "
@@ -180,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in tqdm(options.models.split(","), desc="models", unit="model", disable=not world.is_main):
         kind, train_fields, model_fields = MODELS[name]
         common = dict(batch_size=options.batch_size, branches=options.branches, branch_stride=options.branch_stride,
-                      warmup_gradients=options.warmup_gradients, iterations=options.iterations,
+                      warmup_gradients=options.warmup_gradients, loss=options.loss, iterations=options.iterations,
                       minutes=options.minutes, seed=options.seed, device=options.device,
                       val_every=max(1, options.iterations // 10 or 50),
                       checkpoint_every=options.iterations or 10 ** 9)
