@@ -287,7 +287,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="use every episode, even of the checkpoint's training file or repeating its episodes")
     parser.add_argument("--training-data", nargs="+", default=[], metavar="FILE",
                         help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
-                             "evaluated episodes that repeat one of theirs are left out")
+                             "evaluated episodes that repeat one of theirs are left out (default: none)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
