@@ -255,15 +255,18 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike |
         if len(episodes) == 0:
             raise ValueError(f"{dataset.path}: the checkpoint was trained on this file with no held-out episodes")
     elif not all_episodes:
+        repeated = []
         for training, ids in _training_files(meta.provenance, training_data):
             seen = episodes_seen_in(dataset, episodes, training, ids)
             if len(seen) == len(episodes):
-                raise ValueError(f"{dataset.path}: every evaluated episode repeats a training episode of "
-                                 f"{training.path}; collect held-out data with another seed")
+                sources = ", ".join(repeated + [str(training.path)])
+                raise ValueError(f"{dataset.path}: every evaluated episode repeats a training episode of {sources}; "
+                                 "collect held-out data with another seed")
             if len(seen):
-                episodes = np.setdiff1d(episodes, seen)
-                held_out = (f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes "
-                            f"of {training.path} left out")
+                episodes, repeated = np.setdiff1d(episodes, seen), repeated + [str(training.path)]
+        if repeated:
+            held_out = (f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes of "
+                        f"{', '.join(repeated)} left out")
     result = evaluate(model, dataset, meta.normalizer, spec, config, episodes, progress)
     return {"checkpoint": str(checkpoint), "model": meta.model_config.kind, "data": str(dataset.path),
             "episode_set": held_out, "config": asdict(config), **result}
