@@ -69,10 +69,12 @@ def main(argv: list[str] | None = None) -> None:
     if not sources:
         parser.error("the runs share no held-out source")
     for source in sources:  # the floors and the comparison hold only on the same windows
-        settings = {label: (r[source]["horizons"], r[source]["windows"], r[source]["episodes"])
+        # which episodes: their ids, or only their count where a file predates the ids
+        episodes = "episode_ids" if all("episode_ids" in r[source] for r in runs.values()) else "episodes"
+        settings = {label: (r[source]["horizons"], r[source]["windows"], r[source][episodes])
                     for label, r in runs.items()}
         if len(set(map(repr, settings.values()))) > 1:
-            parser.error(f"{source}: the runs were not evaluated on the same windows (horizons, windows, episodes: "
+            parser.error(f"{source}: the runs were not evaluated on the same windows (horizons, windows, {episodes}: "
                          + "; ".join(f"{label} {value}" for label, value in settings.items()) + ")")
     columns = min(len(sources), 2)
     grid_rows = math.ceil(len(sources) / columns)

@@ -123,8 +123,7 @@ def main() -> None:
     config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
                          branches=args.branches, branch_stride=args.branch_stride, forecast=args.forecast, lr=args.lr,
                          warmup_gradients=args.warmup_gradients, loss=args.loss, reset_std_band=args.reset_std_band,
-                         device=args.device, seed=0, val_every=250,
-                         checkpoint_every=250)
+                         device=args.device, seed=0, val_every=250, checkpoint_every=250)
     if args.init:
         model_config = read_meta(args.init).model_config
     else:

@@ -204,3 +204,29 @@ def test_evaluation_compare_puts_models_side_by_side_on_shared_windows(tmp_path:
     with pytest.raises(SystemExit):  # other horizons: other windows, so no shared floor
         compare.main([f"shipped={tmp_path / 'a'}", f"short={tmp_path / 'short'}", "--out", str(tmp_path / "bad")])
     assert "stand: the runs were not evaluated on the same windows" in capsys.readouterr().err
+
+
+def test_evaluation_compare_refuses_runs_on_other_episodes_of_a_file(tmp_path: Path, capsys) -> None:
+    """Two evaluations that left out different repeated episodes of one file have the same counts but other windows."""
+    from rwm_gym.cli import main
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import Dataset, write_dataset
+    from rwm_gym.model.checkpoint import save_checkpoint
+    from rwm_gym.model.factory import build_model, model_config_for
+    from rwm_gym.spec import load_spec
+
+    data = collect("AnymalD-MuJoCo-v0", "zero", 3, tmp_path / "stand.h5", max_steps=40, num_envs=3, progress=False)
+    spec = load_spec("anymal_d")
+    still = save_checkpoint(tmp_path / "still.safetensors", build_model(model_config_for("no_change", spec)), spec)
+    episodes = Dataset.load(data)
+    for i in (0, 1):  # a "training" file holding episode i of the evaluated file
+        write_dataset(tmp_path / f"train{i}.h5", episodes.info, [episodes.episode(i)])
+        assert main(["evaluate", "--checkpoint", str(still), "--data", str(data), "--out", str(tmp_path / f"run{i}"),
+                     "--training-data", str(tmp_path / f"train{i}.h5"), "--history", "8", "--horizons", "4",
+                     "--max-horizon", "4", "--max-windows", "8", "--noise", "--quiet"]) == 0
+    compare = _script("evaluation_compare")
+    with pytest.raises(SystemExit):
+        compare.main([f"a={tmp_path / 'run0'}", f"b={tmp_path / 'run1'}", "--out", str(tmp_path / "bad")])
+    assert "windows, episode_ids" in capsys.readouterr().err
+    compare.main([f"a={tmp_path / 'run0'}", f"again={tmp_path / 'run0'}", "--out", str(tmp_path / "same")])
+    assert (tmp_path / "same.md").is_file()
