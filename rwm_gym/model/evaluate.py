@@ -104,7 +104,8 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
     generator = torch.Generator().manual_seed(config.seed)
     data_mean = windows.states.mean(0)
     result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
-                    "episodes": len(episodes), "episode_ids": [int(e) for e in episodes], "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
+                    "episodes": len(episodes), "episode_ids": [int(e) for e in episodes],
+                    "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
                     "floors": {"no change": {}, "predict the mean": {}}, "max_abs": {}, "running_mean_by_horizon": {},
                     "noise": {str(s): {} for s in config.noise_levels}}
     jobs = [(n, s) for n in horizons for s in (0.0, *config.noise_levels)]
