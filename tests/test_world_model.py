@@ -264,3 +264,18 @@ def test_warm_hidden_is_the_hidden_state_of_warm_up(kind: str) -> None:
     assert len(hidden) == len(expected)
     for h, e in zip(hidden, expected):
         assert torch.equal(h, e)
+
+
+def test_log_std_band_penalty_never_inverts_the_band() -> None:
+    """Descending on the band penalty alone (what the mse loss leaves of it) narrows the band to zero width and no
+    further: an inverted band (max below min) earns nothing."""
+    model = tiny("rwm")
+    head = model.heads.state
+    optimizer = torch.optim.SGD([head.min_log_std, head.max_log_std], lr=0.05)
+    for _ in range(400):
+        optimizer.zero_grad()
+        model.regularization().backward()
+        optimizer.step()
+    width = (head.max_log_std - head.min_log_std).detach()
+    assert width.min() > -0.1, width.min()
+    assert float(model.regularization().detach()) >= 0.0

@@ -100,8 +100,10 @@ class StateHead(nn.Module):
         self.out.bias[..., self.state_dim:] = log_std
 
     def bound_loss(self) -> torch.Tensor:
-        """sum(max_log_std) - sum(min_log_std): keeps the learned band from widening without need."""
-        return self.max_log_std.sum() - self.min_log_std.sum()
+        """The band's width, sum(max_log_std - min_log_std) over channels where max is above min: keeps it from
+        widening without need. An inverted channel counts 0, not less: under a loss that never pushes the std up
+        (mse of a sample) the plain difference kept falling past zero and inverted the band."""
+        return (self.max_log_std - self.min_log_std).clamp(min=0.0).sum()
 
 
 class PrivilegedHead(nn.Module):

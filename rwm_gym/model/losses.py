@@ -7,7 +7,7 @@ forecast branches each (`branches.py`). Every learned term is computed on the F 
 - state: squared error of a sample (mean + std * eps) against the true state ("mse", as RWM) or the Gaussian NLL;
 - contacts: BCE on the logits; foot heights: squared error (normalised);
 - termination: BCE with `pos_weight` (negatives per positive) so that rare falls are not ignored;
-- the log-std band sum(max) - sum(min) of the state heads (`WorldModel.regularization`);
+- the width of the state heads' log-std band, sum(max - min) where positive (`WorldModel.regularization`);
 - latent-variable models (RSSM) also reconstruct the warm-up rows from their posterior and pay the KL (free nats).
 """
 
