@@ -177,7 +177,9 @@ def settings(args: argparse.Namespace) -> dict:
     # version 15: where no held-out episode reaches the last gap horizon (a robot that falls within a second), the
     #             held-out windows are cut to the shortest one (workflow.scored_horizon); only cases that were errors
     #             can differ from version 14
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 15}
+    # version 16: before step 1 calls a gap `unexplained`, every effect is refined, not only the 3 best screened
+    #             (FitConfig.refine_every_effect); only cases that were `unexplained` can differ from version 15
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 16}
 
 
 def summarise(rows: list[dict]) -> dict:

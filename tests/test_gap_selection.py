@@ -500,6 +500,45 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     assert run().verdict == "none" and len(calls) == 1
 
 
+def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch):
+    """Motor strength 0.8 and ground friction 0.3 on walking data: ground friction ranked below the 3 refined effects
+    on the coarse grid and stayed at 0.67, explaining 11 %. Before calling the gap `unexplained`, step 1 refines every
+    effect; a step that names something without it does not pay for it."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def fitted(name, explained, p_value=1.0):
+        return CandidateFit(name, [name], ["1"], [0.0], [0.1], 0.0, gap_mean=1.0 - explained,
+                            explained_fraction=explained, score=explained, p_value=p_value)
+
+    refine_calls = []
+
+    def fit_all(effects, resim, train, held, params, gap, config, progress=True, refine_top=None):
+        refine_calls.append(refine_top)
+        if refine_top is None:  # the usual step: the ground friction fit is a coarse grid point
+            return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.1 * len(effects) / 4)]
+        return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.6, 1e-4)]
+
+    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
+        "gap": float(gap.mean()), "floor": 0.01, "ratio": 50.0, "p_value": 1e-4, "above_floor": gap.mean() > 0.9})
+    monkeypatch.setattr(select, "fit_all", fit_all)
+    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
+    monkeypatch.setattr(select, "every_scope", lambda *args: [])
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
+    effects = {n: EFFECTS[n] for n in ("motor_strength", "ground_friction", "payload", "armature")}
+
+    def run(config=FitConfig()):
+        refine_calls.clear()
+        return select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
+                                     np.full((20, 3), 0.01), config, progress=False)
+
+    selection = run()
+    assert selection.verdict == "ground_friction" and refine_calls == [None, 4]  # step 2 starts below the floor
+    assert run(FitConfig(refine_every_effect=False)).verdict == "unexplained" and refine_calls == [None]
+    assert run(FitConfig(refine_top=4)).verdict == "unexplained" and refine_calls == [None]  # all were refined
+
+
 @pytest.mark.parametrize("floor,best_explains,rival_explains,ambiguous", [
     (0.43, 0.18, 0.0, False),   # ground friction at half its default on walking data: a gap 2.3x the floor
     (0.02, 0.50, 0.45, True),   # far above the floor: half the gap and 45 % of it are alike

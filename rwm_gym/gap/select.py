@@ -16,8 +16,9 @@ its scopes (`scope.scope_candidates`), and the best-scoring candidate is named w
 - no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
   within `ambiguity_ratio` of the best's.
 
-Before step 1 calls a gap above the floor `unexplained`, every joint effect is fitted in its scopes too
-(`scope.every_scope`), also those whose global form explained nothing.
+Before step 1 calls a gap above the floor `unexplained`, every effect is refined (not only the best screened,
+`FitConfig.refine_every_effect`) and every joint effect is fitted in its scopes too (`scope.every_scope`), also those
+whose global form explained nothing.
 
 At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
 of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
@@ -208,6 +209,12 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
                 best[1].cross_fitted_p_value = cross_fitted_p_value(best, resim, held, cross(), params, current,
                                                                     config, significance)
                 pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
+        if pick is None and rival is None and k == 0 and not below and config.refine_every_effect \
+                and len(remaining) > config.refine_top:
+            fits = fit_all(remaining, resim, train, held, params, current, config, progress, len(remaining))
+            refined = {f.effect: f for f in fits}
+            candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in candidates]
+            pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
         if pick is None and rival is None and k == 0 and not below and config.every_scope:
             scoped = {f.effect for _, f in candidates if f.scope != "global"}
             more = every_scope(fits, scoped, remaining, spec, resim, train, held, params, current, config)
