@@ -528,10 +528,10 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("motor_strength", "ground_friction", "payload", "armature")}
 
-    def run(config=FitConfig()):
+    def run(config=None):
         refine_calls.clear()
         return select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
-                                     np.full((20, 3), 0.01), config, progress=False)
+                                     np.full((20, 3), 0.01), config or FitConfig(), progress=False)
 
     selection = run()
     assert selection.verdict == "ground_friction" and refine_calls == [None, 4]  # step 2 starts below the floor
