@@ -125,6 +125,22 @@ def test_two_effects_are_named_in_order_with_their_shares(tmp_path):
     assert not report["residual"]["above_floor"]
 
 
+def test_what_is_left_is_judged_against_the_corrected_simulators_floor(tmp_path):
+    """Floor friction 0.3 under the walking gait: the feet slip, and the same sensor noise carries about 3x further
+    than in the nominal simulator. Named and fitted right, the effect leaves a gap above the nominal floor that is
+    noise under the corrected simulator; it is judged against that floor, so no residual torque is learned for it."""
+    data = make_measured({"ground_friction": [0.3]}, 9, tmp_path / "m.h5", max_steps=150, policy="gait",
+                         progress=False)
+    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    assert report["effect"] == "ground_friction", report["reason"]
+    assert abs(report["parameters"]["ground_friction"] - 0.3) <= 0.25 * 0.7
+    residual, nominal_floor = report["residual"], report["noise_floor"]["floor"]
+    assert residual["floor_of"] == "the corrected simulator"
+    assert residual["floor"] > 2.0 * nominal_floor
+    assert report["gap_after"] > 2.0 * nominal_floor  # above the nominal simulator's floor ...
+    assert not residual["above_floor"] and report["learned_correction"] is None  # ... but not above its own
+
+
 def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     """A knee spring is no effect of the vocabulary: the gap is far above the noise floor, nothing is named (not
     `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned, and its knee

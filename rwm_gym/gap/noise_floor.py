@@ -12,8 +12,9 @@ windows, actions and states), and the measured gap at least `min_ratio` times th
 cannot go below p = 2^-n, so a log whose robot falls at once (five held-out windows) could never show a gap, however
 large; with too few blocks for the rank test to reach `significance`, a one-sided t-test on the blocks' log ratios
 log(gap / floor) decides instead, which weighs how far above the floor each block is. After named effects, this test
-on the remaining gap decides whether anything is left. Before any, a gap that fails it may still hold an effect that
-shows in a few windows only; `select` then asks each candidate's own reduction (Bonferroni) before saying `none`.
+on the remaining gap, against the corrected simulator's own floor, decides whether anything is left (a slippery floor
+carries the same noise further). Before any, a gap that fails it may still hold an effect that shows in a few windows
+only; `select` then asks each candidate's own reduction (Bonferroni) before saying `none`.
 """
 
 from __future__ import annotations

@@ -86,7 +86,8 @@ def markdown(report: dict) -> str:
         lines.append(f"| {h} | {before:.4g} | {report['gap_after_per_horizon'][h]:.4g} |")
     lines.append(f"| mean | {report['gap_before']:.4g} | {report['gap_after']:.4g} |\n")
     lines.append(f"Explained fraction: {report['explained_fraction']:.1%}; what remains is "
-                 f"{report['residual']['ratio']:.2f} x the noise floor"
+                 f"{report['residual']['ratio']:.2f} x the noise floor of "
+                 f"{report['residual'].get('floor_of', 'the nominal simulator')}"
                  f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n")
     learned = report.get("learned_correction")
     if learned:
