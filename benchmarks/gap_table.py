@@ -183,7 +183,9 @@ def settings(args: argparse.Namespace) -> dict:
     #             (FitConfig.refine_every_effect); only cases that were `unexplained` can differ from version 15
     # version 17: what named effects leave is tested against the corrected simulator's own noise floor
     #             (`rest_at_floor`); only the residual test and the learned correction after named effects can differ
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 17}
+    # version 18: a lone named effect of several parameters is refitted by least squares, kept if the held-out gap
+    #             does not grow (FitConfig.refit_single_effect); only such runs can differ from version 17
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 18}
 
 
 def summarise(rows: list[dict]) -> dict:

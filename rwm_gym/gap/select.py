@@ -22,8 +22,9 @@ whose global form explained nothing.
 
 At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
 of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
-A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, all their
-parameters are refitted together (least squares from the sequential values), kept if the held-out gap does not grow.
+A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, or one of
+several parameters (`FitConfig.refit_single_effect`), all their parameters are refitted together (least squares from
+the sequential values), kept if the held-out gap does not grow.
 Each named effect's share of the explained gap is its held-out gap reduction when the effects are added in order at
 their final values.
 """
@@ -248,7 +249,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         verdict = "none" if not steps[0]["floor_test"]["above_floor"] else "unexplained"
         return Selection(verdict, reason, [], base, before, steps=steps)
     refit = None
-    if len(named) > 1:
+    if len(named) > 1 or (config.refit_single_effect and len(named[0][0].parameters) > 1):
         named, params, current, refit = joint_refit(named, resim, train, held, base, current, config)
     shares = effect_shares(named, resim, held, base, before)
     summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
