@@ -4,9 +4,9 @@ Steps: split the measured episodes into fitting and held-out ones; re-simulate h
 simulator, rank channels and conditions (`diagnose`), compute the sensor-noise floor of the gap (`noise_floor`) and
 which effects these data can reveal (`identifiability`); if the gap is above the floor, name effects by forward
 selection over the vocabulary and its scopes (`select`, `fit`, `scope`); if a gap remains above the corrected
-simulator's own noise floor, learn a residual torque for it (`learned`); write the corrected simulator (`correct`); with a world model, regenerate data
-from the corrected simulator, fine-tune the world model on it plus the measured fitting episodes and compare the
-predictors on the held-out episodes (`world_model`); write the report (`report`).
+simulator's own noise floor, learn a residual torque for it (`learned`); write the corrected simulator (`correct`);
+with a world model, regenerate data from the corrected simulator, fine-tune the world model on it plus the measured
+fitting episodes and compare the predictors on the held-out episodes (`world_model`); write the report (`report`).
 """
 
 from __future__ import annotations
