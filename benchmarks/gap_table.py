@@ -16,6 +16,7 @@ whatever cases have finished.
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
         [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
         [--reuse-above-floor results/gap_v12]
+    python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
 
 from __future__ import annotations
@@ -30,10 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from rwm_gym.atomic import write_json, write_text
-from rwm_gym.gap.effects import EFFECT_NAMES, vocabulary
-from rwm_gym.gap.measured import make_measured, write_spring_model
+from rwm_gym.data.collect import make_physics_core
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.effects import EFFECT_NAMES, combined_physics, vocabulary
+from rwm_gym.gap.fit import FitConfig, gap_per_window
+from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
+from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
+from rwm_gym.gap.resim import Resimulator, make_windows
 from rwm_gym.gap.scope import joint_groups
-from rwm_gym.gap.workflow import run_gap
+from rwm_gym.gap.workflow import GapConfig, run_gap, scored_horizon
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -92,22 +98,32 @@ def grid() -> list[Case]:
     return first + rest
 
 
-def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
-    """Measure the case from `source`, run the workflow, score the verdict."""
-    env_kwargs, extra = {}, {}
+def hidden_physics(case: Case) -> dict:
+    """The PhysicsParams fields a per-joint case hides beside its global effects (`make_measured`'s extra_physics)."""
+    if not case.per_joint:
+        return {}
+    name, scope, group, value = case.per_joint
+    p = EFFECTS[name].parameters[0]
+    values = np.full(12, p.nominal)
+    values[joint_groups(SPEC, scope)[group]] = value
+    return {EFFECTS[name].apply(np.array([p.default])).popitem()[0]: values.tolist()}
+
+
+def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> Path:
+    """The case's measured data from `source` (the same file for the same settings)."""
+    env_kwargs = {}
     if case.spring:
         env_kwargs["xml_file"] = str(write_spring_model(SPEC, tmp / f"{case.name}.xml", *case.spring))
-    if case.per_joint:
-        name, scope, group, value = case.per_joint
-        p = EFFECTS[name].parameters[0]
-        values = np.full(12, p.nominal)
-        values[joint_groups(SPEC, scope)[group]] = value
-        extra[EFFECTS[name].apply(np.array([p.default])).popitem()[0]] = values.tolist()
     seed = args.seed + (1 if case.name.endswith("seed1") else 0)
+    return make_measured(case.truth, case.episodes or args.episodes, tmp / f"{source}_{case.name}.h5",
+                         max_steps=args.steps, seed=seed, policy=source, env_kwargs=env_kwargs,
+                         extra_physics=hidden_physics(case), progress=False, overwrite=True)
+
+
+def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
+    """Measure the case from `source`, run the workflow, score the verdict."""
     start = time.time()
-    data = make_measured(case.truth, case.episodes or args.episodes, tmp / f"{source}_{case.name}.h5", max_steps=args.steps,
-                         seed=seed, policy=source, env_kwargs=env_kwargs, extra_physics=extra, progress=False,
-                         overwrite=True)
+    data = measure(case, source, args, tmp)
     try:
         report = run_gap(SIM, data, tmp / f"{source}_{case.name}", progress=False)
     except ValueError as err:  # e.g. a robot that falls at once: no episode long enough for held-out windows
@@ -151,6 +167,26 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> di
         "rejected_points": len(report["rejected"]), "wall_s": time.time() - start,
         "settings": settings(args),
     }
+
+
+def oracle(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
+    """What the true simulator leaves on the case's held-out windows (the workflow's split, horizons and sensor-noise
+    floor): the best any correction can do on these data. Cases with vocabulary effects only."""
+    data = Dataset.load(measure(case, source, args, tmp))
+    config, fit_config = GapConfig(), FitConfig()
+    _, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
+    held = make_windows(data, held_ids, scored_horizon(data, held_ids, config.warmup), config.eval_stride,
+                        config.warmup)
+    resim = Resimulator(SPEC, solver=config.solver)
+    base = make_physics_core(SIM, 1).params
+    true = combined_physics(case.truth, SPEC, base.replace(**hidden_physics(case)))
+    before, after = (gap_per_window(SPEC, resim.rollout(held, p), held) for p in (base, true))
+    floor = noise_floor(resim, held, true, SensorNoise(), FloorConfig())
+    rest = compare_with_floor(after, floor, held, fit_config.block_rows, FloorConfig())
+    return {"case": case.name, "source": source, "kind": case.kind, "gap_nominal": float(before.mean()),
+            "gap_true": float(after.mean()), "true_explained": float(1.0 - after.mean() / before.mean()),
+            "true_floor": rest["floor"], "true_rest_above_its_floor": rest["above_floor"],
+            "settings": settings(args)}
 
 
 def settings(args: argparse.Namespace) -> dict:
@@ -338,6 +374,9 @@ def main() -> None:
     parser.add_argument("--shard", default="0/1", help="i/n: run every n-th case starting at i")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--summary-only", action="store_true", help="only rebuild the summary from finished cases")
+    parser.add_argument("--oracle", action="store_true",
+                        help="instead of the workflow, the held-out gap the true simulator leaves per case "
+                             "(<out>/oracle/, oracle.md): how much any correction can explain on these data")
     parser.add_argument("--reuse-above-floor", type=Path, default=None, metavar="DIR",
                         help="take the cases whose nominal gap was above the noise floor from an earlier run's "
                              "DIR/cases (for a version whose change reaches only gaps near the floor); each reused "
@@ -348,6 +387,8 @@ def main() -> None:
     folder = args.out / "cases"
     folder.mkdir(parents=True, exist_ok=True)
     jobs = [(c, s) for c in cases for s in args.sources][shard::shards]
+    if args.oracle:
+        return run_oracle([(c, s) for c, s in jobs if c.truth or c.per_joint], args)
     with tempfile.TemporaryDirectory() as tmp:
         for case, source in ([] if args.summary_only else jobs):
             path = folder / f"{Path(source).stem}__{case.name}.json"
@@ -370,6 +411,24 @@ def main() -> None:
     if rows:
         plot(rows, args.out / "gap_table.png")
     print(markdown(rows, summary))
+
+
+def run_oracle(jobs: list[tuple[Case, str]], args: argparse.Namespace) -> None:
+    """`--oracle`: one JSON per case and source (kept and reused like the workflow's cases), and a table."""
+    folder = args.out / "oracle"
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for case, source in jobs:
+            path = folder / f"{Path(source).stem}__{case.name}.json"
+            if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args)):
+                write_json(path, {**oracle(case, source, args, Path(tmp)), "source": Path(source).stem})
+    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    lines = ["| source | case | held-out gap explained by the true simulator | its rest above its own floor |",
+             "|---|---|---|---|"]
+    lines += [f"| {r['source']} | {r['case']} | {r['true_explained']:.0%} | "
+              f"{'yes' if r['true_rest_above_its_floor'] else 'no'} |" for r in rows]
+    write_text(args.out / "oracle.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
