@@ -363,6 +363,24 @@ def reuse_above_floor(earlier: Path, path: Path, args: argparse.Namespace) -> bo
     return True
 
 
+def run_oracle(jobs: list[tuple[Case, str]], args: argparse.Namespace) -> None:
+    """`--oracle`: one JSON per case and source (kept and reused like the workflow's cases), and a table."""
+    folder = args.out / "oracle"
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for case, source in jobs:
+            path = folder / f"{Path(source).stem}__{case.name}.json"
+            if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args)):
+                write_json(path, {**oracle(case, source, args, Path(tmp)), "source": Path(source).stem})
+    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    lines = ["| source | case | held-out gap explained by the true simulator | its rest above its own floor |",
+             "|---|---|---|---|"]
+    lines += [f"| {r['source']} | {r['case']} | {r['true_explained']:.0%} | "
+              f"{'yes' if r['true_rest_above_its_floor'] else 'no'} |" for r in rows]
+    write_text(args.out / "oracle.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("results/gap_table"))
@@ -384,11 +402,11 @@ def main() -> None:
     args = parser.parse_args()
     cases = [c for c in grid() if args.cases is None or c.name in args.cases]
     shard, shards = (int(x) for x in args.shard.split("/"))
-    folder = args.out / "cases"
-    folder.mkdir(parents=True, exist_ok=True)
     jobs = [(c, s) for c in cases for s in args.sources][shard::shards]
     if args.oracle:
         return run_oracle([(c, s) for c, s in jobs if c.truth or c.per_joint], args)
+    folder = args.out / "cases"
+    folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         for case, source in ([] if args.summary_only else jobs):
             path = folder / f"{Path(source).stem}__{case.name}.json"
@@ -411,24 +429,6 @@ def main() -> None:
     if rows:
         plot(rows, args.out / "gap_table.png")
     print(markdown(rows, summary))
-
-
-def run_oracle(jobs: list[tuple[Case, str]], args: argparse.Namespace) -> None:
-    """`--oracle`: one JSON per case and source (kept and reused like the workflow's cases), and a table."""
-    folder = args.out / "oracle"
-    folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        for case, source in jobs:
-            path = folder / f"{Path(source).stem}__{case.name}.json"
-            if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args)):
-                write_json(path, {**oracle(case, source, args, Path(tmp)), "source": Path(source).stem})
-    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
-    lines = ["| source | case | held-out gap explained by the true simulator | its rest above its own floor |",
-             "|---|---|---|---|"]
-    lines += [f"| {r['source']} | {r['case']} | {r['true_explained']:.0%} | "
-              f"{'yes' if r['true_rest_above_its_floor'] else 'no'} |" for r in rows]
-    write_text(args.out / "oracle.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
 
 
 if __name__ == "__main__":
