@@ -132,3 +132,15 @@ def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(
                                       "--out", str(tmp_path / "fig")])
     with pytest.raises(SystemExit):
         module.main()
+
+
+def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactly(tmp_path):
+    """`gap_table.py --oracle`: on the case's own measured data, the true simulator removes nearly all of a motor
+    strength gap, and what it leaves is sensor noise (not above its own floor)."""
+    import argparse
+
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_oracle")
+    case = next(c for c in gap_table.grid() if c.name == "motor_strength_1x")
+    row = gap_table.oracle(case, "excitation", argparse.Namespace(seed=0, episodes=4, steps=60), tmp_path)
+    assert row["gap_true"] < 0.2 * row["gap_nominal"]
+    assert not row["true_rest_above_its_floor"]
