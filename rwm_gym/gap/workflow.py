@@ -70,6 +70,13 @@ def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
     return GAP_HORIZONS[-1] if lengths.max() >= GAP_HORIZONS[-1] else int(max(1, lengths.min()))
 
 
+def held_out_windows(data: Dataset, config: GapConfig) -> tuple[np.ndarray, np.ndarray, Windows]:
+    """The fitting and held-out episodes of `data`, and the held-out windows the gap is scored on."""
+    train_ids, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
+    horizon = scored_horizon(data, held_ids, config.warmup)
+    return train_ids, held_ids, make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
+
+
 def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
             config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(),
             floor_config: FloorConfig = FloorConfig(), sensor_noise: SensorNoise = SensorNoise(),
@@ -90,11 +97,10 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     data = Dataset.load(measured)
     if data.spec().state_columns != spec.state_columns:
         raise ValueError(f"{measured}: field 'state': columns differ from the simulator {sim}'s task spec")
-    train_ids, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
-    horizon = scored_horizon(data, held_ids, config.warmup)
+    train_ids, held_ids, held = held_out_windows(data, config)
+    horizon = held.horizon
     horizons = gap_horizons(horizon)
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
-    held = make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
     resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=config.solver)
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
 
