@@ -203,7 +203,7 @@ class ImaginedCore:
             hidden = self.warm_up_cache.get(ends, lambda rows: self._warm_hidden(self.reset_windows.gather(rows)))
         else:
             hidden = self._warm_hidden(windows, member if self.ensemble_size > 1 else None)
-        self.hidden = self.model.scatter_hidden(self.hidden, index, hidden)
+        self.model.scatter_hidden_(self.hidden, index, hidden)
         self.state[ids] = windows.states[:, -1]
         self.contact[ids] = windows.contact
         self.foot_height[ids] = windows.foot_height

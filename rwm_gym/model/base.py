@@ -4,7 +4,7 @@ Everything is in normalised units (see `normalization.py`): states are `(x - mea
 statistics, foot heights are divided by the spec's `foot_height_std`, actions are passed as they are (in [-1, 1]).
 
 The hidden state is explicit: a tuple of tensors, each with the batch on dim 0, so that an environment holding many
-rollouts can pick, overwrite or reset some of them with `select_hidden`, `scatter_hidden` and `reset_hidden` without
+rollouts can pick, overwrite or reset some of them with `select_hidden`, `scatter_hidden(_)` and `reset_hidden` without
 knowing the model's kind. Causal alignment: `step(h, state[t], action[t])` predicts `state[t+1]` (and the contacts,
 foot heights and termination flag of row t+1).
 """
@@ -169,6 +169,13 @@ class WorldModel(nn.Module):
     def scatter_hidden(hidden: Hidden, index: torch.Tensor, values: Hidden) -> Hidden:
         """A copy of `hidden` with rollouts `index` ((n,) long) replaced by `values` (batch n)."""
         return tuple(h.index_copy(0, index, v.to(h.dtype)) for h, v in zip(hidden, values, strict=True))
+
+    @staticmethod
+    def scatter_hidden_(hidden: Hidden, index: torch.Tensor, values: Hidden) -> None:
+        """`scatter_hidden` in place, for a holder that alone owns `hidden` (the imagined env between steps): no
+        copy of every rollout's state to restart a few."""
+        for h, v in zip(hidden, values, strict=True):
+            h.index_copy_(0, index, v.to(h.dtype))
 
     def reset_hidden(self, hidden: Hidden, mask: torch.Tensor) -> Hidden:
         """A copy of `hidden` with the rollouts where mask ((B,) bool) is true set back to `initial_hidden`.

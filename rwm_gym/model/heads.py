@@ -83,9 +83,9 @@ class StateHead(nn.Module):
             index = (member == k).nonzero().squeeze(1)
             if index.numel() == 0:
                 continue
-            hidden = F.elu(torch.baddbmm(self.hidden.bias[k:k + 1], features[index].unsqueeze(0),
-                                         self.hidden.weight[k:k + 1]))
-            out[index] = torch.baddbmm(self.out.bias[k:k + 1], hidden, self.out.weight[k:k + 1])[0]
+            hidden = F.elu(torch.addmm(self.hidden.bias[k], features.index_select(0, index), self.hidden.weight[k]),
+                           inplace=True)
+            out.index_copy_(0, index, torch.addmm(self.out.bias[k], hidden, self.out.weight[k]))
         residual, raw_log_std = out.split(self.state_dim, dim=-1)
         return last_state + residual, soft_bound(raw_log_std, self.min_log_std, self.max_log_std).exp()
 
