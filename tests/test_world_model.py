@@ -57,6 +57,10 @@ def test_every_kind_shares_the_step_interface(kind: str, ensemble: int) -> None:
     for h, m in zip(hidden, moved):
         torch.testing.assert_close(m[1], h[2])
         torch.testing.assert_close(m[3], h[0])
+    in_place = tuple(h.clone() for h in hidden)  # in place: the same rows as the copy, no new tensors
+    model.scatter_hidden_(in_place, torch.tensor([1, 3]), sub)
+    for m, p in zip(moved, in_place):
+        torch.testing.assert_close(p, m)
     reset = model.reset_hidden(hidden, torch.tensor([True, False, False, False]))
     for h, r, fresh in zip(hidden, reset, model.initial_hidden(batch, "cpu")):
         torch.testing.assert_close(r[0], fresh[0])
