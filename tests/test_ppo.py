@@ -266,6 +266,19 @@ def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsy
     assert json.loads((run / "state.json").read_text())["timesteps"] == 128
 
 
+def test_sample_predictions_reaches_the_imagined_env_and_its_record(tmp_path):
+    run = tmp_path / "run"
+    args = ["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1",
+            "--run-dir", str(run), "--no-eval", "--out", str(run / "final.zip"), "--timesteps", "64"]
+    assert main([*args, "--sample-predictions"]) == 0
+    state = json.loads((run / "state.json").read_text())
+    assert state["env"]["imagination"] == {"sample_predictions": True}
+    with pytest.raises(SystemExit, match="started in another env"):  # resuming without it would change the env
+        main(args)
+    with pytest.raises(SystemExit, match="--sample-predictions apply to --in imagination"):
+        main(["ppo", "--in", "physics", "--sample-predictions", "--timesteps", "1"])
+
+
 def test_imagination_options_are_refused_in_physics_by_name():
     from rwm_gym.cli import main
 
