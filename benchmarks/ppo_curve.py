@@ -1,6 +1,6 @@
 """The learning curve of a resumable PPO run: the tracking score of every snapshot against env steps and wall time.
 
-    python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--seeds 3] [--threshold 0.8] [--out DIR]
+    python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--seeds 3] [--threshold 0.8] [--every N] [--out DIR]
     python benchmarks/ppo_curve.py --run-dir runs/imagC --trained-in imagination --checkpoint CKPT --reset-data H5
 
 Scores each `RUN/snapshots/step_N.zip` in physics on the scoring command set (`rwm-gym score`'s), once: results are
@@ -36,6 +36,18 @@ def wall_at(run: TrainingRun, timesteps: int) -> float | None:
     return float(rows[-1]["total_wall_s"]) if rows else 0.0
 
 
+def spaced(snapshots: list[Path], every: int) -> list[Path]:
+    """The first snapshot at or past each multiple of `every` env steps (all of them with `every` 0): a curve of a
+    long run with frequent snapshots at the cost of a few physics scores."""
+    kept, last = [], None
+    for snapshot in snapshots:
+        bucket = int(snapshot.stem.split("_")[1]) // every if every else snapshot
+        if bucket != last:
+            kept.append(snapshot)
+            last = bucket
+    return kept
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-dir", type=Path, required=True)
@@ -43,6 +55,8 @@ def main() -> None:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--max-falls", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="default: RUN/curve")
+    parser.add_argument("--every", type=int, default=0,
+                        help="score only the first snapshot at or past each multiple of this many env steps (0: all)")
     parser.add_argument("--trained-in", choices=("physics", "imagination"), default="physics",
                         help="where the run trained (labels the plot: physics or imagined env steps)")
     parser.add_argument("--checkpoint", default=None,
@@ -56,7 +70,7 @@ def main() -> None:
     table = out / "curve.csv"
     rows = list(csv.DictReader(table.open())) if table.is_file() else []
     done = {int(r["timesteps"]): r for r in rows}
-    for snapshot in run.snapshot_files():
+    for snapshot in spaced(run.snapshot_files(), args.every):
         steps = int(snapshot.stem.split("_")[1])
         row = done.get(steps)
         if row is None:

@@ -76,3 +76,14 @@ def test_a_run_folder_refuses_other_settings(tmp_path):
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert result.returncode != 0 and "other PPO settings" in result.stderr
 
+
+
+def test_ppo_curve_spaces_the_snapshots_it_scores(tmp_path):
+    """`benchmarks/ppo_curve.py --every N`: the first snapshot at or past each multiple of N, in order; 0 keeps all."""
+    from script_loader import BENCHMARKS, load_script
+
+    spaced = load_script(BENCHMARKS / "ppo_curve.py", "ppo_curve").spaced
+    snapshots = [tmp_path / f"step_{n}.zip" for n in (0, 491_520, 983_040, 3_932_160, 4_423_680, 8_355_840)]
+    assert spaced(snapshots, 4_000_000) == [snapshots[i] for i in (0, 4, 5)]
+    assert spaced(snapshots, 1_000_000) == [snapshots[i] for i in (0, 3, 4, 5)]
+    assert spaced(snapshots, 0) == snapshots
