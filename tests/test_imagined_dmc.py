@@ -120,5 +120,7 @@ def test_a_missing_or_foreign_checkpoint_is_refused_in_one_line(checkpoints) -> 
         gym.make("RWM-Finger-v0", checkpoint=checkpoints["RWM-Finger-v0"], push_interval_s=1.0)
     with pytest.raises(ValueError, match="fall_tilt needs a projected_gravity state group"):
         gym.make("RWM-Finger-v0", checkpoint=checkpoints["RWM-Finger-v0"], fall_tilt=30.0)
+    with pytest.raises(ValueError, match="torque_halt needs a joint_torque state group and a finite effort limit"):
+        gym.make("RWM-Cheetah-v0", checkpoint=checkpoints["RWM-Cheetah-v0"], torque_halt=0.9)
     with pytest.raises(ValueError, match="no MJCF model of its own"):
         gym.make("RWM-Hopper-v0", checkpoint=checkpoints["RWM-Hopper-v0"], render_mode="rgb_array")

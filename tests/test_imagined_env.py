@@ -186,6 +186,23 @@ def test_fall_tilt_ends_episodes_where_the_predicted_base_tips_over(checkpoint):
     assert not any(info["fall_tilt"] for info in untouched)  # off by default
 
 
+def test_torque_halt_ends_episodes_where_a_predicted_joint_torque_nears_the_limit(checkpoint):
+    spec = load_spec("anymal_d")
+    venv = ImaginedSB3VecEnv(checkpoint, num_envs=4)
+    venv.seed(0)
+    venv.reset()
+    venv.step(np.zeros((4, 12), dtype=np.float32))
+    peak = np.abs(venv.core.state[:, spec.state_slices["joint_torque"]]).max(axis=1)  # same seed, same first step
+    fraction = float(np.median(peak)) / spec.actuator.effort_limit
+    _, dones, infos = _first_step(checkpoint, torque_halt=fraction)
+    saturated = np.array([info["torque_halt"] for info in infos])
+    np.testing.assert_array_equal(saturated, peak >= fraction * spec.actuator.effort_limit)
+    assert saturated.any() and (~saturated).any() and dones[saturated].all()
+    assert not any(info["TimeLimit.truncated"] for info, t in zip(infos, saturated) if t)  # no bootstrap
+    _, _, untouched = _first_step(checkpoint)
+    assert not any(info["torque_halt"] for info in untouched)  # off by default
+
+
 def test_the_halt_ends_episodes_where_the_ensemble_disagrees(checkpoint):
     _, _, infos = _first_step(checkpoint, report_uncertainty=True)
     u = np.array([info["uncertainty"] for info in infos])

@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fall-tilt", type=float, default=0.0,
                         help="end an imagined episode where the predicted base tilts past this many degrees (0: "
                              "never; the model's termination head alone)")
+    parser.add_argument("--torque-halt", type=float, default=0.0,
+                        help="end an imagined episode where a predicted joint torque reaches this fraction of the "
+                             "effort limit (0: never)")
     parser.add_argument("--sample-predictions", action="store_true",
                         help="step the imagined env to a sample of the predicted Gaussian, not its mean (for a model "
                              "trained with the nll loss, whose std is fitted)")
@@ -106,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
     imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
-                           "fall_tilt", "random_first_episode_length", "sample_predictions")
+                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt")
     imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
     if imagined and args.where != "imagination":
         raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
