@@ -237,6 +237,19 @@ def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
         _check_resume({"config": older}, MBPOConfig(uncertainty_halt=0.06), tmp_path / "mbpo.json")
 
 
+def test_mbpo_passes_every_imagination_option_it_has_to_the_imagined_env():
+    from rwm_gym.imagination.core import ImaginationOptions
+    from rwm_gym.rl.mbpo import MBPOConfig, imagination_kwargs
+
+    config = MBPOConfig(imagined_episode_steps=50, uncertainty_halt=0.06, fall_tilt=30.0, torque_halt=0.95,
+                        random_first_episode_length=True)
+    kwargs = imagination_kwargs(config)
+    assert kwargs == {"episode_steps": 50, "uncertainty_penalty": 0.0, "uncertainty_floor": 0.0,
+                      "uncertainty_halt": 0.06, "fall_tilt": 30.0, "torque_halt": 0.95,
+                      "random_first_episode_length": True}
+    assert ImaginationOptions(**kwargs).torque_halt == 0.95
+
+
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 

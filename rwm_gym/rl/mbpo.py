@@ -54,6 +54,9 @@ class MBPOConfig:
     fall_tilt: float = 0.0
     """End an imagined episode where the predicted base tilts past this many degrees (0: never;
     `ImaginationOptions.fall_tilt`)."""
+    torque_halt: float = 0.0
+    """End an imagined episode where a predicted joint torque reaches this fraction of the effort limit (0: never;
+    `ImaginationOptions.torque_halt`)."""
     random_first_episode_length: bool = False
     """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
     positive_reward_only: bool = False
@@ -124,10 +127,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     spec = starting.spec()
     ppo_config = PPOConfig(num_envs=config.num_envs, log_std_init=config.log_std_init,
                            positive_reward_only=config.positive_reward_only)
-    env_kwargs = {"episode_steps": config.imagined_episode_steps,
-                  "uncertainty_penalty": config.uncertainty_penalty, "uncertainty_floor": config.uncertainty_floor,
-                  "uncertainty_halt": config.uncertainty_halt, "fall_tilt": config.fall_tilt,
-                  "random_first_episode_length": config.random_first_episode_length}
+    env_kwargs = imagination_kwargs(config)
 
     def trained_on(env):  # what a loaded policy learns from: the zip keeps PPO's settings, not the reward clip
         return PositiveReward(env) if config.positive_reward_only else env
@@ -239,6 +239,14 @@ def _collect(env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels
     for part in parts:
         part.unlink()
     return out
+
+
+def imagination_kwargs(config: MBPOConfig) -> dict:
+    """The imagined env's options from the loop's config: every `ImaginationOptions` field that `MBPOConfig` shares."""
+    from rwm_gym.imagination.core import ImaginationOptions
+
+    shared = {f.name for f in fields(ImaginationOptions)} & {f.name for f in fields(MBPOConfig)}
+    return {"episode_steps": config.imagined_episode_steps, **{name: getattr(config, name) for name in sorted(shared)}}
 
 
 def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
