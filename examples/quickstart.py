@@ -6,16 +6,17 @@
    fresh policy in the shipped MBPO world model (`assets/checkpoints/anymal_d_rwm_mbpo.safetensors`, the default model
    fine-tuned by 25 MBPO iterations): 4096 imagined robots stepped in one forward pass, 1 s episodes that each restart
    from a real history, the RWM-U uncertainty penalty, step rewards clipped at 0 (`--positive-reward-only`: with
-   negative steps PPO learns to end its episodes) and an initial action std of 0.37. No cloning, no physics sample
-   beyond the world model's own dataset. The run lives in `--out`/run: stop it at any time and run the same command
-   again to continue; a larger `--timesteps` continues a finished run.
+   negative steps PPO learns to end its episodes), episodes ended where a predicted joint torque reaches 95 % of the
+   effort limit (`--torque-halt 0.95`: states the model's data barely covers) and an initial action std of 0.37. No
+   cloning, no physics sample beyond the world model's own dataset. The run lives in `--out`/run: stop it at any time
+   and run the same command again to continue; a larger `--timesteps` continues a finished run.
 2. The policy is scored in physics (MuJoCo, `AnymalD-MuJoCo-v0`) with `rwm-gym score`'s tracking score (18 commands x
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
 3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
-   the same at 1024 envs; dashed: 1024 envs with `--fall-tilt 30`) with this run's point on it (`curve.png`), the
-   budget at which those seeds reached tracking 0.7, a GIF of the policy walking (`--video`, needs offscreen GL:
-   `MUJOCO_GL=egl`) and a one-line verdict.
+   the same without the torque halt; dashed: 1024 envs; dash-dotted: 1024 envs with `--fall-tilt 30`) with this run's
+   point on it (`curve.png`), the budget at which those seeds reached tracking 0.7, a GIF of the policy walking
+   (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
 
 Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
 and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
@@ -124,11 +125,16 @@ def recipe(scratch: dict) -> list[str]:
 
 def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     """(setting, seeds with their physics curves) of the shipped recipe first, then of the other settings measured
-    beside it (the JSON's `other_recipes`); a setting names the imagined envs and the fall tilt where one was set."""
-    shipped = (scratch["ppo"]["num_envs"], scratch["env"]["imagination"].get("fall_tilt"), scratch["seeds"])
-    others = [(other["num_envs"], other.get("fall_tilt"), other["seeds"]) for other in scratch.get("other_recipes", [])]
-    return [(f"{envs} envs" + (f", fall tilt {tilt:g} deg" if tilt else ""), seeds)
-            for envs, tilt, seeds in [shipped, *others]]
+    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt and torque halt where
+    one was set."""
+    shipped = {"num_envs": scratch["ppo"]["num_envs"], **scratch["env"]["imagination"], "seeds": scratch["seeds"]}
+
+    def setting(recipe: dict) -> str:
+        tilt, halt = recipe.get("fall_tilt"), recipe.get("torque_halt")
+        return (f"{recipe['num_envs']} envs" + (f", fall tilt {tilt:g} deg" if tilt else "")
+                + (f", torque halt {halt:g}" if halt else ""))
+
+    return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 
 
 def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
@@ -146,7 +152,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
             ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
-                    (".-", ":", "--")[min(i, 2)], label=f"seed {run['seed']}, {setting}"
+                    (".-", ":", "--", "-.")[min(i, 3)], label=f"seed {run['seed']}, {setting}"
                     + ("" if i else " (shipped recipe)"))
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
