@@ -3,7 +3,7 @@
     python examples/cleanrl_ppo.py --total-steps 500000 --num-envs 256
     python examples/cleanrl_ppo.py --checkpoint assets/checkpoints/anymal_d_rwm_mbpo.safetensors --num-envs 4096 \
         --episode-steps 50 --uncertainty-penalty 10 --uncertainty-floor 0.02 --uncertainty-halt 0.06 \
-        --positive-reward-only --log-std-init -1 --learning-rate 1e-3 --total-steps 40000000
+        --torque-halt 0.95 --positive-reward-only --log-std-init -1 --learning-rate 1e-3 --total-steps 40000000
 
 The second line is the walking recipe's env and reward settings (`rwm-gym ppo` adds a KL-adaptive learning rate this
 loop does not have; it was not run to 40 M steps).
@@ -56,6 +56,8 @@ class Args:
     """End an imagined episode (terminated) where the disagreement exceeds this; 0: never."""
     fall_tilt: float = 0.0
     """End an imagined episode (terminated) where the predicted base tilts past this many degrees; 0: never."""
+    torque_halt: float = 0.0
+    """End an imagined episode (terminated) where a predicted joint torque reaches this fraction of its limit."""
     positive_reward_only: bool = False
     """Clip every step's reward at 0 from below (legged_gym's clip): with negative steps PPO learns to end episodes."""
     log_std_init: float = 0.0
@@ -123,7 +125,8 @@ def main(args: Args) -> dict:
     if args.env_id.startswith("RWM-"):
         kwargs = {"checkpoint": args.checkpoint, "episode_steps": args.episode_steps,
                   "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
-                  "uncertainty_halt": args.uncertainty_halt, "fall_tilt": args.fall_tilt}
+                  "uncertainty_halt": args.uncertainty_halt, "fall_tilt": args.fall_tilt,
+                  "torque_halt": args.torque_halt}
     envs = gym.make_vec(args.env_id, num_envs=args.num_envs, vectorization_mode="vector_entry_point", **kwargs)
     n, obs_dim = args.num_envs, envs.single_observation_space.shape[0]
     act_dim = envs.single_action_space.shape[0]
@@ -138,7 +141,7 @@ def main(args: Args) -> dict:
 
     obs, _ = envs.reset(seed=args.seed)
     obs = torch.as_tensor(obs)
-    returns_log, started, step = [], time.monotonic(), 0
+    returns_log, started, step, episodes = [], time.monotonic(), 0, 0
     episode_return = np.zeros(n)
     for update in range(1, args.total_steps // batch + 1):
         finished = []
@@ -158,6 +161,7 @@ def main(args: Args) -> dict:
                         reward[cut] += args.gamma * agent.value(final)
             done = terminated | truncated
             finished += episode_return[done].tolist()
+            episodes += int(done.sum())
             episode_return[done] = 0.0
             obs_buf[t], act_buf[t], logp_buf[t], val_buf[t] = obs, action, logp, value
             rew_buf[t], done_buf[t] = reward, torch.as_tensor(done, dtype=torch.float32)
@@ -197,7 +201,7 @@ def main(args: Args) -> dict:
 
     envs.close()
     torch.save(agent.actor.state_dict(), Path(args.out))
-    return {"steps": step, "mean_step_reward": returns_log}
+    return {"steps": step, "mean_step_reward": returns_log, "episodes": episodes}
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
