@@ -60,7 +60,7 @@ def print_table(title: str, result: dict[str, np.ndarray]) -> None:
     print(f"\n{title}")
     print(f"{'seed':>5} {'distance m':>11} {'fell':>5} {'err xy m/s':>11} {'err yaw rad/s':>14}")
     for i in range(len(result["seed"])):
-        print(f"{result['seed'][i]:>5} {result['distance'][i]:>11.2f} {str(bool(result['fell'][i])):>5} "
+        print(f"{result['seed'][i]:>5} {result['distance'][i]:>11.2f} {bool(result['fell'][i])!s:>5} "
               f"{result['error_xy'][i]:>11.3f} {result['error_yaw'][i]:>14.3f}")
     print(f"{'mean':>5} {result['distance'].mean():>11.2f} {int(result['fell'].sum()):>4}/{len(result['seed'])} "
           f"{result['error_xy'].mean():>11.3f} {result['error_yaw'].mean():>14.3f}")

@@ -276,7 +276,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym collect`: 2 with a one-line error on bad input, 130 on Ctrl-C (finished episodes are kept)."""
     import json
-    import sys
 
     from rwm_gym.data.dataset import Dataset, DatasetError
 
