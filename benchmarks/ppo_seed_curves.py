@@ -1,11 +1,13 @@
-"""Several PPO runs' physics learning curves in one figure: tracking and falls against env steps, per run.
+"""Several PPO runs' physics learning curves in one figure: tracking against env steps and against the runs' own wall
+time, and falls against env steps, per run.
 
     python benchmarks/ppo_seed_curves.py --runs runs/a runs/b runs/c --out benchmarks/figures/NAME \
         [--labels "seed 0" ...] [--title "..."] [--trained-in imagination]
 
 Reads each `RUN/curve/curve.csv` written by `benchmarks/ppo_curve.py` (score the snapshots first) and draws the
-shipped physics policy's tracking, 0.9 x it and the zero-action floor (from the first run's `curve.json`) beside them. Writes `OUT.png` and `OUT.csv`
-(run, timesteps, tracking, falls).
+shipped physics policy's tracking, 0.9 x it and the zero-action floor (from the first run's `curve.json`) beside them.
+Wall time is the run's training time at each snapshot as it ran (machine load included). Writes `OUT.png` and `OUT.csv`
+(run, timesteps, wall_s, tracking, falls, episodes).
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ def read_curve(run: Path) -> list[dict]:
     if not table.is_file():
         raise SystemExit(f"{table}: no such file (run benchmarks/ppo_curve.py --run-dir {run} first)")
     rows = list(csv.DictReader(table.open()))
-    return sorted(({"timesteps": int(r["timesteps"]), "tracking": float(r["tracking"]), "falls": int(r["falls"]),
-                    "episodes": int(r["episodes"])} for r in rows), key=lambda r: r["timesteps"])
+    return sorted(({"timesteps": int(r["timesteps"]), "wall_s": float(r["wall_s"]), "tracking": float(r["tracking"]),
+                    "falls": int(r["falls"]), "episodes": int(r["episodes"])} for r in rows),
+                  key=lambda r: r["timesteps"])
 
 
 def main() -> None:
@@ -49,17 +52,20 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6), sharex=True)
+    fig, (ax, cx, bx) = plt.subplots(1, 3, figsize=(15, 4.6))
     for name, curve in curves.items():
         x = [r["timesteps"] / 1e6 for r in curve]
         ax.plot(x, [r["tracking"] for r in curve], ".-", label=name)
+        cx.plot([r["wall_s"] / 60 for r in curve], [r["tracking"] for r in curve], ".-")
         bx.plot(x, [r["falls"] for r in curve], ".-", label=name)
-    ax.axhline(teacher["tracking"], color="k", lw=0.8, label=f"physics PPO policy ({teacher['tracking']:.3f})")
-    ax.axhline(0.9 * teacher["tracking"], color="tab:green", ls=":", label="0.9 x it")
-    if floor is not None:
-        ax.axhline(floor, color="0.5", ls="--", label=f"zero action ({floor:.3f})")
+    for a in (ax, cx):
+        a.axhline(teacher["tracking"], color="k", lw=0.8, label=f"physics PPO policy ({teacher['tracking']:.3f})")
+        a.axhline(0.9 * teacher["tracking"], color="tab:green", ls=":", label="0.9 x it")
+        if floor is not None:
+            a.axhline(floor, color="0.5", ls="--", label=f"zero action ({floor:.3f})")
+        a.set_ylabel("tracking score in physics")
+    cx.set_xlabel("training wall time (min, as run)")
     episodes = next(iter(curves.values()))[0]["episodes"] if next(iter(curves.values())) else 0
-    ax.set_ylabel("tracking score in physics")
     bx.set_ylabel(f"falls in {episodes} physics episodes")
     for a in (ax, bx):
         a.set_xlabel(f"{args.trained_in} env steps (M)")
@@ -75,9 +81,10 @@ def main() -> None:
     def write(tmp: str) -> None:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["run", "timesteps", "tracking", "falls", "episodes"])
+            columns = ("timesteps", "wall_s", "tracking", "falls", "episodes")
+            w.writerow(["run", *columns])
             for name, curve in curves.items():
-                w.writerows([name, r["timesteps"], r["tracking"], r["falls"], r["episodes"]] for r in curve)
+                w.writerows([name, *(r[c] for c in columns)] for r in curve)
 
     atomic_write(args.out.with_suffix(".csv"), write)
     print(f"wrote {args.out.with_suffix('.png')} and {args.out.with_suffix('.csv')}")

@@ -102,15 +102,16 @@ def test_ppo_seed_curves_draws_every_run_and_refuses_a_run_without_scores(tmp_pa
         with open(tmp_path / f"run{seed}" / "curve" / "curve.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg"])
-            w.writerows([t, 1.0, s, 0.0, falls, 54, 1.0] for t, s, falls in rows)
+            w.writerows([t, t / 1000, s, 0.0, falls, 54, 1.0] for t, s, falls in rows)  # 1000 steps/s
     out = tmp_path / "fig" / "seeds"
     monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "run0"), str(tmp_path / "run1"),
                                       "--labels", "seed 0", "seed 1", "--out", str(out)])
     script.main()
     assert out.with_suffix(".png").stat().st_size > 0
     table = list(csv.DictReader(out.with_suffix(".csv").open()))
-    assert [(r["run"], int(r["timesteps"]), r["falls"]) for r in table] == \
-        [("seed 0", 0, "0"), ("seed 0", 3_000_000, "4"), ("seed 1", 0, "0"), ("seed 1", 3_000_000, "40")]
+    assert [(r["run"], int(r["timesteps"]), float(r["wall_s"]), r["falls"]) for r in table] == \
+        [("seed 0", 0, 0.0, "0"), ("seed 0", 3_000_000, 3000.0, "4"), ("seed 1", 0, 0.0, "0"),
+         ("seed 1", 3_000_000, 3000.0, "40")]
     monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "missing"), "--out", str(out)])
     with pytest.raises(SystemExit, match="missing/curve/curve.csv: no such file"):
         script.main()
