@@ -148,7 +148,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
 
     from rwm_gym.atomic import atomic_write
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(11, 4.5))
     for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
             ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
@@ -160,7 +160,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     ax.set_xlabel("imagined env steps (M)")
     ax.set_ylabel("tracking score in physics")
     ax.set_title("PPO from scratch in the shipped MBPO world model, ANYmal D")
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the axes: the curves stay clear
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
     plt.close(fig)
