@@ -14,9 +14,9 @@
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
 3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
-   the same without the torque halt; dashed: 1024 envs; dash-dotted: 1024 envs with `--fall-tilt 30`) with this run's
-   point on it (`curve.png`), the budget at which those seeds reached tracking 0.7, a GIF of the policy walking
-   (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
+   the same without the torque halt; dashed: 1024 envs; dash-dotted: 1024 envs with `--fall-tilt 30`; sparse dots:
+   `--torque-halt 0.9`) with this run's point on it (`curve.png`), the budget at which those seeds reached tracking
+   0.7, a GIF of the policy walking (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
 
 Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
 and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
@@ -137,6 +137,10 @@ def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 
 
+LINE_STYLES = ("-", ":", "--", "-.", (0, (1, 4)))
+"""One per measured setting, in the JSON's order: the shipped recipe first, then `other_recipes`."""
+
+
 def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
     """The recipe's measured physics tracking against imagined steps (one line per seed), with this run's point; the
     legend names each curve's setting and this run's imagined envs, so a point from another setting is not read as the
@@ -152,8 +156,8 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
         for run in seeds:
             ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]],
-                    (".-", ":", "--", "-.")[min(i, 3)], label=f"seed {run['seed']}, {setting}"
-                    + ("" if i else " (shipped recipe)"))
+                    marker="" if i else ".", linestyle=LINE_STYLES[min(i, len(LINE_STYLES) - 1)],
+                    label=f"seed {run['seed']}, {setting}" + ("" if i else " (shipped recipe)"))
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label=f"this run ({num_envs} envs)")
     ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
