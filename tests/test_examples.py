@@ -28,15 +28,68 @@ def test_every_example_and_benchmark_imports(script: Path):
 
 
 def test_cleanrl_ppo_trains_on_the_imagined_vector_env(tmp_path):
+    from safetensors.torch import load_file
+
     example = load_example("cleanrl_ppo")
     args = example.parse_args(["--num-envs", "4", "--num-steps", "8", "--total-steps", "96", "--episode-steps", "10",
-                               "--out", str(tmp_path / "actor.pt")])
+                               "--out", str(tmp_path / "actor.safetensors")])
     result = example.main(args)
     assert result["steps"] == 96 and len(result["mean_step_reward"]) == 3
     assert all(math.isfinite(r) for r in result["mean_step_reward"])
-    weights = torch.load(tmp_path / "actor.pt", weights_only=True)
+    weights = load_file(tmp_path / "actor.safetensors")
     last = max(k for k in weights if k.endswith(".weight"))
     assert weights[last].shape == (12, 128)  # ANYmal D: 12 joint-position actions
+    policy = example.load_actor(tmp_path / "actor.safetensors")  # the saved actor acts as the trained one
+    obs = torch.randn(5, 48) * 3
+    agent = example.Agent(weights["obs_mean"].tolist(), weights["obs_std"].tolist(), 12)
+    agent.actor.load_state_dict({k.removeprefix("actor."): v for k, v in weights.items() if k.startswith("actor.")})
+    actions = policy(obs.numpy())
+    assert actions.shape == (5, 12) and abs(actions).max() <= 1.0
+    assert torch.allclose(torch.as_tensor(actions), agent.mean_action(obs))
+
+
+def test_cleanrl_ppo_adapts_its_learning_rate_to_the_kl(tmp_path):
+    """rsl_rl's schedule: every update whose KL is above twice the target divides lr by 1.5, below half multiplies."""
+    example = load_example("cleanrl_ppo")
+    base = ["--num-envs", "4", "--num-steps", "8", "--total-steps", "96", "--episode-steps", "10",
+            "--learning-rate", "1e-3", "--out", str(tmp_path / "actor.safetensors")]
+    assert example.main(example.parse_args([*base, "--target-kl", "1e-12"]))["lr"] == pytest.approx(1e-3 / 1.5**3)
+    assert example.main(example.parse_args([*base, "--target-kl", "100"]))["lr"] == pytest.approx(1e-3 * 1.5**3)
+    assert example.main(example.parse_args([*base, "--target-kl", "0"]))["lr"] == 1e-3
+
+
+def test_cleanrl_ppo_resumes_a_killed_run(tmp_path):
+    """A run stopped after 3 updates continues from its resume point to the larger budget (agent, Adam and lr
+    restored: its first updates are those of an uninterrupted run), and refuses other settings."""
+    example = load_example("cleanrl_ppo")
+    base = ["--num-envs", "4", "--num-steps", "8", "--episode-steps", "10", "--save-every", "2"]
+    whole = example.main(example.parse_args([*base, "--total-steps", "192", "--out", str(tmp_path / "a.safetensors")]))
+    run = ["--run-dir", str(tmp_path / "run"), "--out", str(tmp_path / "b.safetensors")]
+    first = example.main(example.parse_args([*base, *run, "--total-steps", "96"]))
+    assert first["mean_step_reward"] == whole["mean_step_reward"][:3]
+    agent = example.Agent([0.0] * 48, [1.0] * 48, 12)
+    adam = torch.optim.Adam(agent.parameters())
+    args = example.parse_args([*base, *run, "--total-steps", "96"])
+    assert example.load_resume_point(tmp_path / "run" / "resume.safetensors", agent, adam, args)["update"] == 3
+    policy = example.load_actor(tmp_path / "b.safetensors")
+    obs = torch.randn(3, 48)
+    assert torch.equal(agent.mean_action(obs), torch.as_tensor(policy(obs.numpy())))
+    assert all(adam.state[p]["exp_avg"].abs().sum() > 0 for p in agent.parameters() if p.requires_grad)
+    resumed = example.main(example.parse_args([*base, *run, "--total-steps", "192"]))
+    assert resumed["steps"] == 192 and resumed["mean_step_reward"][:3] == first["mean_step_reward"]
+    assert len(resumed["mean_step_reward"]) == 6
+    with pytest.raises(SystemExit, match="num_steps"):
+        example.main(example.parse_args([*base, *run, "--num-steps", "16", "--total-steps", "384"]))
+
+
+def test_cleanrl_ppo_actor_is_scored_in_physics(tmp_path):
+    from rwm_gym.rl.score import score
+
+    example = load_example("cleanrl_ppo")
+    example.main(example.parse_args(["--num-envs", "4", "--num-steps", "8", "--total-steps", "32",
+                                     "--episode-steps", "10", "--out", str(tmp_path / "actor.safetensors")]))
+    evaluation = score(example.load_actor(tmp_path / "actor.safetensors"), seeds=1, steps=5, num_random=0)
+    assert evaluation.episodes == 2 and 0.0 <= evaluation.tracking <= 1.0
 
 
 def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
@@ -49,11 +102,11 @@ def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
     model = assets_dir() / "checkpoints" / "anymal_d_rwm_mbpo.safetensors"
     recipe = ["--checkpoint", str(model), "--num-envs", "8", "--num-steps", "8", "--total-steps", "64",
               "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9", "--log-std-init", "-1",
-              "--out", str(tmp_path / "actor.pt")]
+              "--out", str(tmp_path / "actor.safetensors")]
     clipped = example.main(example.parse_args([*recipe, "--positive-reward-only"]))["mean_step_reward"]
     raw = example.main(example.parse_args(recipe))["mean_step_reward"]
     assert min(clipped) >= 0.0 > min(raw)
-    recipe = [*recipe[:-2], "--uncertainty-halt", "0", "--out", str(tmp_path / "actor.pt")]  # no disagreement halt
+    recipe = [*recipe[:-2], "--uncertainty-halt", "0", "--out", str(tmp_path / "actor.safetensors")]  # no disagreement halt
     assert example.main(example.parse_args(recipe))["episodes"] == 0  # 250-step episodes do not end in 64 steps
     halted = example.main(example.parse_args([*recipe, "--torque-halt", "1e-9"]))  # any torque ends an episode
     assert halted["episodes"] == 64
