@@ -96,8 +96,8 @@ class Args:
     out: str = "cleanrl_actor.safetensors"
     """Where the actor is written (weights, log std, observation scale; the Args in its metadata)."""
     run_dir: str | None = None
-    """Resumable run folder: a resume point (state.safetensors, state.json) every `save_every` updates; the same
-    command continues from it (to a larger --total-steps, too). The envs restart from fresh episodes."""
+    """Resumable run folder: a resume point (resume.safetensors) every `save_every` updates; the same command
+    continues from it (to a larger --total-steps, too). The envs restart from fresh episodes."""
     save_every: int = 10
     """Updates between resume points (with --run-dir)."""
     score: bool = False
