@@ -106,7 +106,7 @@ def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
     clipped = example.main(example.parse_args([*recipe, "--positive-reward-only"]))["mean_step_reward"]
     raw = example.main(example.parse_args(recipe))["mean_step_reward"]
     assert min(clipped) >= 0.0 > min(raw)
-    recipe = [*recipe[:-2], "--uncertainty-halt", "0", "--out", str(tmp_path / "actor.safetensors")]  # no disagreement halt
+    recipe = [*recipe[:-2], "--uncertainty-halt", "0", "--out", str(tmp_path / "actor.safetensors")]  # no u halt
     assert example.main(example.parse_args(recipe))["episodes"] == 0  # 250-step episodes do not end in 64 steps
     halted = example.main(example.parse_args([*recipe, "--torque-halt", "1e-9"]))  # any torque ends an episode
     assert halted["episodes"] == 64
