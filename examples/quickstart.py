@@ -111,7 +111,8 @@ def main() -> int:
 
 def recipe(scratch: dict) -> list[str]:
     """`rwm-gym ppo` options for the shipped from-scratch policy's world model and settings, read from its JSON (the
-    recipe's numbers live there once): the model, its imagined-episode options, the reward clip and initial std."""
+    recipe's numbers live there once): the model, its imagined-episode options, the reward clip, the learning-rate
+    anneal and the initial std."""
     from rwm_gym.resources import shipped_file
 
     options = ["--checkpoint", str(shipped_file(scratch["world_model"]["checkpoint"]))]
@@ -120,19 +121,23 @@ def recipe(scratch: dict) -> list[str]:
             options.append(f"--{name.replace('_', '-')}={value}")
     if scratch["ppo"]["positive_reward_only"]:
         options.append("--positive-reward-only")
+    if scratch["ppo"].get("lr_anneal_fraction"):  # absent from the JSONs of recipes older than the anneal
+        options.append(f"--lr-anneal-fraction={scratch['ppo']['lr_anneal_fraction']}")
     return options + [f"--log-std-init={scratch['ppo']['log_std_init']}"]
 
 
 def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     """(setting, seeds with their physics curves) of the shipped recipe first, then of the other settings measured
-    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt and torque halt where
-    one was set."""
-    shipped = {"num_envs": scratch["ppo"]["num_envs"], **scratch["env"]["imagination"], "seeds": scratch["seeds"]}
+    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt, torque halt and
+    learning-rate anneal where one was set."""
+    shipped = {"num_envs": scratch["ppo"]["num_envs"], **scratch["env"]["imagination"], "seeds": scratch["seeds"],
+               "lr_anneal_fraction": scratch["ppo"].get("lr_anneal_fraction")}
 
     def setting(recipe: dict) -> str:
-        tilt, halt = recipe.get("fall_tilt"), recipe.get("torque_halt")
+        tilt, halt, anneal = recipe.get("fall_tilt"), recipe.get("torque_halt"), recipe.get("lr_anneal_fraction")
         return (f"{recipe['num_envs']} envs" + (f", fall tilt {tilt:g} deg" if tilt else "")
-                + (f", torque halt {halt:g}" if halt else ""))
+                + (f", torque halt {halt:g}" if halt else "") + (f", lr annealed over the last {anneal:.0%}"
+                                                                 if anneal else ""))
 
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 

@@ -324,3 +324,68 @@ def test_compact_policy_drops_run_state_and_keeps_the_policy(tmp_path):
         archive.writestr("other", b"{}")
     with pytest.raises(ValueError, match="not an SB3 policy zip"):
         compact_policy(tmp_path / "other.zip", tmp_path / "x.zip")
+
+
+def test_annealed_fraction_falls_linearly_over_the_last_steps_to_one_rollouts_share():
+    from rwm_gym.rl.ppo import annealed_fraction
+
+    # a budget of 10 rollouts of 64 steps ending at 640, annealed over its last 320 steps
+    shares = [annealed_fraction(t, 640, 320, 64) for t in range(64, 641, 64)]
+    assert shares == pytest.approx([1, 1, 1, 1, 1, 1, 0.8, 0.6, 0.4, 0.2])
+    assert annealed_fraction(640, 640, 0, 64) == 1.0  # no anneal
+    assert annealed_fraction(704, 640, 320, 64) == pytest.approx(0.2)  # past the end: never 0 (no dead update)
+
+
+def _lr_column(run) -> list[float]:
+    import csv
+
+    with (run / "log.csv").open() as f:
+        return [float(row["lr"]) for row in csv.DictReader(f)]
+
+
+def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_on_its_line(tmp_path, monkeypatch):
+    from rwm_gym.rl.training_run import RunCheckpoint
+
+    def ppo(run, *extra):
+        return main(["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16",
+                     "--threads", "1", "--save-every", "1", "--run-dir", str(run), "--no-eval", "--out",
+                     str(run / "final.zip"), "--timesteps", "640", "--lr-anneal-fraction", "0.5", *extra])
+
+    assert ppo(whole := tmp_path / "whole") == 0
+    lr = _lr_column(whole)
+    assert len(lr) == 10
+    # rollouts 7-10 end inside the last 320 steps: the lr of rollout 6 scaled by 0.8, 0.6, 0.4, 0.2, not adapted
+    assert lr[6:] == pytest.approx([lr[5] * share for share in (0.8, 0.6, 0.4, 0.2)])
+
+    save = RunCheckpoint.save
+
+    def killed_after_rollout_7(self):
+        save(self)
+        if self._rollout_index() == 7:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(RunCheckpoint, "save", killed_after_rollout_7)
+    with pytest.raises(KeyboardInterrupt):
+        ppo(stopped := tmp_path / "stopped")
+    monkeypatch.setattr(RunCheckpoint, "save", save)
+    assert ppo(stopped) == 0
+    resumed = _lr_column(stopped)
+    assert resumed[:7] == lr[:7] and resumed[7:] == pytest.approx(lr[7:])  # the same line from the saved lr alone
+    with pytest.raises(SystemExit, match="other PPO settings"):  # the anneal is part of the run's settings
+        main(["ppo", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--run-dir", str(stopped), "--no-eval",
+              "--out", str(stopped / "final.zip"), "--timesteps", "1280"])
+    with pytest.raises(SystemExit, match="--lr-anneal-fraction needs a --timesteps budget"):
+        main(["ppo", "--num-envs", "8", "--n-steps", "8", "--minutes", "0.1", "--lr-anneal-fraction", "0.5",
+              "--no-eval", "--out", str(tmp_path / "p.zip")])
+
+
+def test_a_run_dir_from_before_the_anneal_resumes_with_its_default(tmp_path):
+    run = tmp_path / "run"
+    args = ["ppo", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1", "--run-dir", str(run),
+            "--no-eval", "--out", str(run / "final.zip")]
+    assert main([*args, "--timesteps", "64"]) == 0
+    state = json.loads((run / "state.json").read_text())
+    del state["ppo"]["lr_anneal_fraction"]  # as written before the field existed
+    (run / "state.json").write_text(json.dumps(state))
+    assert main([*args, "--timesteps", "128"]) == 0
+    assert json.loads((run / "state.json").read_text())["timesteps"] == 128

@@ -156,3 +156,27 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     assert reset.is_file() and meta["env"]["checkpoint"] == meta["world_model"]["checkpoint"]
     with pytest.raises(ValueError, match="not a path under assets/ or envs/"):
         shipped_file("checkpoints/anymal_d_rwm_mbpo.safetensors")
+
+
+def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_knows():
+    """Every option `recipe` reads from the shipped JSON is one `rwm-gym ppo` parses to the JSON's value; the
+    learning-rate anneal is passed only where the recipe has one."""
+    import argparse
+    import json
+
+    from script_loader import EXAMPLES, load_script
+
+    from rwm_gym.resources import assets_dir
+    from rwm_gym.rl.ppo_command import add_arguments
+
+    quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
+    meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for anneal in (0.25, 0.0, None):
+        ppo = {k: v for k, v in {**meta["ppo"], "lr_anneal_fraction": anneal}.items() if v is not None}
+        options = quickstart.recipe({**meta, "ppo": ppo})
+        args = parser.parse_args(options)
+        assert args.lr_anneal_fraction == (anneal or None)
+        assert args.torque_halt == meta["env"]["imagination"]["torque_halt"]
+        assert args.log_std_init == meta["ppo"]["log_std_init"] and args.positive_reward_only is True

@@ -50,6 +50,10 @@ class PPOConfig:
     """Initial Adam learning rate."""
     target_kl: float = 0.01
     """KL target of the adaptive learning rate: /1.5 above 2x, x1.5 below 1/2 (0: constant learning rate)."""
+    lr_anneal_fraction: float = 0.0
+    """Last fraction of a `--timesteps` budget over which the learning rate falls linearly from its adapted value to
+    one rollout's share (KL adaptation stops there): the policy settles instead of wandering between snapshots
+    (0: none)."""
     gamma: float = 0.99
     """Discount per policy step."""
     gae_lambda: float = 0.95
@@ -69,6 +73,8 @@ class PPOConfig:
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"PPOConfig.activation {self.activation!r} unknown (choose from {', '.join(ACTIVATIONS)})")
+        if not 0.0 <= self.lr_anneal_fraction <= 1.0:
+            raise ValueError(f"PPOConfig.lr_anneal_fraction {self.lr_anneal_fraction} is not in [0, 1]")
         if (self.num_envs * self.n_steps) % self.num_minibatches:
             raise ValueError(f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "
                              f"num_minibatches ({self.num_minibatches})")
@@ -144,19 +150,30 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
     )
 
 
-class _Progress(BaseCallback):
-    """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate, and one log row per rollout."""
+def annealed_fraction(timesteps: int, end: int, anneal_steps: float, rollout: int) -> float:
+    """Share of the learning rate left for the update after the rollout that ended at `timesteps`: 1 until the last
+    `anneal_steps` of a budget that ends at `end`, then linearly down to `rollout / anneal_steps` for the last update."""
+    if anneal_steps <= 0:
+        return 1.0
+    return min(1.0, max(end - timesteps + rollout, rollout) / anneal_steps)
 
-    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool, on_rollout=None):
+
+class _Progress(BaseCallback):
+    """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate and its final anneal, one log row per rollout."""
+
+    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool, on_rollout=None,
+                 anneal_steps: float = 0.0):
         super().__init__()
         self.total, self.minutes, self.target_kl, self.show = total, minutes, target_kl, bar
-        self.on_rollout = on_rollout
+        self.on_rollout, self.anneal_steps = on_rollout, anneal_steps
         self.log: list[dict] = []
 
     def _on_training_start(self) -> None:
         self.started = time.monotonic()
         self.start_steps = self.num_timesteps
-        steps = self.total and whole_rollouts(self.total, self.model.n_steps * self.training_env.num_envs)
+        self.rollout = self.model.n_steps * self.training_env.num_envs
+        steps = self.total and whole_rollouts(self.total, self.rollout)
+        self.end = self.start_steps + (steps or 0)
         self.bar = BudgetBar(steps=steps, minutes=self.minutes, desc="ppo", unit_scale=True, disable=not self.show)
         self.running = np.zeros(self.training_env.num_envs)
         self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
@@ -177,7 +194,13 @@ class _Progress(BaseCallback):
     def _on_rollout_end(self) -> None:
         kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
         lr = self.model.lr_schedule(1.0)
-        if self.target_kl > 0 and kl is not None:
+        share = annealed_fraction(self.num_timesteps, self.end, self.anneal_steps, self.rollout)
+        if share < 1.0:  # scale the previous update's lr by the ratio of shares: resumes from the saved lr alone
+            lr *= share / annealed_fraction(self.num_timesteps - self.rollout, self.end, self.anneal_steps,
+                                            self.rollout)
+            self.model.learning_rate = lr
+            self.model._setup_lr_schedule()
+        elif self.target_kl > 0 and kl is not None:
             if kl > 2.0 * self.target_kl:
                 lr = max(1e-5, lr / 1.5)
             elif kl < self.target_kl / 2.0:
@@ -214,15 +237,19 @@ class TrainStats:
 
 
 def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
-          progress: bool = True, callbacks: tuple[BaseCallback, ...] = (), on_rollout=None) -> TrainStats:
+          progress: bool = True, callbacks: tuple[BaseCallback, ...] = (), on_rollout=None,
+          anneal_steps: float = 0.0) -> TrainStats:
     """Continue training `model` on its env for `timesteps` more steps and/or `minutes` (whichever ends first).
 
-    `callbacks` run after the progress bar's; `on_rollout(row)` receives each rollout's log row.
+    `callbacks` run after the progress bar's; `on_rollout(row)` receives each rollout's log row. Over the last
+    `anneal_steps` env steps of `timesteps` the learning rate falls linearly (`annealed_fraction`) instead of adapting.
     """
     if not timesteps and not minutes:
         raise ValueError("set a budget: timesteps and/or minutes")
+    if anneal_steps and not timesteps:
+        raise ValueError("a learning-rate anneal needs a timesteps budget: it ends with it")
     total = int(timesteps) if timesteps else 10**12  # SB3 runs whole rollouts: the bar counts those
-    callback = _Progress(total if timesteps else None, minutes, target_kl, progress, on_rollout)
+    callback = _Progress(total if timesteps else None, minutes, target_kl, progress, on_rollout, anneal_steps)
     before, started = model.num_timesteps, time.monotonic()
     model.learn(total, callback=CallbackList([callback, *callbacks]), reset_num_timesteps=False, progress_bar=False)
     wall = time.monotonic() - started

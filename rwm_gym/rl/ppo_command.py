@@ -35,6 +35,13 @@ def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_st
     return dataset_rows(checkpoint)
 
 
+def anneal_steps(config: PPOConfig, timesteps: int | None) -> float:
+    """Env steps of the learning-rate anneal: `lr_anneal_fraction` of the whole `--timesteps` budget."""
+    if config.lr_anneal_fraction and not timesteps:
+        raise SystemExit("rwm-gym ppo: --lr-anneal-fraction needs a --timesteps budget (the anneal ends with it)")
+    return config.lr_anneal_fraction * (timesteps or 0)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
                         help="train in the imagined env (world model) or in physics (model-free baseline)")
@@ -145,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
     if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
         stats = TrainStats(0, 0.0, 0.0)
     else:
-        stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl)
+        stats = learn(model, timesteps=args.timesteps, minutes=args.minutes, target_kl=config.target_kl,
+                      anneal_steps=anneal_steps(config, args.timesteps))
     out = save_policy(model, args.out)
     print(f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
@@ -191,7 +199,8 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_
         raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
     run = TrainingRun(args.run_dir)
     state = run.state()
-    if run.resumable and state.get("ppo") != json.loads(json.dumps(config.to_dict())):
+    saved = {**json.loads(json.dumps(PPOConfig().to_dict())), **state.get("ppo", {})}  # a field added since: default
+    if run.resumable and saved != json.loads(json.dumps(config.to_dict())):
         raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
     environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint),
                    "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()}}
@@ -219,7 +228,7 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_
     try:
         if remaining > 0:
             learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
-                  on_rollout=checkpoint.log_row)
+                  on_rollout=checkpoint.log_row, anneal_steps=anneal_steps(config, args.timesteps))
             checkpoint.save()
         else:
             print(f"{run.folder} already has its {args.timesteps:,} steps")
