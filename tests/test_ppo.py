@@ -351,7 +351,8 @@ def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_o
                      "--threads", "1", "--save-every", "1", "--run-dir", str(run), "--no-eval", "--out",
                      str(run / "final.zip"), "--timesteps", "640", "--lr-anneal-fraction", "0.5", *extra])
 
-    assert ppo(whole := tmp_path / "whole") == 0
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    assert ppo(whole) == 0
     lr = _lr_column(whole)
     assert len(lr) == 10
     # rollouts 7-10 end inside the last 320 steps: the lr of rollout 6 scaled by 0.8, 0.6, 0.4, 0.2, not adapted
@@ -366,7 +367,7 @@ def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_o
 
     monkeypatch.setattr(RunCheckpoint, "save", killed_after_rollout_7)
     with pytest.raises(KeyboardInterrupt):
-        ppo(stopped := tmp_path / "stopped")
+        ppo(stopped)
     monkeypatch.setattr(RunCheckpoint, "save", save)
     assert ppo(stopped) == 0
     resumed = _lr_column(stopped)
