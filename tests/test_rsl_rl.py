@@ -25,6 +25,8 @@ def test_train_cfg_carries_the_ppo_config():
     assert rsl_rl_train_cfg(PPOConfig(target_kl=0.0))["algorithm"]["schedule"] == "fixed"
     with pytest.raises(ValueError, match="positive_reward_only"):
         rsl_rl_train_cfg(PPOConfig(positive_reward_only=True))
+    with pytest.raises(ValueError, match="lr_anneal_fraction"):  # rsl_rl's schedules are adaptive or fixed
+        rsl_rl_train_cfg(PPOConfig(lr_anneal_fraction=0.25))
 
 
 @pytest.fixture()

@@ -23,7 +23,8 @@ def rsl_rl_train_cfg(config: PPOConfig | None = None, *, obs_normalization: bool
     """
     config = config if config is not None else PPOConfig()
     unsupported = {"critic_warmup_steps": config.critic_warmup_steps != 0,
-                   "positive_reward_only": config.positive_reward_only}
+                   "positive_reward_only": config.positive_reward_only,
+                   "lr_anneal_fraction": config.lr_anneal_fraction != 0}
     for name, used in unsupported.items():
         if used:
             raise ValueError(f"PPOConfig.{name} has no counterpart in rsl_rl's PPO; leave it at its default")
