@@ -15,8 +15,9 @@
    shipped physics PPO policy's score.
 3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
    the same without the torque halt; dashed: 1024 envs; dash-dotted: 1024 envs with `--fall-tilt 30`; sparse dots:
-   `--torque-halt 0.9`) with this run's point on it (`curve.png`), the budget at which those seeds reached tracking
-   0.7, a GIF of the policy walking (`--video`, needs offscreen GL: `MUJOCO_GL=egl`) and a one-line verdict.
+   `--torque-halt 0.9`; dash-dot-dot: `--lr-anneal-fraction 0.25`) with this run's point on it (`curve.png`), the
+   budget at which those seeds reached tracking 0.7, a GIF of the policy walking (`--video`, needs offscreen GL:
+   `MUJOCO_GL=egl`) and a one-line verdict.
 
 Written to `--out` (default `quickstart/`): run/ (resume point, snapshots, log.csv), policy.zip, curve.png, walk.gif
 and walk.png. The default 2 M steps fit in 10 minutes on 2 CPU cores and only learn to stand (the recipe stands to about
@@ -142,7 +143,7 @@ def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 
 
-LINE_STYLES = ("-", ":", "--", "-.", (0, (1, 4)))
+LINE_STYLES = ("-", ":", "--", "-.", (0, (1, 4)), (0, (5, 1, 1, 1, 1, 1)))
 """One per measured setting, in the JSON's order: the shipped recipe first, then `other_recipes`."""
 
 

@@ -152,7 +152,8 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
 
 def annealed_fraction(timesteps: int, end: int, anneal_steps: float, rollout: int) -> float:
     """Share of the learning rate left for the update after the rollout that ended at `timesteps`: 1 until the last
-    `anneal_steps` of a budget that ends at `end`, then linearly down to `rollout / anneal_steps` for the last update."""
+    `anneal_steps` of a budget that ends at `end`, then falling linearly to `rollout / anneal_steps` at the last
+    update."""
     if anneal_steps <= 0:
         return 1.0
     return min(1.0, max(end - timesteps + rollout, rollout) / anneal_steps)
