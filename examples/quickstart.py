@@ -136,9 +136,9 @@ def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
 
     def setting(recipe: dict) -> str:
         tilt, halt, anneal = recipe.get("fall_tilt"), recipe.get("torque_halt"), recipe.get("lr_anneal_fraction")
-        return (f"{recipe['num_envs']} envs" + (f", fall tilt {tilt:g} deg" if tilt else "")
-                + (f", torque halt {halt:g}" if halt else "") + (f", lr annealed over the last {anneal:.0%}"
-                                                                 if anneal else ""))
+        parts = [f"{recipe['num_envs']} envs", tilt and f"fall tilt {tilt:g} deg", halt and f"torque halt {halt:g}",
+                 anneal and f"lr annealed over the last {anneal:.0%}"]
+        return ", ".join(part for part in parts if part)
 
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 

@@ -194,18 +194,17 @@ class _Progress(BaseCallback):
 
     def _on_rollout_end(self) -> None:
         kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
-        lr = self.model.lr_schedule(1.0)
+        lr = previous = self.model.lr_schedule(1.0)
         share = annealed_fraction(self.num_timesteps, self.end, self.anneal_steps, self.rollout)
         if share < 1.0:  # scale the previous update's lr by the ratio of shares: resumes from the saved lr alone
             lr *= share / annealed_fraction(self.num_timesteps - self.rollout, self.end, self.anneal_steps,
                                             self.rollout)
-            self.model.learning_rate = lr
-            self.model._setup_lr_schedule()
         elif self.target_kl > 0 and kl is not None:
             if kl > 2.0 * self.target_kl:
                 lr = max(1e-5, lr / 1.5)
             elif kl < self.target_kl / 2.0:
                 lr = min(1e-2, lr * 1.5)
+        if lr != previous:
             self.model.learning_rate = lr
             self.model._setup_lr_schedule()
         reward = self.reward_sum / max(self.reward_count, 1)
