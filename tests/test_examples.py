@@ -201,3 +201,56 @@ def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactl
     row = gap_table.oracle(case, "excitation", argparse.Namespace(seed=0, episodes=4, steps=60), tmp_path)
     assert row["gap_true"] < 0.2 * row["gap_nominal"]
     assert not row["true_rest_above_its_floor"]
+
+
+def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp_path):
+    """One part per (policy, noise level) from its own seeds, merged after the base; the fine-tune keeps the start
+    model's training settings except budget, lr and seed; the written model carries no optimizer state and counts
+    the physics rows behind it; the same command again collects nothing and gives the same model."""
+    from safetensors.torch import load_file
+
+    from rwm_gym.data.collect import collect
+    from rwm_gym.data.dataset import Dataset
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.model.config import TrainConfig
+    from rwm_gym.model.factory import model_config_for
+    from rwm_gym.model.train import train
+    from rwm_gym.spec import load_spec
+
+    base = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "base.h5", seed=0, num_envs=4, max_steps=40,
+                   progress=False)
+    config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32)
+    start = train(base, config, TrainConfig(history=8, forecast=4, iterations=20, batch_size=16, val_every=20,
+                                            val_fraction=0.25, lr=1e-3), tmp_path / "start.safetensors",
+                  progress=False).path
+    example = load_example("make_coverage_model")
+    out = tmp_path / "cover"
+    argv = ["--policies", "zero", "random", "--noise", "0.0", "0.3", "--episodes", "2", "--max-steps", "30",
+            "--iterations", "4", "--lr", "5e-4", "--seed", "3", "--first-seed", "500", "--threads", "1", "--quiet",
+            "--base", str(base), "--checkpoint", str(start), "--out", str(out)]
+    model = example.main(argv)
+
+    parts = sorted((out / "own").glob("part_*.h5"))
+    assert [Dataset.load(p).info.seed for p in parts] == [500, 600, 700, 800]
+    own_rows = Dataset.load(out / "own.h5").num_steps
+    assert Dataset.load(out / "buffer.h5").num_steps == Dataset.load(base).num_steps + own_rows
+    meta, started = read_meta(model), read_meta(start)
+    assert meta.train_config == started.train_config.__class__(
+        **{**vars(started.train_config), "iterations": 4, "lr": 5e-4, "seed": 3, "val_every": 1,
+           "checkpoint_every": 100, "minutes": 0.0, "device": "cpu"})
+    assert meta.provenance["init_checkpoint"] == str(start) and meta.stats["iterations"] == 4
+    rows = meta.extras["physics_rows"]
+    assert rows["own"] == own_rows and rows["total"] == rows["start_model"] + rows["base"] + own_rows
+    assert not [k for k in load_file(model) if k.startswith(("optim/", "train/"))]
+    assert any(k.startswith("optim/") for k in load_file(out / "train.safetensors"))  # the resumable one keeps them
+
+    stamps = [p.stat().st_mtime_ns for p in parts]
+    first = load_file(model)
+    again = example.main(argv)  # the finished fine-tune is found, not run again
+    assert first.keys() == load_file(again).keys()
+    assert all(torch.equal(first[k], load_file(again)[k]) for k in first)
+    assert read_meta(again).stats["train_loss"] == meta.stats["train_loss"]
+    assert [p.stat().st_mtime_ns for p in parts] == stamps
+    (out / "own" / "part_1.h5").replace(out / "own" / "part_0.h5")  # a part from another seed is refused
+    with pytest.raises(SystemExit, match="is not part 0"):
+        example.main(argv)
