@@ -3,8 +3,9 @@
     pip install . && python examples/quickstart.py
 
 1. PPO (Stable-Baselines3 with RWM's settings: 128-128-128 ELU actor and critic, lr 1e-3 with a KL target) trains a
-   fresh policy in the shipped MBPO world model (`assets/checkpoints/anymal_d_rwm_mbpo.safetensors`, the default model
-   fine-tuned by 25 MBPO iterations): 4096 imagined robots stepped in one forward pass, 1 s episodes that each restart
+   fresh policy in the shipped coverage world model (`assets/checkpoints/anymal_d_rwm_cover.safetensors`: the default
+   model fine-tuned by 25 MBPO iterations, then on the physics episodes of four policies trained from scratch in it,
+   `examples/make_coverage_model.py`): 4096 imagined robots stepped in one forward pass, 1 s episodes that each restart
    from a real history, the RWM-U uncertainty penalty, step rewards clipped at 0 (`--positive-reward-only`: with
    negative steps PPO learns to end its episodes), episodes ended where a predicted joint torque reaches 95 % of the
    effort limit (`--torque-halt 0.95`: states the model's data barely covers) and an initial action std of 0.37. No
@@ -13,9 +14,10 @@
 2. The policy is scored in physics (MuJoCo, `AnymalD-MuJoCo-v0`) with `rwm-gym score`'s tracking score (18 commands x
    3 seeds x 20 s, a fall scores 0 for the rest of its episode), beside the zero-action floor (standing still) and the
    shipped physics PPO policy's score.
-3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; dotted:
-   the same without the torque halt; dashed: 1024 envs; dash-dotted: 1024 envs with `--fall-tilt 30`; sparse dots:
-   `--torque-halt 0.9`; dash-dot-dot: `--lr-anneal-fraction 0.25`) with this run's point on it (`curve.png`), the
+3. The measured curve of the same recipe (three seeds to 40 M imagined steps, from the shipped policy's JSON; then the
+   settings measured beside it, all in the MBPO model before its coverage fine-tune: dotted: the same recipe; dashed:
+   without the torque halt; dash-dotted: 1024 envs; sparse dots: 1024 envs with `--fall-tilt 30`; dash-dot-dot:
+   `--torque-halt 0.9`; dash-dash-dot: `--lr-anneal-fraction 0.25`) with this run's point on it (`curve.png`), the
    budget at which those seeds reached tracking 0.7, a GIF of the policy walking (`--video`, needs offscreen GL:
    `MUJOCO_GL=egl`) and a one-line verdict.
 
@@ -129,21 +131,23 @@ def recipe(scratch: dict) -> list[str]:
 
 def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     """(setting, seeds with their physics curves) of the shipped recipe first, then of the other settings measured
-    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt, torque halt and
-    learning-rate anneal where one was set."""
+    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt, torque halt,
+    learning-rate anneal and world model where they differ from none (the model: from the shipped recipe's)."""
+    model = scratch["world_model"]["checkpoint"]
     shipped = {"num_envs": scratch["ppo"]["num_envs"], **scratch["env"]["imagination"], "seeds": scratch["seeds"],
-               "lr_anneal_fraction": scratch["ppo"].get("lr_anneal_fraction")}
+               "lr_anneal_fraction": scratch["ppo"].get("lr_anneal_fraction"), "world_model": model}
 
     def setting(recipe: dict) -> str:
         tilt, halt, anneal = recipe.get("fall_tilt"), recipe.get("torque_halt"), recipe.get("lr_anneal_fraction")
+        other_model = recipe.get("world_model", model) != model and Path(recipe["world_model"]).stem
         parts = [f"{recipe['num_envs']} envs", tilt and f"fall tilt {tilt:g} deg", halt and f"torque halt {halt:g}",
-                 anneal and f"lr annealed over the last {anneal:.0%}"]
+                 anneal and f"lr annealed over the last {anneal:.0%}", other_model and f"in {other_model}"]
         return ", ".join(part for part in parts if part)
 
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
 
 
-LINE_STYLES = ("-", ":", "--", "-.", (0, (1, 4)), (0, (5, 1, 1, 1, 1, 1)))
+LINE_STYLES = ("-", ":", "--", "-.", (0, (1, 4)), (0, (5, 1, 1, 1, 1, 1)), (0, (5, 1, 5, 1, 1, 1)))
 """One per measured setting, in the JSON's order: the shipped recipe first, then `other_recipes`."""
 
 
@@ -169,7 +173,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     ax.axhline(WALKING, color="tab:green", ls=":", label=f"walking ({WALKING})")
     ax.set_xlabel("imagined env steps (M)")
     ax.set_ylabel("tracking score in physics")
-    ax.set_title("PPO from scratch in the shipped MBPO world model, ANYmal D")
+    ax.set_title(f"PPO from scratch in {Path(scratch['world_model']['checkpoint']).stem} (shipped), ANYmal D")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the axes: the curves stay clear
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
