@@ -131,17 +131,17 @@ def recipe(scratch: dict) -> list[str]:
 
 def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
     """(setting, seeds with their physics curves) of the shipped recipe first, then of the other settings measured
-    beside it (the JSON's `other_recipes`); a setting names the imagined envs, and the fall tilt, torque halt,
-    learning-rate anneal and world model where they differ from none (the model: from the shipped recipe's)."""
+    beside it (the JSON's `other_recipes`); a setting names the imagined envs, the fall tilt, torque halt and
+    learning-rate anneal where one was set, and the world model where it is not the shipped recipe's."""
     model = scratch["world_model"]["checkpoint"]
     shipped = {"num_envs": scratch["ppo"]["num_envs"], **scratch["env"]["imagination"], "seeds": scratch["seeds"],
                "lr_anneal_fraction": scratch["ppo"].get("lr_anneal_fraction"), "world_model": model}
 
     def setting(recipe: dict) -> str:
         tilt, halt, anneal = recipe.get("fall_tilt"), recipe.get("torque_halt"), recipe.get("lr_anneal_fraction")
-        other_model = recipe.get("world_model", model) != model and Path(recipe["world_model"]).stem
+        trained_in = recipe.get("world_model", model)
         parts = [f"{recipe['num_envs']} envs", tilt and f"fall tilt {tilt:g} deg", halt and f"torque halt {halt:g}",
-                 anneal and f"lr annealed over the last {anneal:.0%}", other_model and f"in {other_model}"]
+                 anneal and f"lr annealed over the last {anneal:.0%}", trained_in != model and f"in {Path(trained_in).stem}"]
         return ", ".join(part for part in parts if part)
 
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]
