@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rwm_gym.data.collect import collect
-from rwm_gym.data.dataset import Dataset, merge_datasets
+from rwm_gym.data.collect import collect, finished_collection
+from rwm_gym.data.dataset import Dataset, DatasetError, merge_datasets
 from rwm_gym.resources import assets_dir
 
 TEACHER = str(assets_dir() / "policies" / "anymal_d_ppo_physics.zip")
@@ -43,12 +43,11 @@ def main() -> None:
     parts = []
     for name, policy, episodes, max_steps, noise, seed in PARTS:
         part = args.out / f"{name}.h5"
-        finished = False
-        if part.exists() and not args.overwrite:  # this script's part from before an interruption, or a user's file?
-            found = Dataset.load(part)
-            if found.info.seed != seed:
-                raise SystemExit(f"{part} exists and is not this script's {name} part (pass --overwrite)")
-            finished = found.info.complete and found.num_episodes == episodes  # one cut short is collected again
+        try:
+            finished = not args.overwrite and finished_collection(part, episodes=episodes, seed=seed,
+                                                                  what=f"this script's {name} part")
+        except DatasetError as error:
+            raise SystemExit(f"{error} (pass --overwrite)") from None
         if not finished:
             collect("AnymalD-MuJoCo-v0", policy, episodes, part, seed=seed, num_envs=args.num_envs,
                     action_noise=noise, max_steps=max_steps, overwrite=True)

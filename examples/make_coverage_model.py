@@ -12,10 +12,10 @@ consecutive seeds), merges them after the base mix (the task's ordinary motions,
 fine-tunes the model on the merge with the model's own training settings (only the budget, learning rate and seed
 change, as in the MBPO loop). It is one MBPO data step, taken with policies that were themselves trained from scratch.
 
-Writes OUT/own/part_<i>.h5 (one per policy and noise level), OUT/own.h5, OUT/buffer.h5, OUT/train.safetensors (the
-fine-tune with its optimizer state: the same command resumes it) and OUT/model.safetensors: the weights alone, naming
-the start model's reset data (found beside it or among the shipped checkpoints, as for the shipped model), with the
-physics rows behind it in `extras`. Torch's thread count changes the float sums, so the same `--threads` gives the
+Writes OUT/own/part_<i>.h5 (one per policy and noise level), OUT/buffer.h5 (the base, then the parts),
+OUT/train.safetensors (the fine-tune with its optimizer state: the same command resumes it) and OUT/model.safetensors:
+the weights alone, naming the start model's reset data (found beside it or among the shipped checkpoints, as for the
+shipped model), with the physics rows behind it in `extras`. Torch's thread count changes the float sums, so the same `--threads` gives the
 same model.
 """
 
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import torch
 
-from rwm_gym.data.collect import collect
-from rwm_gym.data.dataset import Dataset, merge_datasets
+from rwm_gym.data.collect import collect, finished_collection
+from rwm_gym.data.dataset import Dataset, DatasetError, merge_datasets
 from rwm_gym.model.checkpoint import load_checkpoint, read_meta, save_checkpoint
 from rwm_gym.model.train import train
 from rwm_gym.resources import assets_dir
@@ -43,7 +43,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="SB3 zips (or 'random', 'zero', 'gait') whose physics episodes the model learns")
     parser.add_argument("--base", type=Path, required=True, help="the base mix (examples/make_base_mix.py)")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--checkpoint", type=Path, default=SHIPPED, help="the model to fine-tune (default: shipped MBPO)")
+    parser.add_argument("--checkpoint", type=Path, default=SHIPPED,
+                        help="the model to fine-tune (default: the shipped MBPO model)")
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy and noise level")
     parser.add_argument("--max-steps", type=int, default=400, help="cap on an episode's policy steps")
     parser.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.26],
@@ -58,10 +59,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for given in (args.base, args.checkpoint):
         if not given.is_file():
             parser.error(f"{given}: no such file")
-    if args.episodes < 1 or args.iterations < 1 or args.first_seed < 0:
-        parser.error("--episodes and --iterations must be >= 1, --first-seed >= 0")
-    if 100 < args.episodes:
-        parser.error("--episodes must be <= 100 (part i's seeds start at --first-seed + 100 i)")
+    if not 1 <= args.episodes <= 100 or args.iterations < 1 or args.first_seed < 0:
+        parser.error("--episodes must be 1-100 (part i's seeds start at --first-seed + 100 i), --iterations >= 1 and "
+                     "--first-seed >= 0")
     return args
 
 
@@ -70,15 +70,13 @@ def collect_parts(args: argparse.Namespace) -> list[Path]:
     parts = []
     for i, (policy, noise) in enumerate((p, n) for p in args.policies for n in args.noise):
         part, seed = args.out / "own" / f"part_{i}.h5", args.first_seed + 100 * i
-        if part.exists():
-            found = Dataset.load(part)
-            if found.info.seed != seed:
-                raise SystemExit(f"{part} exists and is not part {i} of this command (seed {found.info.seed})")
-            if found.info.complete and found.num_episodes == args.episodes:
-                parts.append(part)
-                continue
-        collect("AnymalD-MuJoCo-v0", policy, args.episodes, part, seed=seed, num_envs=16, action_noise=noise,
-                max_steps=args.max_steps, overwrite=True, progress=not args.quiet)
+        try:
+            finished = finished_collection(part, episodes=args.episodes, seed=seed, what=f"part {i} of this command")
+        except DatasetError as error:
+            raise SystemExit(str(error)) from None
+        if not finished:
+            collect("AnymalD-MuJoCo-v0", policy, args.episodes, part, seed=seed, num_envs=16, action_noise=noise,
+                    max_steps=args.max_steps, overwrite=True, progress=not args.quiet)
         parts.append(part)
     return parts
 
@@ -88,10 +86,9 @@ def main(argv: list[str] | None = None) -> Path:
     torch.set_num_threads(args.threads)
     (args.out / "own").mkdir(parents=True, exist_ok=True)
     parts = collect_parts(args)
-    own, buffer = args.out / "own.h5", args.out / "buffer.h5"
+    buffer = args.out / "buffer.h5"
     if not buffer.exists():  # merged once (atomic writes): a resumed fine-tune finds the file it started on
-        merge_datasets(parts, own)
-        merge_datasets([args.base, own], buffer)
+        merge_datasets([args.base, *parts], buffer)
 
     start = read_meta(args.checkpoint)
     config = replace(start.train_config, iterations=args.iterations, minutes=0.0, seed=args.seed, lr=args.lr,
@@ -101,13 +98,14 @@ def main(argv: list[str] | None = None) -> Path:
 
     model, meta = load_checkpoint(fine_tune.path)
     rows = {"start_model": start.provenance.get("dataset_steps"), "base": Dataset.load(args.base).num_steps,
-            "own": Dataset.load(own).num_steps}
+            "own": sum(Dataset.load(part).num_steps for part in parts)}
+    command = " ".join(argv if argv is not None else sys.argv[1:])
     extras = {"reset_data": start.extras.get("reset_data"),
-              "made_by": "python examples/make_coverage_model.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "policies": list(args.policies), "physics_rows": {**rows, "total": sum(v or 0 for v in rows.values())}}
+              "made_by": f"python examples/make_coverage_model.py {command}", "policies": list(args.policies),
+              "physics_rows": {**rows, "total": sum(v or 0 for v in rows.values())}}
+    extras = {key: value for key, value in extras.items() if value is not None}
     out = save_checkpoint(args.out / "model.safetensors", model, meta.spec, train_config=meta.train_config,
-                          provenance=meta.provenance, stats=meta.stats, extras={k: v for k, v in extras.items()
-                                                                                if v is not None})
+                          provenance=meta.provenance, stats=meta.stats, extras=extras)
     print(f"wrote {out}: val error {meta.stats['val_error']:.4f}; physics rows behind it {extras['physics_rows']}")
     return out
 

@@ -141,7 +141,8 @@ def measured_recipes(scratch: dict) -> list[tuple[str, list[dict]]]:
         tilt, halt, anneal = recipe.get("fall_tilt"), recipe.get("torque_halt"), recipe.get("lr_anneal_fraction")
         trained_in = recipe.get("world_model", model)
         parts = [f"{recipe['num_envs']} envs", tilt and f"fall tilt {tilt:g} deg", halt and f"torque halt {halt:g}",
-                 anneal and f"lr annealed over the last {anneal:.0%}", trained_in != model and f"in {Path(trained_in).stem}"]
+                 anneal and f"lr annealed over the last {anneal:.0%}",
+                 trained_in != model and f"in {Path(trained_in).stem}"]
         return ", ".join(part for part in parts if part)
 
     return [(setting(recipe), recipe["seeds"]) for recipe in [shipped, *scratch.get("other_recipes", [])]]

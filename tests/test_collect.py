@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rwm_gym.cli import main
-from rwm_gym.data.collect import collect
+from rwm_gym.data.collect import collect, finished_collection
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.spec import load_spec
 
@@ -89,6 +89,17 @@ def test_corrupt_file_gives_one_line_error(tmp_path):
     with pytest.raises(DatasetError) as err:
         Dataset.load(path)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_finished_collection_keeps_a_whole_part_and_refuses_another_seeds_file(tmp_path):
+    """What the scripts that collect fixed parts (make_base_mix, make_coverage_model) resume on."""
+    part = tmp_path / "part.h5"
+    assert not finished_collection(part, episodes=2, seed=7)  # nothing yet
+    collect("AnymalD-MuJoCo-v0", "random", 2, part, seed=7, max_steps=10, progress=False)
+    assert finished_collection(part, episodes=2, seed=7)
+    assert not finished_collection(part, episodes=3, seed=7)  # fewer episodes than asked: collected again
+    with pytest.raises(DatasetError, match="part.h5 exists and is not part 3 \\(seed 7, not 8\\)"):
+        finished_collection(part, episodes=2, seed=8, what="part 3")
 
 
 def test_killed_collection_keeps_finished_episodes(tmp_path):

@@ -232,7 +232,7 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
 
     parts = sorted((out / "own").glob("part_*.h5"))
     assert [Dataset.load(p).info.seed for p in parts] == [500, 600, 700, 800]
-    own_rows = Dataset.load(out / "own.h5").num_steps
+    own_rows = sum(Dataset.load(p).num_steps for p in parts)
     assert Dataset.load(out / "buffer.h5").num_steps == Dataset.load(base).num_steps + own_rows
     meta, started = read_meta(model), read_meta(start)
     assert meta.train_config == started.train_config.__class__(

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 import rwm_gym
-from rwm_gym.data.dataset import DatasetError, DatasetInfo, DatasetWriter
+from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, DatasetWriter
 from rwm_gym.policies.base import Policy, make_policy
 from rwm_gym.registration import env_name, make_physics_core
 from rwm_gym.spec import TaskSpec
@@ -116,6 +116,19 @@ def collect(
             writer.append_episode(episode)
             bar.update(1)
     return out
+
+
+def finished_collection(path: str | Path, *, episodes: int, seed: int, what: str = "this collection") -> bool:
+    """Whether `path` already holds `episodes` complete episodes collected from `seed`: a script that collects fixed
+    parts keeps those from before an interruption and collects again one cut short. A file from another seed is not
+    the script's to replace: DatasetError naming `what` it should have been."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    found = Dataset.load(path)
+    if found.info.seed != seed:
+        raise DatasetError(f"{path} exists and is not {what} (seed {found.info.seed}, not {seed})")
+    return found.info.complete and found.num_episodes == episodes
 
 
 @dataclass(frozen=True)
