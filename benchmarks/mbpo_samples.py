@@ -2,12 +2,15 @@
 
     python benchmarks/mbpo_samples.py --runs runs/p18/mbpoA runs/p18/mbpoB --labels A B \
         --prior 1553211 0 --out benchmarks/figures/NAME
+    python benchmarks/mbpo_samples.py --runs runs/s28/mbpoD --labels D \
+        --earlier benchmarks/figures/mbpo_runs_a_b.csv "run B" --out benchmarks/figures/NAME
 
 `rwm-gym mbpo` counts the rows of its `--data` and of what it collects. A run that starts from a checkpoint or a
 policy made from other physics data has those rows behind it too: `--prior` adds them, per run, so the x axis is
 every physics sample the policy depends on. The model-free curve is the shipped physics PPO policy's
 (`assets/policies/anymal_d_ppo_physics_curve.csv`); N_mf is its samples when it first reached tracking 0.80.
-Writes OUT.png and OUT.csv (run, iteration, physics_samples, fraction_of_n_mf, tracking, falls).
+Writes OUT.png and OUT.csv (run, iteration, physics_samples, fraction_of_n_mf, tracking, falls). `--earlier CSV RUN`
+draws a run whose folder is gone from a CSV this script wrote: the one run whose label contains RUN.
 """
 
 from __future__ import annotations
@@ -43,11 +46,27 @@ def rows_of(run: Path, label: str, prior: int, n_model_free: int) -> list[dict]:
              "falls": r["falls"]} for r in log]
 
 
+def earlier_rows(path: Path, name: str) -> list[dict]:
+    """The rows of an earlier run, read back from a CSV this script wrote: those whose `run` contains `name`."""
+    if not path.is_file():
+        raise SystemExit(f"{path}: no such file (a CSV written by this script)")
+    rows = [r for r in csv.DictReader(path.open()) if name in r["run"]]
+    if not rows:
+        raise SystemExit(f"{path}: no run named like {name!r}")
+    if len({r["run"] for r in rows}) > 1:
+        raise SystemExit(f"{path}: {name!r} names more than one run ({', '.join(sorted({r['run'] for r in rows}))})")
+    return [{"run": r["run"], "iteration": int(r["iteration"]), "physics_samples": int(r["physics_samples"]),
+             "fraction_of_n_mf": float(r["fraction_of_n_mf"]), "tracking": float(r["tracking"]),
+             "falls": int(r["falls"])} for r in rows]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=Path, nargs="+", required=True, help="rwm-gym mbpo run folders")
     parser.add_argument("--labels", nargs="+", help="one per run (default: the folders' names)")
     parser.add_argument("--prior", type=int, nargs="+", help="physics rows behind each run's start (default 0)")
+    parser.add_argument("--earlier", nargs=2, action="append", default=[], metavar=("CSV", "RUN"),
+                        help="also draw a run from a CSV this script wrote (repeatable)")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix (.png and .csv)")
     args = parser.parse_args()
     labels = args.labels or [run.name for run in args.runs]
@@ -56,7 +75,10 @@ def main() -> None:
         parser.error("--labels and --prior need one value per run")
     model_free = read_curve(MODEL_FREE)
     total = n_mf(MODEL_FREE)
-    rows = [row for run, label, p in zip(args.runs, labels, prior) for row in rows_of(run, label, p, total)]
+    earlier = [earlier_rows(Path(path), name) for path, name in args.earlier]
+    rows = [row for part in earlier for row in part]
+    rows += [row for run, label, p in zip(args.runs, labels, prior) for row in rows_of(run, label, p, total)]
+    labels = [part[0]["run"] for part in earlier] + labels
 
     import matplotlib
 

@@ -189,6 +189,18 @@ def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(
                                       "--out", str(tmp_path / "fig")])
     with pytest.raises(SystemExit):
         module.main()
+    # a run whose folder is gone is drawn from the CSV written for it, beside a new one
+    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--labels", "new",
+                                      "--earlier", str(tmp_path / "fig.csv"), "ru", "--out", str(tmp_path / "both")])
+    module.main()
+    rows = list(csv.DictReader((tmp_path / "both.csv").open()))
+    assert [(r["run"], int(r["physics_samples"])) for r in rows] == [("run", 1500), ("run", 3500), ("new", 1000),
+                                                                      ("new", 3000)]
+    for name in ("B", ""):  # no run, or more than one, named like it
+        monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--earlier",
+                                          str(tmp_path / "both.csv"), name, "--out", str(tmp_path / "x")])
+        with pytest.raises(SystemExit, match="no run named|more than one run"):
+            module.main()
 
 
 def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactly(tmp_path):
