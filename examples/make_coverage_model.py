@@ -15,8 +15,8 @@ change, as in the MBPO loop). It is one MBPO data step, taken with policies that
 Writes OUT/own/part_<i>.h5 (one per policy and noise level), OUT/buffer.h5 (the base, then the parts),
 OUT/train.safetensors (the fine-tune with its optimizer state: the same command resumes it) and OUT/model.safetensors:
 the weights alone, naming the start model's reset data (found beside it or among the shipped checkpoints, as for the
-shipped model), with the physics rows behind it in `extras`. Torch's thread count changes the float sums, so the same `--threads` gives the
-same model.
+shipped model), with the physics rows behind it in `extras`. Torch's thread count changes the float sums, so the
+same `--threads` gives the same model.
 """
 
 from __future__ import annotations
