@@ -21,6 +21,7 @@ from rwm_gym.data.dataset import (
     DatasetError,
     DatasetInfo,
     DatasetWriter,
+    is_merge_of,
     merge_datasets,
     write_dataset,
 )
@@ -146,6 +147,11 @@ def test_merge(tmp_path: Path, path: Path, episodes) -> None:
     assert ds.num_episodes == 8 and ds.info.policy == "random uniform + ppo" and ds.info.physics_params == {}
     assert [s["episodes"] for s in ds.info.metadata["merged_from"]] == [6, 2]
     np.testing.assert_array_equal(ds.episode(7)["state"], more[1]["state"])
+    assert is_merge_of(out, [path, other])
+    assert not is_merge_of(out, [other, path]) and not is_merge_of(out, [path])
+    assert not is_merge_of(tmp_path / "absent.h5", [path, other]) and not is_merge_of(path, [path])
+    write_dataset(other, make_info(policy="ppo"), more[:1])  # a source that changed since
+    assert not is_merge_of(out, [path, other])
     bad = tmp_path / "bad.h5"
     write_dataset(bad, make_info(spec_text=SPEC.text.replace("episode_steps = 1000", "episode_steps = 999")), more)
     with pytest.raises(DatasetError, match="bad.h5.*'spec'"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -144,7 +145,8 @@ def test_imagined_return_rises_on_the_shipped_model():
     assert np.mean(after[-5:]) > initial + 0.1 * abs(initial), (before, after)
 
 
-def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tiny_checkpoint, tmp_path):
+def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tiny_checkpoint, tmp_path, monkeypatch):
+    import rwm_gym.data.dataset
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset
     from rwm_gym.rl.mbpo import MBPOConfig, mbpo
@@ -159,7 +161,12 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
                         collect_steps=48, base_episodes=3, model_iterations=5, model_finetune=True, model_lr=3e-4,
                         critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
     run = dict(checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip", progress=False)
+    merged_into, merge = [], rwm_gym.data.dataset.merge_datasets
+    monkeypatch.setattr(rwm_gym.data.dataset, "merge_datasets", lambda paths, out: merged_into.append(out) or
+                        merge(paths, out))
     report = mbpo(data, tmp_path / "mbpo", config, **run)
+    monkeypatch.undo()
+    assert [Path(p).name for p in merged_into].count("buffer.h5") == 2  # once per iteration, not again at the next
     log = report["log"]
     assert [row["iteration"] for row in log] == [0, 1, 2]
     assert log[0]["model_error_fresh"] is None and all(row["model_error_fresh"] for row in log[1:])

@@ -338,6 +338,21 @@ def _spec_without_pointers(text: str) -> dict:
     return parsed
 
 
+def is_merge_of(out: str | os.PathLike, paths: Sequence[str | os.PathLike]) -> bool:
+    """Whether `out` is `merge_datasets(paths, out)` of these files as they are now (their bytes, in this order).
+
+    Lets a loop that grows its buffer skip rewriting one it already wrote: the check hashes the sources, which at
+    1.7 M rows takes ~2 s against ~25 s for the merge.
+    """
+    if not Path(out).exists():
+        return False
+    try:
+        sources = Dataset.load(out).info.metadata.get("merged_from", [])
+    except (OSError, DatasetError):
+        return False
+    return [s.get("sha256") for s in sources] == [Dataset.load(p).file_hash() for p in paths]
+
+
 def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
     """Concatenate the episodes of datasets of the same task (spec, columns, dt) into `out` (atomic).
 

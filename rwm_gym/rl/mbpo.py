@@ -106,7 +106,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     from stable_baselines3 import PPO
 
     from rwm_gym.atomic import write_json
-    from rwm_gym.data.dataset import Dataset, merge_datasets
+    from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
     from rwm_gym.imagination.reset_data import make_reset_data
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.model.config import TrainConfig
@@ -184,7 +184,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         previous = report["log"][-1]
         fresh_files = [out / f"data_{j}.h5" for j in range(1, k)]
         buffer = out / "buffer.h5" if fresh_files else base
-        if fresh_files:
+        if fresh_files and not is_merge_of(buffer, [base, *fresh_files]):  # written by the iteration before
             merge_datasets([base, *fresh_files], buffer)
         env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
                        seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
