@@ -31,16 +31,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rwm_gym.atomic import atomic_write, write_json, write_text
+from rwm_gym.atomic import save_png, write_json, write_text
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
-from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.losses import relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
+from rwm_gym.options import add_dataclass_options
+from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.registration import DMC_SPECS
 from rwm_gym.spec import load_spec
 
@@ -217,8 +217,7 @@ def plot(results: dict, path: Path) -> None:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

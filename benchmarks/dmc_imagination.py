@@ -24,15 +24,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rwm_gym.atomic import atomic_write, write_json, write_text
+from rwm_gym.atomic import save_png, write_json, write_text
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
 from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model import TrainConfig, model_config_for
-from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.train import train
+from rwm_gym.options import add_dataclass_options
 from rwm_gym.physics.dmc import DMCSB3VecEnv, make_core
 from rwm_gym.registration import DMC_SPECS
+from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
 
 sys.path.insert(0, str(Path(__file__).parent))
 from cross_robot import collect_mix
@@ -145,8 +145,7 @@ def plot(r: dict, path: Path) -> None:
     ax.set(xlabel="PPO wall time (min)", ylabel="mean step reward in its own env", title=r["env"])
     ax.legend(fontsize=8)
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

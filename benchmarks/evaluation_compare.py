@@ -21,7 +21,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from rwm_gym.atomic import atomic_write, write_text
+from rwm_gym.atomic import save_png, write_text
 
 
 def parse_run(text: str) -> tuple[str, Path]:
@@ -95,8 +95,7 @@ def main(argv: list[str] | None = None) -> None:
         ax.axis("off")
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out.with_suffix(".png"), lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
-    plt.close(fig)
+    save_png(fig, args.out.with_suffix(".png"))
     rows = table(runs, sources)
     write_text(args.out.with_suffix(".md"), "\n".join(rows))
     print("\n".join(rows))

@@ -21,7 +21,7 @@ import io
 import json
 from pathlib import Path
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import atomic_write, save_png
 from rwm_gym.resources import assets_dir
 from rwm_gym.rl.mbpo import TRACKING_TARGET, read_curve
 
@@ -104,8 +104,7 @@ def main() -> None:
     fig.tight_layout()
     png, table = args.out.with_suffix(".png"), args.out.with_suffix(".csv")
     png.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(png, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
-    plt.close(fig)
+    save_png(fig, png, dpi=110, bbox_inches="tight")
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(rows[0]))
     writer.writeheader()

@@ -19,7 +19,7 @@ import json
 import os
 from pathlib import Path
 
-from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.atomic import atomic_write, save_png, write_json
 from rwm_gym.rl.score import score, zero_policy
 from rwm_gym.rl.training_run import TrainingRun
 
@@ -137,8 +137,7 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_i
     fig.suptitle("PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
                  if trained_in == "imagination" else "model-free PPO in MuJoCo physics, ANYmal D")
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
-    plt.close(fig)
+    save_png(fig, path, dpi=100)
 
 
 if __name__ == "__main__":

@@ -26,15 +26,15 @@ from pathlib import Path
 
 import torch
 
-from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.atomic import atomic_write, save_png, write_json
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import TrainConfig, build_model, model_config_for
-from rwm_gym.options import add_dataclass_options
 from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.losses import SegmentLoss
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import sample_batch, train, train_step
 from rwm_gym.model.windows import WindowData
+from rwm_gym.options import add_dataclass_options
 
 
 @dataclass(frozen=True)
@@ -174,8 +174,7 @@ def plot(results: dict, path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

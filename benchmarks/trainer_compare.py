@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt
 sys.path.insert(0, str(Path(__file__).parent))  # the trainer benchmark, a sibling script
 from trainer import error_at
 
-from rwm_gym.atomic import atomic_write, write_text
+from rwm_gym.atomic import save_png, write_text
 
 MARKS = (2.5, 5.0, 7.5, 10.0)
 
@@ -65,7 +65,7 @@ def main() -> None:
     ax.legend(fontsize=7)
     ax.set_title("RWM trainer settings at equal CPU time")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out.with_suffix(".png"), lambda tmp: fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png"))
+    save_png(fig, args.out.with_suffix(".png"), bbox_inches="tight")
     write_text(args.out.with_suffix(".md"), "\n".join(rows) + "\n")
     print("\n".join(rows))
 

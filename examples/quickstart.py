@@ -161,7 +161,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from rwm_gym.atomic import atomic_write
+    from rwm_gym.atomic import save_png
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
     for i, (setting, seeds) in enumerate(measured_recipes(scratch)):
@@ -177,8 +177,7 @@ def plot_curve(scratch: dict, num_envs: int, timesteps: int, tracking: float, fl
     ax.set_title(f"PPO from scratch in {Path(scratch['world_model']['checkpoint']).stem} (shipped), ANYmal D")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the axes: the curves stay clear
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
-    plt.close(fig)
+    save_png(fig, path, dpi=100)
     return path
 
 

@@ -34,3 +34,13 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 
 def write_json(path: str | os.PathLike, data: object) -> Path:
     return write_text(path, json.dumps(data, indent=2))
+
+
+def save_png(fig, path: str | os.PathLike, dpi: int = 120, **savefig) -> Path:
+    """Save a matplotlib figure as a PNG atomically and close it (a figure left open keeps its memory)."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi, **savefig))
+    finally:
+        plt.close(fig)

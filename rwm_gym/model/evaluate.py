@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rwm_gym.atomic import atomic_write, write_json
+from rwm_gym.atomic import save_png, write_json
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
@@ -191,8 +191,7 @@ def plot_running_mean(results: dict[str, dict], path: str | os.PathLike, title: 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: str = "") -> None:
@@ -209,8 +208,7 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def _episode_key(dataset: Dataset, episode: int) -> bytes:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import save_png
 from rwm_gym.spec import TaskSpec
 
 PolicyFn = Callable[[np.ndarray], np.ndarray]
@@ -247,8 +247,7 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
                           f"return {evaluation.episode_return:.2f}, "
                           f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
     fig.tight_layout()
-    path = atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
-    plt.close(fig)
+    path = save_png(fig, path, dpi=100)
     return path
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from rwm_gym.atomic import atomic_write
+from rwm_gym.atomic import save_png
 from rwm_gym.options import add_dataclass_options
 
 TRACKING_TARGET = 0.80
@@ -320,8 +320,7 @@ def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] 
     if measured:
         axes[2].legend()
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
-    plt.close(fig)
+    save_png(fig, path, dpi=100)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
