@@ -74,8 +74,8 @@ def on_data(model, meta, second, second_meta, path: str, history: int, horizon: 
 def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta, policy: str, history: int,
                    steps: int, seeds: int) -> dict:
     from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
-    from rwm_gym.rl.score import resolve_policy
     from rwm_gym.rl.evaluate_policy import scoring_commands
+    from rwm_gym.rl.score import resolve_policy
 
     commands = scoring_commands("anymal_d")
     pairs = [(c, s) for c in commands for s in range(seeds)]

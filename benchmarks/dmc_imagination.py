@@ -15,7 +15,6 @@ Writes `results.json`, `results.md` and `training.png` (PPO's mean step reward p
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -29,7 +28,7 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.train import train
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import parse_dataclass_args
 from rwm_gym.physics.dmc import DMCSB3VecEnv, make_core
 from rwm_gym.registration import DMC_SPECS
 from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
@@ -149,11 +148,7 @@ def plot(r: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=Options.__doc__)
-    add_dataclass_options(parser, Options)
-    options = Options(**vars(parser.parse_args(argv)))
-    if options.env not in DMC_SPECS:
-        parser.error(f"--env: unknown env {options.env!r} (choose from {', '.join(DMC_SPECS)})")
+    options = parse_dataclass_args(Options, argv, choices={"env": list(DMC_SPECS)})
     torch.set_num_threads(options.threads)
     out = options.out / options.env
     out.mkdir(parents=True, exist_ok=True)

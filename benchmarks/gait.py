@@ -18,11 +18,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from rwm_gym.policies.gait import GaitPolicy
 from rwm_gym.physics.locomotion import LocomotionCore
+from rwm_gym.policies.gait import GaitPolicy
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import observation_slices
-
 
 
 def rollout(spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, float, float] | None,

@@ -11,7 +11,6 @@ on N busy cores gain little or nothing.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -20,7 +19,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import parse_dataclass_args
 from rwm_gym.resources import assets_dir
 
 
@@ -64,9 +63,7 @@ def timed(command: list[str]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=Options.__doc__)
-    add_dataclass_options(parser, Options)
-    options = Options(**vars(parser.parse_args(argv)))
+    options = parse_dataclass_args(Options, argv)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     cli = [sys.executable, "-m", "rwm_gym.cli"]

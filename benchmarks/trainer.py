@@ -18,7 +18,6 @@ Writes results.json, results.md and val_vs_minutes.png to --out.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -34,7 +33,7 @@ from rwm_gym.model.losses import SegmentLoss
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import sample_batch, train, train_step
 from rwm_gym.model.windows import WindowData
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import parse_dataclass_args
 
 
 @dataclass(frozen=True)
@@ -178,9 +177,7 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=Options.__doc__)
-    add_dataclass_options(parser, Options)
-    options = Options(**vars(parser.parse_args(argv)))
+    options = parse_dataclass_args(Options, argv)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     data = Dataset.load(options.data)

@@ -21,7 +21,6 @@ Writes `results.json`, `results.md` and `error_vs_horizon_<source>.png` (+ data 
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -29,14 +28,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, merge_datasets
-from rwm_gym.atomic import atomic_write, write_json
 from rwm_gym.model import TrainConfig, distributed, model_config_for
-from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint, plot_running_mean
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.train import train
+from rwm_gym.options import parse_dataclass_args
 
 # name -> (model kind, TrainConfig fields that differ from the common ones, ModelConfig fields)
 MODELS: dict[str, tuple[str, dict, dict]] = {
@@ -162,9 +161,7 @@ def markdown(results: dict, source: str, data: Dataset, options: Options, wall_s
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=Options.__doc__)
-    add_dataclass_options(parser, Options)
-    options = Options(**vars(parser.parse_args(argv)))
+    options = parse_dataclass_args(Options, argv)
     torch.set_num_threads(options.threads)
     world = distributed.init_world(options.device)  # under torchrun: rank 0 collects, writes and scores
     out = Path(options.out)

@@ -19,7 +19,6 @@ Writes `timings.json` (per stage: command, wall seconds; the machine: GPU names,
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -33,7 +32,7 @@ from pathlib import Path
 import torch
 
 from rwm_gym.data.dataset import merge_datasets
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import parse_dataclass_args
 
 
 @dataclass(frozen=True)
@@ -77,9 +76,7 @@ def stage(name: str, command: list[str], timings: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=Options.__doc__)
-    add_dataclass_options(parser, Options)
-    options = Options(**vars(parser.parse_args(argv)))
+    options = parse_dataclass_args(Options, argv)
     out = Path(options.out)
     (out / "data").mkdir(parents=True, exist_ok=True)
     cuda = torch.device(options.device).type == "cuda"

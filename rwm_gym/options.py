@@ -52,3 +52,12 @@ def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGr
         kind = (types or {}).get(f.name, type(default) if default is not None else str)
         parser.add_argument(flag, type=kind, default=value, help=help_text, choices=(choices or {}).get(f.name),
                             nargs=(nargs or {}).get(f.name))
+
+
+def parse_dataclass_args(cls: type, argv: Sequence[str] | None = None, **options):
+    """`cls` built from the command line (`argv`, default sys.argv): a script's whole parser when its options are
+    one dataclass, with its docstring as the description; `options` go to `add_dataclass_options`."""
+    parser = argparse.ArgumentParser(description=cls.__doc__)
+    add_dataclass_options(parser, cls, **options)
+    return cls(**vars(parser.parse_args(argv)))
+
