@@ -214,6 +214,20 @@ def test_the_halt_ends_episodes_where_the_ensemble_disagrees(checkpoint):
     assert not any(info["TimeLimit.truncated"] for info, h in zip(halted_infos, halted) if h)  # no bootstrap
 
 
+def test_an_uncertainty_option_on_a_one_head_model_is_refused(tmp_path):
+    """One head has no disagreement: a penalty or halt on it would silently do nothing."""
+    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=0, num_envs=2, max_steps=30,
+                   progress=False)
+    config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=16, num_layers=1, head_hidden=16)
+    assert config.ensemble_size == 1
+    path = train(data, config, TrainConfig(history=8, forecast=4, batch_size=8, iterations=2, val_every=1000),
+                 tmp_path / "one_head.safetensors", progress=False).path
+    for option in ({"uncertainty_penalty": 10.0}, {"uncertainty_halt": 0.06}):
+        with pytest.raises(ValueError, match="one_head.safetensors: .*one head .*--ensemble-size 5"):
+            ImaginedEnv(path, reset_data=data, **option)
+    ImaginedEnv(path, reset_data=data, uncertainty_floor=0.02)  # a floor alone charges nothing
+
+
 def test_bad_checkpoints_fail_clearly(checkpoint, tmp_path):
     truncated = tmp_path / "cut.safetensors"
     truncated.write_bytes(checkpoint.read_bytes()[:1000])

@@ -110,6 +110,9 @@ class ImaginedCore:
         self.options = options or ImaginationOptions(**kwargs)
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
+        if (self.options.uncertainty_penalty > 0 or self.options.uncertainty_halt > 0) and self.ensemble_size < 2:
+            raise ValueError(f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
+                             "and this model has one head (train it with --ensemble-size 5)")
         self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
         self.spec: TaskSpec = self.meta.spec
         if env_id is not None and self.spec.imagined_env_id != env_id:

@@ -124,8 +124,11 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {}
     if args.where == "imagination":
         env_kwargs = {k: v for k, v in {"episode_steps": args.episode_steps, **imagined}.items() if v}
-    env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
-                   env_kwargs=env_kwargs)
+    try:
+        env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
+                       env_kwargs=env_kwargs)
+    except (ValueError, FileNotFoundError) as error:  # a checkpoint or reset data that cannot serve these options
+        raise SystemExit(f"rwm-gym ppo: {error}") from None
     if args.run_dir is not None:
         return run_resumable(args, config, env, env_kwargs)
     model = make_ppo(env, config, seed=args.seed, device=args.device)
