@@ -149,8 +149,8 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
     import rwm_gym.data.dataset
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import Dataset
-    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
     from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
     data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60,
                    progress=False)

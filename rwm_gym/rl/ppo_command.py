@@ -17,8 +17,17 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from rwm_gym.options import add_dataclass_options
 from rwm_gym.rl.policy_file import save_policy
-from rwm_gym.rl.ppo import (ACTIVATIONS, WHERE, PPOConfig, PositiveReward, TrainStats, learn, make_env, make_ppo,
-                            warm_up_critic)
+from rwm_gym.rl.ppo import (
+    ACTIVATIONS,
+    WHERE,
+    PositiveReward,
+    PPOConfig,
+    TrainStats,
+    learn,
+    make_env,
+    make_ppo,
+    warm_up_critic,
+)
 
 
 def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
