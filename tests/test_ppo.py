@@ -235,6 +235,19 @@ def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std
     assert np.allclose(start.policy.log_std.detach().numpy(), -1.0)
 
 
+def test_mbpo_trains_its_own_starting_model_with_an_ensemble_where_the_halt_needs_one(tmp_path):
+    from rwm_gym.data.collect import collect
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.rl.mbpo import MBPOConfig, mbpo
+
+    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=60,
+                   progress=False)
+    config = MBPOConfig(iterations=0, num_envs=8, imagined_episode_steps=20, model_iterations=1, eval_seeds=1,
+                        eval_steps=10, uncertainty_halt=0.06)
+    mbpo(data, tmp_path / "mbpo", config, progress=False)
+    assert read_meta(tmp_path / "mbpo" / "model_0.safetensors").model_config.ensemble_size == 5
+
+
 def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
     from rwm_gym.rl.mbpo import MBPOConfig, _check_resume
 

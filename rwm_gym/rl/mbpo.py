@@ -98,7 +98,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
          model_free_curve: str | Path | None = None, progress: bool = True) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
-    checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps).
+    checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps;
+    five ensemble heads when the uncertainty penalty or halt is on, else one).
     init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
@@ -150,8 +151,9 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         keep = config.base_episodes or starting.num_episodes
         make_reset_data(starting, base, episodes=keep, rows=spec.episode_steps + 1, seed=config.seed)
     if report is None:  # iteration 0: the starting model and policy, scored
-        if checkpoint is None:
-            model_config = model_config_for(model_kind, spec)
+        if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
+            uncertain = config.uncertainty_penalty > 0 or config.uncertainty_halt > 0
+            model_config = model_config_for(model_kind, spec, ensemble_size=5 if uncertain else 1)
             retrain(base if config.base_episodes else Path(data), 0, None)
         else:
             model_config = read_meta(checkpoint).model_config
