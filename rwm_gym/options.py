@@ -60,4 +60,3 @@ def parse_dataclass_args(cls: type, argv: Sequence[str] | None = None, **options
     parser = argparse.ArgumentParser(description=cls.__doc__)
     add_dataclass_options(parser, cls, **options)
     return cls(**vars(parser.parse_args(argv)))
-

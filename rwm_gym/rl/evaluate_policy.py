@@ -247,7 +247,6 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
                           f"return {evaluation.episode_return:.2f}, "
                           f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
     fig.tight_layout()
-    path = save_png(fig, path, dpi=100)
-    return path
+    return save_png(fig, path, dpi=100)
 
 
