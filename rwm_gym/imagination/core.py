@@ -89,6 +89,11 @@ class ImaginationOptions:
     """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
     reset); models whose warm-up reads the ensemble member always warm up."""
 
+    @property
+    def acts_on_disagreement(self) -> bool:
+        """Whether the penalty or the halt reads the ensemble's disagreement (so the model needs several heads)."""
+        return self.uncertainty_penalty > 0 or self.uncertainty_halt > 0
+
 
 def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
     """(N,) angle between the base's z axis and up, from the gravity direction in the base frame (N, 3)."""
@@ -110,7 +115,7 @@ class ImaginedCore:
         self.options = options or ImaginationOptions(**kwargs)
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
         self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
-        if (self.options.uncertainty_penalty > 0 or self.options.uncertainty_halt > 0) and self.ensemble_size < 2:
+        if self.options.acts_on_disagreement and self.ensemble_size < 2:
             raise ValueError(f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
                              "and this model has one head (train it with --ensemble-size 5)")
         self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
@@ -191,8 +196,7 @@ class ImaginedCore:
     @property
     def needs_uncertainty(self) -> bool:
         """Whether a step computes the ensemble disagreement (the penalty or the report asks for it)."""
-        return (self.options.uncertainty_penalty > 0 or self.options.uncertainty_halt > 0
-                or self.options.report_uncertainty)
+        return self.options.acts_on_disagreement or self.options.report_uncertainty
 
     @torch.inference_mode()
     def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
@@ -309,7 +313,7 @@ class ImaginedCore:
     def _push(self) -> None:
         if self.options.push_interval_s <= 0:
             return
-        every = max(1, int(round(self.options.push_interval_s / self.spec.policy_dt)))
+        every = max(1, round(self.options.push_interval_s / self.spec.policy_dt))
         lin = self.spec.state_slices["base_lin_vel"]
         for i in np.flatnonzero(self.steps % every == 0):
             v = self.options.push_velocity

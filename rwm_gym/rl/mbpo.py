@@ -152,7 +152,9 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         make_reset_data(starting, base, episodes=keep, rows=spec.episode_steps + 1, seed=config.seed)
     if report is None:  # iteration 0: the starting model and policy, scored
         if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
-            uncertain = config.uncertainty_penalty > 0 or config.uncertainty_halt > 0
+            from rwm_gym.imagination.core import ImaginationOptions
+
+            uncertain = ImaginationOptions(**imagination_kwargs(config)).acts_on_disagreement
             model_config = model_config_for(model_kind, spec, ensemble_size=5 if uncertain else 1)
             retrain(base if config.base_episodes else Path(data), 0, None)
         else:
