@@ -15,7 +15,7 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
     if ctypes.util.find_library("EGL"):
         os.environ["MUJOCO_GL"] = "egl"
 
-from rwm_gym.registration import register_all  # noqa: E402
+from rwm_gym.registration import register_all
 
 __version__ = "0.1.0"
 

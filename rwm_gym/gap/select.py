@@ -37,8 +37,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from rwm_gym.gap.effects import Effect
-from rwm_gym.gap.fit import (CandidateFit, FitConfig, fit_all, fit_effect, gap_per_window, paired_p_value,
-                             score_fit)
+from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_all, fit_effect, gap_per_window, paired_p_value, score_fit
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates

@@ -7,8 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rwm_gym.model.prediction import Prediction
 from rwm_gym.model.config import ModelConfig
+from rwm_gym.model.prediction import Prediction
 
 
 def soft_bound(x: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:

@@ -18,8 +18,8 @@ import os
 import signal
 import sys
 import threading
-import warnings
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -28,9 +28,9 @@ from pathlib import Path
 import torch
 
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.model import distributed
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
-from rwm_gym.model import distributed
 from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model
 from rwm_gym.model.heads import StateHead

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rwm_gym.physics.params import build_model
 from rwm_gym.policies.base import gaussian_noise
 from rwm_gym.policies.leg_kinematics import LegKinematics
-from rwm_gym.physics.params import build_model
 from rwm_gym.spec import TaskSpec
 from rwm_gym.task.observation import observation_slices
 

@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rwm_gym.atomic import atomic_write, write_json, write_text
-from rwm_gym.rl.evaluate_policy import (Evaluation, as_policy, evaluate_policy, format_table, plot,
-                                                  scoring_commands)
+from rwm_gym.rl.evaluate_policy import Evaluation, as_policy, evaluate_policy, format_table, plot, scoring_commands
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
     ("forward 1.0 m/s", (1.0, 0.0, 0.0)), ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
