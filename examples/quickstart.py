@@ -83,6 +83,12 @@ def main() -> int:
           f"its loop, {rows['before_the_loop']:,} before it): "
           f"tracking {mbpo['score']['tracking']:.3f}, falls {mbpo['score']['falls']}/{mbpo['score']['episodes']} "
           "(from its JSON)")
+    random_start = json.loads((policies / "anymal_d_mbpo_ppo_random_data.json").read_text())
+    rows = random_start["physics_samples"]
+    print(f"shipped MBPO-PPO policy from random-action data ({rows['counted']:,} physics samples, "
+          f"{rows['fraction_of_n_mf']:.1%} of the physics policy's to 0.80): tracking "
+          f"{random_start['score']['tracking']:.3f}, falls {random_start['score']['falls']}/"
+          f"{random_start['score']['episodes']} (from its JSON)")
     print(f"shipped policy from scratch in imagination (this recipe, {scratch['imagined_steps']:,} imagined steps, "
           f"seed {scratch['seed']}): tracking {scratch['score']['tracking']:.3f}, falls {scratch['score']['falls']}/"
           f"{scratch['score']['episodes']} (from its JSON)")

@@ -126,6 +126,7 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert run.returncode == 0, run.stderr[-2000:]
     assert "VERDICT: it does not walk yet" in run.stdout and "zero-action floor" in run.stdout
     assert "shipped MBPO-PPO policy" in run.stdout and "shipped policy from scratch in imagination" in run.stdout
+    assert "shipped MBPO-PPO policy from random-action data" in run.stdout
     state = json.loads((out / "run" / "state.json").read_text())
     assert state["timesteps"] >= 64 and (out / "policy.zip").is_file()
     from rwm_gym.resources import assets_dir

@@ -110,7 +110,8 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
               "--out", str(tmp_path / "out")])
 
 
-@pytest.mark.parametrize("name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo", "anymal_d_ppo_imagination"])
+@pytest.mark.parametrize("name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo", "anymal_d_mbpo_ppo_random_data",
+                                  "anymal_d_ppo_imagination"])
 def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
     """Each shipped policy is under 1 MiB, carries no training-env state, and walks forward at 1 m/s in physics on
     a short episode without falling; its JSON's score sits above the zero-action floor it states."""
