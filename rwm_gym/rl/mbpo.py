@@ -154,7 +154,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
             from rwm_gym.imagination.core import ImaginationOptions
 
-            uncertain = ImaginationOptions(**imagination_kwargs(config)).acts_on_disagreement
+            uncertain = ImaginationOptions(**env_kwargs).acts_on_disagreement
             model_config = model_config_for(model_kind, spec, ensemble_size=5 if uncertain else 1)
             retrain(base if config.base_episodes else Path(data), 0, None)
         else:
