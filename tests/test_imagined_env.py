@@ -282,6 +282,15 @@ def test_without_the_penalty_each_env_runs_only_its_head_with_the_same_numbers(c
     assert any("episode" in info for step in infos_own for info in step)  # the rollout crossed resets
 
 
+def test_bfloat16_products_give_nearly_the_float32_rollout(checkpoint):
+    obs32, rewards32, _ = _vec_rollout(checkpoint, steps=10)
+    obs16, rewards16, _ = _vec_rollout(checkpoint, steps=10, matmul_precision="bfloat16")
+    np.testing.assert_allclose(rewards16, rewards32, atol=0.02)
+    assert not np.array_equal(obs16, obs32)
+    with pytest.raises(ValueError, match="matmul_precision 'float16' unknown"):
+        ImaginedSB3VecEnv(checkpoint, num_envs=1, matmul_precision="float16")
+
+
 def test_batched_reset_windows_are_the_sampled_ones(checkpoint):
     windows = ImaginedEnv(checkpoint).core.reset_windows
     ends = np.array([windows.draw(np.random.default_rng(s)) for s in range(4)])

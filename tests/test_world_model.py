@@ -109,6 +109,26 @@ def test_fused_inference_step_equals_the_autograd_step_across_row_blocks(monkeyp
     assert not torch.equal(h_fused[0][:, 0], h_fused[0][:, 1])  # the layers are kept apart, not copied
 
 
+def test_bfloat16_products_stay_close_to_float32_and_keep_the_hidden_state_float32(monkeypatch) -> None:
+    """`set_step_matmul_dtype(torch.bfloat16)`: the products are rounded, nothing else; the step is close to fp32
+    (bf16 has an 8-bit mantissa) but not equal, and the weights themselves are untouched."""
+    monkeypatch.setattr(gru_step_module, "ROWS_PER_BLOCK", 4)
+    model = tiny("rwm", ensemble_size=2, num_layers=2).eval()
+    window = random_window(11, 5)
+    member = torch.arange(11) % 2
+    h32 = h16 = model.initial_hidden(11)
+    with torch.no_grad():
+        for t in range(5):
+            model.set_step_matmul_dtype(None)
+            h32, p32 = model.step(h32, window.states[:, t], window.actions[:, t], member)
+            model.set_step_matmul_dtype(torch.bfloat16)
+            h16, p16 = model.step(h16, window.states[:, t], window.actions[:, t], member)
+            assert h16[0].dtype == p16.state_mean.dtype == torch.float32
+            torch.testing.assert_close(p16.state_mean, p32.state_mean, atol=0.05, rtol=0.05)
+    assert not torch.equal(p16.state_mean, p32.state_mean)
+    assert model.state_gru.weight_ih_l0.dtype == torch.float32
+
+
 @pytest.mark.parametrize("already", [0, 2])
 @pytest.mark.parametrize("rows", [4, 9])
 def test_transformer_causal_pass_equals_stepping(already: int, rows: int) -> None:

@@ -89,10 +89,24 @@ class ImaginationOptions:
     """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
     reset); models whose warm-up reads the ensemble member always warm up."""
 
+    matmul_precision: str = "float32"
+    """dtype of the world model's matrix products in each imagined step: float32, or bfloat16 (RWM's GRUs; 2.5-4x
+    their fp32 rate on CPUs with AVX512-BF16 or AMX and on GPUs, forecast error within 0.5 % of fp32 on the shipped
+    ANYmal model: benchmarks/RESULTS.md). Gates, hidden state and heads stay float32."""
+
+    def __post_init__(self) -> None:
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "
+                             f"{', '.join(MATMUL_PRECISIONS)})")
+
     @property
     def acts_on_disagreement(self) -> bool:
         """Whether the penalty or the halt reads the ensemble's disagreement (so the model needs several heads)."""
         return self.uncertainty_penalty > 0 or self.uncertainty_halt > 0
+
+
+MATMUL_PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
+"""`ImaginationOptions.matmul_precision` -> the dtype handed to the model (None: its weights' own)."""
 
 
 def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
@@ -119,6 +133,11 @@ class ImaginedCore:
             raise ValueError(f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
                              "and this model has one head (train it with --ensemble-size 5)")
         self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
+        if self.options.matmul_precision != "float32":
+            if not hasattr(self.model, "set_step_matmul_dtype"):
+                raise ValueError(f"{self.checkpoint}: matmul_precision {self.options.matmul_precision} is implemented "
+                                 f"for RWM models, not {self.model.config.kind}")
+            self.model.set_step_matmul_dtype(MATMUL_PRECISIONS[self.options.matmul_precision])
         self.spec: TaskSpec = self.meta.spec
         if env_id is not None and self.spec.imagined_env_id != env_id:
             raise ValueError(f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "

@@ -13,7 +13,7 @@ from torch.func import functional_call
 
 from rwm_gym.model.base import Hidden, Prediction, WorldModel
 from rwm_gym.model.config import ModelConfig
-from rwm_gym.model.gru_step import gru_step
+from rwm_gym.model.gru_step import gru_step, layer_weights
 from rwm_gym.model.heads import Heads
 
 
@@ -23,6 +23,8 @@ class RWM(WorldModel):
     warm_hidden_reads_member = False  # the GRUs read states and actions only; the heads come after them
     fused_step = True
     """`step` without autograd runs `gru_step`'s fused cell (off: `nn.GRU`, as `benchmarks/imagination.py` compares)."""
+    step_matmul_dtype: torch.dtype | None = None
+    """dtype of the fused cell's products (None: the weights' own; `torch.bfloat16`: `set_step_matmul_dtype`)."""
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__(config)
@@ -72,8 +74,25 @@ class RWM(WorldModel):
             hidden, prediction = self.observe(hidden, state.unsqueeze(1), action.unsqueeze(1), member)
             return hidden, prediction.map(lambda t: t.squeeze(1))
         x = torch.cat([state, action], dim=-1)
-        hidden = (gru_step(self.state_gru, x, hidden[0]), gru_step(self.privileged_gru, x, hidden[1]))
+        state_weights, privileged_weights = self._fused_weights()
+        hidden = (gru_step(self.state_gru, x, hidden[0], state_weights),
+                  gru_step(self.privileged_gru, x, hidden[1], privileged_weights))
         return hidden, self.heads(hidden[0][:, -1], hidden[1][:, -1], state, member)
+
+    def set_step_matmul_dtype(self, dtype: torch.dtype | None) -> None:
+        """Run the fused cell's products in `dtype` (e.g. `torch.bfloat16`); the hidden state, the gates and the heads
+        stay in the weights' dtype. Training and `observe` are unaffected."""
+        self.step_matmul_dtype = dtype
+
+    def _fused_weights(self) -> tuple[list, list]:
+        """Both GRUs' `layer_weights`, rebuilt only when a weight changed (an optimiser step, a move, a load)."""
+        grus = (self.state_gru, self.privileged_gru)
+        key = (self.step_matmul_dtype, *((p.data_ptr(), p._version) for gru in grus for p in gru.parameters()))
+        cached = self.__dict__.get("_fused_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, tuple(layer_weights(gru, self.step_matmul_dtype) for gru in grus))
+            self.__dict__["_fused_cache"] = cached
+        return cached[1]
 
     def _layer_by_layer(self, gru: nn.GRU, x: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         """Every layer's hidden state after every step: x (B, T, in), hidden (B, L, H) -> (B, T, L, H). Same kernel

@@ -78,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-first-episode-length", action="store_true",
                         help="start each imagined env's first episode at a random step of its time limit, so restarts "
                              "spread over time (rsl_rl's init_at_random_ep_len)")
+    parser.add_argument("--matmul-precision", choices=("float32", "bfloat16"), default="float32",
+                        help="dtype of the world model's matrix products per imagined step (bfloat16: 2.5-4x faster "
+                             "on CPUs with AVX512-BF16/AMX and on GPUs) (default float32)")
     parser.add_argument("--timesteps", type=int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
     parser.add_argument("--minutes", type=float, default=None,
@@ -127,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
     imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
                            "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt")
     imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
+    if args.matmul_precision != "float32":
+        imagined["matmul_precision"] = args.matmul_precision
     if imagined and args.where != "imagination":
         raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
                          f"--in imagination")
@@ -239,8 +244,9 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_
     remaining = args.timesteps - model.num_timesteps
     try:
         if remaining > 0:
-            learn(model, timesteps=remaining, target_kl=config.target_kl, callbacks=(checkpoint,),
-                  on_rollout=checkpoint.log_row, anneal_steps=anneal_steps(config, args.timesteps))
+            learn(model, timesteps=remaining, minutes=args.minutes, target_kl=config.target_kl,
+                  callbacks=(checkpoint,), on_rollout=checkpoint.log_row,
+                  anneal_steps=anneal_steps(config, args.timesteps))
             checkpoint.save()
         else:
             print(f"{run.folder} already has its {args.timesteps:,} steps")

@@ -1,0 +1,201 @@
+"""Time to walk: physics tracking of a policy learned from scratch in imagination, against training wall-clock minutes.
+
+    python benchmarks/time_to_walk.py --recipe fast [--seeds 0 1 2] [--minutes 8] [--threads 2] [--out DIR]
+    python benchmarks/time_to_walk.py --plot            # redraw the figure from every recipe's scored runs
+
+For each seed the script trains a fresh policy with `rwm-gym ppo --run-dir` in the shipped world model with the
+recipe's settings for `--minutes` of training wall time (snapshots every few rollouts), then scores the snapshot
+nearest each whole minute (`--score-every`) in MuJoCo physics with `rwm-gym score`'s command set, beside the
+zero-action floor. Training and scoring run one after the other, so scoring never slows the timed training.
+
+Results go to DIR/<recipe>/seed_<k>/ (the run folder, curve.csv) and DIR/summary.json: per recipe and seed the
+minutes and imagined steps of the first snapshot with tracking >= 0.80 and at most 2 of 54 falls (the quick start's
+"walks"), with the load average during training; DIR/time_to_walk.png draws tracking against minutes, imagined
+steps on a second axis, one colour per recipe. The recipes are the `RECIPES` table below; the shipped recipe
+(`reference`) is today's `examples/quickstart.py` default before the fast settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rwm_gym.atomic import save_png, write_json
+from rwm_gym.resources import shipped_file
+
+WALKS = {"tracking": 0.80, "max_falls": 2}
+"""A snapshot walks at tracking >= 0.80 with at most 2 falls in the 54 scoring episodes."""
+
+MODEL = "assets/checkpoints/anymal_d_rwm_cover.safetensors"
+SHARED = ["--episode-steps=50", "--uncertainty-penalty=10.0", "--uncertainty-floor=0.02", "--uncertainty-halt=0.06",
+          "--torque-halt=0.95", "--positive-reward-only", "--log-std-init=-1.0"]
+"""Settings every recipe shares: the shipped from-scratch recipe's imagined episodes and policy start."""
+
+RECIPES: dict[str, tuple[str, list[str]]] = {
+    "reference": ("4096 envs, fp32 (the shipped from-scratch recipe)", ["--num-envs=4096"]),
+    "envs512": ("512 envs, fall tilt 30, fp32", ["--num-envs=512", "--fall-tilt=30"]),
+    "envs256": ("256 envs, fall tilt 30, fp32", ["--num-envs=256", "--fall-tilt=30"]),
+    "fast": ("512 envs, fall tilt 30, bf16 products", ["--num-envs=512", "--fall-tilt=30",
+                                                      "--matmul-precision=bfloat16"]),
+}
+
+
+def train(recipe: str, seed: int, minutes: float, threads: int, run_dir: Path, snapshot_every: int) -> None:
+    """One resumable training run of `minutes` of wall time (a killed run continues where it stopped)."""
+    options = RECIPES[recipe][1]
+    command = [sys.executable, "-m", "rwm_gym.cli", "ppo", "--in", "imagination",
+               "--checkpoint", str(shipped_file(MODEL)), *SHARED, *options, "--timesteps", str(10**9),
+               "--minutes", str(minutes), "--run-dir", str(run_dir), "--save-every", str(snapshot_every),
+               "--snapshot-every", str(snapshot_every), "--threads", str(threads), "--seed", str(seed),
+               "--no-eval", "--out", str(run_dir / "policy.zip")]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    subprocess.run(command, check=True, env=env)
+
+
+def log_rows(run_dir: Path) -> list[dict]:
+    with (run_dir / "log.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def snapshots_by_minute(run_dir: Path, every: float) -> list[tuple[float, int, Path]]:
+    """(training minutes, imagined steps, snapshot) of the last snapshot at or before each multiple of `every`
+    minutes, and the final one."""
+    wall = {int(r["timesteps"]): float(r["total_wall_s"]) / 60 for r in log_rows(run_dir)}
+    snaps = sorted(((wall.get(int(p.stem.split("_")[1]), 0.0), int(p.stem.split("_")[1]), p)
+                    for p in (run_dir / "snapshots").glob("step_*.zip")), key=lambda t: t[1])
+    if not snaps:
+        return []
+    marks = [every * k for k in range(1, int(snaps[-1][0] // every) + 1)]
+    picked = {max((s for s in snaps if s[0] <= mark), key=lambda s: s[1], default=None) for mark in marks}
+    return sorted((s for s in picked | {snaps[-1]} if s is not None), key=lambda s: s[1])
+
+
+def score_run(run_dir: Path, every: float, seeds: int) -> list[dict]:
+    """Physics scores of the picked snapshots, kept in RUN/curve.csv and reused."""
+    from rwm_gym.rl.score import score
+
+    table = run_dir / "curve.csv"
+    rows = {int(r["timesteps"]): r for r in csv.DictReader(table.open())} if table.is_file() else {}
+    for minute, steps, path in snapshots_by_minute(run_dir, every):
+        if steps not in rows:
+            result = score(str(path), seeds=seeds)
+            rows[steps] = {"minutes": round(minute, 3), "timesteps": steps, "tracking": round(result.tracking, 4),
+                           "falls": result.falls, "episodes": result.episodes}
+            print(f"{run_dir.name} {minute:5.2f} min {steps / 1e6:6.2f} M steps: tracking {result.tracking:.3f}, "
+                  f"falls {result.falls}/{result.episodes}", flush=True)
+            with table.open("w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=["minutes", "timesteps", "tracking", "falls", "episodes"])
+                writer.writeheader()
+                writer.writerows(sorted(rows.values(), key=lambda r: int(r["timesteps"])))
+    return sorted(rows.values(), key=lambda r: int(r["timesteps"]))
+
+
+def first_walking(rows: list[dict]) -> dict | None:
+    return next((r for r in rows if float(r["tracking"]) >= WALKS["tracking"]
+                 and int(r["falls"]) <= WALKS["max_falls"]), None)
+
+
+def summarize(out: Path) -> dict:
+    """Every scored run under `out`: its curve, the first walking snapshot, the training load average."""
+    summary: dict = {"walks": WALKS, "recipes": {}}
+    for recipe_dir in sorted(p for p in out.iterdir() if p.is_dir() and p.name in RECIPES):
+        runs = {}
+        for run_dir in sorted(recipe_dir.glob("seed_*")):
+            table = run_dir / "curve.csv"
+            if not table.is_file():
+                continue
+            rows = list(csv.DictReader(table.open()))
+            meta = json.loads((run_dir / "benchmark.json").read_text()) if (run_dir / "benchmark.json").is_file() \
+                else {}
+            walking = first_walking(rows)
+            runs[run_dir.name] = {**meta, "curve": rows,
+                                  "walks_at_minutes": None if walking is None else float(walking["minutes"]),
+                                  "walks_at_steps": None if walking is None else int(walking["timesteps"])}
+        summary["recipes"][recipe_dir.name] = {"what": RECIPES[recipe_dir.name][0],
+                                               "options": SHARED + RECIPES[recipe_dir.name][1], "seeds": runs}
+    return summary
+
+
+def plot(summary: dict, floor: float | None, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, recipe) in enumerate(summary["recipes"].items()):
+        for j, (seed, run) in enumerate(recipe["seeds"].items()):
+            rows = run["curve"]
+            ax.plot([float(r["minutes"]) for r in rows], [float(r["tracking"]) for r in rows], "o-",
+                    color=colours[i % len(colours)], alpha=0.8, label=f"{name}: {recipe['what']}" if j == 0 else None)
+    if floor is not None:
+        ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
+    ax.axhline(WALKS["tracking"], color="tab:green", ls=":", label=f"walks ({WALKS['tracking']}, <= 2 falls)")
+    ax.set_xlabel("training wall time (min, 2-core CPU)")
+    ax.set_ylabel("tracking score in physics")
+    ax.set_title("PPO from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    return save_png(fig, path, dpi=100)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--recipe", choices=sorted(RECIPES), help="what to train (see RECIPES)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--minutes", type=float, default=8.0, help="training wall time per seed")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of the training run")
+    parser.add_argument("--snapshot-every", type=int, default=10, help="rollouts between snapshots")
+    parser.add_argument("--score-every", type=float, default=1.0, help="minutes between scored snapshots")
+    parser.add_argument("--score-seeds", type=int, default=3, help="physics seeds per scoring command")
+    parser.add_argument("--out", type=Path, default=Path("runs/time_to_walk"))
+    parser.add_argument("--plot", action="store_true", help="only redraw the figure and summary")
+    args = parser.parse_args()
+    if not args.plot:
+        if args.recipe is None:
+            parser.error("--recipe is required unless --plot")
+        for seed in args.seeds:
+            run_dir = args.out / args.recipe / f"seed_{seed}"
+            if not (run_dir / "state.json").is_file() or not (run_dir / "benchmark.json").is_file():
+                run_dir.mkdir(parents=True, exist_ok=True)
+                load_before, started = os.getloadavg()[0], time.monotonic()
+                train(args.recipe, seed, args.minutes, args.threads, run_dir, args.snapshot_every)
+                write_json(run_dir / "benchmark.json", {
+                    "seed": seed, "threads": args.threads, "minutes_budget": args.minutes,
+                    "process_s": round(time.monotonic() - started, 1), "loadavg_before": load_before,
+                    "loadavg_after": os.getloadavg()[0], "cpu": _cpu_name()})
+            score_run(run_dir, args.score_every, args.score_seeds)
+    summary = summarize(args.out)
+    floor_path = args.out / "floor.json"
+    if not floor_path.is_file():
+        from rwm_gym.rl.score import score, zero_policy
+
+        write_json(floor_path, {"tracking": score(zero_policy, seeds=args.score_seeds).tracking})
+    floor = json.loads(floor_path.read_text())["tracking"]
+    summary["floor"] = floor
+    write_json(args.out / "summary.json", summary)
+    figure = plot(summary, floor, args.out / "time_to_walk.png")
+    for name, recipe in summary["recipes"].items():
+        times = [run["walks_at_minutes"] for run in recipe["seeds"].values()]
+        print(f"{name:10s} {recipe['what']}: walks at " + ", ".join(
+            "not within the budget" if t is None else f"{t:.1f} min" for t in times))
+    print(f"wrote {args.out / 'summary.json'} and {figure}")
+    return 0
+
+
+def _cpu_name() -> str:
+    try:
+        return next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return "unknown"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
