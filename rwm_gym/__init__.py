@@ -47,6 +47,7 @@ EXPORTS: dict[str, str] = {
     "learn": "rwm_gym.rl.ppo",
     "rsl_rl_train_cfg": "rwm_gym.rl.rsl_rl_train_cfg",
     "MBPOConfig": "rwm_gym.rl.mbpo",
+    "mbpo": "rwm_gym.rl.mbpo",
     "score": "rwm_gym.rl.score",
     "zero_policy": "rwm_gym.rl.score",
     "Evaluation": "rwm_gym.rl.evaluate_policy",
