@@ -1,9 +1,9 @@
 """MBPO-PPO runs against model-free PPO: physics tracking and falls against every physics sample behind each policy.
 
-    python benchmarks/mbpo_samples.py --runs runs/p18/mbpoA runs/p18/mbpoB --labels A B \
+    python benchmarks/mbpo_samples.py --runs runs/mbpo_policy runs/mbpo_random --labels "from a policy" "random data" \
         --prior 1553211 0 --out benchmarks/figures/NAME
-    python benchmarks/mbpo_samples.py --runs runs/s28/mbpoD --labels D \
-        --earlier benchmarks/figures/mbpo_runs_a_b.csv "run B" --out benchmarks/figures/NAME
+    python benchmarks/mbpo_samples.py --runs runs/mbpo_random_more_ppo --labels "more PPO" \
+        --earlier benchmarks/figures/mbpo_policy_start_and_random_data.csv "random" --out benchmarks/figures/NAME
 
 `rwm-gym mbpo` counts the rows of its `--data` and of what it collects. A run that starts from a checkpoint or a
 policy made from other physics data has those rows behind it too: `--prior` adds them, per run, so the x axis is

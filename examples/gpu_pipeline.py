@@ -1,6 +1,6 @@
 """The whole pipeline on a GPU machine, each stage timed: collect -> train -> evaluate -> PPO in imagination (scored in
-physics). Written for a machine with NVIDIA GPUs. Run once on one H100 (ninth session): collect, train and evaluate
-ran (figures in the README's "Scaling out"); its PPO stage was cut by the session's time, and 2+ GPUs (torchrun) were
+physics). Written for a machine with NVIDIA GPUs. On one H100 collect, train and evaluate
+ran (figures in the docs' Results, "Scaling"); its PPO stage ran past the time allowed, and 2+ GPUs (torchrun) were
 not run. Run it and send `timings.json`.
 
     python examples/gpu_pipeline.py                            # all GPUs torch sees, all CPU cores for physics

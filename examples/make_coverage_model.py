@@ -1,4 +1,4 @@
-"""Teach a world model the states its own policies exploit: their physics episodes, then a fine-tune (issue 12).
+"""Teach a world model the states its own policies exploit: their physics episodes, then a fine-tune.
 
     python examples/make_base_mix.py --out runs/s27/base
     python examples/make_coverage_model.py --base runs/s27/base/mix.h5 --out runs/s27/cover \\

@@ -1,7 +1,7 @@
 """Reproduce the ANYmal D world model shipped in `assets/checkpoints/` (the default of `RWM-AnymalD-v0`).
 
-The shipped model is made in five stages, on one CPU thread of the shared 2-core machine (stages 1-3 are the default
-of the thirteenth to twentieth sessions, `git show f0dc796:assets/checkpoints/anymal_d_rwm.safetensors`):
+The shipped model is made in five stages, on one CPU thread of the shared 2-core machine (the model of stages 1-3 alone
+was the default before the last two: `git show f0dc796:assets/checkpoints/anymal_d_rwm.safetensors`):
 
 1. Trained from scratch on the physics PPO teacher's experience (95 min, 6,707 iterations x 256 windows):
 
@@ -11,8 +11,8 @@ of the thirteenth to twentieth sessions, `git show f0dc796:assets/checkpoints/an
        python examples/make_default_checkpoint.py --out runs/wm_default --data data/teacher/experience.h5 \
            --batch-size 256 --branches 4 --branch-stride 8 --unit-gravity --joint-limits --minutes 95 --iterations 0
 
-2. Fine-tuned in six iterations of the MBPO loop (README, "Policies": the `rwm-gym mbpo` command of the sixth
-   session, `--iterations 6`, from stage 1's model; `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
+2. Fine-tuned in six iterations of the MBPO loop (`rwm-gym mbpo` with 192 physics
+   episodes of up to 400 steps and 300 model steps per iteration, `--iterations 6`, from stage 1's model; `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
 
 3. Fine-tuned on that mix with 32-step forecasts (80 min, 1,409 iterations x 256 windows; `--init` trains on the
    `--data` files alone and keeps the model's config):

@@ -1,14 +1,19 @@
 """rwm-gym: a learned robot world model (Robotic World Model, arXiv 2501.10100) as a Gymnasium environment.
 
-Importing the package registers its environments with string entry points, so neither MuJoCo nor torch is imported
-until an environment is made.
+Importing the package registers its environments with string entry points and nothing more: the names users import
+from here (`from rwm_gym import ImaginedSB3VecEnv, PPOConfig`) are loaded on first use (PEP 562), so
+`import rwm_gym` loads neither torch nor MuJoCo. `EXPORTS` is the one map from public name to defining module; the
+modules may move, the names stay.
 """
 
+from __future__ import annotations
+
+import importlib
 import os
 
 # Offscreen rendering without a display: MuJoCo picks its GL backend when first imported, so choose EGL here unless
 # the user already chose one. Only where libEGL exists: with MUJOCO_GL=egl and no libEGL, `import mujoco` itself fails
-# (seen on a GPU machine without libegl1), and physics needs no GL at all.
+# (as on a GPU machine without libegl1), and physics needs no GL at all.
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
     import ctypes.util
 
@@ -17,6 +22,70 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
 
 from rwm_gym.registration import register_all
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+
+# public name -> the module that defines it (imported on first access)
+EXPORTS: dict[str, str] = {
+    # environments: the physics robot (MuJoCo) and its world-model twin, single and batched
+    "LocomotionEnv": "rwm_gym.physics.locomotion",
+    "LocomotionGymVectorEnv": "rwm_gym.physics.batched",
+    "LocomotionSB3VecEnv": "rwm_gym.physics.batched",
+    "LocomotionRslRlVecEnv": "rwm_gym.vector.rsl_rl_vec_env",
+    "ImaginedEnv": "rwm_gym.imagination.env",
+    "ImaginedGymVectorEnv": "rwm_gym.imagination.vec_env",
+    "ImaginedSB3VecEnv": "rwm_gym.imagination.vec_env",
+    "ImaginedRslRlVecEnv": "rwm_gym.vector.rsl_rl_vec_env",
+    "DMCEnv": "rwm_gym.physics.dmc",
+    "DMCGymVectorEnv": "rwm_gym.physics.dmc",
+    "DMCSB3VecEnv": "rwm_gym.physics.dmc",
+    "ImaginationOptions": "rwm_gym.imagination.core",
+    "PhysicsParams": "rwm_gym.physics.params",
+    "default_checkpoint": "rwm_gym.imagination.core",
+    # policies: PPO in imagination or physics, MBPO, and the tracking score that judges them in physics
+    "PPOConfig": "rwm_gym.rl.ppo",
+    "make_ppo": "rwm_gym.rl.ppo",
+    "learn": "rwm_gym.rl.ppo",
+    "rsl_rl_train_cfg": "rwm_gym.rl.rsl_rl_train_cfg",
+    "MBPOConfig": "rwm_gym.rl.mbpo",
+    "mbpo": "rwm_gym.rl.mbpo",
+    "score": "rwm_gym.rl.score",
+    "zero_policy": "rwm_gym.rl.score",
+    "Evaluation": "rwm_gym.rl.evaluate_policy",
+    # data: datasets (HDF5), collection, task specs
+    "Dataset": "rwm_gym.data.dataset",
+    "DatasetInfo": "rwm_gym.data.dataset",
+    "DatasetWriter": "rwm_gym.data.dataset",
+    "DatasetError": "rwm_gym.data.dataset",
+    "write_dataset": "rwm_gym.data.dataset",
+    "merge_datasets": "rwm_gym.data.dataset",
+    "collect": "rwm_gym.data.collect",
+    "TaskSpec": "rwm_gym.spec",
+    "load_spec": "rwm_gym.spec",
+    # world models: checkpoints (safetensors) and the step interface
+    "load_checkpoint": "rwm_gym.model.checkpoint",
+    "save_checkpoint": "rwm_gym.model.checkpoint",
+    "read_meta": "rwm_gym.model.checkpoint",
+    "CheckpointError": "rwm_gym.model.checkpoint",
+    "WorldModel": "rwm_gym.model.base",
+    "ModelConfig": "rwm_gym.model.config",
+    "TrainConfig": "rwm_gym.model.config",
+    "assets_dir": "rwm_gym.resources",
+}
+
+__all__ = ["EXPORTS", "__version__", *EXPORTS]
+
+
+def __getattr__(name: str):
+    module = EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'rwm_gym' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *EXPORTS})
+
 
 register_all()

@@ -1,6 +1,6 @@
 """The cuda path: training, evaluation and the imagined env on a GPU agree with the CPU, and 2 GPU ranks (nccl) follow
-one GPU's loss curve. Every test here skips where torch sees no GPU (as on CI). On one H100 (ninth session) the first
-two pass; the nccl test needs two GPUs and was not run."""
+one GPU's loss curve. Every test here skips where torch sees no GPU (as on CI). On one H100 the first two
+pass; the nccl test needs two GPUs."""
 
 from __future__ import annotations
 

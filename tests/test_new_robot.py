@@ -1,6 +1,6 @@
 """A robot the package does not ship, from files alone: spec -> collect -> train -> evaluate -> PPO in imagination.
 
-Both paths of issue 15 on tiny budgets, through the CLI as a user would: a legged MJCF written here, and a
+Both paths of `rwm-gym spec` on tiny budgets, through the CLI as a user would: a legged MJCF written here, and a
 dm_control domain that does not ship (acrobot-swingup) with its reward as an entry point on the predicted state.
 """
 

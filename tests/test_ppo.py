@@ -130,9 +130,7 @@ def test_imagined_return_rises_on_the_shipped_model():
 
     Episodes last one rollout (24 steps) and resets desynchronise them, so the reward of a rollout follows a pattern
     of period 5 rollouts; we compare whole periods. The critic warm-up keeps the actor frozen, so its two periods
-    measure the initial policy; after 25 updates the last period must beat both (on the default model of the
-    thirteenth session the mean step reward of the third period of five is 10 % above the initial one, of the fifth
-    20 %).
+    measure the initial policy; after 25 updates the last period must beat both.
     """
     config = PPOConfig(num_envs=64, n_steps=24, net_arch=(64, 64), learning_rate=3e-3, target_kl=0.0, ent_coef=0.0)
     env = make_env("imagination", config.num_envs, checkpoint=None, seed=0, env_kwargs={"episode_steps": 24})

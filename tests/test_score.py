@@ -83,9 +83,8 @@ def test_score_command_refuses_bad_input_in_one_line(tmp_path, capsys):
 
 def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, capsys):
     """Imagined episodes continue the histories they start from: with zero actions after histories of the trot the
-    robot still moves as it comes to rest (0.12 m/s over 1.2 s on the default model of the twenty-first session; the
-    thirteenth session's, 0.35), after histories of the robot standing it stands (0.007 m/s; 0.03) and never falls,
-    as in physics."""
+    robot still moves as it comes to rest (about 0.1 m/s over 1.2 s on the default model), after histories of the
+    robot standing it stands and never falls, as in physics."""
     from rwm_gym.cli import main
     from rwm_gym.data.collect import collect
     from rwm_gym.imagination.core import default_checkpoint

@@ -72,9 +72,8 @@ class FitConfig:
     scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
     """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`)."""
     group_sweeps: int = 2
-    """Sweeps of the coordinate-wise fit of a per-leg or per-joint-type form. One costs half as much but left
-    friction in the knees on excitation data `unexplained` (the gap grid's case; also when a probe put the knees
-    first: 44 % explained), where two name it (61 %): the groups fitted before the knees soak part of it up."""
+    """Sweeps of the coordinate-wise fit of a per-leg or per-joint-type form. One costs half as much, but the groups
+    fitted first soak up part of an effect held by a later group (knee friction), which a second sweep gives back."""
     scoped_effects: int = 2
     """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
     joints may explain little in its global form and rank below another joint effect that mimics it there."""
@@ -83,17 +82,15 @@ class FitConfig:
     global form explains nothing (`scope.every_scope`): an effect in one joint type alone can look like that."""
     refine_every_effect: bool = True
     """Where step 1 would call the gap `unexplained`, first refine every effect, not only the `refine_top` best
-    screened: on walking data with motor strength 0.8 and ground friction 0.3 hidden, ground friction ranked fourth
-    on the coarse grid (0.67, its point nearest 0.3) and was never refined; refined it reaches 0.3 and is named."""
+    screened: a second effect can rank low on the coarse grid only because no grid point is near its value."""
     refit_single_effect: bool = True
     """Refit a lone named effect of several parameters (a scoped form, the payload) by least squares from its values,
-    kept if the held-out gap does not grow, as a set of named effects is. Armature 0.1 in the hip flexion joints on
-    walking data: the coordinate-wise fit per joint type left 0.006 in the other joints and explained 51 % of the gap;
-    at the true values alone, 67 %."""
+    kept if the held-out gap does not grow, as a set of named effects is: the coordinate-wise fit of a per-group form can
+    leave part of the effect in the wrong groups."""
     joint_candidates: int = 2
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second
-    (armature absorbing an action delay on walking data, 95 % too large), and on top of it, frozen, the second then
+    (armature can absorb an action delay on walking data), and on top of it, frozen, the second then
     explains nothing."""
 
 

@@ -12,12 +12,11 @@ per rad of position error (a gain), per rad/s (a damper), and N·m (an offset).
 
 The weights are fitted like the named effects: least squares (`scipy.optimize.least_squares`) of the normalised state
 error of re-simulated `FitConfig.fit_horizon`-step windows of the fitting episodes (the effects' own windows), through
-the simulator, and judged by the held-out gap. Why this form and not a network fitted to one-step misses (the form until
-the sixteenth session): on excitation data one policy step of the grid's hidden hip spring moves the state by 0.4x the
-sensor noise (rms 0.033 against 0.082 in state-std units), and the simulator's response to small probe torques is far
-from linear (contacts stick): the sum of 1 N·m probes predicted the spring's one-step effect with correlation 0.31, and
-the network explained 3 % of the held-out gap. Over 5 steps the effect rises above the noise, and the twelve weights
-recover it: -22.3 N·m/rad for the true -20, 54 % of the held-out gap (the true spring itself: 57 %).
+the simulator, and judged by the held-out gap. Why this form and not a network fitted to one-step misses: a small
+effect moves the state by less than the sensor noise in one policy step, and the simulator's response to small probe
+torques is far from linear (contacts stick), so one-step misses say little about it; over several steps it rises
+above the noise, and a few weights per joint type that read as physics can be fitted through the simulator itself
+(figures: the docs' Results, "Gap workflow").
 """
 
 from __future__ import annotations

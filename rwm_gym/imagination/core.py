@@ -61,15 +61,13 @@ class ImaginationOptions:
     fall_tilt: float = 0.0
     """End an episode (terminated, no bootstrap) where the predicted base tilts more than this many degrees from
     upright (0: never; needs a projected_gravity state group). The model's termination head fires on predicted base
-    contact, late or never, while its own predicted tilt already shows a fall. On ANYmal D the physics teacher stays
-    within 9 degrees, and of 92 physics episodes of eight policies that passed 30 degrees, 87 fell within 8 s
-    (`benchmarks/exploitation.py --fall-tilt`, benchmarks/RESULTS.md)."""
+    contact, late or never, while its own predicted tilt already shows a fall; a walking robot stays far below a
+    tilt from which it rarely recovers (`benchmarks/exploitation.py --fall-tilt` measures both for a policy)."""
     torque_halt: float = 0.0
     """End an episode (terminated, no bootstrap) where a predicted joint torque reaches this fraction of the spec's
-    effort limit (0: never; needs a joint_torque state group and a finite limit). Policies trained in the MBPO model
-    fell in physics where their joints sat at the limit (12-13 % of the rows of falling episodes, 0.1 % of the
-    teacher's), states its data barely covers: the halt keeps a policy out of them, as MOReL's keeps it where the
-    heads agree."""
+    effort limit (0: never; needs a joint_torque state group and a finite limit). Saturated actuators are states a
+    model's data rarely covers, and policies trained in imagination that fell in physics often fell there: the halt
+    keeps a policy out of them, as MOReL's keeps it where the heads agree."""
     random_first_episode_length: bool = False
     """Start each env's first episode at a random elapsed step in [0, episode_steps), drawn from its own generator
     (rsl_rl's `init_at_random_ep_len`): without it, N envs with an equal time limit all restart on the same step, and
