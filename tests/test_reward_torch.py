@@ -123,3 +123,21 @@ def test_float32_tensors_with_0_1_contacts(recorded):
                                          *(x.double().numpy() for x in (command, action, prev_action)), air)
     np.testing.assert_allclose(got.numpy(), reward.total_reward(spec, expected_terms), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(timers.air_time.numpy(), numpy_timers.air_time, rtol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no cuda device visible to torch")
+def test_on_cuda_the_reward_and_timers_stay_on_the_device_and_match_the_cpu(recorded):
+    data, ep = recorded
+    spec = data.spec()
+    results = {}
+    for device in ("cpu", "cuda"):
+        timers = reward_torch.FeetAirTime(len(ep["length"]), spec.foot_dim, device=device)
+        for t in range(1, 40):
+            tensors = [torch.as_tensor(a, device=device) for a in (
+                ep["state"][:, t + 1], ep["state"][:, t], ep["contact"][:, t + 1], ep["command"][:, t],
+                ep["action"][:, t], ep["action"][:, t - 1])]
+            got, terms = reward_torch.velocity_tracking_reward(spec, timers, *tensors)
+        assert got.device.type == device and timers.air_time.device.type == device
+        results[device] = got.cpu(), timers.air_time.cpu()
+    for cpu, cuda in zip(results["cpu"], results["cuda"]):
+        torch.testing.assert_close(cuda, cpu, rtol=1e-5, atol=1e-6)
