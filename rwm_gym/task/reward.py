@@ -3,13 +3,31 @@
 Everything here is a function of (state, privileged signals, command, action history) and of the feet-air-time timers
 those signals drive, so a world model's predictions can be scored exactly like physics. Terms follow legged_gym / RWM;
 each is multiplied by its weight from the spec and by the policy dt.
+
+The terms and the timer rule are written once, against an array namespace `xp` (numpy by default): the torch
+version (`rwm_gym.task.reward_torch`, differentiable, on any device) runs these same lines on tensors.
 """
 
 from __future__ import annotations
 
+from types import ModuleType
+
 import numpy as np
 
 from rwm_gym.spec import TaskSpec
+
+
+def advance_air_time(air_time, last_contact, foot_contact, dt: float, target: float):
+    """One step of the feet-air-time rule, as a pure function of numpy arrays or torch tensors alike.
+
+    air_time (N, F) s, last_contact and foot_contact (N, F) bool. Returns the new (air_time, last_contact) and the
+    touchdown term (N,): (air time - target) summed over the feet that touch down this step.
+    """
+    contact = foot_contact | last_contact  # filter single-step contact flicker
+    first_contact = (air_time > 0.0) & contact
+    air_time = air_time + dt
+    term = ((air_time - target) * first_contact).sum(axis=1)
+    return air_time * ~contact, foot_contact, term
 
 
 class FeetAirTime:
@@ -28,12 +46,8 @@ class FeetAirTime:
 
     def update(self, foot_contact: np.ndarray, dt: float, target: float) -> np.ndarray:
         """Advance the timers by dt with contacts (N, F); return the touchdown term (N,)."""
-        contact = foot_contact | self.last_contact  # filter single-step contact flicker
-        self.last_contact = foot_contact.copy()
-        first_contact = (self.air_time > 0.0) & contact
-        self.air_time += dt
-        term = np.sum((self.air_time - target) * first_contact, axis=1)
-        self.air_time *= ~contact
+        self.air_time, last, term = advance_air_time(self.air_time, self.last_contact, foot_contact, dt, target)
+        self.last_contact = last.copy()
         return term
 
 
@@ -46,36 +60,38 @@ def reward_terms(
     action: np.ndarray,
     prev_action: np.ndarray,
     air_time_term: np.ndarray,
+    xp: ModuleType = np,
 ) -> dict[str, np.ndarray]:
     """Unweighted reward terms, each (N,), for the transition prev_state --action--> state.
 
     state, prev_state (N, S) in SI units; contact (N, C) bool in spec order; command (N, 3) = (vx, vy, yaw rate);
-    action, prev_action (N, A); air_time_term (N,) from `FeetAirTime.update`.
+    action, prev_action (N, A); air_time_term (N,) from `FeetAirTime.update`. xp: the arrays' namespace (numpy, or
+    torch for tensors: see `rwm_gym.task.reward_torch`).
     """
     s = spec.state_slices
     lin_vel, ang_vel, gravity = state[:, s["base_lin_vel"]], state[:, s["base_ang_vel"]], state[:, s["projected_gravity"]]
     sigma = spec.reward.tracking_sigma
-    moving = np.linalg.norm(command[:, :2], axis=1) > spec.command.standing_threshold
-    standing = np.linalg.norm(command, axis=1) < spec.command.standing_threshold
-    thighs = np.isin(spec.privileged.contact_bodies, spec.privileged.thighs)
+    moving = xp.linalg.norm(command[:, :2], axis=1) > spec.command.standing_threshold
+    standing = xp.linalg.norm(command, axis=1) < spec.command.standing_threshold
+    thighs = np.flatnonzero(np.isin(spec.privileged.contact_bodies, spec.privileged.thighs)).tolist()
     joint_acc = (state[:, s["joint_vel"]] - prev_state[:, s["joint_vel"]]) / spec.policy_dt
     return {
-        "track_lin_vel_xy": np.exp(-np.sum((command[:, :2] - lin_vel[:, :2]) ** 2, axis=1) / sigma),
-        "track_ang_vel_z": np.exp(-((command[:, 2] - ang_vel[:, 2]) ** 2) / sigma),
+        "track_lin_vel_xy": xp.exp(-xp.sum((command[:, :2] - lin_vel[:, :2]) ** 2, axis=1) / sigma),
+        "track_ang_vel_z": xp.exp(-((command[:, 2] - ang_vel[:, 2]) ** 2) / sigma),
         "lin_vel_z": lin_vel[:, 2] ** 2,
-        "ang_vel_xy": np.sum(ang_vel[:, :2] ** 2, axis=1),
-        "torques": np.sum(state[:, s["joint_torque"]] ** 2, axis=1),
-        "dof_acc": np.sum(joint_acc**2, axis=1),
-        "action_rate": np.sum((action - prev_action) ** 2, axis=1),
+        "ang_vel_xy": xp.sum(ang_vel[:, :2] ** 2, axis=1),
+        "torques": xp.sum(state[:, s["joint_torque"]] ** 2, axis=1),
+        "dof_acc": xp.sum(joint_acc**2, axis=1),
+        "action_rate": xp.sum((action - prev_action) ** 2, axis=1),
         "feet_air_time": air_time_term * moving,
-        "thigh_contact": np.sum(contact[:, thighs], axis=1).astype(np.float64),
-        "stand_still": np.sum(np.abs(state[:, s["joint_pos"]]), axis=1) * standing,
-        "flat_orientation": np.sum(gravity[:, :2] ** 2, axis=1),
+        "thigh_contact": xp.sum(contact[:, thighs] * 1.0, axis=1),  # numpy: float64 counts
+        "stand_still": xp.sum(xp.abs(state[:, s["joint_pos"]]), axis=1) * standing,
+        "flat_orientation": xp.sum(gravity[:, :2] ** 2, axis=1),
     }
 
 
 def total_reward(spec: TaskSpec, terms: dict[str, np.ndarray]) -> np.ndarray:
-    """Weighted sum of the terms times dt. (N,)."""
+    """Weighted sum of the terms times dt. (N,); numpy arrays or torch tensors alike."""
     weights = spec.reward.weights
     missing = set(weights) - set(terms)
     if missing:
