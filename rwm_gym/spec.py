@@ -98,6 +98,22 @@ class ResetSpec:
 
 
 @dataclass(frozen=True)
+class SymmetrySpec:
+    """The robot's left-right mirror (the `[symmetry]` table), for mirrored copies of observations and actions.
+
+    A vector indexed by joints (joint_pos, the action, ...) mirrors as `mirrored[i] = joint_signs[i] * x[j]` where
+    `joints[i]` is the j-th actuated joint; any other group mirrors column by column with `signs[group]`.
+    """
+
+    joints: tuple[str, ...]
+    """The joint each actuated joint maps to, in `actuator.joints` order (e.g. LF_HAA -> RF_HAA)."""
+    joint_signs: tuple[float, ...]
+    """+1 or -1 per actuated joint: the sign its angle takes on the mirror joint."""
+    signs: dict[str, tuple[float, ...]]
+    """+1 or -1 per column of each non-joint group of the state or observation (e.g. base_lin_vel: 1, -1, 1)."""
+
+
+@dataclass(frozen=True)
 class SuiteTask:
     """The `[dm_control]` table of a spec: which suite task runs, and which body counts as the contact partner."""
 
@@ -153,6 +169,8 @@ class TaskSpec:
     """Tables of the TOML this class does not type (task-specific sections, e.g. dm_control's)."""
     default_checkpoint: str = ""
     """World-model checkpoint shipped for the imagined env, relative to `assets/` (empty: none ships)."""
+    symmetry: SymmetrySpec | None = None
+    """The robot's left-right mirror (None: the spec has no `[symmetry]` table)."""
 
     @property
     def substeps(self) -> int:
@@ -222,6 +240,25 @@ def _group(table: dict, joints: tuple[str, ...], where: str) -> Group:
     return Group(table["name"], tuple(columns), table.get("unit", ""), per_column("mean"), per_column("std"))
 
 
+def _symmetry(table: dict | None, joints: tuple[str, ...], where: str) -> SymmetrySpec | None:
+    if table is None:
+        return None
+    unknown = sorted(set(table) - {"joints", "joint_signs", "signs"})
+    if unknown:
+        raise ValueError(f"{where}: [symmetry] unknown field {unknown[0]!r}")
+    mirror = tuple(table["joints"])
+    signs = tuple(float(v) for v in table["joint_signs"])
+    groups = {k: tuple(float(v) for v in values) for k, values in table.get("signs", {}).items()}
+    if len(mirror) != len(joints) or len(signs) != len(joints):
+        raise ValueError(f"{where}: [symmetry] joints and joint_signs need one entry per actuated joint "
+                         f"({len(joints)}), got {len(mirror)} and {len(signs)}")
+    if stray := sorted(set(mirror) - set(joints)):
+        raise ValueError(f"{where}: [symmetry] joint {stray[0]!r} is not an actuated joint")
+    if any(v not in (1.0, -1.0) for values in (signs, *groups.values()) for v in values):
+        raise ValueError(f"{where}: [symmetry] signs must be 1 or -1")
+    return SymmetrySpec(mirror, signs, groups)
+
+
 def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
     """Parse a spec from TOML text; `where` names its origin in error messages."""
     try:
@@ -251,7 +288,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
         rew = raw.get("reward", {})
         obs = raw["observation"]
         reset = {k: float(v) for k, v in raw.get("reset", {}).items()}
-        known = {"reset", "task", "actuator", "state", "privileged", "command", "reward", "observation"}
+        known = {"reset", "task", "actuator", "state", "privileged", "command", "reward", "observation", "symmetry"}
         return TaskSpec(
             name=task["name"],
             physics_env_id=task["physics_env_id"],
@@ -288,6 +325,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 feet_air_time_target=float(rew["feet_air_time_target"] if rew.get("weights") else "nan"),
             ),
             reset=ResetSpec(**reset),
+            symmetry=_symmetry(raw.get("symmetry"), joints, where),
             text=text,
             extra={k: v for k, v in raw.items() if k not in known},
         )

@@ -159,11 +159,14 @@ def test_merge(tmp_path: Path, path: Path, episodes) -> None:
 
 
 def test_merge_ignores_file_pointers_and_drops_fields_not_in_every_file(tmp_path: Path, path: Path) -> None:
-    """A PPO run's experience (extra `ppo_iteration`, a spec without `default_checkpoint`) merges with collector data."""
-    assert "default_checkpoint" in SPEC.text
+    """A PPO run's experience (extra `ppo_iteration`, a spec without `default_checkpoint` or `[symmetry]`) merges with
+    collector data."""
+    assert "default_checkpoint" in SPEC.text and SPEC.symmetry is not None
     rng = np.random.default_rng(2)
     ppo = [{**make_episode(rng, 3, extra=True), "ppo_iteration": np.full(4, 7, np.int32)} for _ in range(2)]
-    older_spec = "\n".join(line for line in SPEC.text.splitlines() if not line.startswith("default_checkpoint"))
+    older_spec = "\n".join(line for line in SPEC.text.split("\n[symmetry]")[0].splitlines()
+                            if not line.startswith("default_checkpoint"))
+    assert "symmetry" not in older_spec
     other = tmp_path / "ppo.h5"
     write_dataset(other, make_info(spec_text=older_spec), ppo)
     out = tmp_path / "merged.h5"
