@@ -27,6 +27,8 @@ def test_train_cfg_carries_the_ppo_config():
         rsl_rl_train_cfg(PPOConfig(positive_reward_only=True))
     with pytest.raises(ValueError, match="lr_anneal_fraction"):  # rsl_rl's schedules are adaptive or fixed
         rsl_rl_train_cfg(PPOConfig(lr_anneal_fraction=0.25))
+    with pytest.raises(ValueError, match="symmetry"):
+        rsl_rl_train_cfg(PPOConfig(symmetry=True))
 
 
 @pytest.fixture()

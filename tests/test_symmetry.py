@@ -101,3 +101,77 @@ def test_mirrored_physics_state_gives_the_mirrored_observation():
     change = np.abs(after - obs).max()
     assert np.abs(after_image - obs_mirror(after)).max() < 0.01 * change
     assert reward_image == pytest.approx(reward, rel=0.02, abs=1e-4)
+
+
+def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mirror():
+    from rwm_gym.rl.mirror_buffer import MirroredRolloutBuffer
+
+    obs_mirror, act_mirror = observation_mirror(SPEC), action_mirror(SPEC)
+    obs_space = gym.spaces.Box(-np.inf, np.inf, (48,), np.float32)
+    act_space = gym.spaces.Box(-1.0, 1.0, (12,), np.float32)
+    steps, envs, batch = 6, 4, 8
+    buffer = MirroredRolloutBuffer(steps, obs_space, act_space, "cpu", n_envs=envs,
+                                   observation_mirror=obs_mirror, action_mirror=act_mirror)
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        buffer.add(rng.normal(size=(envs, 48)).astype(np.float32), rng.normal(size=(envs, 12)).astype(np.float32),
+                   rng.normal(size=envs), np.zeros(envs, bool), torch.randn(envs), torch.randn(envs))
+    buffer.compute_returns_and_advantage(torch.randn(envs), np.zeros(envs, bool))
+    batches = list(buffer.get(batch))
+    assert len(batches) == steps * envs // batch
+    seen = []
+    for b in batches:
+        assert b.observations.shape == (2 * batch, 48) and b.actions.shape == (2 * batch, 12)
+        first, second = b.observations[:batch].numpy(), b.observations[batch:].numpy()
+        np.testing.assert_array_equal(second, obs_mirror(first))
+        np.testing.assert_array_equal(b.actions[batch:].numpy(), act_mirror(b.actions[:batch].numpy()))
+        for name in ("old_values", "old_log_prob", "advantages", "returns"):
+            values = getattr(b, name)
+            assert values.shape == (2 * batch,) and torch.equal(values[:batch], values[batch:])
+        seen.append(first)
+    # the first halves are the rollout, each sample once
+    np.testing.assert_array_equal(np.sort(np.concatenate(seen), axis=0), np.sort(buffer.observations.reshape(-1, 48), axis=0))
+
+
+def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(tmp_path):
+    """On the shipped world model (its stored spec predates the table: the shipped spec's applies), PPO trains on
+    doubled minibatches; the zip loads with plain `PPO.load`, and again with an env keeps training mirrored."""
+    from rwm_gym.rl.mirror_buffer import MirroredRolloutBuffer
+    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy
+
+    config = PPOConfig(num_envs=16, n_steps=16, net_arch=(32, 32), num_minibatches=4, n_epochs=2, symmetry=True)
+    env = make_env("imagination", config.num_envs, seed=0, env_kwargs={"episode_steps": 16})
+    assert env.get_attr("spec")[0].symmetry is None
+    model = make_ppo(env, config, seed=0)
+    assert isinstance(model.rollout_buffer, MirroredRolloutBuffer)
+    sizes, evaluate = [], model.policy.evaluate_actions
+    model.policy.evaluate_actions = lambda obs, actions: sizes.append(len(obs)) or evaluate(obs, actions)
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    stats = learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
+    assert stats.timesteps == 512 and all(np.isfinite(row["mean_step_reward"]) for row in stats.log)
+    assert sizes == [2 * config.num_envs * config.n_steps // config.num_minibatches] * (2 * 4 * 2)
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+
+    del model.policy.evaluate_actions
+    path = save_policy(model, tmp_path / "mirrored.zip")
+    loaded = PPO.load(path, device="cpu")
+    obs = np.random.default_rng(0).normal(size=(3, 48)).astype(np.float32)
+    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    resumed = PPO.load(path, env=env, device="cpu")
+    assert isinstance(resumed.rollout_buffer, MirroredRolloutBuffer)
+
+
+def test_symmetry_is_refused_for_a_spec_without_a_mirror():
+    from rwm_gym.physics.dmc import DMCSB3VecEnv
+    from rwm_gym.rl.ppo import PPOConfig, make_ppo
+    from rwm_gym.rl.ppo_command import add_arguments
+
+    config = PPOConfig(num_envs=2, n_steps=8, net_arch=(8,), num_minibatches=2, symmetry=True)
+    with pytest.raises(ValueError, match=r"^task spec \S+ has no \[symmetry\] table \(the robot's left-right mirror\)$"):
+        make_ppo(DMCSB3VecEnv(2, "dmc_cheetah_run"), config)
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert parser.parse_args(["--symmetry"]).symmetry is True and parser.parse_args([]).symmetry is None
+    assert "left-right mirror" in parser.format_help()

@@ -69,6 +69,9 @@ class PPOConfig:
     positive_reward_only: bool = False
     """Clip each step's reward at 0 from below (legged_gym's only_positive_rewards): a young policy whose penalties
     outweigh its tracking reward is not paid to end its episodes early."""
+    symmetry: bool = False
+    """Train on each sample and its left-right mirror image (the task spec's [symmetry] table): every minibatch
+    doubles (rwm_gym.rl.mirror_buffer)."""
 
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
@@ -130,10 +133,17 @@ class PositiveReward(VecEnvWrapper):
 
 
 def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cpu") -> PPO:
-    """A fresh SB3 PPO on `env` with `config`'s settings; observations scaled by the env's task spec."""
+    """A fresh SB3 PPO on `env` with `config`'s settings; observations scaled by the env's task spec (ValueError
+    for `symmetry` when the spec has no mirror)."""
     import torch
 
-    mean, std = observation_scale(env.get_attr("spec")[0])
+    spec = env.get_attr("spec")[0]
+    mean, std = observation_scale(spec)
+    buffer = {}
+    if config.symmetry:
+        from rwm_gym.rl.mirror_buffer import mirrored_buffer_options
+
+        buffer = mirrored_buffer_options(spec)
     if config.positive_reward_only:
         env = PositiveReward(env)
 
@@ -146,7 +156,7 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
         vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
         policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
                        "log_std_init": config.log_std_init, "features_extractor_class": ScaledObservation,
-                       "features_extractor_kwargs": {"mean": mean, "std": std}},
+                       "features_extractor_kwargs": {"mean": mean, "std": std}}, **buffer,
     )
 
 

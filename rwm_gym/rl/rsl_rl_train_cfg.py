@@ -28,6 +28,9 @@ def rsl_rl_train_cfg(config: PPOConfig | None = None, *, obs_normalization: bool
     for name, used in unsupported.items():
         if used:
             raise ValueError(f"PPOConfig.{name} has no counterpart in rsl_rl's PPO; leave it at its default")
+    if config.symmetry:
+        raise ValueError("PPOConfig.symmetry is not passed on to rsl_rl (its symmetry_cfg, which needs an augmentation "
+                         "function, is not built here); leave it at its default")
     model = {"class_name": "MLPModel", "hidden_dims": list(config.net_arch), "activation": config.activation,
              "obs_normalization": obs_normalization}
     return {
