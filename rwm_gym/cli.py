@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("rwm_gym.model.train_command", "train a world model (RWM or a baseline) on a dataset"),
     "evaluate": ("rwm_gym.model.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
     "ppo": ("rwm_gym.rl.ppo_command", "train PPO in imagination (or physics) and evaluate it in physics"),
+    "shac": ("rwm_gym.rl.shac_command", "train a policy by SHAC: gradients through the world model's imagined rollouts"),
     "score": ("rwm_gym.rl.score", "tracking score of a policy in physics (or a world model) beside the zero-action floor"),
     "mbpo": ("rwm_gym.rl.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
     "make-measured": ("rwm_gym.gap.measured", "make 'measured' data from a simulator with a hidden physical effect"),

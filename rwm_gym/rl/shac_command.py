@@ -1,0 +1,143 @@
+"""`rwm-gym shac`: train a policy by SHAC through a world model (`rwm_gym.rl.shac`), in a resumable run folder.
+
+    rwm-gym shac --checkpoint CKPT --run-dir RUN --timesteps N [--minutes M] [--fall-tilt 30] --out policy.zip
+
+The run folder has `TrainingRun`'s layout (latest.zip and state.json, snapshots/step_N.zip, log.csv with one row per
+update), so `benchmarks/time_to_walk.py` and `benchmarks/ppo_curve.py` read it like a PPO run's; `latest_shac.pt`
+beside latest.zip holds the optimisers, the target critic and the noise generator (tensors only). Running the same
+command again continues to the same `--timesteps`; a resumed run restarts its envs from fresh windows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from dataclasses import asdict, fields
+from pathlib import Path
+
+from rwm_gym.imagination.core import ImaginationOptions
+from rwm_gym.options import add_dataclass_options
+from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
+
+IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first_episode_length", "divergence_bound")
+"""The `ImaginationOptions` SHAC's stepper implements (flags generated from their field docstrings)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument("--reset-data", type=Path, default=None,
+                        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
+    add_dataclass_options(parser.add_argument_group("imagination"), ImaginationOptions,
+                          skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS),
+                          types={"episode_steps": int})
+    add_dataclass_options(parser.add_argument_group("SHAC"), SHACConfig, nargs={"net_arch": "+"},
+                          types={"net_arch": int}, choices={"activation": ("elu", "tanh", "relu")})
+    parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
+    parser.add_argument("--minutes", type=float, default=None, help="stop this process after this wall time")
+    parser.add_argument("--run-dir", type=Path, required=True, help="resumable run folder")
+    parser.add_argument("--snapshot-every", type=int, default=20, help="updates between policy snapshots")
+    parser.add_argument("--save-every", type=int, default=20, help="updates between resume points")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip of the final policy")
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from rwm_gym.imagination.core import ImaginedCore
+    from rwm_gym.rl.policy_file import save_policy
+    from rwm_gym.rl.ppo import make_ppo
+    from rwm_gym.rl.training_run import TrainingRun
+    from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.timesteps < 1 or (args.minutes is not None and args.minutes <= 0):
+        raise SystemExit("rwm-gym shac: --timesteps and --minutes must be positive")
+    config = SHACConfig(**{f.name: tuple(v) if isinstance(v := getattr(args, f.name), list) else v
+                           for f in fields(SHACConfig)})
+    options = ImaginationOptions(**{name: getattr(args, name) for name in IMAGINATION_FIELDS})
+    try:
+        core = ImaginedCore(args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data,
+                            options=options)
+        imagination = DifferentiableImagination(core)
+    except (ValueError, FileNotFoundError) as error:
+        raise SystemExit(f"rwm-gym shac: {error}") from None
+    torch.manual_seed(args.seed)
+    run_folder = TrainingRun(args.run_dir)
+    environment = {"checkpoint": args.checkpoint and str(args.checkpoint), "imagination": asdict(options)}
+    state = run_folder.state()
+    resumed = run_folder.resumable and (run_folder.folder / "latest_shac.pt").is_file()
+    if resumed and (state.get("shac") != _jsonable(asdict(config)) or state.get("env") != _jsonable(environment)):
+        raise SystemExit(f"rwm-gym shac: {run_folder.folder} was started with other settings (see its state.json)")
+    model = make_ppo(CoreSB3VecEnv(core), config.ppo_config(), seed=args.seed, device=args.device)
+    learner = SHAC(imagination, model.policy, config, seed=args.seed)
+    if resumed:
+        from stable_baselines3 import PPO
+
+        model.policy.load_state_dict(PPO.load(run_folder.latest, device=args.device).policy.state_dict())
+        learner.load_state_dict(torch.load(run_folder.folder / "latest_shac.pt", weights_only=True))
+        print(f"resuming {run_folder.folder} at {learner.timesteps:,} steps")
+    seed_offset = 7919 * (state.get("restarts", -1) + 1)
+    imagination.reset(list(range(core.num_envs)), [args.seed + seed_offset + i for i in range(core.num_envs)])
+    train(learner, model, run_folder, args, state.get("wall_s", 0.0) if resumed else 0.0,
+          state.get("restarts", -1) + 1, config, environment)
+    out = save_policy(model, args.out)
+    print(f"{run_folder.folder}: {learner.timesteps:,} imagined steps in all; wrote {out}")
+    return 0
+
+
+def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall_s: float, restarts: int,
+          config: SHACConfig, environment: dict) -> None:
+    """Updates until `--timesteps` (or `--minutes`), with snapshots, resume points and one log row per update."""
+    import torch
+
+    from rwm_gym.atomic import atomic_write, write_json
+    from rwm_gym.progress import BudgetBar
+    from rwm_gym.rl.policy_file import save_policy
+
+    def save() -> None:
+        save_policy(model, run_folder.latest)
+        atomic_write(run_folder.folder / "latest_shac.pt", lambda tmp: torch.save(learner.state_dict(), tmp))
+        write_json(run_folder.state_path, {"shac": _jsonable(asdict(config)), "env": _jsonable(environment),
+                                           "timesteps": learner.timesteps, "restarts": restarts,
+                                           "wall_s": prior_wall_s + time.monotonic() - started})
+
+    run_folder.folder.mkdir(parents=True, exist_ok=True)
+    bar = BudgetBar(steps=args.timesteps, minutes=None, desc="shac", initial=learner.timesteps, unit_scale=True)
+    started, update = time.monotonic(), learner.timesteps // (config.num_envs * config.horizon)
+    try:
+        while learner.timesteps < args.timesteps:
+            if args.minutes is not None and time.monotonic() - started >= 60 * args.minutes:
+                break
+            if update % args.snapshot_every == 0:
+                save_policy(model, run_folder.snapshots / f"step_{learner.timesteps}.zip")
+            stats = learner.update()
+            update += 1
+            _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
+            bar.show(stats.timesteps, time.monotonic() - started, ret=f"{stats.imagined_return:.3f}",
+                     grad=f"{stats.actor_grad_norm:.2g}")
+            if update % args.save_every == 0:
+                save()
+        save()
+    finally:
+        bar.close()
+
+
+def _log(path: Path, stats: UpdateStats, total_wall_s: float) -> None:
+    row = {"total_wall_s": round(total_wall_s, 2), **asdict(stats)}
+    new = not path.is_file()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def _jsonable(value):
+    import json
+
+    return json.loads(json.dumps(value, default=str))
