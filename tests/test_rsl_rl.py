@@ -56,7 +56,7 @@ def test_on_policy_runner_trains_in_imagination_on_the_cores_numbers(rsl_rl, tmp
     from rsl_rl.runners import OnPolicyRunner
 
     from rwm_gym.imagination.vec_env import make_imagined_core
-    from rwm_gym.vector.core import step_with_autoreset
+    from rwm_gym.vector.autoreset import step_with_autoreset
 
     torch.manual_seed(0)
     env = _recording_env(TINY.num_envs, seed=3)

@@ -14,8 +14,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from rwm_gym.batched_core import commands_from_options
 from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
-from rwm_gym.vector.core import commands_from_options
 
 
 class ImaginedEnv(gym.Env):

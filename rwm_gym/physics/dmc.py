@@ -19,10 +19,10 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.physics.dmc_layout import DMCLayout
 from rwm_gym.spec import SuiteTask, TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
-from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.vector.gym_vector_env import CoreGymVectorEnv
 from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
 

@@ -15,13 +15,13 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
 from rwm_gym.task.tasks import VelocityTrackingTask
-from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
 
 
 class LocomotionCore:

@@ -3,7 +3,7 @@
 Auto-reset is `AutoresetMode.SAME_STEP`: the observation returned for a finished env is its new episode's first; the
 last one is `info["final_obs"]` (N, O), valid where the mask `info["_final_obs"]` is True. Every info key `k` comes with
 its mask `info["_k"]`, as `SyncVectorEnv` gives them. `reset(options={"command": (vx, vy, yaw)})` holds a command (see
-`rwm_gym.vector.core.commands_from_options`).
+`rwm_gym.batched_core.commands_from_options`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from rwm_gym.vector.core import BatchedCore, commands_from_options, seeds_per_env, step_with_autoreset
+from rwm_gym.batched_core import BatchedCore, commands_from_options
+from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 
 class CoreGymVectorEnv(gym.vector.VectorEnv):

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from rwm_gym.vector.core import BatchedCore, seeds_per_env, step_with_autoreset
+from rwm_gym.batched_core import BatchedCore
+from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 
 class CoreSB3VecEnv(VecEnv):
