@@ -135,7 +135,7 @@ def evaluate_policy(
     physics core (e.g. `physics`, `observation_noise`). `core`: a batched core of len(commands) x len(seeds) envs to
     run instead of physics, e.g. an imagined one (`ImaginedCore`, commands not resampled) for the same score in a model.
     """
-    from rwm_gym.physics.batched import make_core
+    from rwm_gym.physics.locomotion import make_core
 
     act = as_policy(policy)
     started = time.monotonic()

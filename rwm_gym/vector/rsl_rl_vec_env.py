@@ -156,7 +156,7 @@ class ImaginedRslRlVecEnv(CoreRslRlVecEnv):
     tensors too)."""
 
     def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, seed: int | None = 0, **kwargs):
-        from rwm_gym.imagination.vec_env import make_imagined_core
+        from rwm_gym.imagination.env import make_imagined_core
 
         super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs), seed=seed)
 
@@ -167,6 +167,6 @@ class LocomotionRslRlVecEnv(CoreRslRlVecEnv):
 
     def __init__(self, num_envs: int = 1, spec: str = "anymal_d", *, seed: int | None = 0,
                  device: str | torch.device = "cpu", **kwargs):
-        from rwm_gym.physics.batched import make_core
+        from rwm_gym.physics.locomotion import make_core
 
         super().__init__(make_core(spec, num_envs, **kwargs), seed=seed, device=device)
