@@ -25,13 +25,13 @@ import torch
 
 from rwm_gym.atomic import save_png, write_json, write_text
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.options import parse_dataclass_args
-from rwm_gym.physics.dmc import DMCSB3VecEnv, make_core
+from rwm_gym.physics.dmc import make_core
 from rwm_gym.registration import DMC_SPECS
 from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
+from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv, ImaginedSB3VecEnv
 
 sys.path.insert(0, str(Path(__file__).parent))
 from cross_robot import collect_mix

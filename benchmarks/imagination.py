@@ -29,9 +29,9 @@ import numpy as np
 import torch
 
 from rwm_gym.atomic import write_json
-from rwm_gym.imagination.vec_env import make_imagined_core
+from rwm_gym.imagination.env import make_imagined_core
 from rwm_gym.model.heads import EnsembleLinear
-from rwm_gym.physics.batched import make_core
+from rwm_gym.physics.locomotion import make_core
 
 
 def flop_per_env_step(model: torch.nn.Module, *, all_heads: bool = False) -> int:
@@ -87,8 +87,8 @@ def rate(core, seconds: float) -> float:
 
 def ppo_cost(checkpoint, envs: int, rollouts: int, device: str) -> dict[str, float]:
     """Seconds per rollout of SB3 PPO (rwm_gym.rl.ppo defaults) in imagination: collecting it and training on it."""
-    from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
     from rwm_gym.rl.ppo import PPOConfig, make_ppo
+    from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
     model = make_ppo(ImaginedSB3VecEnv(checkpoint, envs, device=device), PPOConfig(num_envs=envs), seed=0)
     _, callback = model._setup_learn(total_timesteps=envs * model.n_steps * rollouts)

@@ -25,10 +25,10 @@ import mujoco
 import numpy as np
 
 from rwm_gym.atomic import write_json, write_text
-from rwm_gym.physics.batched import LocomotionSB3VecEnv
 from rwm_gym.physics.locomotion import LocomotionEnv
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import load_spec
+from rwm_gym.vector.sb3_vec_env import LocomotionSB3VecEnv
 
 SHIPPED = "shipped"
 PREVIOUS = "elliptic"

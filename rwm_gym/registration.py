@@ -25,19 +25,19 @@ from rwm_gym.spec import TaskSpec, load_spec
 SIMULATORS: dict[str, dict[str, str]] = {
     "mujoco": {
         "entry_point": "rwm_gym.physics.locomotion:LocomotionEnv",
-        "vector_entry_point": "rwm_gym.physics.batched:BatchedLocomotionVectorEnv",
-        "core_entry_point": "rwm_gym.physics.batched:make_core",
+        "vector_entry_point": "rwm_gym.vector.gym_vector_env:LocomotionGymVectorEnv",
+        "core_entry_point": "rwm_gym.physics.locomotion:make_core",
     },
     "dm_control": {
         "entry_point": "rwm_gym.physics.dmc:DMCEnv",
-        "vector_entry_point": "rwm_gym.physics.dmc:DMCVectorEnv",
+        "vector_entry_point": "rwm_gym.vector.gym_vector_env:DMCGymVectorEnv",
         "core_entry_point": "rwm_gym.physics.dmc:make_core",
     },
 }
 """Simulator name -> entry points of its single env, Gymnasium VectorEnv and the batched core the collectors drive."""
 
 IMAGINED_ENTRY = {"entry_point": "rwm_gym.imagination.env:ImaginedEnv",
-                  "vector_entry_point": "rwm_gym.imagination.vec_env:ImaginedVectorEnv"}
+                  "vector_entry_point": "rwm_gym.vector.gym_vector_env:ImaginedGymVectorEnv"}
 
 
 def simulator_of(tables: dict | TaskSpec) -> str:

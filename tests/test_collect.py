@@ -72,7 +72,7 @@ def test_the_zero_policy_stands_still_and_its_noise_is_seeded(tmp_path):
 
 
 def test_workers_need_a_policy_by_name(tmp_path):
-    from rwm_gym.policies.base import make_policy
+    from rwm_gym.policies.factory import make_policy
 
     with pytest.raises(ValueError, match="workers must be >= 1"):
         collect(ENV_ID, "random", 2, tmp_path / "a.h5", workers=0, progress=False)

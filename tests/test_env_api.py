@@ -11,8 +11,8 @@ import pytest
 
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.imagination.core import default_checkpoint
-from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.task.observation import observation_slices
+from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
 PHYSICS, IMAGINED = "AnymalD-MuJoCo-v0", "RWM-AnymalD-v0"
 COMMAND = (0.6, -0.2, 0.3)
@@ -176,3 +176,27 @@ def test_a_rendering_script_that_forgets_close_exits_without_a_traceback(env_id)
         pytest.skip(f"offscreen rendering unavailable: {done.stderr.strip().splitlines()[-1:]}")
     assert "(48, 64, 3)" in done.stdout
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr
+
+
+@pytest.mark.parametrize(("env_id", "not_imported"), [
+    (PHYSICS, {"stable_baselines3", "torch"}),
+    ("DMC-Cheetah-Run-v0", {"stable_baselines3", "torch"}),
+    (IMAGINED, {"stable_baselines3"}),
+])
+def test_a_gymnasium_vector_env_does_not_import_sb3(env_id, not_imported):
+    """`rwm_gym.vector` keeps each API's adapters in their own module: a Gymnasium user steps physics without SB3 or
+    torch, and imagination without SB3."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (f"import sys, gymnasium as gym, rwm_gym\n"
+              f"env = gym.make_vec({env_id!r}, num_envs=2, vectorization_mode='vector_entry_point')\n"
+              f"env.reset(seed=0)\nenv.step(env.action_space.sample())\n"
+              f"print(sorted(set({sorted(not_imported)!r}) & set(sys.modules)))\n")
+    root = str(Path(rwm_gym.__file__).parents[1])
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": root})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"

@@ -134,7 +134,7 @@ def test_backlash_is_a_dead_band_of_the_position_error():
             env.step(np.full(12, 0.3))
         runs.append(env.data.qpos.copy())
     assert np.abs(runs[0] - runs[1]).max() > 1e-3
-    from rwm_gym.physics.batched import make_core
+    from rwm_gym.physics.locomotion import make_core
 
     core = make_core("anymal_d", 2, physics={"backlash": 0.03}, nthread=1)
     core.reset(np.arange(2), [3, 4])

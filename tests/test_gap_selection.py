@@ -218,7 +218,7 @@ def test_solver_settings_are_an_env_option_and_the_gap_default():
     assert build_model(SPEC).opt.iterations == 4  # the fast MJCF for PPO
     model = build_model(SPEC, solver=CONVERGED_SOLVER)
     assert (model.opt.iterations, model.opt.ls_iterations, model.opt.noslip_iterations) == (100, 50, 2)
-    from rwm_gym.physics.batched import make_core
+    from rwm_gym.physics.locomotion import make_core
 
     assert make_core("anymal_d", 1, solver={"iterations": 30}).model.opt.iterations == 30
     with pytest.raises(ValueError, match="unknown solver setting"):

@@ -13,13 +13,13 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.data.collect import collect
 from rwm_gym.imagination.env import ImaginedEnv
-from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.registration import DMC_SPECS, IMAGINED_ENVS
 from rwm_gym.spec import load_spec
 from rwm_gym.task.suite_reward import SuiteReward
+from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
 PHYSICS = {load_spec(spec).imagined_env_id: env_id for env_id, spec in DMC_SPECS.items()}
 IDS = sorted(PHYSICS)

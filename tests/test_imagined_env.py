@@ -14,12 +14,12 @@ from rwm_gym.data.collect import collect
 from rwm_gym.imagination.core import tilt_degrees
 from rwm_gym.imagination.env import ImaginedEnv
 from rwm_gym.imagination.reset_data import make_reset_data
-from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.spec import load_spec
+from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
 ENV_ID = "RWM-AnymalD-v0"
 
@@ -331,7 +331,7 @@ def test_cached_warm_ups_give_the_numbers_of_fresh_ones(checkpoint):
 def test_random_first_episode_length_spreads_the_first_restarts(checkpoint):
     """rsl_rl's init_at_random_ep_len: the first episode of each env starts at a random step of its time limit (the
     same for the same seed); every later episode runs the full limit."""
-    from rwm_gym.imagination.vec_env import make_imagined_core
+    from rwm_gym.imagination.env import make_imagined_core
 
     def first_steps(**options):
         core = make_imagined_core(checkpoint, 32, episode_steps=10, **options)

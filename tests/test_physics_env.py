@@ -9,9 +9,9 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import rwm_gym  # noqa: F401  (registers the envs)
-from rwm_gym.physics.batched import LocomotionSB3VecEnv
 from rwm_gym.physics.locomotion import LocomotionEnv
 from rwm_gym.spec import load_spec
+from rwm_gym.vector.sb3_vec_env import LocomotionSB3VecEnv
 
 ENV_ID = "AnymalD-MuJoCo-v0"
 

@@ -74,7 +74,7 @@ def test_evaluation_of_a_standing_policy(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
     """A small RWM trained briefly on a few random physics episodes."""
-    pytest.importorskip("rwm_gym.imagination.vec_env")
+    pytest.importorskip("rwm_gym.vector.sb3_vec_env")
     from rwm_gym.data.collect import collect
     from rwm_gym.model.config import TrainConfig
     from rwm_gym.model.factory import model_config_for

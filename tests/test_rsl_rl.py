@@ -57,8 +57,8 @@ def _recording_env(num_envs: int, seed: int):
 def test_on_policy_runner_trains_in_imagination_on_the_cores_numbers(rsl_rl, tmp_path):
     from rsl_rl.runners import OnPolicyRunner
 
-    from rwm_gym.imagination.vec_env import make_imagined_core
-    from rwm_gym.vector.core import step_with_autoreset
+    from rwm_gym.imagination.env import make_imagined_core
+    from rwm_gym.vector.autoreset import step_with_autoreset
 
     torch.manual_seed(0)
     env = _recording_env(TINY.num_envs, seed=3)
@@ -110,7 +110,7 @@ def test_episode_length_buf_is_the_time_limit(rsl_rl):
 
 
 def test_physics_env_holds_a_command_and_matches_its_core(rsl_rl):
-    from rwm_gym.physics.batched import make_core
+    from rwm_gym.physics.locomotion import make_core
     from rwm_gym.vector.rsl_rl_vec_env import LocomotionRslRlVecEnv
 
     env = LocomotionRslRlVecEnv(2, seed=7)

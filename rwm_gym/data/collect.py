@@ -21,11 +21,12 @@ import numpy as np
 from tqdm import tqdm
 
 import rwm_gym
+from rwm_gym.batched_core import check_num_envs
 from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, DatasetWriter
-from rwm_gym.policies.base import Policy, make_policy
+from rwm_gym.policies.base import Policy
+from rwm_gym.policies.factory import make_policy
 from rwm_gym.registration import env_name, make_physics_core
 from rwm_gym.spec import TaskSpec
-from rwm_gym.vector.core import check_num_envs
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
 

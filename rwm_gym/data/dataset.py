@@ -118,35 +118,10 @@ class DatasetWriter:
         return DatasetError(f"{self.path}: field '{name}': {what} (episode {self.num_episodes})")
 
     def _validate(self, episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        missing = [name for name in REQUIRED_FIELDS if name not in episode]
-        if missing:
-            raise self._error(missing[0], "missing")
-        if self._widths and set(episode) != set(self._widths):
-            name = sorted(set(episode) ^ set(self._widths))[0]
-            raise self._error(name, "present in only some episodes")
+        """The episode's arrays cast to their stored dtypes, or the first problem as a DatasetError."""
+        self._check_field_names(episode)
         rows = len(episode["state"]) if np.ndim(episode["state"]) else 0
-        out = {}
-        for name, value in episode.items():
-            value = np.asarray(value)
-            if name not in _FIELDS and value.dtype.kind not in "biufc":
-                raise self._error(name, f"dtype {value.dtype} is not numeric or bool")
-            known = self._widths.get(name, (value.shape[1:], value.dtype))
-            dtype, ndim = _FIELDS.get(name, (known[1], value.ndim))
-            try:
-                value = value.astype(dtype, casting="same_kind", copy=False)
-            except TypeError:
-                raise self._error(name, f"dtype {value.dtype} cannot be stored as {np.dtype(dtype)}") from None
-            if value.ndim != ndim or value.ndim == 0:
-                raise self._error(name, f"expected {ndim} dimensions, got shape {value.shape}")
-            if len(value) != rows or rows < 1:
-                raise self._error(name, f"has {len(value)} rows, 'state' has {rows} (need the same, >= 1)")
-            if name in self._widths and value.shape[1:] != self._widths[name][0]:
-                raise self._error(name, f"row shape {value.shape[1:]}, earlier episodes {self._widths[name][0]}")
-            if name in self.info.columns and (value.ndim != 2 or value.shape[1] != len(self.info.columns[name])):
-                raise self._error(name, f"shape {value.shape} does not match {len(self.info.columns[name])} columns")
-            if value.dtype.kind in "fc" and not np.isfinite(value).all():
-                raise self._error(name, "contains NaN or inf")
-            out[name] = value
+        out = {name: self._validate_field(name, np.asarray(value), rows) for name, value in episode.items()}
         for name in ("action", "reward"):
             if out[name][-1].any():
                 raise self._error(name, "must be 0 in the last row of an episode (it has no transition)")
@@ -154,6 +129,42 @@ class DatasetWriter:
             if out[name][:-1].any():
                 raise self._error(name, "true before the last row of the episode")
         return out
+
+    def _check_field_names(self, episode: Mapping[str, np.ndarray]) -> None:
+        """Every required field, and the same fields as the earlier episodes."""
+        missing = [name for name in REQUIRED_FIELDS if name not in episode]
+        if missing:
+            raise self._error(missing[0], "missing")
+        if self._widths and set(episode) != set(self._widths):
+            name = sorted(set(episode) ^ set(self._widths))[0]
+            raise self._error(name, "present in only some episodes")
+
+    def _validate_field(self, name: str, value: np.ndarray, rows: int) -> np.ndarray:
+        """One field cast to its stored dtype: `rows` rows, the row shape of earlier episodes and of its columns,
+        finite."""
+        value = self._cast(name, value)
+        ndim = _FIELDS[name][1] if name in _FIELDS else value.ndim
+        if value.ndim != ndim or value.ndim == 0:
+            raise self._error(name, f"expected {ndim} dimensions, got shape {value.shape}")
+        if len(value) != rows or rows < 1:
+            raise self._error(name, f"has {len(value)} rows, 'state' has {rows} (need the same, >= 1)")
+        if name in self._widths and value.shape[1:] != self._widths[name][0]:
+            raise self._error(name, f"row shape {value.shape[1:]}, earlier episodes {self._widths[name][0]}")
+        if name in self.info.columns and (value.ndim != 2 or value.shape[1] != len(self.info.columns[name])):
+            raise self._error(name, f"shape {value.shape} does not match {len(self.info.columns[name])} columns")
+        if value.dtype.kind in "fc" and not np.isfinite(value).all():
+            raise self._error(name, "contains NaN or inf")
+        return value
+
+    def _cast(self, name: str, value: np.ndarray) -> np.ndarray:
+        """`value` as its field's dtype (a known field's, else the dtype of earlier episodes, else its own)."""
+        if name not in _FIELDS and value.dtype.kind not in "biufc":
+            raise self._error(name, f"dtype {value.dtype} is not numeric or bool")
+        dtype = _FIELDS[name][0] if name in _FIELDS else self._widths.get(name, ((), value.dtype))[1]
+        try:
+            return value.astype(dtype, casting="same_kind", copy=False)
+        except TypeError:
+            raise self._error(name, f"dtype {value.dtype} cannot be stored as {np.dtype(dtype)}") from None
 
     def append_episode(self, episode: Mapping[str, np.ndarray]) -> None:
         """Validate one episode ({field: (L+1, ...) array}) and append it; on error nothing is written."""
@@ -366,6 +377,15 @@ def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -
     if not paths:
         raise ValueError("merge_datasets: no input files")
     sets = [Dataset.load(p) for p in paths]
+    _check_same_task(sets)
+    common, dropped = _common_fields(sets)
+    info = _merged_info(sets, dropped)
+    episodes = ({name: d.episode(i)[name] for name in common} for d in sets for i in range(d.num_episodes))
+    write_dataset(out, info, episodes)
+
+
+def _check_same_task(sets: list[Dataset]) -> None:
+    """The same spec (but for file pointers), columns and dt in every dataset as in the first."""
     first = sets[0]
     first_spec = _spec_without_pointers(first.info.spec_text)
     for d in sets[1:]:
@@ -374,12 +394,25 @@ def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -
                            ("attribute 'dt'", d.info.dt, first.info.dt)):
             if a != b:
                 raise DatasetError(f"{d.path}: {what}: differs from {first.path}, cannot merge")
+
+
+def _common_fields(sets: list[Dataset]) -> tuple[list[str], list[str]]:
+    """The fields every dataset has (in the first's order; each of one row shape and dtype in all), and the others,
+    sorted."""
+    first = sets[0]
     common = [name for name in first.fields if all(name in d.fields for d in sets)]
     dropped = sorted({name for d in sets for name in d.fields} - set(common))
     for d in sets[1:]:
         for name in common:
             if d[name].shape[1:] != first[name].shape[1:] or d[name].dtype != first[name].dtype:
                 raise DatasetError(f"{d.path}: field '{name}': shape or dtype differs from {first.path}, cannot merge")
+    return common, dropped
+
+
+def _merged_info(sets: list[Dataset], dropped: list[str]) -> DatasetInfo:
+    """The first dataset's info, with the policies joined, physics_params kept if all agree, and each source and the
+    dropped fields in the metadata."""
+    first = sets[0]
     policies = list(dict.fromkeys(d.info.policy for d in sets))
     same_physics = all(d.info.physics_params == first.info.physics_params for d in sets)
     sources = [{"path": str(d.path), "sha256": d.file_hash(), "policy": d.info.policy, "seed": d.info.seed,
@@ -387,7 +420,5 @@ def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -
     metadata = {**first.info.metadata, "merged_from": sources}
     if dropped:
         metadata["dropped_fields"] = dropped
-    info = replace(first.info, policy=" + ".join(policies),
+    return replace(first.info, policy=" + ".join(policies),
                    physics_params=first.info.physics_params if same_physics else {}, metadata=metadata)
-    episodes = ({name: d.episode(i)[name] for name in common} for d in sets for i in range(d.num_episodes))
-    write_dataset(out, info, episodes)

@@ -26,8 +26,8 @@ from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics, parse_effects
 from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
 from rwm_gym.physics.robot import measure
-from rwm_gym.policies.base import make_policy
 from rwm_gym.policies.excitation import ExcitationPolicy
+from rwm_gym.policies.factory import make_policy
 
 
 @dataclass(frozen=True)

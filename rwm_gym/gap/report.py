@@ -68,20 +68,36 @@ def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corr
 
 def markdown(report: dict) -> str:
     """The human-readable report."""
+    sections = (_verdict, _named_effects, _gap_per_horizon, _learned_correction, _identifiability, _where_the_gap_lives,
+                _selection_candidates, _rejected, _world_model, _files)
+    lines = [line for section in sections for line in section(report)]
+    return "\n".join(lines) + "\n"
+
+
+def _verdict(report: dict) -> list[str]:
     floor = report["noise_floor"]
-    lines = ["# Sim-to-real gap report\n", f"**Verdict: `{report['effect']}`** — {report['reason']}\n",
-             (f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
-              f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n")]
-    if report["effects"]:
-        lines.append("| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
-                     "|---|---|---|---|---|---|---|---|")
-        for i, item in enumerate(report["effects"], 1):
-            for name, value in item["parameters"].items():
-                lines.append(f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
-                             f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |")
-        lines.append("")
-    lines.append(f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n")
-    lines.append("| horizon (steps) | gap before | gap after |\n|---|---|---|")
+    return ["# Sim-to-real gap report\n", f"**Verdict: `{report['effect']}`** — {report['reason']}\n",
+            (f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
+             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n")]
+
+
+def _named_effects(report: dict) -> list[str]:
+    """One row per parameter of each named effect, in the order named."""
+    if not report["effects"]:
+        return []
+    lines = [("| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
+              "|---|---|---|---|---|---|---|---|")]
+    for i, item in enumerate(report["effects"], 1):
+        for name, value in item["parameters"].items():
+            lines.append(f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
+                         f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |")
+    return [*lines, ""]
+
+
+def _gap_per_horizon(report: dict) -> list[str]:
+    """The held-out gap before and after correction at each horizon, and what remains against the noise floor."""
+    lines = [f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n",
+             "| horizon (steps) | gap before | gap after |\n|---|---|---|"]
     for h, before in report["gap_before_per_horizon"].items():
         lines.append(f"| {h} | {before:.4g} | {report['gap_after_per_horizon'][h]:.4g} |")
     lines.append(f"| mean | {report['gap_before']:.4g} | {report['gap_after']:.4g} |\n")
@@ -89,29 +105,41 @@ def markdown(report: dict) -> str:
                  f"{report['residual']['ratio']:.2f} x the noise floor of "
                  f"{report['residual'].get('floor_of', 'the nominal simulator')}"
                  f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n")
+    return lines
+
+
+def _learned_correction(report: dict) -> list[str]:
+    """The learned residual torque, if one was trained: its gap reduction and its weights per joint group."""
     learned = report.get("learned_correction")
-    if learned:
-        lines.append("## Learned correction (not a named effect)\n")
-        if learned["status"] == "ok":
-            lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
-                         f"({learned['explained_fraction']:.1%} of what the named effects left, "
-                         f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
-            weights = learned["training"]["weights"]
-            terms = list(next(iter(weights.values())))
-            lines.append("| joints | " + " | ".join(terms) + " |\n|---|" + "---|" * len(terms))
-            lines += [f"| {group} | " + " | ".join(f"{w[t]:.3g}" for t in terms) + " |" for group, w in weights.items()]
-            lines.append("")
-        else:
-            lines.append(f"{learned['status']}\n")
-    lines.append("## Identifiability from these data\n")
-    lines.append("| effect | magnitude | signal / noise floor | identifiable |\n|---|---|---|---|")
+    if not learned:
+        return []
+    lines = ["## Learned correction (not a named effect)\n"]
+    if learned["status"] != "ok":
+        return [*lines, f"{learned['status']}\n"]
+    lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
+                 f"({learned['explained_fraction']:.1%} of what the named effects left, "
+                 f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+    weights = learned["training"]["weights"]
+    terms = list(next(iter(weights.values())))
+    lines.append("| joints | " + " | ".join(terms) + " |\n|---|" + "---|" * len(terms))
+    lines += [f"| {group} | " + " | ".join(f"{w[t]:.3g}" for t in terms) + " |" for group, w in weights.items()]
+    return [*lines, ""]
+
+
+def _identifiability(report: dict) -> list[str]:
+    lines = ["## Identifiability from these data\n",
+             "| effect | magnitude | signal / noise floor | identifiable |\n|---|---|---|---|"]
     for name, item in report["identifiability"].items():
         magnitude = ", ".join(f"{v:.3g}" for v in item["magnitude"])
         lines.append(f"| {name} | {magnitude} | {item['signal_to_floor']:.2f} | "
                      f"{'yes' if item['identifiable'] else 'no'} |")
-    lines.append("")
-    lines.append("## Where the gap lives (nominal simulator, held-out)\n")
-    lines.append("| channel | MSE at 5 steps | share |\n|---|---|---|")
+    return [*lines, ""]
+
+
+def _where_the_gap_lives(report: dict) -> list[str]:
+    """The nominal simulator's gap by channel and by condition, and the response lag."""
+    lines = ["## Where the gap lives (nominal simulator, held-out)\n",
+             "| channel | MSE at 5 steps | share |\n|---|---|---|"]
     lines += [f"| {c['channel']} | {c['mse']:.3g} | {c['share']:.1%} |" for c in report["where"]["channels_h5"]]
     lines.append("\n| condition (joints, 1 step) | residual / overall | share of samples |\n|---|---|---|")
     lines += [f"| {c['condition']} | {c['ratio']:.2f} | {c['fraction_of_samples']:.0%} |"
@@ -119,6 +147,12 @@ def markdown(report: dict) -> str:
     lag = report["where"]["response_lag_s"]
     lines.append(f"\nResponse lag of joint velocity to target changes: measured {lag['measured'] * 1e3:.1f} ms, "
                  f"nominal simulator {lag['simulated'] * 1e3:.1f} ms.\n")
+    return lines
+
+
+def _selection_candidates(report: dict) -> list[str]:
+    """Every selection step's candidates (held-out), and what the step decided."""
+    lines = []
     for k, step in enumerate(report["selection_steps"], 1):
         if not step["candidates"]:
             continue
@@ -129,17 +163,28 @@ def markdown(report: dict) -> str:
             lines.append(f"| {c['effect']} | {c['scope']} | {values} | {c['explained_fraction']:.1%} | "
                          f"{c['score']:.3f} | {c['p_value']:.2g} |" if c["status"] == "ok" else
                          f"| {c['effect']} | {c['scope']} | {values} | {c['status']} | | |")
-    if report["rejected"]:
-        lines.append("\n## Parameters rejected because the simulation blew up\n")
-        lines += [f"- step {r['step']}, {r['effect']} ({r['scope']}): {r['point']}" for r in report["rejected"]]
-    if "world_model" in report:
-        lines.append("\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n")
-        lines.append(world_model_table(report["world_model"]) + "\n")
-        lines.append(f"Metric: {report['world_model']['metric']}.\n")
-    lines.append("\n## Files\n")
+    return lines
+
+
+def _rejected(report: dict) -> list[str]:
+    if not report["rejected"]:
+        return []
+    return ["\n## Parameters rejected because the simulation blew up\n",
+            *(f"- step {r['step']}, {r['effect']} ({r['scope']}): {r['point']}" for r in report["rejected"])]
+
+
+def _world_model(report: dict) -> list[str]:
+    if "world_model" not in report:
+        return []
+    return ["\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n",
+            world_model_table(report["world_model"]) + "\n", f"Metric: {report['world_model']['metric']}.\n"]
+
+
+def _files(report: dict) -> list[str]:
+    lines = ["\n## Files\n"]
     lines += [f"- {k}: `{v}`" for k, v in {**report["corrected"], **report["plots"]}.items()]
     lines += [f"\n![{k}]({Path(v).name})" for k, v in report["plots"].items()]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def world_model_table(section: dict) -> str:

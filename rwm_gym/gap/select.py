@@ -174,6 +174,37 @@ def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train:
     return None
 
 
+@dataclass(frozen=True)
+class _Search:
+    """What every step of the forward selection reads; none of it changes from step to step."""
+
+    effects: dict[str, Effect]
+    spec: TaskSpec
+    resim: Resimulator
+    train: Windows
+    held: Windows
+    base: PhysicsParams
+    floor: np.ndarray
+    config: FitConfig
+    progress: bool
+    cross: Callable[[], CrossFit] | None
+
+
+@dataclass
+class _Step:
+    """One step's judged candidates: the pick (or None), why, an unrelated rival that explains the gap alike, and the
+    Bonferroni-corrected significance over the `tested` candidates."""
+
+    candidates: list[Candidate]
+    fits: list[CandidateFit]
+    """The fits of the effects' global forms behind `candidates`."""
+    pick: Candidate | None
+    decision: str
+    rival: Candidate | None
+    significance: float
+    tested: int
+
+
 def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows, held: Windows,
                    base: PhysicsParams, before: np.ndarray, floor: np.ndarray, config: FitConfig,
                    floor_config: FloorConfig = FloorConfig(), progress: bool = True,
@@ -181,6 +212,7 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
     called once if step 1's best candidate needs them (None: the held-out test alone)."""
+    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross)
     named: list[Candidate] = []
     params, current, steps, reason, earlier = base, before, [], "", []
     for k in range(config.max_effects):
@@ -189,68 +221,155 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
         steps.append(step)
         below = not test["above_floor"]
         if below:
-            reason = (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
-                      f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
+            reason = _below_floor(test)
             if k > 0:
                 break
-        remaining = {n: e for n, e in effects.items() if n not in {e.name for e, _ in named}}
-        fits = fit_all(remaining, resim, train, held, params, current, config, progress)
-        candidates = [(remaining[f.effect], f) for f in fits]
-        candidates += scope_candidates(fits, remaining, spec, resim, train, held, params, current, config)
-        if named and config.joint_candidates:
-            candidates = joint_candidates(candidates, named, earlier, resim, train, held, base, current, config)
-        gap, floor_mean = float(current.mean()), float(np.nanmean(floor))
-        tested = sum(f.status == "ok" for _, f in candidates)
-        significance = config.significance / max(tested, 1) if below else config.significance
-        pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
-        if pick is None and rival is None and below and k == 0 and cross is not None:
-            best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
-            if best is not None and best[1].excess_explained >= config.min_excess_explained:
-                best[1].cross_fitted_p_value = cross_fitted_p_value(best, resim, held, cross(), params, current,
-                                                                    config, significance)
-                pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
-        if pick is None and rival is None and k == 0 and not below and config.refine_every_effect \
-                and len(remaining) > config.refine_top:
-            fits = fit_all(remaining, resim, train, held, params, current, config, progress, len(remaining))
-            refined = {f.effect: f for f in fits}
-            candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in candidates]
-            pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
-        if pick is None and rival is None and k == 0 and not below and config.every_scope:
-            scoped = {f.effect for _, f in candidates if f.scope != "global"}
-            more = every_scope(fits, scoped, remaining, spec, resim, train, held, params, current, config)
-            if more:
-                candidates += more
-                pick, decision, rival = judge(candidates, gap, floor_mean, config, significance)
-        earlier = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
-        step["candidates"] = [asdict(f) for _, f in sorted(candidates, key=lambda c: c[1].score, reverse=True)]
-        if below:
-            decision = (f"{reason}; each candidate's own reduction tested at p < {significance:.2g} "
-                        f"({config.significance} over {tested} candidates, Bonferroni): {decision}")
-        reason = decision
-        if rival is not None and not below:
-            best = max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score)
-            resolved = resolve_rivals(best, rival, resim, train, held, named_params(named, best, base, params),
-                                      current, floor, config)
-            if resolved is not None:
-                pick, reason = resolved
+        judged = _judge_step(search, k, below, named, earlier, params, current)
+        earlier = _ranked(judged.candidates)
+        step["candidates"] = [asdict(f) for _, f in sorted(judged.candidates, key=lambda c: c[1].score, reverse=True)]
+        pick, reason = _decide(search, judged, below, reason, named, params, current)
         step["decision"] = reason
         if pick is None:
             break
         step["named"] = f"{pick[0].name} ({pick[0].scope})"
-        params = named_params(named, pick, base, params)
-        if pick[1].named_refit is not None:
-            for (_, fit), values in zip(named, pick[1].named_refit):
-                fit.values = list(values)
-        named.append(pick)
-        params = pick[0].physics(pick[1].values, params)
-        current = gap_per_window(spec, resim.rollout(held, params), held)
+        params, current = _name(search, pick, named, params)
+    return _selection(search, named, steps, reason, before, params, current)
+
+
+def _below_floor(test: dict) -> str:
+    """Why a gap is not above the noise floor, from `compare_with_floor`'s test."""
+    return (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
+            f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
+
+
+def _ranked(candidates: list[Candidate]) -> list[Candidate]:
+    """The candidates whose fit is ok, best score first."""
+    return sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
+
+
+def _best(candidates: list[Candidate]) -> Candidate | None:
+    """The best-scoring candidate whose fit is ok, or None."""
+    return max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
+
+
+def _judge_step(search: _Search, k: int, below: bool, named: list[Candidate], earlier: list[Candidate],
+                params: PhysicsParams, current: np.ndarray) -> _Step:
+    """Fit every effect not yet named on top of `params` (and in its scopes, and jointly with the named ones), and
+    judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
+    config = search.config
+    remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in named}}
+    fits = fit_all(remaining, search.resim, search.train, search.held, params, current, config, search.progress)
+    candidates = [(remaining[f.effect], f) for f in fits]
+    candidates += scope_candidates(fits, remaining, search.spec, search.resim, search.train, search.held, params,
+                                   current, config)
+    if named and config.joint_candidates:
+        candidates = joint_candidates(candidates, named, earlier, search.resim, search.train, search.held,
+                                      search.base, current, config)
+    tested = sum(f.status == "ok" for _, f in candidates)
+    significance = config.significance / max(tested, 1) if below else config.significance
+    step = _Step(candidates, fits, *_judge(search, candidates, current, significance), significance, tested)
+    if k == 0 and below:
+        _cross_fit_near_the_floor(search, step, params, current)
+    elif k == 0:
+        _refine_every_effect(search, step, remaining, params, current)
+        _fit_every_scope(search, step, remaining, params, current)
+    return step
+
+
+def _judge(search: _Search, candidates: list[Candidate], current: np.ndarray, significance: float
+           ) -> tuple[Candidate | None, str, Candidate | None]:
+    """`judge` on the step's gap `current` and the mean noise floor."""
+    return judge(candidates, float(current.mean()), float(np.nanmean(search.floor)), search.config, significance)
+
+
+def _undecided(step: _Step) -> bool:
+    return step.pick is None and step.rival is None
+
+
+def _cross_fit_near_the_floor(search: _Search, step: _Step, params: PhysicsParams, current: np.ndarray) -> None:
+    """Step 1, gap near the floor, nothing named: if the best candidate explains enough of the gap, test it again on
+    every measured episode (`cross_fitted_p_value`), and judge again."""
+    if not _undecided(step) or search.cross is None:
+        return
+    best = _best(step.candidates)
+    if best is not None and best[1].excess_explained >= search.config.min_excess_explained:
+        best[1].cross_fitted_p_value = cross_fitted_p_value(best, search.resim, search.held, search.cross(), params,
+                                                            current, search.config, step.significance)
+        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+
+
+def _refine_every_effect(search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams,
+                         current: np.ndarray) -> None:
+    """Step 1, gap above the floor, nothing named: refine every effect (not only the best screened), and judge
+    again."""
+    config = search.config
+    if not _undecided(step) or not config.refine_every_effect or len(remaining) <= config.refine_top:
+        return
+    fits = fit_all(remaining, search.resim, search.train, search.held, params, current, config, search.progress,
+                   len(remaining))
+    refined = {f.effect: f for f in fits}
+    step.candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in step.candidates]
+    step.fits = fits
+    step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+
+
+def _fit_every_scope(search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams,
+                     current: np.ndarray) -> None:
+    """Step 1, gap above the floor, still nothing named: fit every joint effect in its scopes too (also those whose
+    global form explained nothing), and judge again."""
+    if not _undecided(step) or not search.config.every_scope:
+        return
+    scoped = {f.effect for _, f in step.candidates if f.scope != "global"}
+    more = every_scope(step.fits, scoped, remaining, search.spec, search.resim, search.train,
+                       search.held, params, current, search.config)
+    if more:
+        step.candidates += more
+        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+
+
+def _decide(search: _Search, step: _Step, below: bool, reason: str, named: list[Candidate], params: PhysicsParams,
+            current: np.ndarray) -> tuple[Candidate | None, str]:
+    """The step's pick (or None) and why; a rival is resolved (`resolve_rivals`) where the gap is above the floor;
+    below it, `reason` says so and the decision tells the corrected significance."""
+    pick, decision = step.pick, step.decision
+    if below:
+        decision = (f"{reason}; each candidate's own reduction tested at p < {step.significance:.2g} "
+                    f"({search.config.significance} over {step.tested} candidates, Bonferroni): {decision}")
+    if step.rival is not None and not below:
+        best = _best(step.candidates)
+        resolved = resolve_rivals(best, step.rival, search.resim, search.train, search.held,
+                                  named_params(named, best, search.base, params), current, search.floor, search.config)
+        if resolved is not None:
+            return resolved
+    return pick, decision
+
+
+def _name(search: _Search, pick: Candidate, named: list[Candidate], params: PhysicsParams
+          ) -> tuple[PhysicsParams, np.ndarray]:
+    """Append `pick` to `named` (a joint candidate sets the named effects to the values refitted with it); returns
+    the simulator with every named effect and its held-out gap."""
+    params = named_params(named, pick, search.base, params)
+    if pick[1].named_refit is not None:
+        for (_, fit), values in zip(named, pick[1].named_refit):
+            fit.values = list(values)
+    named.append(pick)
+    params = pick[0].physics(pick[1].values, params)
+    return params, gap_per_window(search.spec, search.resim.rollout(search.held, params), search.held)
+
+
+def _selection(search: _Search, named: list[Candidate], steps: list[dict], reason: str, before: np.ndarray,
+               params: PhysicsParams, current: np.ndarray) -> Selection:
+    """The verdict: `none` or `unexplained` if nothing was named; else the named effects, jointly refitted where
+    there are several parameters (`joint_refit`), with their shares of the explained gap."""
+    config, base = search.config, search.base
     if not named:
         verdict = "none" if not steps[0]["floor_test"]["above_floor"] else "unexplained"
         return Selection(verdict, reason, [], base, before, steps=steps)
     refit = None
     if len(named) > 1 or (config.refit_single_effect and len(named[0][0].parameters) > 1):
-        named, params, current, refit = joint_refit(named, resim, train, held, base, current, config)
-    shares = effect_shares(named, resim, held, base, before)
+        named, params, current, refit = joint_refit(named, search.resim, search.train, search.held, base, current,
+                                                    config)
+    shares = effect_shares(named, search.resim, search.held, base, before)
     summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
     return Selection(named[0][0].name, f"named in order: {summary}; {reason}" if len(named) > 1 else
                      steps[0]["decision"], named, params, current, shares, steps, refit)

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import json
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +39,7 @@ from rwm_gym.gap.scope import SCOPES
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
-from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
+from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, SolverSettings
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
 
@@ -99,7 +100,6 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
         raise ValueError(f"{measured}: field 'state': columns differ from the simulator {sim}'s task spec")
     train_ids, held_ids, held = held_out_windows(data, config)
     horizon = held.horizon
-    horizons = gap_horizons(horizon)
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
     resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=config.solver)
     effects = vocabulary(spec, sim_kwargs.get("xml_file"))
@@ -112,45 +112,22 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
     cross = None
     if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
-        def cross() -> CrossFit:  # built only if a candidate needs it (a nominal case's best explains nothing)
-            return CrossFit(
-                drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
-                                                  config.warmup), base, measured)[0],
-                drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup),
-                              base, measured)[0])
+        cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     selection = select_effects(effects, spec, resim, train, held, base, before, floor, fit_config, floor_config,
                                progress, cross)
     corrected_params, after = selection.params, selection.gap_after
-    # what is left is judged against the corrected simulator's own floor: a slippery floor or a soft joint carries
-    # the same sensor noise further than the nominal simulator does (ground friction 0.3 on walking data: 2.9x)
-    corrected_floor = noise_floor(resim, held, corrected_params, sensor_noise, floor_config) if selection.named \
-        else floor
-    residual = {**compare_with_floor(after, corrected_floor, held, fit_config.block_rows, floor_config),
-                "floor_of": "the corrected simulator" if selection.named else "the nominal simulator"}
+    corrected_floor, residual = _residual(resim, held, selection, floor, after, sensor_noise, fit_config,
+                                          floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
         learned = learned_section(resim, train, held, corrected_params, after, corrected_floor, out, learned_config,
                                   fit_config, floor_config)
     corrected_sim = resim.rollout(held, corrected_params) if selection.named else nominal_sim
 
-    plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
-    h5 = min(5, horizon) - 1
-    per_channel = [(normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0)
-                   for s in (nominal_sim, corrected_sim)]
-    plot_channels(spec, *per_channel, Path(plots["channels"]), 5)
-    located = locate_gap(spec, nominal_sim, held)
-    top = [c["channel"] for c in located["channels_h5"][:3]]
-    worst = int(np.argmax(before.mean(1)))
-    plot_rollout(spec, held.target[worst], nominal_sim[worst], corrected_sim[worst], top, Path(plots["rollout"]))
+    plots, located = _plots(spec, held, horizon, nominal_sim, corrected_sim, before, out)
     report = {
         **named_section(selection),
-        "explained_fraction": float(1.0 - after.mean() / before.mean()),
-        "gap_before": float(before.mean()),
-        "gap_after": float(after.mean()),
-        "gap_horizons": list(horizons),
-        "gap_before_per_horizon": {str(h): float(v) for h, v in zip(horizons, before.mean(0))},
-        "gap_after_per_horizon": {str(h): float(v) for h, v in zip(horizons, after.mean(0))},
-        "gap_metric": "normalised state MSE ((sim - measured) / spec state std)^2 at each horizon, held-out windows",
+        **_gap_numbers(before, after, gap_horizons(horizon)),
         "noise_floor": {**floor_test, "sensor_noise": dataclasses.asdict(sensor_noise),
                         "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
                                   f"model and re-simulated again, mean of {floor_config.draws} draws"},
@@ -180,6 +157,62 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     write_json(out / "report.json", report)
     atomic.write_text(out / "report.md", markdown(report))
     return report
+
+
+def _cross_fit_windows(resim: Resimulator, data: Dataset, train_ids: np.ndarray, held_ids: np.ndarray, horizon: int,
+                       base: PhysicsParams, measured: str | Path, config: GapConfig, fit_config: FitConfig
+                       ) -> Callable[[], CrossFit]:
+    """The swapped windows for 2-fold cross-fitting (fit on the held-out episodes, score on the fitting ones), built
+    only if a candidate needs them (a nominal case's best explains nothing)."""
+    def cross() -> CrossFit:
+        return CrossFit(
+            drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
+                                              config.warmup), base, measured)[0],
+            drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup),
+                          base, measured)[0])
+
+    return cross
+
+
+def _residual(resim: Resimulator, held, selection: Selection, floor: np.ndarray, after: np.ndarray,
+              sensor_noise: SensorNoise, fit_config: FitConfig, floor_config: FloorConfig) -> tuple[np.ndarray, dict]:
+    """The floor of the corrected simulator, and the test of what is left against it."""
+    # what is left is judged against the corrected simulator's own floor: a slippery floor or a soft joint carries
+    # the same sensor noise further than the nominal simulator does (ground friction 0.3 on walking data: 2.9x)
+    corrected_floor = noise_floor(resim, held, selection.params, sensor_noise, floor_config) if selection.named \
+        else floor
+    residual = {**compare_with_floor(after, corrected_floor, held, fit_config.block_rows, floor_config),
+                "floor_of": "the corrected simulator" if selection.named else "the nominal simulator"}
+    return corrected_floor, residual
+
+
+def _plots(spec, held, horizon: int, nominal_sim: np.ndarray, corrected_sim: np.ndarray, before: np.ndarray,
+           out: Path) -> tuple[dict[str, str], dict]:
+    """The residual per channel and the worst window's rollout, as PNGs in `out`; their paths and where the gap
+    lives (`locate_gap`)."""
+    plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
+    h5 = min(5, horizon) - 1
+    per_channel = [(normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0)
+                   for s in (nominal_sim, corrected_sim)]
+    plot_channels(spec, *per_channel, Path(plots["channels"]), 5)
+    located = locate_gap(spec, nominal_sim, held)
+    top = [c["channel"] for c in located["channels_h5"][:3]]
+    worst = int(np.argmax(before.mean(1)))
+    plot_rollout(spec, held.target[worst], nominal_sim[worst], corrected_sim[worst], top, Path(plots["rollout"]))
+    return plots, located
+
+
+def _gap_numbers(before: np.ndarray, after: np.ndarray, horizons) -> dict:
+    """The report's gap before and after correction: means, per horizon, and what it measures."""
+    return {
+        "explained_fraction": float(1.0 - after.mean() / before.mean()),
+        "gap_before": float(before.mean()),
+        "gap_after": float(after.mean()),
+        "gap_horizons": list(horizons),
+        "gap_before_per_horizon": {str(h): float(v) for h, v in zip(horizons, before.mean(0))},
+        "gap_after_per_horizon": {str(h): float(v) for h, v in zip(horizons, after.mean(0))},
+        "gap_metric": "normalised state MSE ((sim - measured) / spec state std)^2 at each horizon, held-out windows",
+    }
 
 
 def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object, str | None]:

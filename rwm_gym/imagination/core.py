@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from rwm_gym.batched_core import check_actions, check_num_envs
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.imagination.reset_data import ResetWindows, WarmUpCache
 from rwm_gym.model.checkpoint import load_checkpoint
@@ -24,7 +25,6 @@ from rwm_gym.resources import assets_dir
 from rwm_gym.spec import TaskSpec, shipped_spec
 from rwm_gym.task.observation import build_observation
 from rwm_gym.task.tasks import Task, make_task
-from rwm_gym.vector.core import check_actions, check_num_envs
 
 
 def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:

@@ -4,6 +4,9 @@ Same observation and action spaces, commands, reward and termination as the task
 `DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with their own MJCF
 model, i.e. ANYmal D) draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the base
 position integrated from the predicted velocity.
+
+`ImaginedEnv` is the imagined core with N = 1; the vector envs of `rwm_gym.vector` are the same core with N > 1
+(`make_imagined_core`).
 """
 
 from __future__ import annotations
@@ -14,8 +17,17 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from rwm_gym.batched_core import commands_from_options
 from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
-from rwm_gym.vector.core import commands_from_options
+
+
+def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
+                       reset_data: str | Path | None = None, env_id: str | None = None, reward_fn=None,
+                       termination_fn=None, **options) -> ImaginedCore:
+    """The imagined core of N rollouts; kwargs as `ImaginedEnv` (`options`: the fields of `ImaginationOptions`)."""
+    return ImaginedCore(checkpoint, num_envs, device=device, reset_data=reset_data,
+                        options=ImaginationOptions(**options), env_id=env_id, reward_fn=reward_fn,
+                        termination_fn=termination_fn)
 
 
 class ImaginedEnv(gym.Env):
@@ -31,9 +43,8 @@ class ImaginedEnv(gym.Env):
     def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
                  render_mode: str | None = None, width: int = 640, height: int = 480, env_id: str | None = None,
                  reward_fn=None, termination_fn=None, **options):
-        self.core = ImaginedCore(checkpoint, 1, device=device, reset_data=reset_data,
-                                 options=ImaginationOptions(**options), env_id=env_id, reward_fn=reward_fn,
-                                 termination_fn=termination_fn)
+        self.core = make_imagined_core(checkpoint, 1, device=device, reset_data=reset_data, env_id=env_id,
+                                       reward_fn=reward_fn, termination_fn=termination_fn, **options)
         self.task_spec = self.core.spec
         if render_mode is not None and not self.task_spec.model:
             raise ValueError(f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "

@@ -194,148 +194,205 @@ def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: 
         raise FileExistsError(f"{out}: file exists (pass --resume to continue its run or --overwrite to replace it)")
     if config.reset_std_band and init is None:
         raise ValueError("reset_std_band resets a fine-tuned model's log-std band: give the checkpoint to start from")
+    dataset = _training_data(data, model_config)
+    world = distributed.init_world(config.device)
+    distributed.check_batch(config.batch_size // config.branches, world)
+    device, out = distributed.rank_device(config.device, world), out and Path(out)
+    with _deterministic(device):
+        run = _Run(dataset, model_config, config, out, world, device, clock)
+        if init is not None:
+            run.start_from(init)
+        if resume and out is not None and out.exists():
+            run.stats = _resume(out, run.model, run.optimizer, config, run.provenance["sha256"], device, run.sampler)
+        distributed.reseed_rank(config.seed, world, run.stats["iterations"])
+        return run.learn(progress, tensorboard, callback)
+
+
+def _training_data(data: Dataset | str | os.PathLike, model_config: ModelConfig) -> Dataset:
+    """The dataset (loaded if a path), warned about if its collection was interrupted, whose sizes fit the model."""
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     if not dataset.info.complete:
         warnings.warn(f"{dataset.path}: complete=false (its collection was interrupted); training on its "
-                      f"{dataset.num_episodes} finished episodes", stacklevel=2)
+                      f"{dataset.num_episodes} finished episodes", stacklevel=3)
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
     if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
         raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
                          f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
-    world = distributed.init_world(config.device)
-    distributed.check_batch(config.batch_size // config.branches, world)
-    device, out = distributed.rank_device(config.device, world), out and Path(out)
-    normalizer = Normalizer.from_spec(spec)
-    train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-    rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
-    with _deterministic(device):
+    return dataset
+
+
+class _Run:
+    """One training run, as rsl_rl's runner separates it: set up (model, optimizer, windows, provenance), `learn` (the
+    loop), `_log` (validation and the logged means), `save` (the checkpoint). Built inside `_deterministic`."""
+
+    def __init__(self, dataset: Dataset, model_config: ModelConfig, config: TrainConfig, out: Path | None,
+                 world: distributed.World, device: torch.device, clock: Callable[[], float]):
+        self.model_config, self.config, self.out, self.world, self.device, self.clock = (
+            model_config, config, out, world, device, clock)
+        self.spec = spec = dataset.spec()
+        self.normalizer = Normalizer.from_spec(spec)
+        train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
+        rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
         torch.manual_seed(config.seed)
-        sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
-        model = build_model(model_config, spec).to(device).train()
-        windows = WindowData(dataset, normalizer, device)
-        train_starts = windows.window_starts(train_ids, rows)
-        if len(train_starts) == 0:
+        self.sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
+        self.model = model = build_model(model_config, spec).to(device).train()
+        self.windows = windows = WindowData(dataset, self.normalizer, device)
+        self.train_starts = windows.window_starts(train_ids, rows)
+        if len(self.train_starts) == 0:
             raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
         val_starts = windows.window_starts(val_ids, rows)
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
-        val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
+        self.val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
-        loss_fn = SegmentLoss(model, config, pos_weight)
-        params = [p for p in model.parameters() if p.requires_grad]
-        optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay) if params else None
-        provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
-                      "dataset_steps": int(dataset.num_steps),
-                      "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
-                      "train_windows": len(train_starts), "termination_pos_weight": pos_weight}
-        stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
-        if init is not None:
-            loaded, _ = load_checkpoint(init, device=device, expect_spec=spec)
-            if difference := config_difference(loaded.config, model_config):
-                raise CheckpointError(f"{init}: cannot start from a model with another config ({difference})")
-            model.load_state_dict(loaded.state_dict())
-            provenance["init_checkpoint"] = str(init)
-            if config.reset_std_band:
-                for head in model.modules():
-                    if isinstance(head, StateHead):
-                        head.reset_band(model_config.log_std_min_init, model_config.log_std_max_init,
-                                        config.reset_log_std)
-        if resume and out is not None and out.exists():
-            stats = _resume(out, model, optimizer, config, provenance["sha256"], device, sampler)
-        distributed.reseed_rank(config.seed, world, stats["iterations"])
-        compute_loss = distributed.data_parallel(loss_fn, world)
+        self.loss_fn = SegmentLoss(model, config, pos_weight)
+        self.params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = (torch.optim.Adam(self.params, lr=config.lr, weight_decay=config.weight_decay)
+                          if self.params else None)
+        self.provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
+                           "dataset_steps": int(dataset.num_steps),
+                           "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
+                           "train_windows": len(self.train_starts), "termination_pos_weight": pos_weight}
+        self.stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
+        self.started = 0.0
+        self.iteration, self.running, self.parts_sum = 0, 0.0, {}
+        self._agreed = {"iteration": -1, "seconds": 0.0}
 
-        def save() -> Path | None:
-            if out is None or not world.is_main:
-                return None
-            return save_checkpoint(out, model, spec, normalizer=normalizer, train_config=config, provenance=provenance,
-                                   stats=stats, optimizer=optimizer, training_state=_rng_state(device, sampler))
+    def start_from(self, init: str | os.PathLike) -> None:
+        """The weights of checkpoint `init` (same model config and task); with `reset_std_band`, its heads' log-std
+        band reset."""
+        loaded, _ = load_checkpoint(init, device=self.device, expect_spec=self.spec)
+        if difference := config_difference(loaded.config, self.model_config):
+            raise CheckpointError(f"{init}: cannot start from a model with another config ({difference})")
+        self.model.load_state_dict(loaded.state_dict())
+        self.provenance["init_checkpoint"] = str(init)
+        if self.config.reset_std_band:
+            for head in self.model.modules():
+                if isinstance(head, StateHead):
+                    head.reset_band(self.model_config.log_std_min_init, self.model_config.log_std_max_init,
+                                    self.config.reset_log_std)
 
-        writer = _tensorboard(tensorboard) if world.is_main else None
-        started = clock() - stats["wall_s"]
-        iteration, running, parts_sum = stats["iterations"], 0.0, {}
+    def save(self) -> Path | None:
+        """The checkpoint at `out` (rank 0 only), with what `--resume` needs: optimizer, RNG states, stats."""
+        if self.out is None or not self.world.is_main:
+            return None
+        return save_checkpoint(self.out, self.model, self.spec, normalizer=self.normalizer, train_config=self.config,
+                               provenance=self.provenance, stats=self.stats, optimizer=self.optimizer,
+                               training_state=_rng_state(self.device, self.sampler))
 
-        agreed = {"iteration": -1, "seconds": 0.0}
+    def elapsed(self) -> float:
+        """Seconds into the run. Ranks must share the learning rate and the stop: with several, the slowest rank's
+        time, agreed every 10 iterations."""
+        if not self.world.distributed:
+            return self.clock() - self.started
+        agreed = self._agreed
+        if self.iteration % 10 == 0 and agreed["iteration"] != self.iteration:
+            agreed["iteration"] = self.iteration
+            agreed["seconds"] = distributed.max_over_ranks(self.clock() - self.started, self.device, self.world)
+        return agreed["seconds"]
 
-        def elapsed() -> float:
-            """Seconds into the run. Ranks must share the learning rate and the stop: with several, the slowest
-            rank's time, agreed every 10 iterations."""
-            if not world.distributed:
-                return clock() - started
-            if iteration % 10 == 0 and agreed["iteration"] != iteration:
-                agreed["iteration"] = iteration
-                agreed["seconds"] = distributed.max_over_ranks(clock() - started, device, world)
-            return agreed["seconds"]
+    def finished(self) -> bool:
+        config = self.config
+        if self.optimizer is None:
+            return True
+        by_steps = config.iterations > 0 and self.iteration >= config.iterations
+        return by_steps or (config.minutes > 0 and self.elapsed() >= 60 * config.minutes)
 
-        def finished() -> bool:
-            if optimizer is None:
-                return True
-            by_steps = config.iterations > 0 and iteration >= config.iterations
-            return by_steps or (config.minutes > 0 and elapsed() >= 60 * config.minutes)
-
-        bar = BudgetBar(steps=config.iterations or None, minutes=config.minutes or None, initial=iteration,
-                        desc=f"train {model_config.kind}", unit="it", disable=not progress or not world.is_main)
+    def learn(self, progress: bool, tensorboard: str | None, callback: Callable[[int, dict], None] | None
+              ) -> TrainResult:
+        """Train until the budget is spent (or Ctrl-C, which saves a resumable checkpoint first); validate, log and
+        save on the way."""
+        config, stats, clock = self.config, self.stats, self.clock
+        compute_loss = distributed.data_parallel(self.loss_fn, self.world)
+        writer = _tensorboard(tensorboard) if self.world.is_main else None
+        self.started = clock() - stats["wall_s"]
+        self.iteration = stats["iterations"]
+        bar = BudgetBar(steps=config.iterations or None, minutes=config.minutes or None, initial=self.iteration,
+                        desc=f"train {self.model_config.kind}", unit="it",
+                        disable=not progress or not self.world.is_main)
         interrupt = _DeferredInterrupt()
         try:
-            while not finished():
-                by_steps = iteration / config.iterations if config.iterations > 0 else 0.0
-                by_time = elapsed() / (60 * config.minutes) if config.minutes > 0 else 0.0
-                lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-                batch = sample_batch(windows, train_starts, config, model_config.ensemble_size, sampler, world)
-                loss, parts = train_step(compute_loss, optimizer, params, batch, config.grad_clip)
-                iteration += 1
-                running += loss
-                for name, value in parts.items():
-                    parts_sum[name] = parts_sum.get(name, 0.0) + value
-                stats["iterations"], stats["wall_s"] = iteration, clock() - started
-                if iteration % config.val_every == 0 or finished():
-                    count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
-                    running = float(distributed.mean_over_ranks(torch.as_tensor(running, device=device).double(),
-                                                                world))  # the logged loss: the ranks' mean
-                    stats["train_loss"] = running / max(count, 1)
-                    stats["train_parts"] = {k: float(v) / max(count, 1) for k, v in parts_sum.items()}
-                    stats["val_error"] = (validation_error(model, windows, val_starts, config) if world.is_main
-                                          else None)
-                    stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
-                                         "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
-                    running, parts_sum = 0.0, {}
-                    if writer is not None:
-                        for name, value in stats["log"][-1].items():
-                            if name != "iteration" and value is not None:
-                                writer.add_scalar(name, value, iteration)
-                if iteration % config.checkpoint_every == 0:
-                    save()
-                    distributed.reseed_rank(config.seed, world, iteration)
-                postfix = {}
-                if stats["log"] and stats["log"][-1]["iteration"] == iteration:  # not per step: a host copy
-                    postfix = {"loss": f"{stats['train_loss']:.4f}",
-                               "val": stats["val_error"] and f"{stats['val_error']:.4f}"}
-                bar.show(iteration, stats["wall_s"], **postfix)
+            while not self.finished():
+                lr = self._iterate(compute_loss)
+                if self.iteration % config.val_every == 0 or self.finished():
+                    self._log(lr, writer)
+                if self.iteration % config.checkpoint_every == 0:
+                    self.save()
+                    distributed.reseed_rank(config.seed, self.world, self.iteration)
+                self._show(bar)
                 if callback is not None:
-                    callback(iteration, stats)
+                    callback(self.iteration, stats)
                 if interrupt.requested:
                     raise KeyboardInterrupt
-            bar.show(iteration, clock() - started)  # the budget's end (a time bar ends full)
+            bar.show(self.iteration, clock() - self.started)  # the budget's end (a time bar ends full)
         except KeyboardInterrupt:
-            stats["wall_s"] = clock() - started
-            if world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
-                if world.is_main and out is not None:
-                    print(f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
-                          f"({out}, every {config.checkpoint_every} iterations) with --resume", file=sys.stderr)
-            elif save() is not None:
-                print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
+            self._interrupted()
             raise
         finally:
             interrupt.restore()
             bar.close()
             if writer is not None:
                 writer.close()
-        if optimizer is None and world.is_main:
-            stats["val_error"] = validation_error(model, windows, val_starts, config)
-        stats["wall_s"] = clock() - started
-        return TrainResult(model, stats, save())
+        if self.optimizer is None and self.world.is_main:
+            stats["val_error"] = validation_error(self.model, self.windows, self.val_starts, config)
+        stats["wall_s"] = clock() - self.started
+        return TrainResult(self.model, stats, self.save())
+
+    def _iterate(self, compute_loss: torch.nn.Module) -> float:
+        """One optimiser step at the scheduled learning rate (returned), its loss and parts summed for the log."""
+        config = self.config
+        by_steps = self.iteration / config.iterations if config.iterations > 0 else 0.0
+        by_time = self.elapsed() / (60 * config.minutes) if config.minutes > 0 else 0.0
+        lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        batch = sample_batch(self.windows, self.train_starts, config, self.model_config.ensemble_size, self.sampler,
+                             self.world)
+        loss, parts = train_step(compute_loss, self.optimizer, self.params, batch, config.grad_clip)
+        self.iteration += 1
+        self.running += loss
+        for name, value in parts.items():
+            self.parts_sum[name] = self.parts_sum.get(name, 0.0) + value
+        self.stats["iterations"], self.stats["wall_s"] = self.iteration, self.clock() - self.started
+        return lr
+
+    def _log(self, lr: float, writer) -> None:
+        """The interval's mean loss (over the ranks) and parts, the validation error (rank 0), a log row, and the
+        row's scalars to TensorBoard."""
+        stats, iteration = self.stats, self.iteration
+        count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
+        running = float(distributed.mean_over_ranks(torch.as_tensor(self.running, device=self.device).double(),
+                                                    self.world))  # the logged loss: the ranks' mean
+        stats["train_loss"] = running / max(count, 1)
+        stats["train_parts"] = {k: float(v) / max(count, 1) for k, v in self.parts_sum.items()}
+        stats["val_error"] = (validation_error(self.model, self.windows, self.val_starts, self.config)
+                              if self.world.is_main else None)
+        stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
+                             "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
+        self.running, self.parts_sum = 0.0, {}
+        if writer is not None:
+            for name, value in stats["log"][-1].items():
+                if name != "iteration" and value is not None:
+                    writer.add_scalar(name, value, iteration)
+
+    def _show(self, bar: BudgetBar) -> None:
+        """The progress bar, with the loss and validation error on iterations that logged them."""
+        stats, postfix = self.stats, {}
+        if stats["log"] and stats["log"][-1]["iteration"] == self.iteration:  # not per step: a host copy
+            postfix = {"loss": f"{stats['train_loss']:.4f}",
+                       "val": stats["val_error"] and f"{stats['val_error']:.4f}"}
+        bar.show(self.iteration, stats["wall_s"], **postfix)
+
+    def _interrupted(self) -> None:
+        """Ctrl-C (or a callback's KeyboardInterrupt): save a resumable checkpoint and say how to continue."""
+        self.stats["wall_s"] = self.clock() - self.started
+        out, iteration = self.out, self.iteration
+        if self.world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
+            if self.world.is_main and out is not None:
+                print(f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
+                      f"({out}, every {self.config.checkpoint_every} iterations) with --resume", file=sys.stderr)
+        elif self.save() is not None:
+            print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
 
 
 def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | None, config: TrainConfig,

@@ -1,9 +1,10 @@
 """dm_control suite tasks (cheetah, walker, hopper, quadruped, humanoid, finger, ...) as rwm-gym physics envs.
 
 `DMCCore` runs N suite environments of one task side by side (a plain loop: the suite's models are small), using
-dm_control's own MJCF models and task code for initial states and rewards. It exposes the batched-core protocol of
-`rwm_gym.vector` and `rwm_gym.data.collect`; `DMCEnv` is the core with N = 1 behind `gymnasium.Env`, and
-`DMCGymVectorEnv` / `DMCSB3VecEnv` the core with N > 1, so all give identical transitions per seed.
+dm_control's own MJCF models and task code for initial states and rewards. It follows the protocol of
+`rwm_gym.batched_core` (which `rwm_gym.data.collect` drives); `DMCEnv` is the core with N = 1 behind `gymnasium.Env`,
+and the vector envs of `rwm_gym.vector` (`DMCGymVectorEnv`, `DMCSB3VecEnv`) the core with N > 1, so all give
+identical transitions per seed.
 
 The world-model state is read from the physics as the spec declares (see `rwm_gym.physics.dmc_layout`); the policy
 observation is the spec's `[observation]` groups (the state plus the last action). Suite tasks never terminate; an
@@ -19,12 +20,10 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.physics.dmc_layout import DMCLayout
 from rwm_gym.spec import SuiteTask, TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
-from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
-from rwm_gym.vector.gym_vector_env import CoreGymVectorEnv
-from rwm_gym.vector.sb3_vec_env import CoreSB3VecEnv
 
 
 def _load(suite_task: SuiteTask):
@@ -163,20 +162,3 @@ class DMCEnv(gym.Env):
         height, width = self._render_size
         return self.physics.render(height=height, width=width, camera_id=self._camera)
 
-
-class DMCGymVectorEnv(CoreGymVectorEnv):
-    """Gymnasium VectorEnv of N copies of a dm_control task (`gym.make_vec(id, num_envs=N)`)."""
-
-    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run", **kwargs):
-        kwargs.pop("render_mode", None)
-        super().__init__(make_core(spec, num_envs, **kwargs))
-
-
-class DMCSB3VecEnv(CoreSB3VecEnv):
-    """SB3 VecEnv of N copies of a dm_control task."""
-
-    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run"):
-        super().__init__(make_core(spec, num_envs))
-
-
-DMCVectorEnv, DMCVecEnv = DMCGymVectorEnv, DMCSB3VecEnv  # deprecated names

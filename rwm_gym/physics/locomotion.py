@@ -1,8 +1,8 @@
 """Velocity-tracking locomotion in MuJoCo: the vectorised task core and the single `gymnasium.Env`.
 
 `LocomotionCore` runs N simulations at once on either simulator backend and hands the measured states to the task
-object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the batched
-envs in `rwm_gym.physics.batched` are the same core with N > 1. So the three give identical transitions per seed.
+object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the vector
+envs in `rwm_gym.vector` are the same core with N > 1 (`make_core`). So the three give identical transitions per seed.
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
 from rwm_gym.task.tasks import VelocityTrackingTask
-from rwm_gym.vector.core import check_actions, check_num_envs, commands_from_options
 
 
 class LocomotionCore:
@@ -137,6 +137,23 @@ class LocomotionCore:
             "qpos": np.array(arrays["qpos"], dtype=np.float64),
             "qvel": np.array(arrays["qvel"], dtype=np.float64),
         }
+
+
+def make_core(
+    spec: str | TaskSpec = "anymal_d",
+    num_envs: int = 1,
+    *,
+    xml_file: str | Path | None = None,
+    physics: PhysicsParams | Mapping[str, object] | None = None,
+    observation_noise: bool = False,
+    nthread: int = 0,
+    resample_commands: bool = True,
+    solver: SolverSettings | Mapping[str, int] | None = None,
+) -> LocomotionCore:
+    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; `nthread` 0: all CPUs."""
+    task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
+    return LocomotionCore(task, num_envs, xml_file=xml_file, physics=physics, observation_noise=observation_noise,
+                          nthread=nthread, resample_commands=resample_commands, solver=solver)
 
 
 class LocomotionEnv(gym.Env):

@@ -1,4 +1,5 @@
-"""Policies that drive collections: random exploration, the scripted gait, or a trained SB3 policy.
+"""Policies that drive collections: random exploration, zero actions, or a trained SB3 policy (the scripted gait is
+`rwm_gym.policies.gait`; `rwm_gym.policies.factory.make_policy` picks one by name).
 
 Every policy is vectorised over N envs and follows one small protocol:
 `reset(ids, rngs)` at the start of episodes in envs `ids` (one generator each, so the data is deterministic), and
@@ -97,20 +98,3 @@ class SB3Policy:
         if self.action_noise > 0:
             actions = actions + gaussian_noise(self.rngs, self.action_noise, self.action_dim)
         return np.clip(actions, -1.0, 1.0)
-
-
-def make_policy(name: str, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0) -> Policy:
-    """`random`, `zero`, `gait`, or the path of an SB3 `.zip`."""
-    if name == "zero":
-        return ZeroPolicy(spec, num_envs, action_noise=action_noise)
-    if name == "random":
-        return RandomPolicy(spec, num_envs)
-    if name == "gait":
-        from rwm_gym.policies.gait import GaitPolicy
-
-        return GaitPolicy(spec, num_envs, action_noise=action_noise)
-    if name.endswith(".zip"):
-        if not Path(name).is_file():
-            raise FileNotFoundError(f"policy file {name} not found")
-        return SB3Policy(name, spec, num_envs, action_noise=action_noise)
-    raise ValueError(f"unknown policy {name!r}: use 'random', 'zero', 'gait' or the path of an SB3 .zip")

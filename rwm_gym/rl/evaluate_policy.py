@@ -135,72 +135,108 @@ def evaluate_policy(
     physics core (e.g. `physics`, `observation_noise`). `core`: a batched core of len(commands) x len(seeds) envs to
     run instead of physics, e.g. an imagined one (`ImaginedCore`, commands not resampled) for the same score in a model.
     """
-    from rwm_gym.physics.batched import make_core
-
     act = as_policy(policy)
     started = time.monotonic()
     commands = [tuple(float(c) for c in cmd) for cmd in (commands or scoring_commands(spec))]
     pairs = [(c, s) for c in commands for s in seeds]
-    if core is None:
-        core = make_core(spec, len(pairs), **(env_kwargs or {}))
-    elif core.num_envs != len(pairs):
-        raise ValueError(f"core has {core.num_envs} envs, the evaluation needs {len(pairs)} (commands x seeds)")
+    core = _evaluation_core(core, spec, len(pairs), env_kwargs)
     task = core.spec
     steps = steps or task.episode_steps
     if len(commands[0]) != len(task.command.names):
         raise ValueError(f"commands have {len(commands[0])} entries, the task's {task.name} has {task.command.names}")
-    n, dt = len(pairs), task.policy_dt
+    n = len(pairs)
     obs = core.reset(np.arange(n), [s for _, s in pairs], np.asarray([c for c, _ in pairs], dtype=np.float32))
-    lin, ang = task.state_slices["base_lin_vel"], task.state_slices["base_ang_vel"]
-    alive = np.ones(n, dtype=bool)
-    returns, counted, tracking = np.zeros(n), np.zeros(n), np.zeros(n)
-    disagreement: np.ndarray | None = None  # summed over each env's steps before a fall, where the core reports it
-    alive_steps = np.zeros(n)
-    sums = {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")}
-    cmd = core.command.astype(np.float64)
-    cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
-    direction = np.divide(cmd[:, :2], cmd_norm[:, None], out=np.zeros((n, 2)), where=cmd_norm[:, None] > 0)
+    tally = _Tally.start(task, core.command.astype(np.float64))
     for t in range(steps):
         obs, reward, terminated, _, info = core.step(np.clip(act(obs), -1.0, 1.0))
-        returns += np.where(alive, reward, 0.0)
-        if "uncertainty" in info:
-            disagreement = np.zeros(n) if disagreement is None else disagreement
-            disagreement += np.where(alive, info["uncertainty"], 0.0)
-            alive_steps += alive
-        alive &= ~terminated
         state = core.current.state if hasattr(core, "current") else core.state
-        tracking += np.where(alive, tracking_terms(task, state, cmd), 0.0)
-        # a fallen robot makes no progress: it counts as standing still for the rest of the evaluation
-        v = np.where(alive[:, None], state[:, lin][:, :2], 0.0)
-        wz = np.where(alive, state[:, ang][:, 2], 0.0)
-        sums["dist"] += np.where(alive, (v * direction).sum(1) * dt, 0.0)
-        if t >= settle_steps:
-            counted += 1
-            sums["lin_err"] += np.linalg.norm(v - cmd[:, :2], axis=1)
-            sums["yaw_err"] += np.abs(wz - cmd[:, 2])
-            sums["vx"] += v[:, 0]
-            sums["vy"] += v[:, 1]
-            sums["wz"] += wz
-    means = {k: s / np.maximum(counted, 1) for k, s in sums.items() if k != "dist"}
-    rows = []
-    for c in commands:
-        m = np.array([pc == c for pc, _ in pairs])
-        achieved = np.stack([means["vx"][m], means["vy"][m], means["wz"][m]], axis=1)
-        rows.append(CommandResult(
-            command=c, tracking=float(tracking[m].mean() / steps), episode_return=float(returns[m].mean()),
-            lin_vel_error=float(means["lin_err"][m].mean()),
-            yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~alive[m]).sum()),
-            distance=float(sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
-            achieved_std=tuple(float(x) for x in achieved.std(0)),
-            disagreement=None if disagreement is None else float(disagreement[m].sum() / alive_steps[m].sum()),
-        ))
+        tally.add(reward, terminated, info, state, settled=t >= settle_steps)
+    rows = [tally.result(c, np.array([pc == c for pc, _ in pairs]), steps) for c in commands]
     return Evaluation(
-        commands=rows, tracking=float(tracking.mean() / steps),
+        commands=rows, tracking=float(tally.tracking.mean() / steps),
         episode_return=float(np.mean([r.episode_return for r in rows])),
         lin_vel_error=float(np.mean([r.lin_vel_error for r in rows])),
         yaw_rate_error=float(np.mean([r.yaw_rate_error for r in rows])), falls=int(sum(r.falls for r in rows)),
         episodes=n, steps=steps, wall_s=time.monotonic() - started,
     )
+
+
+def _evaluation_core(core, spec: str | TaskSpec, num_envs: int, env_kwargs: dict | None):
+    """The physics core of `num_envs` envs, or the given `core` if it has that many."""
+    from rwm_gym.physics.locomotion import make_core
+
+    if core is None:
+        return make_core(spec, num_envs, **(env_kwargs or {}))
+    if core.num_envs != num_envs:
+        raise ValueError(f"core has {core.num_envs} envs, the evaluation needs {num_envs} (commands x seeds)")
+    return core
+
+
+@dataclass
+class _Tally:
+    """Per-env sums over an evaluation's steps; arrays are (N,) unless said otherwise."""
+
+    task: TaskSpec
+    cmd: np.ndarray
+    """(N, K) each env's command."""
+    direction: np.ndarray
+    """(N, 2) unit vector of the commanded xy velocity (0 for none)."""
+    alive: np.ndarray
+    returns: np.ndarray
+    counted: np.ndarray
+    """Settled steps counted in the velocity sums."""
+    tracking: np.ndarray
+    alive_steps: np.ndarray
+    sums: dict[str, np.ndarray]
+    """lin_err, yaw_err, vx, vy, wz over the settled steps; dist over every step."""
+    disagreement: np.ndarray | None = None
+    """Summed over each env's steps before a fall, where the core reports it."""
+
+    @classmethod
+    def start(cls, task: TaskSpec, cmd: np.ndarray) -> _Tally:
+        n = len(cmd)
+        cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
+        direction = np.divide(cmd[:, :2], cmd_norm[:, None], out=np.zeros((n, 2)), where=cmd_norm[:, None] > 0)
+        return cls(task, cmd, direction, np.ones(n, dtype=bool), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
+                   {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")})
+
+    def add(self, reward: np.ndarray, terminated: np.ndarray, info: dict, state: np.ndarray, settled: bool) -> None:
+        """One step: the reward and disagreement before a fall, then tracking, distance and (once `settled`) the
+        velocities of the envs still up."""
+        alive, cmd, sums = self.alive, self.cmd, self.sums
+        self.returns += np.where(alive, reward, 0.0)
+        if "uncertainty" in info:
+            self.disagreement = np.zeros(len(alive)) if self.disagreement is None else self.disagreement
+            self.disagreement += np.where(alive, info["uncertainty"], 0.0)
+            self.alive_steps += alive
+        alive &= ~terminated
+        self.tracking += np.where(alive, tracking_terms(self.task, state, cmd), 0.0)
+        # a fallen robot makes no progress: it counts as standing still for the rest of the evaluation
+        lin, ang = self.task.state_slices["base_lin_vel"], self.task.state_slices["base_ang_vel"]
+        v = np.where(alive[:, None], state[:, lin][:, :2], 0.0)
+        wz = np.where(alive, state[:, ang][:, 2], 0.0)
+        sums["dist"] += np.where(alive, (v * self.direction).sum(1) * self.task.policy_dt, 0.0)
+        if settled:
+            self.counted += 1
+            sums["lin_err"] += np.linalg.norm(v - cmd[:, :2], axis=1)
+            sums["yaw_err"] += np.abs(wz - cmd[:, 2])
+            sums["vx"] += v[:, 0]
+            sums["vy"] += v[:, 1]
+            sums["wz"] += wz
+
+    def result(self, command: tuple[float, ...], m: np.ndarray, steps: int) -> CommandResult:
+        """The means over the envs `m` (a mask) of one command."""
+        means = {k: s / np.maximum(self.counted, 1) for k, s in self.sums.items() if k != "dist"}
+        achieved = np.stack([means["vx"][m], means["vy"][m], means["wz"][m]], axis=1)
+        disagreement = self.disagreement
+        return CommandResult(
+            command=command, tracking=float(self.tracking[m].mean() / steps),
+            episode_return=float(self.returns[m].mean()), lin_vel_error=float(means["lin_err"][m].mean()),
+            yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~self.alive[m]).sum()),
+            distance=float(self.sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
+            achieved_std=tuple(float(x) for x in achieved.std(0)),
+            disagreement=None if disagreement is None else float(disagreement[m].sum() / self.alive_steps[m].sum()),
+        )
 
 
 def format_table(evaluation: Evaluation) -> str:

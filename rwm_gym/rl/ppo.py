@@ -290,11 +290,11 @@ def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None 
              seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
     """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
     if where == "imagination":
-        from rwm_gym.imagination.vec_env import ImaginedSB3VecEnv
+        from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
         env = ImaginedSB3VecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
     elif where == "physics":
-        from rwm_gym.physics.batched import LocomotionSB3VecEnv
+        from rwm_gym.vector.sb3_vec_env import LocomotionSB3VecEnv
 
         env = LocomotionSB3VecEnv(num_envs=num_envs, **(env_kwargs or {}))
     else:

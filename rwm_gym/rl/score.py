@@ -43,7 +43,7 @@ def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
     if isinstance(policy, str) and policy == "zero":
         return zero_policy
     if isinstance(policy, str) and policy in SCRIPTED:
-        from rwm_gym.policies.base import make_policy
+        from rwm_gym.policies.factory import make_policy
         from rwm_gym.spec import load_spec
 
         scripted = make_policy(policy, load_spec(spec), num_envs)

@@ -21,6 +21,7 @@ robot's standing height; every such choice is listed in the spec's header.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -147,10 +148,60 @@ def _task_name(name: str | None, model_name: str) -> str:
     return out
 
 
+@dataclass
+class _Legs:
+    """The robot below the base body, as the MJCF gives it: ids index the compiled model."""
+
+    base: int
+    base_name: str
+    joint_ids: list[int]
+    joints: list[str]
+    """The hinge joints' names, in model order."""
+    feet: list[int]
+    thighs: list[int]
+    """The feet's parent bodies (those that are not the base)."""
+    thigh_names: list[str]
+
+
+@dataclass
+class _Pose:
+    """The default pose: the keyframe's name, qpos, each foot's (geom, centre in the body frame, radius), the joint
+    angles (rad), and the base's height (m)."""
+
+    keyframe: str
+    qpos: np.ndarray
+    points: list[tuple[int, np.ndarray, float]]
+    default_pose: list[float]
+    height: float
+
+
 def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] | None = None,
                  name: str | None = None) -> tuple[SpecDraft, str]:
     """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller."""
     path = Path(mjcf)
+    mj, model = _load(path)
+    notes: list[str] = []
+    legs = _find_legs(model, base, feet, notes)
+    pose = _find_pose(mj, model, legs, notes)
+    mass = float(model.body_subtreemass[legs.base])
+    servo = _gains(model, legs.joint_ids, mass, pose.height, len(legs.feet), notes)
+    _add_floor_camera_and_servos(mj, model, legs, pose, servo, notes)
+    foot_names = _add_contact_sensors(mj, model, legs, pose)
+    try:
+        mj.compile()
+    except ValueError as err:
+        raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
+    dt, policy_dt, speed = _timing(model, pose.height, notes)
+    task_name = _task_name(name, mj.modelname)
+    tables = _tables(task_name, legs, pose, servo, foot_names, dt, policy_dt, speed)
+    robot_line = (f"Robot: {mass:.3g} kg, {len(legs.joints)} joints, {len(foot_names)} feet, base {legs.base_name!r} "
+                  f"standing at {pose.height:.3f} m. Units: SI (m, s, rad, N, N·m, kg).")
+    header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
+    return SpecDraft(header, tables, notes), mj.to_xml()
+
+
+def _load(path: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
+    """The MJCF as an editable spec (its asset folders made absolute, for a copy that lives elsewhere) and compiled."""
     if not path.is_file():
         raise FileNotFoundError(f"MJCF {path} not found")
     try:
@@ -160,28 +211,50 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
         raise ValueError(f"{path}: MuJoCo cannot load it ({' '.join(str(err).split())[:200]})") from None
     for attr in ("meshdir", "texturedir"):  # the copy lives elsewhere: point it at the original's asset folders
         setattr(mj, attr, str((path.resolve().parent / (getattr(mj, attr) or "")).resolve()))
-    notes: list[str] = []
+    return mj, model
+
+
+def _find_legs(model: mujoco.MjModel, base: str | None, feet: list[str] | None, notes: list[str]) -> _Legs:
+    """The base (`--base`, else the body with the free joint), its hinge joints, and the feet (`--feet`, else the
+    leaf bodies with colliding geoms) and thighs."""
     b = _find_base(model, base)
     base_name = _name(model, _BODY, b)
     robot = _subtree(model, b)
+    joint_ids, joints = _hinge_joints(model, b, robot, base_name)
+    foot_bodies = _find_feet(model, b, robot, base_name, feet, notes)
+    thighs = [int(model.body_parentid[f]) for f in foot_bodies if model.body_parentid[f] != b]
+    return _Legs(b, base_name, joint_ids, joints, foot_bodies, thighs, [_name(model, _BODY, t) for t in thighs])
+
+
+def _hinge_joints(model: mujoco.MjModel, b: int, robot: list[int], base_name: str) -> tuple[list[int], list[str]]:
+    """Ids and names of the joints below the base `b`, which must all be named hinges."""
     joint_ids = [j for j in range(model.njnt) if model.jnt_bodyid[j] in robot and j != model.body_jntadr[b]]
     if any(int(model.jnt_type[j]) != int(mujoco.mjtJoint.mjJNT_HINGE) for j in joint_ids) or not joint_ids:
         raise ValueError(f"the robot below {base_name!r} must move by hinge joints only (and have some)")
     joints = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in joint_ids]
     if not all(joints):
         raise ValueError("every hinge joint needs a name (the spec lists them)")
+    return joint_ids, joints
 
+
+def _find_feet(model: mujoco.MjModel, b: int, robot: list[int], base_name: str, feet: list[str] | None,
+               notes: list[str]) -> list[int]:
+    """The foot bodies: those named by `--feet`, else the robot's leaf bodies with colliding geoms."""
     if feet:
         foot_bodies = [mujoco.mj_name2id(model, _BODY, f) for f in feet]
         missing = [f for f, i in zip(feet, foot_bodies) if i < 0 or i not in robot]
         if missing:
             raise ValueError(f"--feet: {missing[0]!r} is not a body of the robot below {base_name!r}")
-    else:
-        foot_bodies = [c for c in robot if c != b and not any(model.body_parentid[k] == c for k in robot)
-                       and _colliding_geoms(model, c)]
-        notes.append(f"feet: the leaf bodies {', '.join(_name(model, _BODY, f) for f in foot_bodies)}")
-    thighs = [int(model.body_parentid[f]) for f in foot_bodies if model.body_parentid[f] != b]
+        return foot_bodies
+    foot_bodies = [c for c in robot if c != b and not any(model.body_parentid[k] == c for k in robot)
+                   and _colliding_geoms(model, c)]
+    notes.append(f"feet: the leaf bodies {', '.join(_name(model, _BODY, f) for f in foot_bodies)}")
+    return foot_bodies
 
+
+def _find_pose(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, notes: list[str]) -> _Pose:
+    """The first keyframe (named "home" in the copy if it has no name), else qpos0 lowered until the feet touch the
+    floor."""
     data = mujoco.MjData(model)
     if model.nkey:
         keyframe = _name(model, mujoco.mjtObj.mjOBJ_KEY, 0) or "home"
@@ -192,39 +265,48 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
         keyframe, qpos = "home", model.qpos0.copy()
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
-    points = [_foot_point(model, data, f) for f in foot_bodies]
+    points = [_foot_point(model, data, f) for f in legs.feet]
     if not model.nkey:
         lowest = min(float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p)[2]) - r
-                     for f, (_, p, r) in zip(foot_bodies, points))
+                     for f, (_, p, r) in zip(legs.feet, points))
         qpos[2] -= lowest
         data.qpos[:] = qpos
         mujoco.mj_forward(model, data)
         notes.append(f"default pose: qpos0 with the base at {qpos[2]:.3f} m so the feet touch the floor "
                      f"(keyframe 'home' added)")
-    default_pose = [significant(float(qpos[model.jnt_qposadr[j]]), 6) for j in joint_ids]
-    height = float(data.xpos[b, 2])
-    mass = float(model.body_subtreemass[b])
-    kp, kd, limit = _gains(model, joint_ids, mass, height, len(foot_bodies), notes)
+    default_pose = [significant(float(qpos[model.jnt_qposadr[j]]), 6) for j in legs.joint_ids]
+    return _Pose(keyframe, qpos, points, default_pose, float(data.xpos[legs.base, 2]))
 
+
+def _add_floor_camera_and_servos(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, pose: _Pose,
+                                 servo: tuple[float, float, float], notes: list[str]) -> None:
+    """Into the copy: a floor plane and a "track" camera where missing, a position servo named after each joint (in
+    place of the joints' actuators), and the default keyframe where the file has none."""
+    kp, kd, limit = servo
     if not any(model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
                for g in range(model.ngeom)):
         mj.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05])
         notes.append("no floor plane in the world: a plane 'floor' added at z = 0")
     if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "track") < 0:  # the physics env renders from "track"
-        scale = 4.0 * height
-        mj.body(base_name).add_camera(name="track", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
-                                      pos=[0.5 * scale, -scale, 0.5 * scale], xyaxes=[0.894, 0.447, 0, -0.128, 0.255, 0.958])
-    for actuator in [a for a in mj.actuators if a.target in joints]:
+        scale = 4.0 * pose.height
+        mj.body(legs.base_name).add_camera(name="track", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
+                                           pos=[0.5 * scale, -scale, 0.5 * scale],
+                                           xyaxes=[0.894, 0.447, 0, -0.128, 0.255, 0.958])
+    for actuator in [a for a in mj.actuators if a.target in legs.joints]:
         mj.delete(actuator)
-    for j in joints:
+    for j in legs.joints:
         act = mj.add_actuator(name=j, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=kp, kv=kd)
         act.forcelimited, act.forcerange = True, [-limit, limit]
     if not model.nkey:
-        mj.add_key(name=keyframe, qpos=list(qpos), ctrl=default_pose)
+        mj.add_key(name=pose.keyframe, qpos=list(pose.qpos), ctrl=pose.default_pose)
 
+
+def _add_contact_sensors(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, pose: _Pose) -> list[str]:
+    """Into the copy: a site and touch sensor around each foot (named after its geom: the foot names, returned), and
+    a box site and touch sensor `contact_BODY` around the base and each thigh."""
     foot_names = []
-    for f, (g, point, radius) in zip(foot_bodies, points):
+    for f, (g, point, radius) in zip(legs.feet, pose.points):
         body = mj.body(_name(model, _BODY, f))
         geom = body.geoms[g - model.body_geomadr[f]]
         geom.name = geom.name or f"{_name(model, _BODY, f)}_foot"
@@ -235,38 +317,44 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
         mj.add_sensor(name=f"contact_{geom.name}", type=mujoco.mjtSensor.mjSENS_TOUCH,
                       objtype=mujoco.mjtObj.mjOBJ_SITE, objname=geom.name)
         foot_names.append(geom.name)
-    sensed = [b, *thighs]
-    for s in sensed:
+    for s in [legs.base, *legs.thighs]:
         centre, half = _enclosing_box(model, s)
         site = f"contact_{_name(model, _BODY, s)}"
         mj.body(_name(model, _BODY, s)).add_site(name=site, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre),
                                                   size=list(half), group=4)
         mj.add_sensor(name=site, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
-    try:
-        mj.compile()
-    except ValueError as err:
-        raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
+    return foot_names
 
+
+def _timing(model: mujoco.MjModel, height: float, notes: list[str]) -> tuple[float, float, float]:
+    """(physics dt s, policy dt s: about 0.02 s in whole physics steps, command speed m/s and rad/s: ANYmal D's
+    scaled by the standing height)."""
     dt = float(model.opt.timestep)
     substeps = max(1, round(0.02 / dt))
     policy_dt = significant(substeps * dt, 9)
     notes.append(f"policy step {policy_dt} s = {substeps} x the model's timestep {dt} s; episodes of 1000 steps")
-    anymal = load_spec("anymal_d")
     speed = significant(min(1.0, height / 0.6), 2)  # ANYmal D stands 0.6 m tall and is commanded up to 1 m/s
     notes.append(f"commands up to {speed} m/s and rad/s (ANYmal D's 1 m/s x standing height {height:.3f} m / 0.6 m); "
                  f"reward weights, reset noise and action scale are ANYmal D's")
-    thigh_names = [_name(model, _BODY, t) for t in thighs]
-    task_name = _task_name(name, mj.modelname)
-    a = anymal
+    return dt, policy_dt, speed
+
+
+def _tables(task_name: str, legs: _Legs, pose: _Pose, servo: tuple[float, float, float], foot_names: list[str],
+            dt: float, policy_dt: float, speed: float) -> list[Table]:
+    """The spec's tables: the robot's own figures, and ANYmal D's (`envs/anymal_d.toml`) for the rest."""
+    a = load_spec("anymal_d")
+    kp, kd, limit = servo
+    joints, thigh_names = legs.joints, legs.thigh_names
     tables = [
         Table("task", {"name": task_name, "physics_env_id": f"{task_name}-MuJoCo-v0",
                        "imagined_env_id": f"RWM-{task_name}-v0", "model": "", "policy_dt": policy_dt,
-                       "physics_dt": dt, "episode_steps": 1000, "keyframe": keyframe, "base_body": base_name},
+                       "physics_dt": dt, "episode_steps": 1000, "keyframe": pose.keyframe,
+                       "base_body": legs.base_name},
               {"model": "the rwm-ready copy written beside this spec", "policy_dt": "s", "physics_dt": "s"}),
         Table("reset", {"joint_pos_noise": a.reset.joint_pos_noise, "base_lin_vel_noise": a.reset.base_lin_vel_noise,
                         "base_ang_vel_noise": a.reset.base_ang_vel_noise},
               {"joint_pos_noise": "rad", "base_lin_vel_noise": "m/s", "base_ang_vel_noise": "rad/s"}),
-        Table("actuator", {"joints": joints, "default_pose": default_pose, "action_scale": a.actuator.action_scale,
+        Table("actuator", {"joints": joints, "default_pose": pose.default_pose, "action_scale": a.actuator.action_scale,
                            "kp": kp, "kd": kd, "effort_limit": limit},
               {"default_pose": "rad", "action_scale": "rad per unit action", "kp": "N·m/rad", "kd": "N·m·s/rad",
                "effort_limit": "N·m"}),
@@ -279,7 +367,7 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
                                       "std": [1.0] * len(columns)}, array=True))
     tables += [
         Table("privileged", {"contact_bodies": thigh_names + foot_names, "contact_threshold": 1.0, "feet": foot_names,
-                             "thighs": thigh_names, "termination_bodies": [base_name], "foot_height_std": 0.1},
+                             "thighs": thigh_names, "termination_bodies": [legs.base_name], "foot_height_std": 0.1},
               {"contact_threshold": "N", "foot_height_std": "m"}),
         Table("observation", {"groups": list(a.observation.groups)}),
         Table("command", {"names": list(a.command.names), "low": [-speed] * 3, "high": [speed] * 3,
@@ -290,7 +378,4 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
                          "feet_air_time_target": a.reward.feet_air_time_target}),
         Table("reward.weights", dict(a.reward.weights)),
     ]
-    robot_line = (f"Robot: {mass:.3g} kg, {len(joints)} joints, {len(foot_names)} feet, base {base_name!r} standing at "
-                  f"{height:.3f} m. Units: SI (m, s, rad, N, N·m, kg).")
-    header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
-    return SpecDraft(header, tables, notes), mj.to_xml()
+    return tables

@@ -3,12 +3,17 @@
 Auto-reset is `AutoresetMode.SAME_STEP`: the observation returned for a finished env is its new episode's first; the
 last one is `info["final_obs"]` (N, O), valid where the mask `info["_final_obs"]` is True. Every info key `k` comes with
 its mask `info["_k"]`, as `SyncVectorEnv` gives them. `reset(options={"command": (vx, vy, yaw)})` holds a command (see
-`rwm_gym.vector.core.commands_from_options`).
+`rwm_gym.batched_core.commands_from_options`).
+
+The envs of each core are here too (`gym.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")` makes
+them): MuJoCo physics, dm_control physics, imagination. Each imports its core when made, so that a physics user does
+not import torch, and no user imports Stable-Baselines3.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -16,7 +21,9 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from rwm_gym.vector.core import BatchedCore, commands_from_options, seeds_per_env, step_with_autoreset
+from rwm_gym.batched_core import BatchedCore, commands_from_options
+from rwm_gym.spec import TaskSpec
+from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 
 class CoreGymVectorEnv(gym.vector.VectorEnv):
@@ -57,3 +64,35 @@ class CoreGymVectorEnv(gym.vector.VectorEnv):
             full[done] = final_obs
             infos["final_obs"], infos["_final_obs"] = full, mask
         return obs, reward, terminated, truncated, infos
+
+
+class LocomotionGymVectorEnv(CoreGymVectorEnv):
+    """Gymnasium VectorEnv of N MuJoCo simulations (`mujoco.batch` on a thread pool); kwargs as `LocomotionEnv` plus
+    `nthread` (0: all CPUs)."""
+
+    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
+        from rwm_gym.physics.locomotion import make_core
+
+        kwargs.pop("render_mode", None)
+        super().__init__(make_core(spec, num_envs, **kwargs))
+
+
+class DMCGymVectorEnv(CoreGymVectorEnv):
+    """Gymnasium VectorEnv of N copies of a dm_control task (`gym.make_vec(id, num_envs=N)`)."""
+
+    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run", **kwargs):
+        from rwm_gym.physics.dmc import make_core
+
+        kwargs.pop("render_mode", None)
+        super().__init__(make_core(spec, num_envs, **kwargs))
+
+
+class ImaginedGymVectorEnv(CoreGymVectorEnv):
+    """Gymnasium VectorEnv of N imagined rollouts, all in one forward pass of the world model; kwargs as
+    `ImaginedEnv`. Every reset replays a real warm-up."""
+
+    def __init__(self, num_envs: int = 1, checkpoint: str | Path | None = None, **kwargs):
+        from rwm_gym.imagination.env import make_imagined_core
+
+        kwargs.pop("render_mode", None)
+        super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs))

@@ -31,7 +31,8 @@ import torch
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
-from rwm_gym.vector.core import BatchedCore, commands_from_options, seeds_per_env, step_with_autoreset
+from rwm_gym.batched_core import BatchedCore, commands_from_options
+from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 OBSERVATION_GROUP = "policy"
 """The one observation group: Isaac Lab's name, which rsl_rl falls back to for every observation set."""
@@ -96,7 +97,7 @@ class CoreRslRlVecEnv(VecEnv):
 
     def reset(self, seed: int | None = None, command=None) -> TensorDict:
         """Start a new episode in every env; `command` (K numbers, or one row per env) is held through auto-resets
-        until the next reset without it (see `rwm_gym.vector.core.commands_from_options`)."""
+        until the next reset without it (see `rwm_gym.batched_core.commands_from_options`)."""
         names = self.core.spec.command.names
         self._held_commands = commands_from_options({"command": command}, self.num_envs, names)
         obs = self.core.reset(np.arange(self.num_envs), seeds_per_env(seed, self.num_envs), self._held_commands)
@@ -155,7 +156,7 @@ class ImaginedRslRlVecEnv(CoreRslRlVecEnv):
     tensors too)."""
 
     def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, seed: int | None = 0, **kwargs):
-        from rwm_gym.imagination.vec_env import make_imagined_core
+        from rwm_gym.imagination.env import make_imagined_core
 
         super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs), seed=seed)
 
@@ -166,6 +167,6 @@ class LocomotionRslRlVecEnv(CoreRslRlVecEnv):
 
     def __init__(self, num_envs: int = 1, spec: str = "anymal_d", *, seed: int | None = 0,
                  device: str | torch.device = "cpu", **kwargs):
-        from rwm_gym.physics.batched import make_core
+        from rwm_gym.physics.locomotion import make_core
 
         super().__init__(make_core(spec, num_envs, **kwargs), seed=seed, device=device)

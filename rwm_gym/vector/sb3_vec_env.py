@@ -3,18 +3,24 @@
 SB3's auto-reset rules: the last observation of a finished env is `infos[i]["terminal_observation"]`, a time limit is
 `infos[i]["TimeLimit.truncated"]`, and a finished episode's return, length and wall time are `infos[i]["episode"]`
 (`{"r", "l", "t"}`, as `VecMonitor` writes them), so SB3 logs `rollout/ep_rew_mean` without a wrapper.
+
+The envs of each core are here too: MuJoCo physics, dm_control physics, imagination. Each imports its core when made,
+as in `rwm_gym.vector.gym_vector_env`.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from rwm_gym.vector.core import BatchedCore, seeds_per_env, step_with_autoreset
+from rwm_gym.batched_core import BatchedCore
+from rwm_gym.spec import TaskSpec
+from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 
 class CoreSB3VecEnv(VecEnv):
@@ -76,3 +82,30 @@ class CoreSB3VecEnv(VecEnv):
         if indices is None:
             return list(range(self.num_envs))
         return [indices] if isinstance(indices, int) else list(indices)
+
+
+class LocomotionSB3VecEnv(CoreSB3VecEnv):
+    """SB3 VecEnv of N MuJoCo simulations; kwargs as `LocomotionEnv` plus `nthread` (0: all CPUs)."""
+
+    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
+        from rwm_gym.physics.locomotion import make_core
+
+        super().__init__(make_core(spec, num_envs, **kwargs))
+
+
+class DMCSB3VecEnv(CoreSB3VecEnv):
+    """SB3 VecEnv of N copies of a dm_control task."""
+
+    def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "dmc_cheetah_run"):
+        from rwm_gym.physics.dmc import make_core
+
+        super().__init__(make_core(spec, num_envs))
+
+
+class ImaginedSB3VecEnv(CoreSB3VecEnv):
+    """SB3 VecEnv of N imagined rollouts (numpy in and out; the model on cpu or cuda); kwargs as `ImaginedEnv`."""
+
+    def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, **kwargs):
+        from rwm_gym.imagination.env import make_imagined_core
+
+        super().__init__(make_imagined_core(checkpoint, num_envs, **kwargs))

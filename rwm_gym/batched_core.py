@@ -1,4 +1,4 @@
-"""What every batched core shares, whichever vector API wraps it.
+"""The batched core: what every core provides and checks, whichever env or vector API wraps it.
 
 A *core* steps N envs at once (the MuJoCo batch, the dm_control loop, the world model). It provides:
 
@@ -8,8 +8,8 @@ A *core* steps N envs at once (the MuJoCo batch, the dm_control loop, the world 
 - `step(actions) -> obs, reward, terminated, truncated, info`: every env one step, arrays with a leading N axis and
   `info` a dict of (N, ...) arrays; the core never resets on its own.
 
-Auto-reset (both adapters): an env that terminates or truncates is reset in the same call, and the observation returned
-for it is the new episode's first; the adapters say where the last one goes.
+The single envs (`LocomotionEnv`, `DMCEnv`, `ImaginedEnv`) are a core with N = 1; the vector envs of `rwm_gym.vector`
+wrap a core with N envs and reset finished ones automatically.
 """
 
 from __future__ import annotations
@@ -53,18 +53,6 @@ def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.clip(actions, -1.0, 1.0)
 
 
-def seeds_per_env(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
-    """Gymnasium's convention: an int seeds env i with seed + i; a list gives one seed per env."""
-    if seed is None:
-        return [None] * n
-    if isinstance(seed, (int, np.integer)):
-        return [int(seed) + i for i in range(n)]
-    seeds = list(seed)
-    if len(seeds) != n:
-        raise ValueError(f"got {len(seeds)} seeds for {n} envs")
-    return seeds
-
-
 RESET_OPTIONS = ("command",)
 """Keys `reset(options=...)` understands."""
 
@@ -96,15 +84,3 @@ def commands_from_options(options: dict | None, n: int, command_names: Sequence[
         raise ValueError(f"command must be {k} finite numbers ({', '.join(command_names)}) or one row per env "
                          f"({n}, {k}), got shape {command.shape}")
     return command
-
-
-def step_with_autoreset(core: BatchedCore, actions: np.ndarray, held_commands: np.ndarray | None = None):
-    """Step the core and reset finished envs (holding `held_commands` (N, K) if given); returns obs (new episodes'
-    first where reset), reward, terminated, truncated, info, done ids and their final observations."""
-    obs, reward, terminated, truncated, info = core.step(actions)
-    done = np.flatnonzero(terminated | truncated)
-    final_obs = obs[done].copy()
-    if len(done):
-        obs = obs.copy()
-        obs[done] = core.reset(done, None, None if held_commands is None else held_commands[done])
-    return obs, reward, terminated, truncated, info, done, final_obs
