@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import zipfile
 
 import gymnasium as gym
 import mujoco
@@ -112,8 +113,14 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
     obs_space = gym.spaces.Box(-np.inf, np.inf, (48,), np.float32)
     act_space = gym.spaces.Box(-1.0, 1.0, (12,), np.float32)
     steps, envs, batch = 6, 4, 8
+
+    class Policy(torch.nn.Module):  # a known log-probability, so the mirrored half's can be checked
+        @staticmethod
+        def evaluate_actions(obs, actions):
+            return None, (obs[:, :12] * actions).sum(1) + obs[:, 20], None
+
     buffer = MirroredRolloutBuffer(steps, obs_space, act_space, "cpu", n_envs=envs,
-                                   observation_mirror=obs_mirror, action_mirror=act_mirror)
+                                   observation_mirror=obs_mirror, action_mirror=act_mirror, policy=Policy())
     rng = np.random.default_rng(0)
     for _ in range(steps):
         buffer.add(rng.normal(size=(envs, 48)).astype(np.float32), rng.normal(size=(envs, 12)).astype(np.float32),
@@ -127,9 +134,12 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
         first, second = b.observations[:batch].numpy(), b.observations[batch:].numpy()
         np.testing.assert_array_equal(second, obs_mirror(first))
         np.testing.assert_array_equal(b.actions[batch:].numpy(), act_mirror(b.actions[:batch].numpy()))
-        for name in ("old_values", "old_log_prob", "advantages", "returns"):
+        for name in ("old_values", "advantages", "returns"):
             values = getattr(b, name)
             assert values.shape == (2 * batch,) and torch.equal(values[:batch], values[batch:])
+        # the mirrored half's old log-probability is the policy's own for the mirrored action in the mirrored state
+        mirrored = Policy.evaluate_actions(b.observations[batch:], b.actions[batch:])[1]
+        torch.testing.assert_close(b.old_log_prob[batch:], mirrored)
         seen.append(first)
     # the first halves are the rollout, each sample once
     rollout = buffer.observations.reshape(-1, 48)
@@ -140,7 +150,7 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     """On the shipped world model, PPO trains on doubled minibatches; the zip loads with plain `PPO.load`, and with an
     env keeps training mirrored."""
     from rwm_gym.rl.mirror_buffer import MirroredRolloutBuffer
-    from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, save_policy
+    from rwm_gym.rl.ppo import PPOConfig, learn, load_ppo, make_env, make_ppo, save_policy
 
     config = PPOConfig(num_envs=16, n_steps=16, net_arch=(32, 32), num_minibatches=4, n_epochs=2, symmetry=True)
     env = make_env("imagination", config.num_envs, seed=0, env_kwargs={"episode_steps": 16})
@@ -151,7 +161,8 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     before = [p.detach().clone() for p in model.policy.parameters()]
     stats = learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
     assert stats.timesteps == 512 and all(np.isfinite(row["mean_step_reward"]) for row in stats.log)
-    assert sizes == [2 * config.num_envs * config.n_steps // config.num_minibatches] * (2 * 4 * 2)
+    rollout = config.num_envs * config.n_steps  # once per rollout: the mirrored samples' log-probabilities
+    assert sizes == ([rollout] + [2 * rollout // config.num_minibatches] * (4 * 2)) * 2
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
 
     del model.policy.evaluate_actions
@@ -159,12 +170,13 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     loaded = PPO.load(path, device="cpu")
     obs = np.random.default_rng(0).normal(size=(3, 48)).astype(np.float32)
     np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
-    resumed = PPO.load(path, env=env, device="cpu")
-    assert isinstance(resumed.rollout_buffer, MirroredRolloutBuffer)
+    assert b"MirroredRolloutBuffer" not in zipfile.ZipFile(path).read("data")  # nothing of it is saved
+    assert not isinstance(PPO.load(path, env=env, device="cpu").rollout_buffer, MirroredRolloutBuffer)
+    assert isinstance(load_ppo(path, env, config).rollout_buffer, MirroredRolloutBuffer)
 
 
 def test_symmetry_is_refused_for_a_spec_without_a_mirror():
-    from rwm_gym.physics.dmc import DMCSB3VecEnv
+    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv
     from rwm_gym.rl.ppo import PPOConfig, make_ppo
     from rwm_gym.rl.ppo_command import add_arguments
 

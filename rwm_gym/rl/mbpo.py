@@ -115,7 +115,8 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     from rwm_gym.model.factory import model_config_for
     from rwm_gym.model.train import train
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
-    from rwm_gym.rl.ppo import PositiveReward, PPOConfig, learn, make_env, make_ppo, save_policy, warm_up_critic
+    from rwm_gym.rl.ppo import (PositiveReward, PPOConfig, learn, load_ppo, make_env, make_ppo, save_policy,
+                                warm_up_critic)
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,7 +194,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
                        seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
         # the same path whether resumed or not
-        policy = PPO.load(out / f"policy_{k - 1}.zip", env=trained_on(env), device=device)
+        policy = load_ppo(out / f"policy_{k - 1}.zip", trained_on(env), ppo_config, device=device)
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)

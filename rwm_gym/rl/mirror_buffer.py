@@ -1,14 +1,20 @@
 """PPO's rollout buffer with left-right mirror augmentation (`PPOConfig.symmetry`).
 
 Every minibatch carries each sample and, after it, its mirror image (`rwm_gym.task.symmetry`): mirrored observation
-and action, the same advantage, return and old value, and the original's old log-probability, as a symmetric policy
-would give the mirrored action the same probability in the mirrored state. The number of minibatches stays the same;
+and action, the same advantage, return and old value. The mirrored sample's old log-probability is the rollout
+policy's own for the mirrored action in the mirrored state, computed once per rollout before the update: PPO's ratio
+then starts at 1 for both halves, and the KL that adapts the learning rate measures the update, not the policy's
+asymmetry (with the original's log-probability instead, an asymmetric young policy shows a large KL on the mirrored
+half and the adaptive rule drives the learning rate to its floor). The number of minibatches stays the same;
 each one doubles. The policy learns from twice the data for the same number of (imagined) steps, and is pushed
 towards the symmetric gaits a left-right symmetric robot can use.
 
 SB3 normalises advantages per minibatch; a minibatch of n samples and their copies has the same mean and a standard
 deviation smaller by sqrt((2n - 2) / (2n - 1)) (1 - 1e-4 at n = 3072), which is left as it is.
 SB3's `train/approx_kl` (and so the adaptive learning rate) is measured over both halves.
+
+The buffer is installed on a built model (`use_mirrored_buffer`), not through SB3's `rollout_buffer_class`, so saved
+policies carry no reference to it and load anywhere.
 """
 
 from __future__ import annotations
@@ -32,14 +38,29 @@ class MirroredRolloutBuffer(RolloutBuffer):
 
     def __init__(self, buffer_size: int, observation_space: spaces.Space, action_space: spaces.Space,
                  device: torch.device | str = "auto", gae_lambda: float = 1, gamma: float = 0.99, n_envs: int = 1, *,
-                 observation_mirror: Mirror, action_mirror: Mirror):
+                 observation_mirror: Mirror, action_mirror: Mirror, policy: torch.nn.Module):
         super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
+        self.policy = policy
         if observation_mirror.index.shape != observation_space.shape or action_mirror.index.shape != action_space.shape:
             raise ValueError(f"mirror of {observation_mirror.index.shape} observations and {action_mirror.index.shape} "
                              f"actions for spaces of shape {observation_space.shape} and {action_space.shape}")
         self.mirrors = tuple((torch.as_tensor(m.index, device=self.device),
                               torch.as_tensor(m.sign, dtype=torch.float32, device=self.device))
                              for m in (observation_mirror, action_mirror))
+
+    def get(self, batch_size: int | None = None):
+        if not self.generator_ready:  # once per rollout, before SB3 flattens the arrays
+            self.mirrored_log_probs = self.swap_and_flatten(self._mirrored_log_probs())
+        yield from super().get(batch_size)
+
+    @torch.no_grad()
+    def _mirrored_log_probs(self) -> np.ndarray:
+        """(buffer_size, n_envs) log-probability of each mirrored action in its mirrored state under the policy."""
+        (obs_index, obs_sign), (act_index, act_sign) = self.mirrors
+        obs = self.to_torch(self.observations.reshape(-1, *self.obs_shape))[:, obs_index] * obs_sign
+        actions = self.to_torch(self.actions.reshape(-1, self.action_dim))[:, act_index] * act_sign
+        log_probs = [self.policy.evaluate_actions(o, a)[1] for o, a in zip(obs.split(65536), actions.split(65536))]
+        return torch.cat(log_probs).cpu().numpy().reshape(self.buffer_size, self.n_envs)
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> RolloutBufferSamples:
         samples = super()._get_samples(batch_inds, env)
@@ -48,17 +69,18 @@ class MirroredRolloutBuffer(RolloutBuffer):
             observations=torch.cat([samples.observations, samples.observations[:, obs_index] * obs_sign]),
             actions=torch.cat([samples.actions, samples.actions[:, act_index] * act_sign]),
             old_values=samples.old_values.repeat(2),
-            old_log_prob=samples.old_log_prob.repeat(2),
+            old_log_prob=torch.cat([samples.old_log_prob, self.to_torch(self.mirrored_log_probs[batch_inds].flatten())]),
             advantages=samples.advantages.repeat(2),
             returns=samples.returns.repeat(2),
         )
 
 
-def mirrored_buffer_options(spec: TaskSpec) -> dict:
-    """`PPO(**options)` that make its rollout buffer a `MirroredRolloutBuffer` for the task of `spec`.
+def use_mirrored_buffer(model, spec: TaskSpec) -> None:
+    """Give the SB3 PPO `model` a `MirroredRolloutBuffer` for the task of `spec` (after building or loading it).
 
     ValueError (one line) when the spec has no `[symmetry]` table.
     """
-    return {"rollout_buffer_class": MirroredRolloutBuffer,
-            "rollout_buffer_kwargs": {"observation_mirror": observation_mirror(spec),
-                                      "action_mirror": action_mirror(spec)}}
+    old = model.rollout_buffer
+    model.rollout_buffer = MirroredRolloutBuffer(
+        old.buffer_size, old.observation_space, old.action_space, old.device, old.gae_lambda, old.gamma, old.n_envs,
+        observation_mirror=observation_mirror(spec), action_mirror=action_mirror(spec), policy=model.policy)

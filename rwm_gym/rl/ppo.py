@@ -139,25 +139,39 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
 
     spec = env.get_attr("spec")[0]
     mean, std = observation_scale(spec)
-    buffer = {}
     if config.symmetry:
-        from rwm_gym.rl.mirror_buffer import mirrored_buffer_options
+        from rwm_gym.task.symmetry import action_mirror
 
-        buffer = mirrored_buffer_options(spec)
+        action_mirror(spec)  # ValueError (one line) before anything is built when the spec has no mirror
     if config.positive_reward_only:
         env = PositiveReward(env)
 
     activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
     arch = list(config.net_arch)
-    return PPO(
+    model = PPO(
         "MlpPolicy", env, learning_rate=config.learning_rate, n_steps=config.n_steps,
         batch_size=env.num_envs * config.n_steps // config.num_minibatches, n_epochs=config.n_epochs,
         gamma=config.gamma, gae_lambda=config.gae_lambda, clip_range=config.clip_range, ent_coef=config.ent_coef,
         vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
         policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
                        "log_std_init": config.log_std_init, "features_extractor_class": ScaledObservation,
-                       "features_extractor_kwargs": {"mean": mean, "std": std}}, **buffer,
+                       "features_extractor_kwargs": {"mean": mean, "std": std}},
     )
+    if config.symmetry:
+        from rwm_gym.rl.mirror_buffer import use_mirrored_buffer
+
+        use_mirrored_buffer(model, spec)
+    return model
+
+
+def load_ppo(path, env: VecEnv, config: PPOConfig, *, device: str = "cpu") -> PPO:
+    """A saved PPO policy to continue training on `env` with `config`'s buffer (the mirrored one for `symmetry`)."""
+    model = PPO.load(path, env=env, device=device)
+    if config.symmetry:
+        from rwm_gym.rl.mirror_buffer import use_mirrored_buffer
+
+        use_mirrored_buffer(model, env.get_attr("spec")[0])
+    return model
 
 
 def annealed_fraction(timesteps: int, end: int, anneal_steps: float, rollout: int) -> float:

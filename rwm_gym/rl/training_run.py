@@ -113,7 +113,11 @@ class RunCheckpoint(BaseCallback):
 
 def resume_model(run: TrainingRun, env, device: str) -> PPO:
     """The model at the run's resume point, on `env`, with its adapted learning rate."""
-    model = PPO.load(run.latest, env=env, device=device)
+    from rwm_gym.rl.ppo import PPOConfig, load_ppo
+
+    saved = {**PPOConfig().to_dict(), **run.state()["ppo"]}  # a field added since the run started: its default
+    config = PPOConfig(**{**saved, "net_arch": tuple(saved["net_arch"])})
+    model = load_ppo(run.latest, env, config, device=device)
     model.learning_rate = run.state()["learning_rate"]
     model._setup_lr_schedule()
     return model
