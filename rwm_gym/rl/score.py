@@ -135,7 +135,13 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
     if (args.out / "score.json").exists() and not args.overwrite:
         raise SystemExit(f"rwm-gym score: {args.out / 'score.json'} exists (pass --overwrite to replace it)")
-    policy = args.policy if args.policy in SCRIPTED else as_policy(args.policy)
+    if args.policy not in SCRIPTED:
+        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.spec import load_spec
+
+        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))
+    else:
+        policy = args.policy
     if args.reset_data is not None and args.checkpoint is None:
         raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
     if args.reset_data is not None and not args.reset_data.is_file():

@@ -24,6 +24,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from rwm_gym.atomic import write_json
 from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.safe_zip import load_policy
 
 
 class TrainingRun:
@@ -113,7 +114,7 @@ class RunCheckpoint(BaseCallback):
 
 def resume_model(run: TrainingRun, env, device: str) -> PPO:
     """The model at the run's resume point, on `env`, with its adapted learning rate."""
-    model = PPO.load(run.latest, env=env, device=device)
+    model = load_policy(run.latest, env=env, device=device)
     model.learning_rate = run.state()["learning_rate"]
     model._setup_lr_schedule()
     return model
