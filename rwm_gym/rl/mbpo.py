@@ -59,6 +59,9 @@ class MBPOConfig:
     `ImaginationOptions.torque_halt`)."""
     random_first_episode_length: bool = False
     """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
+    trust_entry_points: bool = False
+    """Import the reward / termination functions the checkpoint's spec names (`ImaginationOptions.trust_entry_points`:
+    importing runs the module's code)."""
     positive_reward_only: bool = False
     """PPO sees each imagined step's reward clipped at 0 from below (`PPOConfig.positive_reward_only`); also for an
     `init_policy`, whose zip does not carry it."""
@@ -104,7 +107,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
     """
-    from stable_baselines3 import PPO
+    from rwm_gym.rl.safe_zip import load_policy
 
     from rwm_gym.atomic import write_json
     from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
@@ -163,7 +166,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
                        env_kwargs={**env_kwargs, "reset_data": base})
         if init_policy is not None:
-            policy = PPO.load(init_policy, env=trained_on(env), device=device)
+            policy = load_policy(init_policy, env=trained_on(env), device=device)
             if config.critic_warmup_steps:
                 warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
         else:
@@ -193,7 +196,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
                        seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
         # the same path whether resumed or not
-        policy = PPO.load(out / f"policy_{k - 1}.zip", env=trained_on(env), device=device)
+        policy = load_policy(out / f"policy_{k - 1}.zip", env=trained_on(env), device=device)
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)

@@ -12,11 +12,11 @@ import os
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv
 
 from rwm_gym.options import add_dataclass_options
 from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.safe_zip import load_policy
 from rwm_gym.rl.ppo import (
     ACTIVATIONS,
     WHERE,
@@ -78,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-first-episode-length", action="store_true",
                         help="start each imagined env's first episode at a random step of its time limit, so restarts "
                              "spread over time (rsl_rl's init_at_random_ep_len)")
+    parser.add_argument("--trust-entry-points", action="store_true",
+                        help="import the reward / termination functions the checkpoint's spec names ([imagination]); "
+                             "importing runs the module's code, so only for a checkpoint you trust")
     parser.add_argument("--timesteps", type=int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
     parser.add_argument("--minutes", type=float, default=None,
@@ -125,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
     imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
-                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt")
+                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt",
+                           "trust_entry_points")
     imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
     if imagined and args.where != "imagination":
         raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
@@ -189,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
         report["evaluation"] = evaluation.to_dict()
         if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
             os.replace(out, out.with_name(out.stem + "_ppo.zip"))
-            save_policy(PPO.load(out_bc, device=args.device), out)
+            save_policy(load_policy(out_bc, device=args.device), out)
             evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
             print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
                   f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
