@@ -56,6 +56,8 @@ class EvalConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"horizons must be >= 1, got {list(self.horizons)}")
+        if max(self.horizons) > self.max_horizon:
+            raise ValueError(f"horizon {max(self.horizons)} is above --max-horizon {self.max_horizon}")
 
 
 @torch.no_grad()
@@ -101,6 +103,11 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
     if longest < 1:
         raise ValueError(f"{dataset.path}: no evaluated episode is longer than the history ({config.history} rows)")
     horizons = sorted({n for n in config.horizons if n <= longest} | {longest})
+    if max(config.horizons) > longest:
+        import warnings
+
+        warnings.warn(f"{dataset.path}: horizons {[n for n in config.horizons if n > longest]} are longer than its "
+                      f"longest evaluated episode allows; reporting up to {longest} steps", stacklevel=2)
     generator = torch.Generator().manual_seed(config.seed)
     data_mean = windows.states.mean(0)
     result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
