@@ -38,8 +38,9 @@ def _clash(out: Path, source: Path) -> str | None:
 
 
 def check_output(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (), overwrite: bool = False,
-                 flag: str = "--out") -> Path:
-    """The resolved `out`, after refusing what would destroy data or fail only at the end of the run."""
+                 folder: bool = False, flag: str = "--out") -> Path:
+    """The resolved `out` (a file, or a folder if `folder`), after refusing what would destroy data or fail only at
+    the end of the run."""
     path = resolved(out)
     for source in inputs:
         if source is None or str(source) in ("", "-"):
@@ -47,13 +48,16 @@ def check_output(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike |
         how = _clash(path, resolved(source))
         if how is not None:
             raise OutputError(f"{flag} {out} {how} the input {source}: write the result elsewhere")
+    if path.is_dir() != folder and path.exists():
+        raise OutputError(f"{flag} {out} is a {'file' if folder else 'folder'}; give the path of a "
+                          f"{'folder' if folder else 'file'}")
     if path.exists() and not overwrite:
         raise OutputError(f"{flag} {out} exists (pass --overwrite to replace it)")
-    folder = next(p for p in (path.parent, *path.parent.parents) if p.exists())
-    if not folder.is_dir():
-        raise OutputError(f"{flag} {out}: {folder} is a file, not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"{flag} {out}: cannot write in {folder} (permission denied)")
+    parent = next(p for p in (path.parent, *path.parent.parents) if p.exists())
+    if not parent.is_dir():
+        raise OutputError(f"{flag} {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{flag} {out}: cannot write in {parent} (permission denied)")
     return path
 
 

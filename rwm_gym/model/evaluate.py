@@ -56,8 +56,6 @@ class EvalConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"horizons must be >= 1, got {list(self.horizons)}")
-        if max(self.horizons) > self.max_horizon:
-            raise ValueError(f"horizon {max(self.horizons)} is above --max-horizon {self.max_horizon}")
 
 
 @torch.no_grad()
@@ -103,11 +101,11 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
     if longest < 1:
         raise ValueError(f"{dataset.path}: no evaluated episode is longer than the history ({config.history} rows)")
     horizons = sorted({n for n in config.horizons if n <= longest} | {longest})
-    if max(config.horizons) > longest:
+    if max(config.horizons) > longest:  # said, not done quietly
         import warnings
 
-        warnings.warn(f"{dataset.path}: horizons {[n for n in config.horizons if n > longest]} are longer than its "
-                      f"longest evaluated episode allows; reporting up to {longest} steps", stacklevel=2)
+        warnings.warn(f"{dataset.path}: horizons {[n for n in config.horizons if n > longest]} are cut to {longest} "
+                      f"steps (max_horizon {config.max_horizon}, or the longest evaluated episode)", stacklevel=2)
     generator = torch.Generator().manual_seed(config.seed)
     data_mean = windows.states.mean(0)
     result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
@@ -298,11 +296,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
                              "evaluated episodes that repeat one of theirs are left out (default: none)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT/evaluation.json")
 
 
 def run(args: argparse.Namespace) -> int:
+    from rwm_gym.output_guard import check_output
+
     results = {}
     try:
+        if max(args.horizons) > args.max_horizon:
+            raise ValueError(f"--horizons {max(args.horizons)} is above --max-horizon {args.max_horizon}")
+        if args.out:
+            inputs = [args.checkpoint, *args.data, *args.training_data]
+            check_output(Path(args.out) / "error_vs_horizon.png", inputs=inputs, overwrite=True)
+            check_output(Path(args.out) / "evaluation.json", inputs=inputs, overwrite=args.overwrite)
         config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
                             noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
                             device=args.device)

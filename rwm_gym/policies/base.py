@@ -75,7 +75,8 @@ class ZeroPolicy:
 
 
 class SB3Policy:
-    """A trained Stable-Baselines3 policy (a `.zip` from `model.save`, loaded without running code from it), acting deterministically, plus optional noise."""
+    """A trained Stable-Baselines3 policy (a `.zip` from `model.save`, loaded without running code from it), acting
+    deterministically, plus optional noise."""
 
     def __init__(
         self, path: str | Path, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0, algorithm: str = "PPO"

@@ -7,10 +7,11 @@ A spec names them in an `[imagination]` table, as Gymnasium names env classes (a
     termination = "my_robot.rewards:fell"        # f(transition) -> (N,) bool, which episodes end
 
 or the imagined env takes them as arguments, `ImaginedEnv(checkpoint, reward_fn=f, termination_fn=g)` (mbrl-lib's
-`ModelEnv` idea); an argument wins over the spec. Importing a module runs its code, and a spec also travels inside
-every dataset and checkpoint, so a file handed over could name any module: the spec's entry points are imported only
-when the user opts in (`trust_entry_points=True`, `--trust-entry-points`); otherwise naming one is a one-line error that says
-which module it would import. `Transition` is what the functions see, in SI units, with the columns by name.
+`ModelEnv` idea); an argument wins over the spec. Importing a module runs its code, and a spec also travels
+inside every dataset and checkpoint, so a file handed over could name any module: the spec's entry points are
+imported only when the user opts in (`trust_entry_points=True`, `--trust-entry-points`); otherwise naming one is a
+one-line error that says which module it would import. `Transition` is what the functions see, in SI units, with
+the columns by name.
 """
 
 from __future__ import annotations
@@ -101,7 +102,8 @@ def step_functions(spec: TaskSpec, reward_fn: StepFunction | None = None,
         if given[what] is None and not trust:
             module = target.partition(":")[0]
             raise ValueError(f"{source} names the {what} entry point {target!r}, which would import and run module "
-                             f"{module!r}: pass trust_entry_points=True (--trust-entry-points) if you trust it, or {what}_fn=")
+                             f"{module!r}: pass trust_entry_points=True (--trust-entry-points) if you trust it, "
+                             f"or {what}_fn=")
     if reward_fn is None and "reward" in named:
         reward_fn = load_entry_point(named["reward"], "reward")
     if termination_fn is None and "termination" in named:
