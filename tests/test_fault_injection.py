@@ -350,7 +350,8 @@ def test_a_full_disk_while_saving_a_checkpoint_is_one_line(data: Path, tmp_path:
     ["mbpo", "--data", "d.h5", "--out", "r", "--iterations", "-2"],
     ["collect", "--out", "d.h5", "--action-noise", "nan"], ["collect", "--out", "d.h5", "--action-noise", "-1"],
 ])
-def test_bad_counts_and_amounts_are_refused_by_the_parser(argv, capsys) -> None:
+def test_bad_counts_and_amounts_are_refused_by_the_parser(argv, capsys, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)  # were an option let through, its run writes here
     with pytest.raises(SystemExit) as stop:
         main(argv)
     assert stop.value.code == 2
@@ -405,7 +406,10 @@ def test_train_resume_without_a_file_is_an_error(data: Path, tmp_path: Path, cap
 
 @pytest.mark.parametrize("option", [["--hidden-size", "100000"], ["--batch-size", str(10**7)]])
 def test_a_model_too_big_for_the_machine_is_refused_before_allocating(data: Path, tmp_path: Path, capsys,
-                                                                      option) -> None:
+                                                                      monkeypatch, option) -> None:
+    import rwm_gym.model.train_command as train_command
+
+    monkeypatch.setattr(train_command, "train", lambda *a, **k: pytest.fail("the run started"))  # never allocate
     argv = ["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), *TINY_TRAIN, *option]
     assert main(argv) == 2  # the last of a repeated option wins
     one_line_error(capsys, "GiB")
