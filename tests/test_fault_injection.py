@@ -243,6 +243,25 @@ def test_l1_a_failed_collect_overwrite_keeps_the_good_file(tmp_path: Path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.h5"]  # no partial or lock file left
 
 
+def test_collect_stops_in_one_line_before_hdf5_runs_out_of_space(tmp_path: Path, capsys, monkeypatch) -> None:
+    """HDF5 that hits a full disk mid-write crashed the process (SIGSEGV, on a real 600 KB tmpfs): the writer checks
+    the free space before each episode, and the episodes finished before it stay."""
+    calls = []
+
+    def disk_usage(path):  # room for two episodes
+        calls.append(path)
+        return shutil._ntuple_diskusage(10**9, 10**9, 10**9 if len(calls) <= 2 else 1000)
+
+    monkeypatch.setattr(shutil, "disk_usage", disk_usage)
+    out = tmp_path / "d.h5"
+    assert main(_collect(out, "--episodes", "4")) == 2
+    one_line_error(capsys, "No space left on device", "episode 2")
+    from rwm_gym.data.dataset import Dataset
+
+    kept = Dataset.load(out)
+    assert kept.num_episodes == 2 and not kept.info.complete
+
+
 def test_l2_train_refuses_its_dataset_as_out(data: Path, tmp_path: Path, capsys) -> None:
     copy = str(shutil.copy(data, tmp_path / "d.h5"))
     before = Path(copy).read_bytes()

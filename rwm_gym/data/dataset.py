@@ -29,10 +29,12 @@ h5py opens, and two writers of one destination never share a file. It flushes af
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
 import secrets
+import shutil
 import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -81,6 +83,10 @@ class DatasetInfo:
     complete: bool = False
     format_version: int = FORMAT_VERSION
     created_by: str = ""
+
+
+MIN_FREE_BYTES = 1 << 20
+"""Free space an append leaves beside the episode's own bytes (twice them): room for HDF5's metadata and chunks."""
 
 
 class DatasetWriter:
@@ -169,6 +175,11 @@ class DatasetWriter:
     def append_episode(self, episode: Mapping[str, np.ndarray]) -> None:
         """Validate one episode ({field: (L+1, ...) array}) and append it; on error nothing is written."""
         arrays = self._validate(episode)
+        need = 2 * sum(value.nbytes for value in arrays.values()) + MIN_FREE_BYTES
+        free = shutil.disk_usage(self.partial_path.parent).free
+        if free < need:  # HDF5 that runs out of space mid-write can crash the process; stop while it is whole
+            raise OSError(errno.ENOSPC, f"No space left on device for episode {self.num_episodes} of {self.path} "
+                                        f"({free / 2**20:.1f} MiB free, {need / 2**20:.1f} MiB needed)")
         steps, rows = self._file["steps"], len(arrays["state"])
         first = not self._widths
         for name, value in arrays.items():
