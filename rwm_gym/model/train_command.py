@@ -102,14 +102,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.resume and not Path(args.out).exists():
             raise ValueError(f"--resume: {args.out} does not exist, nothing to resume (leave out --resume to start)")
-        check_output(args.out, inputs=[args.data, args.init], overwrite=args.overwrite or args.resume)
         options = _given(args, fields(TrainConfig))
         if args.teacher_forcing:
             options["forecast"] = 1
         if options.get("minutes") and "iterations" not in options:
             options["iterations"] = 0
         config = TrainConfig(**options)
-        dataset = Dataset.load(args.data)
+        dataset = Dataset.load(args.data)  # a missing input is named before anything about the output
+        check_output(args.out, inputs=[args.data, args.init], overwrite=args.overwrite or args.resume)
         model_config = _model_config(args, dataset)
         check_memory(model_config, config, dataset.spec())
         main_rank = os.environ.get("RANK", "0") == "0"  # only rank 0 writes, so only it holds the lock
