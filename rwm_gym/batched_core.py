@@ -44,8 +44,11 @@ def check_num_envs(num_envs: Any) -> int:
 
 
 def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Validate a batch of actions: right shape, finite; clipped to [-1, 1]."""
-    actions = np.asarray(actions, dtype=np.float64)
+    """Validate a batch of actions: real, right shape, finite; clipped to [-1, 1]."""
+    actions = np.asarray(actions)
+    if actions.dtype.kind not in "biuf":
+        raise ValueError(f"action has dtype {actions.dtype}, expected real numbers")
+    actions = actions.astype(np.float64)
     if actions.shape != shape:
         raise ValueError(f"action has shape {actions.shape}, expected {shape}")
     if not np.all(np.isfinite(actions)):

@@ -82,7 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_missing", None):
         print(f"rwm-gym {args.command}: not available in this build ({args._missing} missing)", file=sys.stderr)
         return 2
-    return int(_entry(args._module, "run")(args) or 0)
+    try:
+        return int(_entry(args._module, "run")(args) or 0)
+    except (ValueError, OSError) as err:  # what a command did not word itself: one line, not a traceback
+        text = " ".join(str(err).split()) or type(err).__name__
+        print(f"rwm-gym {args.command}: {text}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -60,3 +60,26 @@ def parse_dataclass_args(cls: type, argv: Sequence[str] | None = None, **options
     parser = argparse.ArgumentParser(description=cls.__doc__)
     add_dataclass_options(parser, cls, **options)
     return cls(**vars(parser.parse_args(argv)))
+
+
+def _number(kind: type, low: float, strict: bool) -> Callable[[str], object]:
+    """An argparse type: `kind` parsed from the text, finite and >= `low` (> `low` if strict); else a one-line error."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if value != value or value in (float("inf"), float("-inf")) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {low:g}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in its "invalid ... value" message
+    return parse
+
+
+positive_int = _number(int, 0, strict=True)
+"""An argparse type for counts that must be at least 1."""
+non_negative_int = _number(int, 0, strict=False)
+"""An argparse type for counts and budgets that may be 0."""
+non_negative_float = _number(float, 0.0, strict=False)
+"""An argparse type for finite amounts >= 0 (minutes, noise std)."""

@@ -301,18 +301,21 @@ def test_writer_killed_midway_keeps_finished_episodes(tmp_path: Path) -> None:
     np.testing.assert_array_equal(ds.episode(2)["state"], _third_state())
 
 
-def test_two_writers_of_one_file_both_finish_and_leave_it_readable(tmp_path: Path, episodes) -> None:
-    """Two `collect --overwrite` runs on one file: each writes its own partial file, the last to finish wins."""
+def test_a_second_process_writing_the_same_file_fails_at_once(tmp_path: Path, episodes) -> None:
+    """Two `collect` runs on one file: the second stops before writing anything, the first finishes its file."""
     out = tmp_path / "shared.h5"
-    first, second = DatasetWriter(out, make_info(), overwrite=True), DatasetWriter(out, make_info(), overwrite=True)
-    first.append_episode(episodes[0])
-    second.append_episode(episodes[1])
-    second.append_episode(episodes[2])
-    first.close()
-    second.close()
+    second = ("import sys; from rwm_gym.data.dataset import DatasetWriter; from tests.test_dataset import make_info\n"
+              "try:\n    DatasetWriter(sys.argv[1], make_info(), overwrite=True)\n"
+              "except ValueError as err:\n    print(err); sys.exit(3)")
+    with DatasetWriter(out, make_info(), overwrite=True) as first:
+        first.append_episode(episodes[0])
+        run = subprocess.run([sys.executable, "-c", second, str(out)], capture_output=True, text=True,
+                             cwd=Path(__file__).parent.parent)
+        assert run.returncode == 3 and "being written by another run" in run.stdout, run.stderr
     with h5py.File(out, "r") as f:  # plain h5py, no SWMR flags
-        assert bool(f.attrs["complete"]) and len(f["episode_lengths"]) == 2
-    assert Dataset.load(out).num_episodes == 2 and not list(tmp_path.glob("*.partial-*"))
+        assert bool(f.attrs["complete"]) and len(f["episode_lengths"]) == 1
+    assert Dataset.load(out).num_episodes == 1 and not list(tmp_path.glob("*.partial-*"))
+    assert not list(tmp_path.glob(".*.lock"))
 
 
 def test_an_interrupted_writer_leaves_its_finished_episodes_at_the_destination(tmp_path: Path, episodes) -> None:

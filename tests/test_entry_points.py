@@ -37,7 +37,7 @@ def test_the_acrobot_reward_entry_point_equals_the_suite_reward_on_real_states(t
 def test_entry_points_come_from_the_spec_and_arguments_win() -> None:
     base = load_spec("dmc_finger_spin")
     spec = parse_spec(base.text + '\n[imagination]\nreward = "tests.acrobot_reward:swingup"\n')
-    reward, termination = step_functions(spec)
+    reward, termination = step_functions(spec, trust=True)
     assert reward.__name__ == "swingup" and termination is None
     def mine(t):
         return np.zeros(len(t.next_state))
@@ -54,7 +54,7 @@ def test_entry_points_come_from_the_spec_and_arguments_win() -> None:
 def test_bad_entry_points_fail_in_one_line(table: str, message: str) -> None:
     spec = parse_spec(load_spec("dmc_finger_spin").text + f"\n[imagination]\n{table}\n")
     with pytest.raises(ValueError, match=message) as err:
-        step_functions(spec)
+        step_functions(spec, trust=True)
     assert "\n" not in str(err.value)
 
 

@@ -34,7 +34,7 @@ def _world_model(spec: Path, folder: Path, capsys) -> Path:
 
 def _ppo_in_imagination(ckpt: Path) -> float:
     """A few-thousand-step SB3 PPO in the imagined env; returns the mean imagined reward per step it saw."""
-    env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt), episode_steps=64)
+    env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt), episode_steps=64, trust_entry_points=True)
     model = PPO("MlpPolicy", env, n_steps=256, batch_size=64, n_epochs=2, seed=0, device="cpu")
     model.learn(total_timesteps=2048)
     obs, _ = env.reset(seed=1)

@@ -264,7 +264,7 @@ def test_mbpo_passes_every_imagination_option_it_has_to_the_imagined_env():
     kwargs = imagination_kwargs(config)
     assert kwargs == {"episode_steps": 50, "uncertainty_penalty": 0.0, "uncertainty_floor": 0.0,
                       "uncertainty_halt": 0.06, "fall_tilt": 30.0, "torque_halt": 0.95,
-                      "random_first_episode_length": True}
+                      "random_first_episode_length": True, "trust_entry_points": False}
     assert ImaginationOptions(**kwargs).torque_halt == 0.95
 
 

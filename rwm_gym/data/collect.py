@@ -23,6 +23,8 @@ from tqdm import tqdm
 import rwm_gym
 from rwm_gym.batched_core import check_num_envs
 from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, DatasetWriter
+from rwm_gym.options import non_negative_float
+from rwm_gym.output_guard import check_output, claim
 from rwm_gym.policies.base import Policy
 from rwm_gym.policies.factory import make_policy
 from rwm_gym.registration import env_name, make_physics_core
@@ -87,8 +89,14 @@ def collect(
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
     if max_steps is not None and max_steps < 1:
         raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
+    if not (np.isfinite(action_noise) and action_noise >= 0):
+        raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
     if Path(out).exists() and not overwrite:
         raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
+    inputs = [policy if isinstance(policy, str) and policy.endswith(".zip") else None,
+              env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
+              *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file")]
+    check_output(out, inputs=inputs, overwrite=overwrite)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if workers > 1 and not isinstance(policy, str):
@@ -105,7 +113,7 @@ def collect(
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
+    with claim(out), DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
         total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
     ) as bar:
         if workers == 1:
@@ -278,13 +286,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=1,
                         help="processes collecting side by side, each with --num-envs simulations (default 1); the "
                              "file is the same whatever the number")
-    parser.add_argument("--action-noise", type=float, default=0.0, help="Gaussian std added to the policy's actions")
+    parser.add_argument("--action-noise", type=non_negative_float, default=0.0,
+                        help="Gaussian std added to the policy's actions")
     parser.add_argument("--max-steps", type=int, default=None,
                         help="cap on episode length in policy steps (default: the task's episode length)")
     parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
     parser.add_argument("--physics", default=None,
                         help="JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+
+
+def _no_constant(name: str):
+    raise ValueError(f"--physics: {name} is not a physics value (give finite numbers)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -294,22 +307,25 @@ def run(args: argparse.Namespace) -> int:
     from rwm_gym.data.dataset import Dataset, DatasetError
 
     env_kwargs: dict[str, object] = {}
+    replacing = args.out.exists()  # an interrupted --overwrite run leaves the old file as it was
     if args.xml_file:
         env_kwargs["xml_file"] = str(args.xml_file)
     try:
         if args.physics:
             try:
-                env_kwargs["physics"] = json.loads(args.physics)
+                env_kwargs["physics"] = json.loads(args.physics, parse_constant=_no_constant)
             except json.JSONDecodeError as err:
                 raise ValueError(f"--physics is not valid JSON ({err})") from None
         path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
                        action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
                        overwrite=args.overwrite, workers=args.workers)
     except KeyboardInterrupt:
-        print(f"rwm-gym collect: interrupted; the finished episodes are in {args.out} (complete=false)", file=sys.stderr)
+        kept = (f"{args.out} is unchanged" if replacing else
+                f"the finished episodes are in {args.out} (complete=false)")
+        print(f"rwm-gym collect: interrupted; {kept}", file=sys.stderr)
         return 130
-    except (ValueError, TypeError, FileNotFoundError, DatasetError) as err:
-        print(f"rwm-gym collect: {err}", file=sys.stderr)
+    except (ValueError, TypeError, OSError, DatasetError) as err:
+        print(f"rwm-gym collect: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)
     falls = int(ds["terminated"].sum())

@@ -29,10 +29,12 @@ h5py opens, and two writers of one destination never share a file. It flushes af
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
 import secrets
+import shutil
 import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -83,6 +85,10 @@ class DatasetInfo:
     created_by: str = ""
 
 
+MIN_FREE_BYTES = 1 << 20
+"""Free space an append leaves beside the episode's own bytes (twice them): room for HDF5's metadata and chunks."""
+
+
 class DatasetWriter:
     """Append episodes to a new dataset file; use as a context manager (an exception leaves `complete` false)."""
 
@@ -91,18 +97,29 @@ class DatasetWriter:
         """in_place: write `path` itself instead of a partial file renamed onto it at the end, for a writer whose
         killed run must leave its episodes at `path` (a resumable run's parts); plain h5py then needs `h5clear -s`."""
         from rwm_gym import __version__
+        from rwm_gym.output_guard import claim, remove_orphans
 
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise DatasetError(f"{self.path}: file exists (pass --overwrite, or overwrite=True, to replace it)")
         parse_spec(info.spec_text, where=f"{self.path}:spec")
+        self._claim = claim(self.path)
+        self._claim.__enter__()  # held until `close`: a second writer of `path` fails at once
+        if not in_place:
+            remove_orphans(self.path, f"{self.path.name}.partial-*")
+        self.replaces = self.path.exists()
+        """Whether `path` held a file before: a run that fails then keeps it instead of leaving a partial one."""
         self.info = info
         self.num_episodes = 0
         self._widths: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
         self.partial_path = (self.path if in_place
                              else self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}"))
         """Where the episodes go until `close` renames the file onto `path`."""
-        self._file = h5py.File(self.partial_path, "w" if in_place else "x", libver="latest")
+        try:
+            self._file = h5py.File(self.partial_path, "w" if in_place else "x", libver="latest")
+        except BaseException:
+            self._claim.__exit__(None, None, None)
+            raise
         attrs = {
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "env_id": info.env_id, "spec": info.spec_text,
             "dt": float(info.dt), "columns": json.dumps(info.columns), "policy": info.policy, "seed": int(info.seed),
@@ -169,6 +186,11 @@ class DatasetWriter:
     def append_episode(self, episode: Mapping[str, np.ndarray]) -> None:
         """Validate one episode ({field: (L+1, ...) array}) and append it; on error nothing is written."""
         arrays = self._validate(episode)
+        need = 2 * sum(value.nbytes for value in arrays.values()) + MIN_FREE_BYTES
+        free = shutil.disk_usage(self.partial_path.parent).free
+        if free < need:  # HDF5 that runs out of space mid-write can crash the process; stop while it is whole
+            raise OSError(errno.ENOSPC, f"No space left on device for episode {self.num_episodes} of {self.path} "
+                                        f"({free / 2**20:.1f} MiB free, {need / 2**20:.1f} MiB needed)")
         steps, rows = self._file["steps"], len(arrays["state"])
         first = not self._widths
         for name, value in arrays.items():
@@ -192,14 +214,26 @@ class DatasetWriter:
         self.num_episodes += 1
 
     def close(self, complete: bool = True) -> None:
-        """Close the file, mark it `complete` and move it onto `path`."""
-        if self._file.id.valid:
+        """Close the file, mark it `complete` and move it onto `path`. An incomplete file goes onto `path` only if no
+        file was there (its finished episodes are kept); a file that was there stays, and the partial one goes."""
+        if not self._file.id.valid:
+            return
+        try:
             self._file.close()
             if complete:
                 with h5py.File(self.partial_path, "r+", libver="latest") as f:  # read-only while in SWMR mode
                     f.attrs["complete"] = True
             if self.partial_path != self.path:
-                os.replace(self.partial_path, self.path)
+                if complete or not self.replaces:
+                    os.replace(self.partial_path, self.path)
+                else:
+                    self.partial_path.unlink()
+        except BaseException:
+            if self.partial_path != self.path and self.partial_path.exists():
+                self.partial_path.unlink()
+            raise
+        finally:
+            self._claim.__exit__(None, None, None)
 
     def __enter__(self) -> DatasetWriter:
         return self

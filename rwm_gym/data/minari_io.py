@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, write_dataset
+from rwm_gym.output_guard import check_output, claim
 from rwm_gym.task.observation import build_observation
 
 METADATA_KEY = "rwm_gym"
@@ -47,12 +48,10 @@ def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None =
     """Write dataset `data` as a Minari dataset in folder `out` (built beside it, then moved into place)."""
     minari = _minari()
     import gymnasium as gym
-    from minari.data_collector.episode_buffer import EpisodeBuffer
-    from minari.dataset.minari_storage import MinariStorage
 
-    ds, out = Dataset.load(data), Path(out)
-    if out.exists() and not overwrite:
-        raise ValueError(f"{out} exists (pass --overwrite to replace it)")
+    # absolute: Minari's storage joins a relative path onto itself
+    out = check_output(out, inputs=[data], overwrite=overwrite, folder=True)
+    ds = Dataset.load(data)
     spec = ds.spec()
     row_fields = [f for f in ds.fields if f not in _TRANSITION_FIELDS]
     shapes = {f: [str(ds[f].dtype), list(ds[f].shape[1:])] for f in row_fields}
@@ -65,7 +64,21 @@ def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None =
             "metadata": info.metadata, "complete": info.complete, "format_version": info.format_version,
             "created_by": info.created_by, "fields": shapes}
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    with claim(out):
+        for orphan in out.parent.glob(f".{out.name}-*"):  # left by a killed export
+            shutil.rmtree(orphan, ignore_errors=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+        _write_minari(tmp, out, ds, spec, name, meta, row_fields, observation_space, action_space, minari)
+    return out
+
+
+def _write_minari(tmp: Path, out: Path, ds: Dataset, spec, name: str, meta: dict, row_fields: list[str],
+                  observation_space, action_space, minari) -> None:
+    """Build the Minari dataset in `tmp`, then swap it for `out` (the old `out` goes only once the new one is there)."""
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+    from minari.dataset.minari_storage import MinariStorage
+
+    info = ds.info
     try:
         storage = MinariStorage.new(tmp, observation_space=observation_space, action_space=action_space,
                                     data_format="hdf5", jpeg_encoding=False)
@@ -83,21 +96,23 @@ def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None =
                 terminations=terminations, truncations=truncations,
                 infos={f: ep[f] for f in row_fields if ep[f].size}))  # h5py cannot chunk zero-width arrays
         storage.update_episodes(buffers)
+        old = tmp.with_name(tmp.name + "-old")
         if out.exists():
-            shutil.rmtree(out)
+            out.rename(old)
         tmp.rename(out)
+        if old.is_dir():
+            shutil.rmtree(old)
+        elif old.exists():
+            old.unlink()
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
-    return out
 
 
 def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = False) -> Path:
     """Rebuild the rwm-gym dataset that `export_minari` wrote into `folder` (atomic write of `out`)."""
     minari = _minari()
-    folder, out = Path(folder), Path(out)
-    if out.exists() and not overwrite:
-        raise ValueError(f"{out} exists (pass --overwrite to replace it)")
+    folder, out = Path(folder), check_output(out, inputs=[folder], overwrite=overwrite)
     try:
         dataset = minari.MinariDataset(folder)
     except (ValueError, OSError, KeyError, AssertionError) as err:  # what Minari raises for a folder it cannot read
@@ -147,8 +162,8 @@ def add_import_arguments(parser: argparse.ArgumentParser) -> None:
 def _run(command: str, job) -> int:
     try:
         path = job()
-    except (ValueError, FileNotFoundError, DatasetError) as err:
-        print(f"rwm-gym {command}: {err}", file=sys.stderr)
+    except (ValueError, OSError, DatasetError) as err:
+        print(f"rwm-gym {command}: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     print(f"wrote {path}")
     return 0

@@ -190,6 +190,11 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}
     spec = make_physics_core(args.env, 1, **env_kwargs).spec
     try:
+        from rwm_gym.output_guard import check_output
+
+        check_output(args.out, overwrite=args.overwrite,
+                     inputs=[args.policy if args.policy.endswith(".zip") else None, args.xml_file,
+                             args.env if args.env.endswith(".toml") else None])
         effects = parse_effects(spec, args.effect, args.magnitude)
         path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
                              extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,

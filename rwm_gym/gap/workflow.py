@@ -359,6 +359,10 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
+        from rwm_gym.output_guard import check_output
+
+        check_output(args.out, inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none")
+                                       else None], overwrite=True, folder=True)
         report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
                          config=GapConfig(val_fraction=args.val_fraction,
                                           learned_correction=args.learned_correction,

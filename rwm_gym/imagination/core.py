@@ -83,6 +83,9 @@ class ImaginationOptions:
     (it runs all k heads per step; off and penalty 0, each env runs only its own head and info has no uncertainty)."""
     divergence_bound: float = 50.0
     """|normalised state| above which the model is taken to have diverged and the episode ends."""
+    trust_entry_points: bool = False
+    """Import the reward / termination functions the checkpoint's spec names (`[imagination]`): importing a module
+    runs its code, so only for a checkpoint you trust (off: naming one is an error; pass reward_fn= instead)."""
     warm_up_cache_mb: float = 512.0
     """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
     reset); models whose warm-up reads the ensemble member always warm up."""
@@ -151,7 +154,9 @@ class ImaginedCore:
         self.reset_windows = ResetWindows(reset_dataset, history)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
         self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
-                                    reward_fn=reward_fn, termination_fn=termination_fn)
+                                    reward_fn=reward_fn, termination_fn=termination_fn,
+                                    trust_entry_points=self.options.trust_entry_points,
+                                    source=f"the spec in checkpoint {self.checkpoint}")
         if self.options.fall_tilt > 0 and "projected_gravity" not in self.spec.state_slices:
             raise ValueError(f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which "
                              f"{self.spec.name} has not")

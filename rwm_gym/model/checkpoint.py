@@ -200,8 +200,21 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                                   f"config expects {tuple(tensor.shape)}")
     if extra := sorted(set(stored) - set(expected)):
         raise CheckpointError(f"{path}: tensor 'model/{extra[0]}' is not part of a {meta.model_config.kind} model")
+    check_finite(path, stored, meta.normalizer)
     model.load_state_dict(stored)
     return model.eval(), meta
+
+
+def check_finite(path: Path, weights: dict[str, torch.Tensor], normalizer) -> None:
+    """CheckpointError for NaN or inf weights or a normalisation std that is not positive and finite: such a model
+    only predicts nan, so it is refused at load rather than found in a table of nan."""
+    for name, tensor in weights.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{path}: tensor 'model/{name}' holds NaN or inf")
+    std = np.asarray(normalizer.state_std, dtype=np.float64)
+    if not (np.all(np.isfinite(std)) and np.all(std > 0)) or not np.all(np.isfinite(normalizer.state_mean)):
+        raise CheckpointError(f"{path}: normalisation statistics are not finite with std > 0 (tensor 'norm/state_std' "
+                              f"or 'norm/state_mean')")
 
 
 def load_training_state(path: str | os.PathLike, model: WorldModel, optimizer: torch.optim.Optimizer | None

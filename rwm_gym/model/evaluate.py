@@ -291,11 +291,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
                              "evaluated episodes that repeat one of theirs are left out (default: none)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT/evaluation.json")
 
 
 def run(args: argparse.Namespace) -> int:
+    from rwm_gym.output_guard import check_output
+
     results = {}
     try:
+        if max(args.horizons) > args.max_horizon:
+            raise ValueError(f"--horizons {max(args.horizons)} is above --max-horizon {args.max_horizon}")
+        if args.out:
+            inputs = [args.checkpoint, *args.data, *args.training_data]
+            check_output(Path(args.out) / "error_vs_horizon.png", inputs=inputs, overwrite=True)
+            check_output(Path(args.out) / "evaluation.json", inputs=inputs, overwrite=args.overwrite)
         config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
                             noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
                             device=args.device)
@@ -306,6 +315,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"rwm-gym evaluate: {err}", file=sys.stderr)
         return 2
     for result in results.values():
+        if cut := [n for n in args.horizons if n not in result["horizons"]]:  # said, not done quietly
+            print(f"rwm-gym evaluate: {result['data']}: horizons {cut} are longer than its evaluated episodes allow; "
+                  f"reported up to {result['longest']} steps", file=sys.stderr)
         print(f"{result['model']} on {result['data']} ({result['episode_set']}, {result['episodes']} episodes)")
         print(format_table(result) + "\n")
     if args.out:

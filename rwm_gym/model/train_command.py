@@ -4,8 +4,11 @@ is one line on stderr and exit 2, Ctrl-C exit 130 after a resumable checkpoint."
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from dataclasses import fields, replace
+from pathlib import Path
 
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model import distributed
@@ -62,22 +65,60 @@ def _model_config(args: argparse.Namespace, dataset: Dataset) -> ModelConfig:
     return replace(start, **given)
 
 
+def memory_estimate(model_config: ModelConfig, config: TrainConfig, spec) -> float:
+    """Bytes a run needs, roughly: weights, gradients and Adam's two moments (float32), plus the activations of one
+    batch (every window's rows through every layer, a few tensors each). Sized on torch's meta device, so a model too
+    big to build is measured without allocating it."""
+    import torch
+
+    from rwm_gym.model.factory import build_model
+
+    with torch.device("meta"):
+        params = sum(p.numel() for p in build_model(model_config, spec).parameters())
+    width = max(model_config.hidden_size, model_config.head_hidden)
+    activations = config.batch_size * (config.history + config.forecast) * width * (model_config.num_layers + 1) * 8
+    return 4.0 * (4 * params + activations)
+
+
+def check_memory(model_config: ModelConfig, config: TrainConfig, spec) -> None:
+    """A one-line ValueError for a model and batch that cannot fit in this machine's memory."""
+    need = memory_estimate(model_config, config, spec)
+    have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if config.device.startswith("cuda"):
+        import torch
+
+        if torch.cuda.is_available():
+            have = torch.cuda.get_device_properties(0).total_memory
+    if need > have:
+        raise ValueError(f"the model and batch need about {need / 2**30:.0f} GiB (hidden size "
+                         f"{model_config.hidden_size}, batch size {config.batch_size}), more than the "
+                         f"{have / 2**30:.0f} GiB this machine has")
+
+
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym train`: train, print a summary line, write the checkpoint; 2 on bad input, 130 on Ctrl-C."""
+    from rwm_gym.output_guard import check_output, claim
+
     try:
+        if args.resume and not Path(args.out).exists():
+            raise ValueError(f"--resume: {args.out} does not exist, nothing to resume (leave out --resume to start)")
         options = _given(args, fields(TrainConfig))
         if args.teacher_forcing:
             options["forecast"] = 1
         if options.get("minutes") and "iterations" not in options:
             options["iterations"] = 0
         config = TrainConfig(**options)
-        dataset = Dataset.load(args.data)
+        dataset = Dataset.load(args.data)  # a missing input is named before anything about the output
+        check_output(args.out, inputs=[args.data, args.init], overwrite=args.overwrite or args.resume)
         model_config = _model_config(args, dataset)
-        result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                       tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
+        check_memory(model_config, config, dataset.spec())
+        main_rank = os.environ.get("RANK", "0") == "0"  # only rank 0 writes, so only it holds the lock
+        with claim(args.out) if main_rank else contextlib.nullcontext():
+            result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
+                           tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, FileNotFoundError, FileExistsError, DatasetError, CheckpointError) as err:
+    except (ValueError, OSError, DatasetError, CheckpointError) as err:
         if distributed.current_world().is_main:
             print(f"rwm-gym train: {err}", file=sys.stderr)
         return 2

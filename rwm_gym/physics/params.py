@@ -53,6 +53,15 @@ class PhysicsParams:
     backlash: PerJoint = 0.0
     """Total width of the gear dead band between motor and link (rad); an env option, not MJCF (see `backlash`)."""
 
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if value is None or isinstance(value, (bool, str)):
+                continue
+            numbers = np.asarray(value)
+            if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):
+                raise ValueError(f"physics parameter {f.name!r} must be a finite number, got {value!r}")
+
     @classmethod
     def from_dict(cls, values: Mapping[str, object] | None) -> PhysicsParams:
         """Build from a plain dict (gym.make kwargs, JSON); unknown names raise a one-line error."""

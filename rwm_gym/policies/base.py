@@ -76,14 +76,15 @@ class ZeroPolicy:
 
 
 class SB3Policy:
-    """A trained Stable-Baselines3 policy (a `.zip` from `model.save`), acting deterministically, plus optional noise."""
+    """A trained Stable-Baselines3 policy (a `.zip` from `model.save`, loaded without running code from it), acting
+    deterministically, plus optional noise."""
 
     def __init__(
         self, path: str | Path, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0, algorithm: str = "PPO"
     ):
-        import stable_baselines3
+        from rwm_gym.rl.safe_zip import load_policy
 
-        self.model = getattr(stable_baselines3, algorithm).load(path, device="cpu")
+        self.model = load_policy(path, device="cpu", spec=spec, algorithm=algorithm)
         self.name = f"sb3:{Path(path).name}"
         self.action_noise = action_noise
         self.rngs: list[np.random.Generator] = [np.random.default_rng(0) for _ in range(num_envs)]

@@ -106,9 +106,9 @@ class Evaluation:
 def as_policy(policy: str | os.PathLike | PolicyFn | object) -> PolicyFn:
     """A deterministic policy function from an SB3 `.zip` path, an SB3 model (anything with `predict`) or a callable."""
     if isinstance(policy, (str, os.PathLike)):
-        from stable_baselines3 import PPO
+        from rwm_gym.rl.safe_zip import load_policy
 
-        policy = PPO.load(policy, device="cpu")
+        policy = load_policy(policy, device="cpu")
     if hasattr(policy, "predict"):
         model = policy
         return lambda obs: model.predict(obs.astype(np.float32), deterministic=True)[0]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -24,7 +25,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rwm_gym.atomic import save_png
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int, positive_int
+from rwm_gym.output_guard import OutputError, check_output, claim, resolved
 
 TRACKING_TARGET = 0.80
 """The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
@@ -59,6 +61,9 @@ class MBPOConfig:
     `ImaginationOptions.torque_halt`)."""
     random_first_episode_length: bool = False
     """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
+    trust_entry_points: bool = False
+    """Import the reward / termination functions the checkpoint's spec names (`ImaginationOptions.trust_entry_points`:
+    importing runs the module's code)."""
     positive_reward_only: bool = False
     """PPO sees each imagined step's reward clipped at 0 from below (`PPOConfig.positive_reward_only`); also for an
     `init_policy`, whose zip does not carry it."""
@@ -104,7 +109,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
     """
-    from stable_baselines3 import PPO
+    from rwm_gym.rl.safe_zip import load_policy
 
     from rwm_gym.atomic import write_json
     from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
@@ -164,7 +169,7 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
         env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
                        env_kwargs={**env_kwargs, "reset_data": base})
         if init_policy is not None:
-            policy = PPO.load(init_policy, env=trained_on(env), device=device)
+            policy = load_policy(init_policy, env=trained_on(env), device=device)
             if config.critic_warmup_steps:
                 warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
         else:
@@ -328,6 +333,21 @@ def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] 
     save_png(fig, path, dpi=100)
 
 
+RUN_FILES = re.compile(r"(data_\d+\.h5|buffer\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
+"""The files the loop writes in its folder (`--out`)."""
+
+
+def check_run_folder(out: Path, inputs) -> None:
+    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself."""
+    folder = resolved(out)
+    for source in (s for s in inputs if s is not None):
+        path = resolved(source)
+        if path == folder or (path.parent == folder and RUN_FILES.fullmatch(path.name)):
+            raise OutputError(f"--out {out}: the run writes {path.name if path != folder else 'into it'}, which is "
+                              f"the input {source}; copy the input elsewhere first")
+    check_output(folder, overwrite=True, folder=True)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
     parser.add_argument("--out", required=True, type=Path,
@@ -341,7 +361,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    add_dataclass_options(parser, MBPOConfig, types={"action_noise": float, "eval_steps": int})
+    counts = ("iterations", "ppo_timesteps", "num_envs", "imagined_episode_steps", "collect_episodes",
+              "collect_steps", "model_iterations", "eval_seeds")
+    add_dataclass_options(parser, MBPOConfig, types={"action_noise": non_negative_float, "eval_steps": positive_int,
+                                                     "base_episodes": non_negative_int,
+                                                     "critic_warmup_steps": non_negative_int,
+                                                     **dict.fromkeys(counts, positive_int)})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -351,8 +376,10 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
     try:
-        report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
-                      model_kind=args.model, device=args.device, model_free_curve=args.model_free_curve)
+        check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
+        with claim(args.out):
+            report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
+                          model_kind=args.model, device=args.device, model_free_curve=args.model_free_curve)
     except ValueError as error:
         raise SystemExit(f"rwm-gym mbpo: {error}") from None
     print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "

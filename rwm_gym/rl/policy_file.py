@@ -12,12 +12,11 @@ from rwm_gym.atomic import atomic_write
 
 def save_policy(model, path: str | os.PathLike) -> Path:
     """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.zip")
-    model.save(tmp)
-    os.replace(tmp, path)
-    return path
+    def write(tmp: str) -> None:
+        model.save(tmp + ".zip")  # SB3 adds ".zip" to a name without it
+        os.replace(tmp + ".zip", tmp)
+
+    return atomic_write(path, write)
 
 
 # Per-run state in an SB3 zip's `data`: the last observations of every training env (1 MB at 4096 envs) and episode

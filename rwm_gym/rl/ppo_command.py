@@ -12,11 +12,12 @@ import os
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv
 
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int
+from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.safe_zip import load_policy
 from rwm_gym.rl.ppo import (
     ACTIVATIONS,
     WHERE,
@@ -81,15 +82,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matmul-precision", choices=("float32", "bfloat16"), default="float32",
                         help="dtype of the world model's matrix products per imagined step (bfloat16: 2.5-4x faster "
                              "on CPUs with AVX512-BF16/AMX and on GPUs) (default float32)")
-    parser.add_argument("--timesteps", type=int, default=None,
+    parser.add_argument("--trust-entry-points", action="store_true",
+                        help="import the reward / termination functions the checkpoint's spec names ([imagination]); "
+                             "importing runs the module's code, so only for a checkpoint you trust")
+    parser.add_argument("--timesteps", type=non_negative_int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
-    parser.add_argument("--minutes", type=float, default=None,
+    parser.add_argument("--minutes", type=non_negative_float, default=None,
                         help="budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)")
     parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--bc-data", type=Path, nargs="+", default=None,
                         help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
                              "from before PPO (rwm_gym.rl.warm_start)")
@@ -114,6 +119,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym ppo`: refuse an --out that would replace an input or another run's file, then train holding its
+    lock; a --run-dir run may rewrite its own --out (running the command again resumes it)."""
+    if (args.timesteps == 0 or args.minutes == 0) and not args.bc_data:
+        raise SystemExit("rwm-gym ppo: a budget of 0 trains nothing (0 is for --bc-data: the cloned actor alone)")
+    inputs = [args.checkpoint, args.reset_data, *(args.bc_data or [])]
+    try:
+        check_output(args.out, inputs=inputs, overwrite=args.overwrite or args.run_dir is not None)
+        with claim(args.out):
+            return _train(args)
+    except OutputError as err:
+        raise SystemExit(f"rwm-gym ppo: {err}") from None
+
+
+def _train(args: argparse.Namespace) -> int:
     from rwm_gym.atomic import write_json
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 
@@ -128,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
     imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
-                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt")
+                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt",
+                           "trust_entry_points")
     imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
     if args.matmul_precision != "float32":
         imagined["matmul_precision"] = args.matmul_precision
@@ -194,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
         report["evaluation"] = evaluation.to_dict()
         if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
             os.replace(out, out.with_name(out.stem + "_ppo.zip"))
-            save_policy(PPO.load(out_bc, device=args.device), out)
+            save_policy(load_policy(out_bc, device=args.device), out)
             evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
             print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
                   f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "

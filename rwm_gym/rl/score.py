@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rwm_gym.atomic import atomic_write, write_json, write_text
+from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import Evaluation, as_policy, evaluate_policy, format_table, plot, scoring_commands
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
@@ -133,9 +134,25 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
     if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
         raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
-    if (args.out / "score.json").exists() and not args.overwrite:
-        raise SystemExit(f"rwm-gym score: {args.out / 'score.json'} exists (pass --overwrite to replace it)")
-    policy = args.policy if args.policy in SCRIPTED else as_policy(args.policy)
+    inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
+    try:
+        for name in ("score.md", "score.png", "walk.gif", "walk.png"):
+            check_output(args.out / name, inputs=inputs, overwrite=True)
+        report = check_output(args.out / "score.json", inputs=inputs, overwrite=args.overwrite)
+        with claim(report):
+            return _score(args)
+    except OutputError as err:
+        raise SystemExit(f"rwm-gym score: {err}") from None
+
+
+def _score(args: argparse.Namespace) -> int:
+    if args.policy not in SCRIPTED:
+        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.spec import load_spec
+
+        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))
+    else:
+        policy = args.policy
     if args.reset_data is not None and args.checkpoint is None:
         raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
     if args.reset_data is not None and not args.reset_data.is_file():

@@ -45,6 +45,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym shac`: refuse an --out that would replace an input or another run's file (the run folder's own policy
+    may be rewritten: running the command again resumes), then train holding its lock."""
+    from rwm_gym.output_guard import OutputError, check_output, claim
+
+    try:
+        check_output(args.out, inputs=[args.checkpoint, args.reset_data], overwrite=True)
+        with claim(args.out):
+            return _train(args)
+    except OutputError as err:
+        raise SystemExit(f"rwm-gym shac: {err}") from None
+
+
+def _train(args: argparse.Namespace) -> int:
     import torch
 
     from rwm_gym.imagination.core import ImaginedCore
@@ -76,9 +89,9 @@ def run(args: argparse.Namespace) -> int:
     model = make_ppo(CoreSB3VecEnv(core), config.ppo_config(), seed=args.seed, device=args.device)
     learner = SHAC(imagination, model.policy, config, seed=args.seed)
     if resumed:
-        from stable_baselines3 import PPO
+        from rwm_gym.rl.safe_zip import load_policy
 
-        model.policy.load_state_dict(PPO.load(run_folder.latest, device=args.device).policy.state_dict())
+        model.policy.load_state_dict(load_policy(run_folder.latest, device=args.device).policy.state_dict())
         learner.load_state_dict(torch.load(run_folder.folder / "latest_shac.pt", weights_only=True))
         print(f"resuming {run_folder.folder} at {learner.timesteps:,} steps")
     seed_offset = 7919 * (state.get("restarts", -1) + 1)

@@ -35,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rwm_gym.output_guard import check_output
     from rwm_gym.specgen.draft import fill_normalization
 
     start = time.perf_counter()
@@ -59,8 +60,7 @@ def run(args: argparse.Namespace) -> int:
             written.append(model_xml)
             draft = None
         for path in written:
-            if path.exists() and not args.overwrite:
-                raise ValueError(f"{path} exists (pass --overwrite to replace it)")
+            check_output(path, inputs=[args.mjcf], overwrite=args.overwrite)
         with tempfile.TemporaryDirectory(prefix="rwm-spec-") as tmp:
             if model_xml is not None:  # the collection runs on a copy: nothing is written before the spec works
                 draft, mjcf_text = legged_draft(args.mjcf, base=args.base, feet=args.feet, name=args.name)

@@ -7,8 +7,11 @@ A spec names them in an `[imagination]` table, as Gymnasium names env classes (a
     termination = "my_robot.rewards:fell"        # f(transition) -> (N,) bool, which episodes end
 
 or the imagined env takes them as arguments, `ImaginedEnv(checkpoint, reward_fn=f, termination_fn=g)` (mbrl-lib's
-`ModelEnv` idea); an argument wins over the spec. The module is imported, nothing from the spec is executed: an entry
-point names code already installed. `Transition` is what the functions see, in SI units, with the columns by name.
+`ModelEnv` idea); an argument wins over the spec. Importing a module runs its code, and a spec also travels
+inside every dataset and checkpoint, so a file handed over could name any module: the spec's entry points are
+imported only when the user opts in (`trust_entry_points=True`, `--trust-entry-points`); otherwise naming one is a
+one-line error that says which module it would import. `Transition` is what the functions see, in SI units, with
+the columns by name.
 """
 
 from __future__ import annotations
@@ -89,9 +92,18 @@ def spec_entry_points(spec: TaskSpec) -> dict[str, str]:
 
 
 def step_functions(spec: TaskSpec, reward_fn: StepFunction | None = None,
-                   termination_fn: StepFunction | None = None) -> tuple[StepFunction | None, StepFunction | None]:
-    """(reward function, termination function): the arguments where given, else the spec's entry points, else None."""
+                   termination_fn: StepFunction | None = None, *, trust: bool = False,
+                   source: str = "the task spec") -> tuple[StepFunction | None, StepFunction | None]:
+    """(reward function, termination function): the arguments where given, else the spec's entry points (imported only
+    if `trust`; `source` names the file the spec came from in the error), else None."""
     named = spec_entry_points(spec)
+    given = {"reward": reward_fn, "termination": termination_fn}
+    for what, target in named.items():
+        if given[what] is None and not trust:
+            module = target.partition(":")[0]
+            raise ValueError(f"{source} names the {what} entry point {target!r}, which would import and run module "
+                             f"{module!r}: pass trust_entry_points=True (--trust-entry-points) if you trust it, "
+                             f"or {what}_fn=")
     if reward_fn is None and "reward" in named:
         reward_fn = load_entry_point(named["reward"], "reward")
     if termination_fn is None and "termination" in named:

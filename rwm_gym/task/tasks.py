@@ -109,13 +109,14 @@ class SuiteRewardTask:
 
 
 def make_task(spec: TaskSpec, num_envs: int, *, resample_commands: bool = True, reward_fn=None,
-              termination_fn=None) -> Task:
+              termination_fn=None, trust_entry_points: bool = False, source: str = "the task spec") -> Task:
     """The task of a spec: a dm_control suite task if it has a `[dm_control]` table, else velocity tracking; reward and
-    termination functions (arguments, else the spec's entry points) replace theirs."""
+    termination functions (arguments, else the spec's entry points if trusted) replace theirs."""
     from rwm_gym.task.entry_points import step_functions
     from rwm_gym.task.function_task import CommandlessTask, FunctionTask
 
-    reward_fn, termination_fn = step_functions(spec, reward_fn, termination_fn)
+    reward_fn, termination_fn = step_functions(spec, reward_fn, termination_fn, trust=trust_entry_points,
+                                               source=source)
     if "dm_control" in spec.extra:
         base = SuiteRewardTask(spec, num_envs) if reward_fn is None else CommandlessTask(num_envs)
     else:
