@@ -80,7 +80,7 @@ def checkpoint(data: Path, tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("key", ["lr_schedule", "observation_space", "policy_kwargs"])
 def test_a_malicious_policy_zip_runs_nothing_through_any_loader(tmp_path: Path, key: str) -> None:
-    from rwm_gym.policies.base import make_policy
+    from rwm_gym.policies.factory import make_policy
     from rwm_gym.rl.evaluate_policy import as_policy
     from rwm_gym.rl.safe_zip import PolicyFileError, load_policy
 
@@ -435,7 +435,7 @@ def test_a_model_too_big_for_the_machine_is_refused_before_allocating(data: Path
 
 
 def test_complex_actions_are_refused() -> None:
-    from rwm_gym.vector.core import check_actions
+    from rwm_gym.batched_core import check_actions
 
     with pytest.raises(ValueError, match="complex"):
         check_actions(np.full((1, 12), 0.5 + 0.5j), (1, 12))
