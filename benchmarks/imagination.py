@@ -12,7 +12,8 @@ env-steps/s and PPO's own update cost, all measured in one run.
 - Imagined and physics rates step random actions in [-0.3, 0.3] and restart finished envs, as a learner would;
   imagined restarts take each window's cached warm-up state (`ImaginationOptions.warm_up_cache_mb`), and the rate
   with a full warm-up on every restart is printed beside it, as is the rate with `nn.GRU`'s own step in place of
-  the fused cell (`RWM.fused_step` off). Physics runs on `mujoco.batch` with `--threads` threads.
+  the fused cell (`RWM.fused_step` off), and with the fused cell's products in bfloat16
+  (`ImaginationOptions.matmul_precision`; the FLOP ceiling stays the fp32 one). Physics runs on `mujoco.batch` with `--threads` threads.
 - PPO: SB3's `collect_rollouts` and `train` timed separately for `--ppo-rollouts` rollouts of `rwm_gym.rl.ppo`'s
   defaults (n_steps 24, 5 epochs x 4 minibatches) at the same envs, in imagination.
 Prints a table and writes JSON (`--out`).
@@ -134,9 +135,12 @@ def main() -> None:
                                           uncertainty_penalty=args.uncertainty_penalty)
         unfused_core.model.fused_step = False
         unfused = rate(unfused_core, args.seconds)
+        bf16 = rate(make_imagined_core(args.checkpoint, n, device=args.device, matmul_precision="bfloat16",
+                                       uncertainty_penalty=args.uncertainty_penalty), args.seconds)
         physics = rate(make_core("anymal_d", n, nthread=args.threads), args.seconds)
         rows.append({"envs": n, "imagined_steps_per_s": imagined, "ceiling_fraction": imagined / ceiling,
                      "imagined_steps_per_s_warm_up_every_reset": uncached, "imagined_steps_per_s_nn_gru": unfused,
+                     "imagined_steps_per_s_bf16": bf16, "bf16_speedup": bf16 / imagined,
                      "physics_steps_per_s": physics, "ratio": imagined / physics})
     # measured again after the rates: on a shared machine the best of the two is the closer estimate of the peak
     again = matmul_gflops(max(args.envs), min(args.seconds, 3.0), args.device)
@@ -151,12 +155,12 @@ def main() -> None:
           f", dense layers); matmul fp32 {', '.join(f'{k} {v:.1f}' for k, v in gflops.items())} GFLOP/s "
           f"({args.threads} threads); ceiling {ceiling:,.0f} env-steps/s; load average {load[0]:.2f}")
     print(f"| envs | imagined env-steps/s ({args.device}) | of ceiling | without the warm-up cache "
-          f"| with nn.GRU's step (not fused) | physics env-steps/s ({args.threads} threads) | imagined / physics |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+          f"| with nn.GRU's step (not fused) | bf16 products (x fp32) | physics env-steps/s ({args.threads} threads) | imagined / physics |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['envs']} | {r['imagined_steps_per_s']:,.0f} | {r['ceiling_fraction']:.0%} "
               f"| {r['imagined_steps_per_s_warm_up_every_reset']:,.0f} | {r['imagined_steps_per_s_nn_gru']:,.0f} "
-              f"| {r['physics_steps_per_s']:,.0f} | {r['ratio']:.2f} |")
+              f"| {r['imagined_steps_per_s_bf16']:,.0f} ({r['bf16_speedup']:.2f}x) | {r['physics_steps_per_s']:,.0f} | {r['ratio']:.2f} |")
     if ppo:
         per_step = ppo["samples_per_rollout"]
         print(f"PPO ({per_step} samples per rollout, batch {ppo['batch_size']}, {ppo['n_epochs']} epochs): collect "

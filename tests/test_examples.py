@@ -124,16 +124,20 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     run = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
                          env=env, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert "VERDICT: it does not walk yet" in run.stdout and "zero-action floor" in run.stdout
-    assert "shipped MBPO-PPO policy" in run.stdout and "shipped policy from scratch in imagination" in run.stdout
-    assert "shipped MBPO-PPO policy from random-action data" in run.stdout
+    lines = run.stdout.splitlines()
+    assert len(lines) <= 20 and lines[-1].startswith("VERDICT: it does not walk yet")
+    assert any(line.startswith("this policy, in physics:  tracking") for line in lines)
+    assert any(line.startswith("standing still (floor):   tracking 0.23") for line in lines)
     state = json.loads((out / "run" / "state.json").read_text())
     assert state["timesteps"] >= 64 and (out / "policy.zip").is_file()
     from rwm_gym.resources import assets_dir
 
     shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
-    assert state["ppo"] == {**shipped["ppo"], "num_envs": 8}  # the shipped from-scratch policy's recipe
-    assert {k: v for k, v in shipped["env"]["imagination"].items() if v is not None} == state["env"]["imagination"]
+    # the shipped from-scratch policy's recipe (fields added since it was trained at their defaults)
+    assert {k: state["ppo"][k] for k in shipped["ppo"]} == {**shipped["ppo"], "num_envs": 8}
+    assert not state["ppo"]["symmetry"]
+    expected = {k: v for k, v in shipped["env"]["imagination"].items() if v is not None}
+    assert state["env"]["imagination"] in (expected, {**expected, "matmul_precision": "bfloat16"})
     # the same command again finds the run finished instead of starting over
     again = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
                            env=env, timeout=600)
