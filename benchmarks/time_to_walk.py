@@ -11,8 +11,8 @@ zero-action floor. Training and scoring run one after the other, so scoring neve
 Results go to DIR/<recipe>/seed_<k>/ (the run folder, curve.csv) and DIR/summary.json: per recipe and seed the
 minutes and imagined steps of the first snapshot with tracking >= 0.80 and at most 2 of 54 falls (the quick start's
 "walks"), with the load average during training; DIR/time_to_walk.png draws tracking against minutes, imagined
-steps on a second axis, one colour per recipe. The recipes are the `RECIPES` table below; the shipped recipe
-(`reference`) is today's `examples/quickstart.py` default before the fast settings.
+steps in the summary, one colour per recipe. The recipes are the `RECIPES` table below; the shipped recipe
+(`reference`) is the shipped from-scratch recipe as it was trained; `fast` is what `examples/quickstart.py` runs.
 """
 
 from __future__ import annotations
@@ -33,27 +33,35 @@ WALKS = {"tracking": 0.80, "max_falls": 2}
 """A snapshot walks at tracking >= 0.80 with at most 2 falls in the 54 scoring episodes."""
 
 MODEL = "assets/checkpoints/anymal_d_rwm_cover.safetensors"
-SHARED = ["--episode-steps=50", "--uncertainty-penalty=10.0", "--uncertainty-floor=0.02", "--uncertainty-halt=0.06",
-          "--torque-halt=0.95", "--positive-reward-only", "--log-std-init=-1.0"]
-"""Settings every recipe shares: the shipped from-scratch recipe's imagined episodes and policy start."""
+EPISODES = ["--episode-steps=50", "--torque-halt=0.95"]
+PPO_SHARED = [*EPISODES, "--uncertainty-penalty=10.0", "--uncertainty-floor=0.02", "--uncertainty-halt=0.06",
+              "--positive-reward-only", "--log-std-init=-1.0"]
+"""What every PPO recipe shares: the shipped from-scratch recipe's imagined episodes and policy start."""
 
-RECIPES: dict[str, tuple[str, list[str]]] = {
-    "reference": ("4096 envs, fp32 (the shipped from-scratch recipe)", ["--num-envs=4096"]),
-    "envs512": ("512 envs, fall tilt 30, fp32", ["--num-envs=512", "--fall-tilt=30"]),
-    "envs256": ("256 envs, fall tilt 30, fp32", ["--num-envs=256", "--fall-tilt=30"]),
-    "fast": ("512 envs, fall tilt 30, bf16 products", ["--num-envs=512", "--fall-tilt=30",
-                                                      "--matmul-precision=bfloat16"]),
+RECIPES: dict[str, tuple[str, str, list[str]]] = {
+    "reference": ("PPO, 4096 envs, fp32, 1 thread (the shipped recipe)", "ppo", ["--num-envs=4096"]),
+    "fast": ("PPO, 4096 envs, bf16 products (the quick start)", "ppo",
+             ["--num-envs=4096", "--matmul-precision=bfloat16"]),
+    "envs1024": ("PPO, 1024 envs, fall tilt 30, bf16", "ppo",
+                 ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16"]),
+    "envs1024_symmetry": ("PPO, 1024 envs, fall tilt 30, bf16, mirror augmentation", "ppo",
+                          ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16", "--symmetry"]),
+    "envs512": ("PPO, 512 envs, fall tilt 30", "ppo", ["--num-envs=512", "--fall-tilt=30"]),
+    "envs256": ("PPO, 256 envs, fall tilt 30", "ppo", ["--num-envs=256", "--fall-tilt=30"]),
+    "shac": ("SHAC, 1024 envs, horizon 16, fall tilt 30", "shac", ["--num-envs=1024", "--horizon=16",
+                                                                   "--fall-tilt=30"]),
 }
+"""name -> (what, learner, its options beyond the shared ones)."""
 
 
 def train(recipe: str, seed: int, minutes: float, threads: int, run_dir: Path, snapshot_every: int) -> None:
     """One resumable training run of `minutes` of wall time (a killed run continues where it stopped)."""
-    options = RECIPES[recipe][1]
-    command = [sys.executable, "-m", "rwm_gym.cli", "ppo", "--in", "imagination",
-               "--checkpoint", str(shipped_file(MODEL)), *SHARED, *options, "--timesteps", str(10**9),
-               "--minutes", str(minutes), "--run-dir", str(run_dir), "--save-every", str(snapshot_every),
-               "--snapshot-every", str(snapshot_every), "--threads", str(threads), "--seed", str(seed),
-               "--no-eval", "--out", str(run_dir / "policy.zip")]
+    _, learner, options = RECIPES[recipe]
+    shared = PPO_SHARED + ["--in", "imagination", "--no-eval"] if learner == "ppo" else EPISODES
+    command = [sys.executable, "-m", "rwm_gym.cli", learner, "--checkpoint", str(shipped_file(MODEL)), *shared,
+               *options, "--timesteps", str(10**9), "--minutes", str(minutes), "--run-dir", str(run_dir),
+               "--save-every", str(snapshot_every), "--snapshot-every", str(snapshot_every),
+               "--threads", str(threads), "--seed", str(seed), "--out", str(run_dir / "policy.zip")]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     subprocess.run(command, check=True, env=env)
 
@@ -117,32 +125,46 @@ def summarize(out: Path) -> dict:
             runs[run_dir.name] = {**meta, "curve": rows,
                                   "walks_at_minutes": None if walking is None else float(walking["minutes"]),
                                   "walks_at_steps": None if walking is None else int(walking["timesteps"])}
-        summary["recipes"][recipe_dir.name] = {"what": RECIPES[recipe_dir.name][0],
-                                               "options": SHARED + RECIPES[recipe_dir.name][1], "seeds": runs}
+        what, learner, options = RECIPES[recipe_dir.name]
+        summary["recipes"][recipe_dir.name] = {"what": what, "learner": learner, "options": options, "seeds": runs}
     return summary
 
 
 def plot(summary: dict, floor: float | None, path: Path) -> Path:
+    """Tracking against training minutes (left) and imagined steps (right), one colour per recipe, one line per
+    seed; the right panel also draws the shipped recipe's measured 40 M-step curves (from its JSON)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    from rwm_gym.resources import assets_dir
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), sharey=True)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, (name, recipe) in enumerate(summary["recipes"].items()):
-        for j, (seed, run) in enumerate(recipe["seeds"].items()):
+        for j, run in enumerate(recipe["seeds"].values()):
             rows = run["curve"]
-            ax.plot([float(r["minutes"]) for r in rows], [float(r["tracking"]) for r in rows], "o-",
-                    color=colours[i % len(colours)], alpha=0.8, label=f"{name}: {recipe['what']}" if j == 0 else None)
-    if floor is not None:
-        ax.axhline(floor, color="0.5", ls="--", label="zero action (stands still)")
-    ax.axhline(WALKS["tracking"], color="tab:green", ls=":", label=f"walks ({WALKS['tracking']}, <= 2 falls)")
-    ax.set_xlabel("training wall time (min, 2-core CPU)")
-    ax.set_ylabel("tracking score in physics")
-    ax.set_title("PPO from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed")
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
+            label = f"{name}: {recipe['what']}" if j == 0 else None
+            tracking = [float(r["tracking"]) for r in rows]
+            axes[0].plot([float(r["minutes"]) for r in rows], tracking, "o-", color=colours[i % len(colours)],
+                         alpha=0.8, label=label)
+            axes[1].plot([int(r["timesteps"]) / 1e6 for r in rows], tracking, "o-", color=colours[i % len(colours)],
+                         alpha=0.8)
+    shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    for j, run in enumerate(shipped["seeds"]):
+        axes[1].plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], ":",
+                     color="0.3", label="shipped recipe to 40 M steps (its JSON)" if j == 0 else None)
+    for ax in axes:
+        if floor is not None:
+            ax.axhline(floor, color="0.5", ls="--")
+        ax.axhline(WALKS["tracking"], color="tab:green", ls=":")
+    axes[0].set_xlabel("training wall time (min; load average in summary.json)")
+    axes[1].set_xlabel("imagined env steps (M)")
+    axes[0].set_ylabel("tracking score in physics (dashed: standing still; green: walks)")
+    fig.suptitle("Learning from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed")
+    fig.legend(fontsize=8, loc="lower center", ncol=3)
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     return save_png(fig, path, dpi=100)
 
 
