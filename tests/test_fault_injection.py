@@ -336,7 +336,7 @@ def test_orphaned_temp_files_are_removed_by_the_next_write(tmp_path: Path) -> No
 @pytest.mark.parametrize("out", ["{tmp}/a_file/m.safetensors", "{tmp}"])
 def test_unwritable_or_odd_outs_fail_before_the_run_in_one_line(data: Path, tmp_path: Path, capsys,
                                                                 monkeypatch, out) -> None:
-    import rwm_gym.model.train_command as train_command
+    import rwm_gym.commands.train as train_command
 
     (tmp_path / "a_file").write_text("")
     monkeypatch.setattr(train_command, "train", lambda *a, **k: pytest.fail("the run started"))
@@ -426,7 +426,7 @@ def test_train_resume_without_a_file_is_an_error(data: Path, tmp_path: Path, cap
 @pytest.mark.parametrize("option", [["--hidden-size", "100000"], ["--batch-size", str(10**7)]])
 def test_a_model_too_big_for_the_machine_is_refused_before_allocating(data: Path, tmp_path: Path, capsys,
                                                                       monkeypatch, option) -> None:
-    import rwm_gym.model.train_command as train_command
+    import rwm_gym.commands.train as train_command
 
     monkeypatch.setattr(train_command, "train", lambda *a, **k: pytest.fail("the run started"))  # never allocate
     argv = ["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), *TINY_TRAIN, *option]

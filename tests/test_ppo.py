@@ -271,7 +271,7 @@ def test_mbpo_passes_every_imagination_option_it_has_to_the_imagined_env():
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 
-    from rwm_gym.rl import mbpo
+    from rwm_gym.commands import mbpo
 
     parser = argparse.ArgumentParser()
     mbpo.add_arguments(parser)

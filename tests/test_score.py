@@ -167,7 +167,7 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
     from script_loader import EXAMPLES, load_script
 
     from rwm_gym.resources import assets_dir
-    from rwm_gym.rl.ppo_command import add_arguments
+    from rwm_gym.commands.ppo import add_arguments
 
     quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
     meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())

@@ -13,16 +13,14 @@ import rebuilds the file field for field (tested). Needs the optional extra `rwm
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, write_dataset
+from rwm_gym.data.dataset import Dataset, DatasetInfo, write_dataset
 from rwm_gym.output_guard import check_output, claim
 from rwm_gym.task.observation import build_observation
 
@@ -144,35 +142,3 @@ def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = Fals
 
     write_dataset(out, info, episodes())
     return out
-
-
-def add_export_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minari", required=True, type=Path, metavar="DATA.h5", help="rwm-gym dataset to export")
-    parser.add_argument("--out", required=True, type=Path, help="folder to write the Minari dataset into")
-    parser.add_argument("--dataset-id", help="Minari dataset id (default rwm-gym/TASK/FILE-v0)")
-    parser.add_argument("--overwrite", action="store_true")
-
-
-def add_import_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minari", required=True, type=Path, metavar="DIR", help="Minari dataset folder")
-    parser.add_argument("--out", required=True, type=Path, help="rwm-gym dataset (.h5) to write")
-    parser.add_argument("--overwrite", action="store_true")
-
-
-def _run(command: str, job) -> int:
-    try:
-        path = job()
-    except (ValueError, OSError, DatasetError) as err:
-        print(f"rwm-gym {command}: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
-    print(f"wrote {path}")
-    return 0
-
-
-def run_export(args: argparse.Namespace) -> int:
-    return _run("export", lambda: export_minari(args.minari, args.out, dataset_id=args.dataset_id,
-                                                overwrite=args.overwrite))
-
-
-def run_import(args: argparse.Namespace) -> int:
-    return _run("import", lambda: import_minari(args.minari, args.out, overwrite=args.overwrite))

@@ -15,9 +15,7 @@ numbers of one never stopped.
 
 from __future__ import annotations
 
-import argparse
 import json
-import re
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -25,8 +23,6 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rwm_gym.atomic import save_png
-from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int, positive_int
-from rwm_gym.output_guard import OutputError, check_output, claim, resolved
 
 TRACKING_TARGET = 0.80
 """The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
@@ -331,57 +327,3 @@ def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] 
         axes[2].legend()
     fig.tight_layout()
     save_png(fig, path, dpi=100)
-
-
-RUN_FILES = re.compile(r"(data_\d+\.h5|buffer\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
-"""The files the loop writes in its folder (`--out`)."""
-
-
-def check_run_folder(out: Path, inputs) -> None:
-    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself."""
-    folder = resolved(out)
-    for source in (s for s in inputs if s is not None):
-        path = resolved(source)
-        if path == folder or (path.parent == folder and RUN_FILES.fullmatch(path.name)):
-            raise OutputError(f"--out {out}: the run writes {path.name if path != folder else 'into it'}, which is "
-                              f"the input {source}; copy the input elsewhere first")
-    check_output(folder, overwrite=True, folder=True)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
-    parser.add_argument("--out", required=True, type=Path,
-                        help="run folder: models, data, policies and the report; the same command resumes it")
-    parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
-    parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
-    parser.add_argument("--init-policy", default=None, type=Path,
-                        help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
-    parser.add_argument("--model-free-curve", default=None, type=Path,
-                        help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
-                             "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    counts = ("iterations", "ppo_timesteps", "num_envs", "imagined_episode_steps", "collect_episodes",
-              "collect_steps", "model_iterations", "eval_seeds")
-    add_dataclass_options(parser, MBPOConfig, types={"action_noise": non_negative_float, "eval_steps": positive_int,
-                                                     "base_episodes": non_negative_int,
-                                                     "critic_warmup_steps": non_negative_int,
-                                                     **dict.fromkeys(counts, positive_int)})
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
-    try:
-        check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
-        with claim(args.out):
-            report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
-                          model_kind=args.model, device=args.device, model_free_curve=args.model_free_curve)
-    except ValueError as error:
-        raise SystemExit(f"rwm-gym mbpo: {error}") from None
-    print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
-          f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
-    return 0

@@ -1,5 +1,5 @@
 """PPO in imagination (or in physics, the model-free baseline): settings, env and learner (`rwm-gym ppo` is
-`rwm_gym.rl.ppo_command`).
+`rwm_gym.commands.ppo`).
 
 Stable-Baselines3's PPO with RWM's settings (`PPOConfig`): actor and critic 128-128-128 ELU, initial action std 1,
 clip 0.2, 5 epochs of 4 minibatches, lr 1e-3 adapted to a KL target of 0.01 (rsl_rl's rule), gamma 0.99, lambda 0.95,
