@@ -13,6 +13,7 @@ import torch
 from stable_baselines3 import PPO
 
 from rwm_gym.cli import main
+from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
 
@@ -155,9 +156,9 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
     start = make_ppo(make_env("imagination", 8, checkpoint=tiny_checkpoint, seed=0),
                      PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32)), seed=0)
     start.save(tmp_path / "start.zip")
-    config = MBPOConfig(iterations=2, ppo_timesteps=128, num_envs=8, imagined_episode_steps=20, collect_episodes=2,
-                        collect_steps=48, base_episodes=3, model_iterations=5, model_finetune=True, model_lr=3e-4,
-                        critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
+    config = MBPOConfig(iterations=2, ppo_timesteps=128, num_envs=8, imagination=ImaginationOptions(episode_steps=20),
+                        collect_episodes=2, collect_steps=48, base_episodes=3, model_iterations=5, model_finetune=True,
+                        model_lr=3e-4, critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
     run = dict(checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip", progress=False)
     merged_into, merge = [], rwm_gym.data.dataset.merge_datasets
     monkeypatch.setattr(rwm_gym.data.dataset, "merge_datasets", lambda paths, out: merged_into.append(out) or
@@ -222,8 +223,8 @@ def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std
         return stats
 
     monkeypatch.setattr(ppo, "learn", learn)
-    config = MBPOConfig(iterations=1, ppo_timesteps=64, num_envs=8, imagined_episode_steps=20, collect_episodes=1,
-                        collect_steps=48, model_iterations=2, model_finetune=True, eval_seeds=1, eval_steps=10,
+    config = MBPOConfig(iterations=1, ppo_timesteps=64, num_envs=8, imagination=ImaginationOptions(episode_steps=20),
+                        collect_episodes=1, collect_steps=48, model_iterations=2, model_finetune=True, eval_seeds=1, eval_steps=10,
                         positive_reward_only=True, log_std_init=-1.0)
     report = mbpo(data, tmp_path / "mbpo", config, checkpoint=tiny_checkpoint, progress=False)
     [(wrapper, rewards)] = seen
@@ -240,8 +241,8 @@ def test_mbpo_trains_its_own_starting_model_with_an_ensemble_where_the_halt_need
 
     data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=60,
                    progress=False)
-    config = MBPOConfig(iterations=0, num_envs=8, imagined_episode_steps=20, model_iterations=1, eval_seeds=1,
-                        eval_steps=10, uncertainty_halt=0.06)
+    config = MBPOConfig(iterations=0, num_envs=8, model_iterations=1, eval_seeds=1, eval_steps=10,
+                        imagination=ImaginationOptions(episode_steps=20, uncertainty_halt=0.06))
     mbpo(data, tmp_path / "mbpo", config, progress=False)
     assert read_meta(tmp_path / "mbpo" / "model_0.safetensors").model_config.ensemble_size == 5
 
@@ -249,23 +250,27 @@ def test_mbpo_trains_its_own_starting_model_with_an_ensemble_where_the_halt_need
 def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
     from rwm_gym.rl.mbpo import MBPOConfig, _check_resume
 
-    older = {k: v for k, v in MBPOConfig().to_dict().items() if k not in ("uncertainty_floor", "uncertainty_halt")}
+    # a run folder of 0.1: the imagination options flat beside the loop's, without the fields added since
+    older = {k: v for k, v in MBPOConfig().to_dict().items() if k != "imagination"}
+    older.update(imagined_episode_steps=250, uncertainty_penalty=0.0, fall_tilt=0.0, torque_halt=0.0,
+                 random_first_episode_length=False, trust_entry_points=False)
     _check_resume({"config": older}, MBPOConfig(iterations=9), tmp_path / "mbpo.json")  # only iterations changed
     with pytest.raises(ValueError, match="other settings \\(uncertainty_halt\\)"):
-        _check_resume({"config": older}, MBPOConfig(uncertainty_halt=0.06), tmp_path / "mbpo.json")
+        _check_resume({"config": older}, MBPOConfig(imagination=ImaginationOptions(episode_steps=250,
+                                                                                   uncertainty_halt=0.06)),
+                      tmp_path / "mbpo.json")
 
 
-def test_mbpo_passes_every_imagination_option_it_has_to_the_imagined_env():
-    from rwm_gym.imagination.core import ImaginationOptions
-    from rwm_gym.rl.mbpo import MBPOConfig, imagination_kwargs
+def test_mbpo_reads_the_imagination_options_of_old_and_new_run_folders():
+    from rwm_gym.rl.mbpo import MBPOConfig
 
-    config = MBPOConfig(imagined_episode_steps=50, uncertainty_halt=0.06, fall_tilt=30.0, torque_halt=0.95,
-                        random_first_episode_length=True)
-    kwargs = imagination_kwargs(config)
-    assert kwargs == {"episode_steps": 50, "uncertainty_penalty": 0.0, "uncertainty_floor": 0.0,
-                      "uncertainty_halt": 0.06, "fall_tilt": 30.0, "torque_halt": 0.95,
-                      "random_first_episode_length": True, "trust_entry_points": False}
-    assert ImaginationOptions(**kwargs).torque_halt == 0.95
+    flat = {"iterations": 2, "imagined_episode_steps": 50, "uncertainty_halt": 0.06, "fall_tilt": 30.0,
+            "torque_halt": 0.95, "random_first_episode_length": True, "trust_entry_points": False}
+    config = MBPOConfig.from_dict(flat)
+    assert config.iterations == 2
+    assert config.imagination == ImaginationOptions(episode_steps=50, uncertainty_halt=0.06, fall_tilt=30.0,
+                                                    torque_halt=0.95, random_first_episode_length=True)
+    assert MBPOConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
 
 
 def test_mbpo_options_come_from_its_config_fields():
@@ -282,6 +287,8 @@ def test_mbpo_options_come_from_its_config_fields():
     defaults = parser.parse_args(["--data", "d", "--out", "o"])
     assert defaults.model_finetune is False and defaults.ppo_timesteps == mbpo.MBPOConfig.ppo_timesteps
     assert "Fine-tune the current world model" in parser.format_help()
+    assert defaults.episode_steps == 250  # the loop's own default time limit, under its old flag name too
+    assert parser.parse_args(["--data", "d", "--out", "o", "--imagined-episode-steps", "50"]).episode_steps == 50
 
 
 def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsys):

@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import argparse
 import re
-from dataclasses import fields
 from pathlib import Path
 
-from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int, positive_int
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.options import (
+    add_dataclass_options,
+    dataclass_from_args,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+)
 from rwm_gym.output_guard import OutputError, check_output, claim, resolved
 from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
@@ -27,6 +33,7 @@ def check_run_folder(out: Path, inputs) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym mbpo`: the run's files, then one flag per `MBPOConfig` and `ImaginationOptions` field."""
     parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
     parser.add_argument("--out", required=True, type=Path,
                         help="run folder: models, data, policies and the report; the same command resumes it")
@@ -39,20 +46,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    counts = ("iterations", "ppo_timesteps", "num_envs", "imagined_episode_steps", "collect_episodes",
-              "collect_steps", "model_iterations", "eval_seeds")
-    add_dataclass_options(parser, MBPOConfig, types={"action_noise": non_negative_float, "eval_steps": positive_int,
-                                                     "base_episodes": non_negative_int,
-                                                     "critic_warmup_steps": non_negative_int,
-                                                     **dict.fromkeys(counts, positive_int)})
+    counts = ("iterations", "ppo_timesteps", "num_envs", "collect_episodes", "collect_steps", "model_iterations",
+              "eval_seeds")
+    add_dataclass_options(parser, MBPOConfig, skip={"imagination"},
+                          types={"action_noise": non_negative_float, "eval_steps": positive_int,
+                                 "base_episodes": non_negative_int, "critic_warmup_steps": non_negative_int,
+                                 **dict.fromkeys(counts, positive_int)})
+    add_imagination_options(parser, defaults=MBPOConfig().imagination, aliases={"episode_steps": ["--imagined-episode-steps"]},
+                            types={"episode_steps": positive_int})
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym mbpo`: refuse a run folder that would overwrite an input, then run (or resume) the loop in it."""
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
-    config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
+    config = dataclass_from_args(MBPOConfig, args, skip={"imagination"},
+                                 imagination=imagination_from_args(args, MBPOConfig().imagination))
     try:
         check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
         with claim(args.out):

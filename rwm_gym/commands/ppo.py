@@ -9,15 +9,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-from dataclasses import asdict, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from stable_baselines3.common.vec_env import VecEnv
 
-from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args, non_default
+from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.policy_file import save_policy
-from rwm_gym.rl.safe_zip import load_policy
 from rwm_gym.rl.ppo import (
     ACTIVATIONS,
     WHERE,
@@ -29,6 +29,7 @@ from rwm_gym.rl.ppo import (
     make_ppo,
     warm_up_critic,
 )
+from rwm_gym.rl.safe_zip import load_policy
 
 
 def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
@@ -53,38 +54,12 @@ def anneal_steps(config: PPOConfig, timesteps: int | None) -> float:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym ppo`: the run, then one flag per `PPOConfig` and `ImaginationOptions` field."""
     parser.add_argument("--in", dest="where", choices=WHERE, default="imagination",
                         help="train in the imagined env (world model) or in physics (model-free baseline)")
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
-    parser.add_argument("--episode-steps", type=int, default=None,
-                        help="time limit of an imagined episode in policy steps (default: the task's; PPO bootstraps)")
     parser.add_argument("--reset-data", type=Path, default=None,
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
-    parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
-                        help="lambda of RWM-U's penalty -lambda * max(u - floor, 0) * dt on the ensemble "
-                             "disagreement u (imagination)")
-    parser.add_argument("--uncertainty-floor", type=float, default=0.0,
-                        help="disagreement the penalty leaves free (the model's level on its own data, ~0.02)")
-    parser.add_argument("--uncertainty-halt", type=float, default=0.0,
-                        help="end an imagined episode where the disagreement exceeds this (0: never; MOReL's halt)")
-    parser.add_argument("--fall-tilt", type=float, default=0.0,
-                        help="end an imagined episode where the predicted base tilts past this many degrees (0: "
-                             "never; the model's termination head alone)")
-    parser.add_argument("--torque-halt", type=float, default=0.0,
-                        help="end an imagined episode where a predicted joint torque reaches this fraction of the "
-                             "effort limit (0: never)")
-    parser.add_argument("--sample-predictions", action="store_true",
-                        help="step the imagined env to a sample of the predicted Gaussian, not its mean (for a model "
-                             "trained with the nll loss, whose std is fitted)")
-    parser.add_argument("--random-first-episode-length", action="store_true",
-                        help="start each imagined env's first episode at a random step of its time limit, so restarts "
-                             "spread over time (rsl_rl's init_at_random_ep_len)")
-    parser.add_argument("--matmul-precision", choices=("float32", "bfloat16"), default="float32",
-                        help="dtype of the world model's matrix products per imagined step (bfloat16: 2.5-4x faster "
-                             "on CPUs with AVX512-BF16/AMX and on GPUs) (default float32)")
-    parser.add_argument("--trust-entry-points", action="store_true",
-                        help="import the reward / termination functions the checkpoint's spec names ([imagination]); "
-                             "importing runs the module's code, so only for a checkpoint you trust")
     parser.add_argument("--timesteps", type=non_negative_int, default=None,
                         help="budget in env steps (default: none; with neither budget, --minutes 8)")
     parser.add_argument("--minutes", type=non_negative_float, default=None,
@@ -114,8 +89,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record-every", type=int, default=0,
                         help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
                              "world-model data (0: none)")
-    add_dataclass_options(parser, PPOConfig, defaults_none=True, types={"net_arch": int}, nargs={"net_arch": "+"},
+    add_dataclass_options(parser.add_argument_group("PPO", "PPO's settings (rwm_gym.rl.ppo.PPOConfig)"), PPOConfig,
+                          defaults_none=True, types={"net_arch": int}, nargs={"net_arch": "+"},
                           choices={"activation": ACTIVATIONS})
+    add_imagination_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -133,55 +110,26 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    """Build the env and the learner, warm-start, train, save, judge in physics and write the report."""
     from rwm_gym.atomic import write_json
-    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 
-    given = {f.name: getattr(args, f.name) for f in fields(PPOConfig) if getattr(args, f.name) is not None}
-    if "net_arch" in given:
-        given["net_arch"] = tuple(given["net_arch"])
-    config = PPOConfig(**given)
+    config = dataclass_from_args(PPOConfig, args)
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
     if args.timesteps is None and args.minutes is None:
         args.minutes = 8.0
-    imagination_options = ("reset_data", "uncertainty_penalty", "uncertainty_floor", "uncertainty_halt",
-                           "fall_tilt", "random_first_episode_length", "sample_predictions", "torque_halt",
-                           "trust_entry_points")
-    imagined = {k: getattr(args, k) for k in imagination_options if getattr(args, k)}
-    if args.matmul_precision != "float32":
-        imagined["matmul_precision"] = args.matmul_precision
-    if imagined and args.where != "imagination":
-        raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in imagined)} apply to "
-                         f"--in imagination")
-    env_kwargs = {}
-    if args.where == "imagination":
-        env_kwargs = {k: v for k, v in {"episode_steps": args.episode_steps, **imagined}.items() if v}
+    env_kwargs, imagined = _imagination(args)
     try:
         env = make_env(args.where, config.num_envs, checkpoint=args.checkpoint, device=args.device, seed=args.seed,
                        env_kwargs=env_kwargs)
     except (ValueError, FileNotFoundError) as error:  # a checkpoint or reset data that cannot serve these options
         raise SystemExit(f"rwm-gym ppo: {error}") from None
     if args.run_dir is not None:
-        return run_resumable(args, config, env, env_kwargs)
+        return run_resumable(args, config, env, imagined)
     model = make_ppo(env, config, seed=args.seed, device=args.device)
-    cloned = None
-    if args.bc_data:
-        from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
-
-        cloned = behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
-                                                                  seed=args.seed), progress=True)
-        held_out = "none" if cloned.val_mse_after is None else f"{cloned.val_mse_after:.3f}"
-        print(f"behaviour cloning: {cloned.pairs:,} pairs from {cloned.episodes} episodes, action MSE "
-              f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
-              f"in {cloned.wall_s:.0f} s")
-        if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
-            cloned_eval = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
-            print("physics evaluation of the cloned actor, before PPO:")
-            print(format_table(cloned_eval))
-            save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
-            print(f"wrote {out_bc}")
+    warm = _behaviour_clone(args, model)
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
         warmup = warm_up_critic(model, config.critic_warmup_steps)
@@ -195,12 +143,8 @@ def _train(args: argparse.Namespace) -> int:
     print(f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
           f"wrote {out}")
     report = {"where": args.where, "checkpoint": args.checkpoint, "seed": args.seed, "ppo": config.to_dict(),
-              "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()},
-              "behaviour_cloning": None if cloned is None else {"data": [str(p) for p in args.bc_data],
-                                                                 **cloned.to_dict(),
-                                                                 "evaluation": None if args.no_eval
-                                                                 else cloned_eval.to_dict()},
-              "critic_warmup": None if warmup is None else asdict(warmup), "train": asdict(stats),
+              "imagination": imagined, "behaviour_cloning": warm.report(args), "critic_warmup": None if warmup is None
+              else asdict(warmup), "train": asdict(stats),
               "kept": "ppo"}  # which policy --out holds; --keep-best may hand back the clone
     report["physics_samples"], report["physics_samples_source"] = physics_samples(
         args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0))
@@ -208,27 +152,89 @@ def _train(args: argparse.Namespace) -> int:
     print(f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
           f"({report['physics_samples_source']})")
     if not args.no_eval:
-        evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
-        print("physics evaluation" + (" after PPO:" if cloned else ":"))
-        print(format_table(evaluation))
-        report["evaluation"] = evaluation.to_dict()
-        if args.keep_best and cloned is not None and cloned_eval.tracking > evaluation.tracking:
-            os.replace(out, out.with_name(out.stem + "_ppo.zip"))
-            save_policy(load_policy(out_bc, device=args.device), out)
-            evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
-            print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
-                  f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
-                  f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
-                  f"{out.with_name(out.stem + '_ppo.zip')}")
-        elif cloned is not None:
-            print(f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
-                  f"{evaluation.tracking:.3f} after PPO)")
-        print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+        _judge(args, model, out, warm, report)
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
 
 
-def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_kwargs: dict) -> int:
+def _imagination(args: argparse.Namespace) -> tuple[dict, dict]:
+    """The imagined env's kwargs (its `ImaginationOptions` and reset data) and what the run records of them: the
+    options given (those that differ from the defaults); refused for --in physics."""
+    options = imagination_from_args(args)
+    imagined = {**non_default(options), **({"reset_data": str(args.reset_data)} if args.reset_data else {})}
+    refused = [k for k in imagined if k != "episode_steps"]  # --in physics has always ignored --episode-steps
+    if refused and args.where != "imagination":
+        raise SystemExit(f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in refused)} apply to "
+                         f"--in imagination")
+    if args.where != "imagination":
+        return {}, {}
+    return {"options": options, "reset_data": args.reset_data}, imagined
+
+
+@dataclass
+class _WarmStart:
+    """The behaviour-cloned actor (`--bc-data`): its statistics, its physics evaluation and its zip."""
+
+    cloned: object = None
+    evaluation: object = None
+    path: Path | None = None
+
+    def report(self, args: argparse.Namespace) -> dict | None:
+        if self.cloned is None:
+            return None
+        return {"data": [str(p) for p in args.bc_data], **self.cloned.to_dict(),
+                "evaluation": None if args.no_eval else self.evaluation.to_dict()}
+
+
+def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
+    """With --bc-data: clone the demonstrator's actions into the actor and judge the clone alone in physics."""
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
+
+    if not args.bc_data:
+        return _WarmStart()
+    from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
+
+    warm = _WarmStart(behaviour_clone(model, args.bc_data, CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std,
+                                                                       seed=args.seed), progress=True))
+    cloned = warm.cloned
+    held_out = "none" if cloned.val_mse_after is None else f"{cloned.val_mse_after:.3f}"
+    print(f"behaviour cloning: {cloned.pairs:,} pairs from {cloned.episodes} episodes, action MSE "
+          f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
+          f"in {cloned.wall_s:.0f} s")
+    if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+        warm.evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print("physics evaluation of the cloned actor, before PPO:")
+        print(format_table(warm.evaluation))
+        save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
+        warm.path = out_bc
+        print(f"wrote {out_bc}")
+    return warm
+
+
+def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict) -> None:
+    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse."""
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
+
+    evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+    print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
+    print(format_table(evaluation))
+    report["evaluation"] = evaluation.to_dict()
+    cloned_eval = warm.evaluation
+    if args.keep_best and warm.cloned is not None and cloned_eval.tracking > evaluation.tracking:
+        os.replace(out, out.with_name(out.stem + "_ppo.zip"))
+        save_policy(load_policy(warm.path, device=args.device), out)
+        evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
+        print(f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
+              f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
+              f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
+              f"{out.with_name(out.stem + '_ppo.zip')}")
+    elif warm.cloned is not None:
+        print(f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
+              f"{evaluation.tracking:.3f} after PPO)")
+    print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+
+
+def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict) -> int:
     """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
     from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
 
@@ -240,7 +246,7 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, env_
     if run.resumable and saved != json.loads(json.dumps(config.to_dict())):
         raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
     environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint),
-                   "imagination": {k: str(v) if isinstance(v, Path) else v for k, v in env_kwargs.items()}}
+                   "imagination": imagined}
     if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
         raise SystemExit(f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another "
                          f"--run-dir")

@@ -16,8 +16,9 @@ import time
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from rwm_gym.imagination.core import ImaginationOptions
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.imagination.options import ImaginationOptions
+from rwm_gym.options import add_dataclass_options, dataclass_from_args
 from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
 
 IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first_episode_length", "divergence_bound")
@@ -28,9 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
     parser.add_argument("--reset-data", type=Path, default=None,
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
-    add_dataclass_options(parser.add_argument_group("imagination"), ImaginationOptions,
-                          skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS),
-                          types={"episode_steps": int})
+    add_imagination_options(parser, skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS))
     add_dataclass_options(parser.add_argument_group("SHAC"), SHACConfig, nargs={"net_arch": "+"},
                           types={"net_arch": int}, choices={"activation": ("elu", "tanh", "relu")})
     parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
@@ -70,9 +69,8 @@ def _train(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.timesteps < 1 or (args.minutes is not None and args.minutes <= 0):
         raise SystemExit("rwm-gym shac: --timesteps and --minutes must be positive")
-    config = SHACConfig(**{f.name: tuple(v) if isinstance(v := getattr(args, f.name), list) else v
-                           for f in fields(SHACConfig)})
-    options = ImaginationOptions(**{name: getattr(args, name) for name in IMAGINATION_FIELDS})
+    config = dataclass_from_args(SHACConfig, args)
+    options = imagination_from_args(args)
     try:
         core = ImaginedCore(args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data,
                             options=options)

@@ -139,21 +139,10 @@ class LocomotionCore:
         }
 
 
-def make_core(
-    spec: str | TaskSpec = "anymal_d",
-    num_envs: int = 1,
-    *,
-    xml_file: str | Path | None = None,
-    physics: PhysicsParams | Mapping[str, object] | None = None,
-    observation_noise: bool = False,
-    nthread: int = 0,
-    resample_commands: bool = True,
-    solver: SolverSettings | Mapping[str, int] | None = None,
-) -> LocomotionCore:
-    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; `nthread` 0: all CPUs."""
-    task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
-    return LocomotionCore(task, num_envs, xml_file=xml_file, physics=physics, observation_noise=observation_noise,
-                          nthread=nthread, resample_commands=resample_commands, solver=solver)
+def make_core(spec: str | TaskSpec = "anymal_d", num_envs: int = 1, **kwargs) -> LocomotionCore:
+    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; kwargs as
+    `LocomotionCore` (xml_file, physics, observation_noise, nthread (0: all CPUs), resample_commands, solver)."""
+    return LocomotionCore(spec if isinstance(spec, TaskSpec) else load_spec(spec), num_envs, **kwargs)
 
 
 class LocomotionEnv(gym.Env):
@@ -164,29 +153,16 @@ class LocomotionEnv(gym.Env):
     `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot;
     `solver` (see `SolverSettings`, e.g. `{"iterations": 100}`) how exactly MuJoCo solves each step, not the robot.
     `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode; `resample_commands=False` keeps
-    each episode's sampled command.
+    each episode's sampled command. The keyword arguments are `LocomotionCore`'s, listed there once.
     """
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
-    def __init__(
-        self,
-        spec: str | TaskSpec = "anymal_d",
-        *,
-        xml_file: str | Path | None = None,
-        physics: PhysicsParams | Mapping[str, object] | None = None,
-        observation_noise: bool = False,
-        resample_commands: bool = True,
-        solver: SolverSettings | Mapping[str, int] | None = None,
-        render_mode: str | None = None,
-        width: int = 640,
-        height: int = 480,
-        camera: str = "track",
-    ):
-        self.task_spec = spec if isinstance(spec, TaskSpec) else load_spec(spec)
-        self.core = LocomotionCore(self.task_spec, 1, xml_file=xml_file, physics=physics,
-                                   observation_noise=observation_noise, resample_commands=resample_commands,
-                                   solver=solver)
+    def __init__(self, spec: str | TaskSpec = "anymal_d", *, render_mode: str | None = None, width: int = 640,
+                 height: int = 480, camera: str = "track", **kwargs):
+        """kwargs as `LocomotionCore`: xml_file, physics, observation_noise, resample_commands, solver."""
+        self.core = make_core(spec, 1, **kwargs)
+        self.task_spec = self.core.spec
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}
