@@ -81,22 +81,7 @@ def collect(
     order, so the file is the same, byte for byte, whatever `workers` and `num_envs` (tested for the random and gait
     policies; an SB3 policy acts on a batch, whose float rounding may depend on its size).
     """
-    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
-        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
-    if max_steps is not None and max_steps < 1:
-        raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
-    if not (np.isfinite(action_noise) and action_noise >= 0):
-        raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
-    if Path(out).exists() and not overwrite:
-        raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
-    inputs = [policy if isinstance(policy, str) and policy.endswith(".zip") else None,
-              env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
-              *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file")]
-    check_output(out, inputs=inputs, overwrite=overwrite)
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    if workers > 1 and not isinstance(policy, str):
-        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
+    _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers)
     job = _Job(env_id, policy, seed, min(check_num_envs(num_envs), episodes), action_noise, max_steps,
                dict(env_kwargs or {}), threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers))
     runner = _Runner(job)
@@ -121,6 +106,27 @@ def collect(
             writer.append_episode(episode)
             bar.update(1)
     return out
+
+
+def _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers) -> None:
+    """`collect`'s arguments checked before anything runs: counts, noise, the output (not an input, not another
+    run's) and what the workers can carry; a ValueError or DatasetError of one line otherwise."""
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
+    if not (np.isfinite(action_noise) and action_noise >= 0):
+        raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
+    if Path(out).exists() and not overwrite:
+        raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
+    inputs = [policy if isinstance(policy, str) and policy.endswith(".zip") else None,
+              env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
+              *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file")]
+    check_output(out, inputs=inputs, overwrite=overwrite)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and not isinstance(policy, str):
+        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
 
 
 def finished_collection(path: str | Path, *, episodes: int, seed: int, what: str = "this collection") -> bool:
