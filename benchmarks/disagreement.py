@@ -1,4 +1,5 @@
-"""Does a world model's ensemble disagreement see where it is wrong? The heads against a second, separately trained model.
+"""Does a world model's ensemble disagreement see where it is wrong? The heads against a second, separately trained
+model.
 
 The RWM-U penalty reads the disagreement of the model's ensemble heads, which share one GRU trunk. This measures how
 well that signal, and the disagreement with a second model (its own trunk), follow the model's real error:

@@ -9,7 +9,8 @@ horizon, per state group, and with noise on the history. "No change" and "predic
 
 The budget is equal iterations (`--iterations`) or equal minutes (`--minutes`, counted in this process's CPU time
 with `--cpu-clock`, so other jobs on a shared machine do not count). `--models` picks rows of MODELS, which also holds
-the ablations of the trainer and of the state constraints (RWM-branches: 8 segments x 32 branches; RWM+gravity, RWM+limits,
+the ablations of the trainer and of the state constraints (RWM-branches: 8 segments x 32 branches; RWM+gravity,
+RWM+limits,
 RWM+physics: `ModelConfig.unit_gravity` / `joint_limits`).
 
 Writes `results.json`, `results.md` and `error_vs_horizon_<source>.png` (+ data and checkpoints) to `--out`.

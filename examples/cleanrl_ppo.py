@@ -178,7 +178,7 @@ def load_resume_point(path: Path, agent: Agent, optimizer: torch.optim.Adam, arg
     """Restore what `save_resume_point` wrote; refuses a folder started with other settings."""
     with safe_open(path, "pt") as f:
         progress = json.loads(f.metadata()["progress"])
-        tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open has no __iter__)
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
     started, now = progress["args"], asdict(args)
     changed = [k for k in now if k not in RESUMABLE_CHANGES and started.get(k) != now[k]]
     if changed:

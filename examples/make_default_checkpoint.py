@@ -12,7 +12,8 @@ was the default before the last two: `git show f0dc796:assets/checkpoints/anymal
            --batch-size 256 --branches 4 --branch-stride 8 --unit-gravity --joint-limits --minutes 95 --iterations 0
 
 2. Fine-tuned in six iterations of the MBPO loop (`rwm-gym mbpo` with 192 physics
-   episodes of up to 400 steps and 300 model steps per iteration, `--iterations 6`, from stage 1's model; `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
+   episodes of up to 400 steps and 300 model steps per iteration, `--iterations 6`, from stage 1's model;
+   `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
 
 3. Fine-tuned on that mix with 32-step forecasts (80 min, 1,409 iterations x 256 windows; `--init` trains on the
    `--data` files alone and keeps the model's config):

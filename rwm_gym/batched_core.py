@@ -26,6 +26,8 @@ linearly: a bound turns a typo (num_envs=100000) into an error instead of a mach
 
 
 class BatchedCore(Protocol):
+    """N environments stepped together: the contract every physics and imagined core meets (arrays (N, ...))."""
+
     num_envs: int
     single_observation_space: gym.spaces.Box
     single_action_space: gym.spaces.Box

@@ -66,6 +66,7 @@ _HELD: dict[Path, list[int]] = {}
 
 
 def lock_path(out: Path) -> Path:
+    """The lock file beside `out` that a run holds while it writes `out`."""
     return out.with_name(f".{out.name}.lock")
 
 

@@ -140,6 +140,7 @@ def make_physics_vector_env(num_envs: int = 1, spec: str | Path | TaskSpec | Non
 
 
 def register_all() -> None:
+    """Register every rwm-gym env id with Gymnasium (string entry points: no MuJoCo or torch imported)."""
     for env_id, entry in {**PHYSICS_ENVS, **IMAGINED_ENVS, **GENERIC_ENVS}.items():
         if env_id in gym.registry:
             continue

@@ -35,6 +35,8 @@ class Group:
 
 @dataclass(frozen=True)
 class ActuatorSpec:
+    """The actuated joints and their position servos (spec `[actuator]`)."""
+
     joints: tuple[str, ...]
     default_pose: tuple[float, ...]
     """rad, one per joint."""
@@ -52,6 +54,8 @@ class ActuatorSpec:
 
 @dataclass(frozen=True)
 class PrivilegedSpec:
+    """The bodies whose contacts, heights and falls the world model predicts (spec `[privileged]`)."""
+
     contact_bodies: tuple[str, ...]
     contact_threshold: float
     """N: a body is in contact when its net contact force exceeds this."""
@@ -64,6 +68,8 @@ class PrivilegedSpec:
 
 @dataclass(frozen=True)
 class CommandSpec:
+    """The velocity commands: names, uniform ranges, resampling period (s) and standing share (spec `[command]`)."""
+
     names: tuple[str, ...]
     low: tuple[float, ...]
     high: tuple[float, ...]
@@ -74,6 +80,8 @@ class CommandSpec:
 
 @dataclass(frozen=True)
 class RewardSpec:
+    """The reward terms' weights and shaping constants (spec `[reward]`)."""
+
     weights: dict[str, float]
     tracking_sigma: float
     feet_air_time_target: float
@@ -81,6 +89,8 @@ class RewardSpec:
 
 @dataclass(frozen=True)
 class ObservationSpec:
+    """The policy observation's groups, in order, and their noise (spec `[observation]`)."""
+
     groups: tuple[str, ...]
     noise: dict[str, float]
 

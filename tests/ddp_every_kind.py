@@ -13,7 +13,6 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.train import train
 
 
-
 def emit(record: dict) -> None:
     """One write per line: both ranks share the pipe, and a line written in one call (< PIPE_BUF) never interleaves."""
     os.write(sys.stdout.fileno(), (json.dumps(record) + "\n").encode())

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 from rwm_gym.model import MODEL_KINDS, Prediction, build_model, model_config_for
 from rwm_gym.model.branches import branch_starts, branched_forecast
@@ -18,7 +19,6 @@ from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.losses import segment_loss, window_loss
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=2, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim

@@ -10,12 +10,12 @@ import pytest
 import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
+from synthetic_dynamics import SPEC
 
 from rwm_gym.model import MODEL_KINDS, build_model, model_config_for
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, read_meta, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.spec import parse_spec
-from synthetic_dynamics import SPEC
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 

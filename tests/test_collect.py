@@ -52,7 +52,8 @@ def test_collection_is_deterministic_and_independent_of_env_count(tmp_path):
 
 
 def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
-    """Episodes of different lengths (random actions make ANYmal fall) finish out of order; the file does not show it."""
+    """Episodes of different lengths (random actions make ANYmal fall) finish out of order; the file does not show
+    it."""
     kwargs = dict(seed=0, max_steps=100, progress=False)
     one = collect(ENV_ID, "random", 7, tmp_path / "one.h5", num_envs=1, **kwargs)
     two = collect(ENV_ID, "random", 7, tmp_path / "two.h5", num_envs=3, workers=2, **kwargs)
@@ -98,7 +99,7 @@ def test_finished_collection_keeps_a_whole_part_and_refuses_another_seeds_file(t
     collect("AnymalD-MuJoCo-v0", "random", 2, part, seed=7, max_steps=10, progress=False)
     assert finished_collection(part, episodes=2, seed=7)
     assert not finished_collection(part, episodes=3, seed=7)  # fewer episodes than asked: collected again
-    with pytest.raises(DatasetError, match="part.h5 exists and is not part 3 \\(seed 7, not 8\\)"):
+    with pytest.raises(DatasetError, match=r"part\.h5 exists and is not part 3 \(seed 7, not 8\)"):
         finished_collection(part, episodes=2, seed=8, what="part 3")
 
 

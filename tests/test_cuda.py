@@ -10,6 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from synthetic_dynamics import write_linear_dataset
+from test_distributed import assert_same_weights, tensors, train_cli
 
 import rwm_gym  # noqa: F401
 from rwm_gym.data.collect import collect
@@ -19,8 +21,6 @@ from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.spec import load_spec
-from synthetic_dynamics import write_linear_dataset
-from test_distributed import assert_same_weights, tensors, train_cli
 
 DEVICE = "cuda"
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no cuda device visible to torch")

@@ -154,7 +154,7 @@ def test_merge(tmp_path: Path, path: Path, episodes) -> None:
     assert not is_merge_of(out, [path, other])
     bad = tmp_path / "bad.h5"
     write_dataset(bad, make_info(spec_text=SPEC.text.replace("episode_steps = 1000", "episode_steps = 999")), more)
-    with pytest.raises(DatasetError, match="bad.h5.*'spec'"):
+    with pytest.raises(DatasetError, match=r"bad.h5.*'spec'"):
         merge_datasets([path, bad], tmp_path / "never.h5")
 
 
@@ -222,7 +222,7 @@ def test_not_hdf5_and_truncated(tmp_path: Path, path: Path) -> None:
     text.write_text("this is not an HDF5 file\n")
     with pytest.raises(DatasetError, match=f"{text}: file: not a readable HDF5 file"):
         Dataset.load(text)
-    with pytest.raises(FileNotFoundError, match="absent.h5"):
+    with pytest.raises(FileNotFoundError, match=r"absent.h5"):
         Dataset.load(tmp_path / "absent.h5")
     data = path.read_bytes()
     cut = tmp_path / "cut.h5"

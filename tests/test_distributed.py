@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors import safe_open
+from synthetic_dynamics import write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.model import distributed
 from rwm_gym.model.checkpoint import read_meta
-from synthetic_dynamics import write_linear_dataset
 
 TESTS = Path(__file__).parent
 RUN = ["--teacher-forcing", "--loss", "nll", "--schedule", "constant", "--history", "6", "--batch-size", "8",

@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from script_loader import BENCHMARKS, load_script
 
 
@@ -113,7 +112,7 @@ def test_ppo_seed_curves_draws_every_run_and_refuses_a_run_without_scores(tmp_pa
         [("seed 0", 0, 0.0, "0"), ("seed 0", 3_000_000, 3000.0, "4"), ("seed 1", 0, 0.0, "0"),
          ("seed 1", 3_000_000, 3000.0, "40")]
     monkeypatch.setattr(sys, "argv", ["ppo_seed_curves.py", "--runs", str(tmp_path / "missing"), "--out", str(out)])
-    with pytest.raises(SystemExit, match="missing/curve/curve.csv: no such file"):
+    with pytest.raises(SystemExit, match=r"missing/curve/curve.csv: no such file"):
         script.main()
 
 
@@ -154,20 +153,18 @@ def test_disagreement_benchmark_measures_the_second_model_against_the_first(tmp_
     models = assets_dir() / "checkpoints"
     common = ["--checkpoint", str(models / "anymal_d_rwm.safetensors"), "--data", str(data), "--history", "8",
               "--horizon", "4", "--windows", "6", "--steps", "12", "--seeds", "1"]
-    bench.main(common + ["--second", str(models / "anymal_d_rwm_mbpo.safetensors"), "--policies", "zero", "random",
-                         "--out", str(tmp_path / "two")])
+    bench.main([*common, "--second", str(models / "anymal_d_rwm_mbpo.safetensors"), "--policies", "zero", "random", "--out", str(tmp_path / "two")])
     report = json.loads((tmp_path / "two" / "disagreement.json").read_text())
     (row,), (still, moving) = report["data"], report["imagination"]
     assert row["windows"] == 6 and row["error"] > 0 and row["heads"] > 0 and row["second_model"] > 0
     assert [still["policy"], moving["policy"]] == ["zero", "random"] and still["episodes"] == 18
     assert still["second_model_one_step"] > 0 and moving["heads"] > still["heads"]  # random actions: more to disagree on
-    bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--out", str(tmp_path / "same")])
+    bench.main([*common, "--second", str(models / "anymal_d_rwm.safetensors"), "--out", str(tmp_path / "same")])
     same = json.loads((tmp_path / "same" / "disagreement.json").read_text())
     assert same["data"][0]["second_model"] == 0.0 and same["data"][0]["corr_error_second_model"] is None
     assert same["imagination"] == []
     with pytest.raises(SystemExit):
-        bench.main(common + ["--second", str(models / "anymal_d_rwm.safetensors"), "--steps", "8",
-                             "--out", str(tmp_path / "bad")])
+        bench.main([*common, "--second", str(models / "anymal_d_rwm.safetensors"), "--steps", "8", "--out", str(tmp_path / "bad")])
 
 
 def test_evaluation_compare_puts_models_side_by_side_on_shared_windows(tmp_path: Path, capsys) -> None:
@@ -188,7 +185,7 @@ def test_evaluation_compare_puts_models_side_by_side_on_shared_windows(tmp_path:
                      "--history", "8", "--horizons", "4", "16", "--max-windows", "8", "--noise", "--quiet"]) == 0
     compare = _script("evaluation_compare")
     runs = [f"shipped={tmp_path / 'a'}", f"again={tmp_path / 'b'}", f"no-change model={tmp_path / 'still'}"]
-    compare.main(runs + ["--out", str(tmp_path / "cmp")])
+    compare.main([*runs, "--out", str(tmp_path / "cmp")])
     rows = (tmp_path / "cmp.md").read_text().splitlines()
     assert rows[0].startswith("**stand** (2 episodes; windows per horizon: N=4: 8, N=16: 8")
     shipped, again, model, floor = (next(r for r in rows if r.startswith(f"| {label} |"))

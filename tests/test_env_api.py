@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import rwm_gym  # noqa: F401  (registers the envs)
+import rwm_gym
 from rwm_gym.imagination.core import default_checkpoint
 from rwm_gym.task.observation import observation_slices
 from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
@@ -57,9 +57,9 @@ def test_resample_commands_switch_on_the_physics_env():
 @pytest.mark.parametrize("env_id", [PHYSICS, IMAGINED])
 def test_vector_env_holds_the_command_through_auto_resets(env_id):
     vec = make_vec(env_id, 2, **({"episode_steps": 3} if env_id == IMAGINED else {"xml_file": None}))
-    obs, _ = vec.reset(seed=0, options={"command": COMMAND})
+    vec.reset(seed=0, options={"command": COMMAND})
     for _ in range(4):
-        obs, _, terminated, truncated, info = vec.step(np.zeros((2, 12), np.float32))
+        _obs, _, _terminated, _truncated, info = vec.step(np.zeros((2, 12), np.float32))
     np.testing.assert_allclose(info["command"], np.tile(COMMAND, (2, 1)), rtol=1e-6)
 
 
@@ -114,7 +114,7 @@ def test_reset_data_of_another_task_is_refused(tmp_path):
     from rwm_gym.data.collect import collect
 
     other = collect("DMC-Cheetah-Run-v0", "random", 1, tmp_path / "cheetah.h5", max_steps=3, progress=False)
-    with pytest.raises(ValueError, match="reset data .* is of task DMC-Cheetah-Run, the world model .* of AnymalD"):
+    with pytest.raises(ValueError, match=r"reset data .* is of task DMC-Cheetah-Run, the world model .* of AnymalD"):
         gym.make(IMAGINED, reset_data=other)
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic_dynamics import SPEC, info_for, write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset, write_dataset
@@ -16,8 +17,6 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.evaluate import EvalConfig, evaluate, evaluate_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, info_for, write_linear_dataset
-
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from script_loader import BENCHMARKS, EXAMPLES, load_script
 
 
@@ -200,7 +199,7 @@ def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(
     for name in ("B", ""):  # no run, or more than one, named like it
         monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--earlier",
                                           str(tmp_path / "both.csv"), name, "--out", str(tmp_path / "x")])
-        with pytest.raises(SystemExit, match="no run named|more than one run"):
+        with pytest.raises(SystemExit, match=r"no run named|more than one run"):
             module.main()
 
 

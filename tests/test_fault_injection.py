@@ -18,11 +18,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from synthetic_dynamics import SPEC, info_for, linear_episodes, write_linear_dataset
 
-import rwm_gym  # noqa: F401  (registers the envs)
+import rwm_gym
 from rwm_gym.cli import main
 from rwm_gym.resources import assets_dir
-from synthetic_dynamics import SPEC, info_for, linear_episodes, write_linear_dataset
 
 SHIPPED_POLICIES = sorted((assets_dir() / "policies").glob("*.zip"))
 TINY_TRAIN = ["--model", "rwm", "--iterations", "2", "--history", "4", "--forecast", "2", "--batch-size", "4",
@@ -409,7 +409,7 @@ def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_at_load(checkpoint
     from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
 
     with safe_open(checkpoint, "pt") as f:
-        tensors, meta = {k: f.get_tensor(k) for k in f.keys()}, f.metadata()  # noqa: SIM118
+        tensors, meta = {k: f.get_tensor(k) for k in f.keys()}, f.metadata()
     name = next(k for k in tensors if k.startswith("model/")) if damage == "nan weight" else "norm/state_std"
     tensors[name] = torch.full_like(tensors[name], float("nan") if damage == "nan weight" else 0.0)
     save_file(tensors, tmp_path / "bad.safetensors", metadata=meta)

@@ -16,13 +16,17 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
-from rwm_gym.gap.learned import (LearnedCorrectionConfig, LinearResidualTorque, group_matrix, load_correction,
-                                 save_correction)
+from rwm_gym.gap.learned import (
+    LearnedCorrectionConfig,
+    LinearResidualTorque,
+    group_matrix,
+    load_correction,
+    save_correction,
+)
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows
-from rwm_gym.gap.scope import (JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates,
-                               scoped)
+from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
 from rwm_gym.spec import load_spec

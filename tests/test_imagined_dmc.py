@@ -104,7 +104,7 @@ def test_sb3_vecenv_truncates_at_the_time_limit_and_never_terminates(checkpoints
     venv = ImaginedSB3VecEnv(checkpoints[env_id], num_envs=2, env_id=env_id, episode_steps=4)
     venv.seed(0)
     assert venv.reset().shape == (2, 30)
-    for t in range(4):
+    for _t in range(4):
         _, rewards, dones, infos = venv.step(np.zeros((2, 6), dtype=np.float32))
         assert rewards.shape == (2,) and np.all(rewards >= 0)
     assert dones.all() and all(info["TimeLimit.truncated"] for info in infos)

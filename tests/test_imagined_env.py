@@ -58,7 +58,7 @@ def _rollout(env, seed, steps=25):
     rng = np.random.default_rng(seed)
     out, rewards = [obs], []
     for _ in range(steps):
-        obs, r, term, trunc, info = env.step(rng.uniform(-1, 1, 12).astype(np.float32))
+        obs, r, term, trunc, _info = env.step(rng.uniform(-1, 1, 12).astype(np.float32))
         out.append(obs)
         rewards.append(r)
         if term or trunc:
@@ -119,7 +119,7 @@ def test_divergence_guard_ends_the_episode_without_nan(checkpoint, tmp_path):
     env.reset(seed=0)
     diverged = False
     for _ in range(20):
-        obs, reward, terminated, truncated, info = env.step(np.zeros(12, dtype=np.float32))
+        obs, reward, terminated, _truncated, info = env.step(np.zeros(12, dtype=np.float32))
         assert np.all(np.isfinite(obs)) and np.isfinite(reward)
         if info["model_diverged"]:
             assert terminated
@@ -135,7 +135,7 @@ def test_sb3_vecenv_and_uncertainty_penalty(checkpoint):
     venv.seed(0)
     obs = venv.reset()
     assert obs.shape == (4, 48)
-    _, rewards, dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
+    _, rewards, _dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
     assert all(info["uncertainty"] >= 0 for info in infos)
     plain = ImaginedSB3VecEnv(checkpoint, num_envs=4)
     plain.seed(0)
@@ -223,7 +223,7 @@ def test_an_uncertainty_option_on_a_one_head_model_is_refused(tmp_path):
     path = train(data, config, TrainConfig(history=8, forecast=4, batch_size=8, iterations=2, val_every=1000),
                  tmp_path / "one_head.safetensors", progress=False).path
     for option in ({"uncertainty_penalty": 10.0}, {"uncertainty_halt": 0.06}):
-        with pytest.raises(ValueError, match="one_head.safetensors: .*one head .*--ensemble-size 5"):
+        with pytest.raises(ValueError, match=r"one_head.safetensors: .*one head .*--ensemble-size 5"):
             ImaginedEnv(path, reset_data=data, **option)
     ImaginedEnv(path, reset_data=data, uncertainty_floor=0.02)  # a floor alone charges nothing
 
@@ -231,9 +231,9 @@ def test_an_uncertainty_option_on_a_one_head_model_is_refused(tmp_path):
 def test_bad_checkpoints_fail_clearly(checkpoint, tmp_path):
     truncated = tmp_path / "cut.safetensors"
     truncated.write_bytes(checkpoint.read_bytes()[:1000])
-    with pytest.raises(CheckpointError, match="cut.safetensors"):
+    with pytest.raises(CheckpointError, match=r"cut.safetensors"):
         ImaginedEnv(truncated)
-    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+    with pytest.raises(FileNotFoundError, match=r"missing.safetensors"):
         ImaginedEnv(tmp_path / "missing.safetensors")
 
 
@@ -265,7 +265,7 @@ def _vec_rollout(checkpoint, steps=30, **options):
     rng = np.random.default_rng(0)
     rewards, infos = [], []
     for _ in range(steps):
-        obs, reward, done, info = core.step(rng.uniform(-1, 1, (5, 12)).astype(np.float32))
+        obs, reward, _done, info = core.step(rng.uniform(-1, 1, (5, 12)).astype(np.float32))
         out.append(obs)
         rewards.append(reward)
         infos.append(info)
@@ -351,6 +351,6 @@ def test_random_first_episode_length_spreads_the_first_restarts(checkpoint):
     venv.reset()
     ends = []
     for _ in range(10):
-        _, _, dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
+        _, _, _dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
         ends.append(sum(info.get("TimeLimit.truncated", False) for info in infos))
     assert sum(ends) >= 20 and max(ends) < 32  # restarts come on different steps, not all at once

@@ -328,7 +328,7 @@ def test_imagination_options_are_refused_in_physics_by_name():
 def test_a_checkpoint_that_cannot_serve_the_options_is_one_line(tmp_path):
     from rwm_gym.cli import main
 
-    with pytest.raises(SystemExit, match="^rwm-gym ppo: .*missing.safetensors: no such checkpoint file$"):
+    with pytest.raises(SystemExit, match=r"^rwm-gym ppo: .*missing.safetensors: no such checkpoint file$"):
         main(["ppo", "--in", "imagination", "--checkpoint", str(tmp_path / "missing.safetensors"), "--timesteps", "1"])
 
 

@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_import_loads_neither_torch_nor_mujoco() -> None:
-    code = "import rwm_gym, sys; heavy = {'torch', 'mujoco', 'stable_baselines3'} & set(sys.modules); assert not heavy, heavy"
+    code = ("import rwm_gym, sys; heavy = {'torch', 'mujoco', 'stable_baselines3'} & set(sys.modules); "
+            "assert not heavy, heavy")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False,
                           env={"PYTHONPATH": str(ROOT), "PATH": ""})
     assert done.returncode == 0, done.stderr[-2000:]

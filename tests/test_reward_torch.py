@@ -136,7 +136,7 @@ def test_on_cuda_the_reward_and_timers_stay_on_the_device_and_match_the_cpu(reco
             tensors = [torch.as_tensor(a, device=device) for a in (
                 ep["state"][:, t + 1], ep["state"][:, t], ep["contact"][:, t + 1], ep["command"][:, t],
                 ep["action"][:, t], ep["action"][:, t - 1])]
-            got, terms = reward_torch.velocity_tracking_reward(spec, timers, *tensors)
+            got, _terms = reward_torch.velocity_tracking_reward(spec, timers, *tensors)
         assert got.device.type == device and timers.air_time.device.type == device
         results[device] = got.cpu(), timers.air_time.cpu()
     for cpu, cuda in zip(results["cpu"], results["cuda"]):

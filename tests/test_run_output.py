@@ -94,9 +94,9 @@ def test_every_subcommand_help_names_its_defaults(command):
         pytest.skip(f"{command} is not available in this build")
     for action in sub._actions:
         flag = max(action.option_strings, key=len, default="")
-        if not flag or action.nargs == 0 and action.default in (False, None) or flag == "--help":
+        if not flag or (action.nargs == 0 and action.default in (False, None)) or flag == "--help":
             continue  # positional arguments, switches and --help
-        if action.required or flag in OPTIONAL_INPUTS and action.default is None:
+        if action.required or (flag in OPTIONAL_INPUTS and action.default is None):
             continue
         text = sub.formatter_class(prog="x")._format_action(action)  # the option's lines as --help prints them
         assert "default" in text, f"rwm-gym {command} {flag}: help names no default ({text!r})"

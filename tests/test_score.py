@@ -104,7 +104,7 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     assert "| disagreement" in format_table(still).splitlines()[0]
     with pytest.raises(SystemExit, match="--reset-data applies to --checkpoint"):
         main(["score", "--policy", "zero", "--reset-data", str(standing), "--out", str(tmp_path / "out")])
-    with pytest.raises(SystemExit, match="missing.h5: no such file"):
+    with pytest.raises(SystemExit, match=r"missing.h5: no such file"):
         main(["score", "--policy", "zero", "--checkpoint", shipped, "--reset-data", str(tmp_path / "missing.h5"),
               "--out", str(tmp_path / "out")])
 
@@ -166,8 +166,8 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
 
     from script_loader import EXAMPLES, load_script
 
-    from rwm_gym.resources import assets_dir
     from rwm_gym.commands.ppo import add_arguments
+    from rwm_gym.resources import assets_dir
 
     quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
     meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())

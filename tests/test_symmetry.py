@@ -176,9 +176,9 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
 
 
 def test_symmetry_is_refused_for_a_spec_without_a_mirror():
-    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv
-    from rwm_gym.rl.ppo import PPOConfig, make_ppo
     from rwm_gym.commands.ppo import add_arguments
+    from rwm_gym.rl.ppo import PPOConfig, make_ppo
+    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv
 
     config = PPOConfig(num_envs=2, n_steps=8, net_arch=(8,), num_minibatches=2, symmetry=True)
     one_line = r"^task spec \S+ has no \[symmetry\] table \(the robot's left-right mirror\)$"

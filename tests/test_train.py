@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
@@ -19,7 +20,6 @@ from rwm_gym.model.heads import soft_bound
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 FAST = TrainConfig(history=6, forecast=3, batch_size=8, iterations=4, val_every=2, checkpoint_every=2,

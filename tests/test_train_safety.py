@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 import rwm_gym.model.train as train_module
 from rwm_gym.cli import main
@@ -15,7 +16,6 @@ from rwm_gym.model import model_config_for
 from rwm_gym.model.checkpoint import read_meta
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16)
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC
 
 from rwm_gym.model import MODEL_KINDS, Prediction, WorldModel, build_model, model_config_for
 from rwm_gym.model import gru_step as gru_step_module
 from rwm_gym.model.config import ModelConfig, TrainConfig
 from rwm_gym.model.losses import window_loss
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim

@@ -13,6 +13,7 @@ from rwm_gym.options import non_negative_float
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym collect`."""
     parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)")
     parser.add_argument("--policy", default="gait", help="'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip")
     parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
@@ -64,5 +65,6 @@ def run(args: argparse.Namespace) -> int:
         return 2
     ds = Dataset.load(path)
     falls = int(ds["terminated"].sum())
-    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated (rwm-gym {rwm_gym.__version__})")
+    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated "
+          f"(rwm-gym {rwm_gym.__version__})")
     return 0

@@ -18,6 +18,7 @@ from rwm_gym.model.evaluate import (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym evaluate`."""
     d = EvalConfig()
     parser.add_argument("--checkpoint", required=True, help="world-model checkpoint (.safetensors)")
     parser.add_argument("--data", required=True, nargs="+",
@@ -41,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym evaluate`: 0, or 2 with one line on stderr on bad input."""
     from rwm_gym.output_guard import check_output
 
     results = {}

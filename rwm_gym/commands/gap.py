@@ -21,6 +21,7 @@ from rwm_gym.physics.params import CONVERGED_SOLVER
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym gap`."""
     parser.add_argument("--sim", default="AnymalD-MuJoCo-v0", help="registered physics env id of the nominal simulator")
     parser.add_argument("--sim-kwargs", default=None, help='JSON env kwargs, e.g. {"xml_file": "my_robot.xml"}')
     parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
@@ -54,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym gap`: 0, or 2 with one line on stderr on bad input."""
     wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes,
                                     device=args.device)
     try:

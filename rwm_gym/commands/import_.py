@@ -1,5 +1,6 @@
 """`rwm-gym import`: read a Minari dataset written by `rwm-gym export` back into an rwm-gym dataset
-(`rwm_gym.data.minari_io`; needs rwm-gym[minari]). The module's name has a trailing underscore: `import` is a keyword."""
+(`rwm_gym.data.minari_io`; needs rwm-gym[minari]). The module's name has a trailing underscore: `import` is a
+keyword."""
 
 from __future__ import annotations
 

@@ -18,6 +18,7 @@ from rwm_gym.physics.params import CONVERGED_SOLVER
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym make-measured`."""
     parser.add_argument("--effect", action="append", default=[],
                         help="effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)")
     parser.add_argument("--magnitude", action="append", default=[],
@@ -40,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym make-measured`: 0, or 2 with one line on stderr on bad input."""
     import json
 
     env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}

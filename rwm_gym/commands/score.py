@@ -12,6 +12,7 @@ from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_po
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym score`."""
     parser.add_argument("--policy", required=True,
                         help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
                              "or 'random' (correlated random actions)")
@@ -30,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym score`: 0, or 2 with one line on stderr on bad input."""
     if args.policy not in SCRIPTED and not Path(args.policy).is_file():
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
     if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):

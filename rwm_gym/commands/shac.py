@@ -26,6 +26,7 @@ IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym shac`."""
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
     parser.add_argument("--reset-data", type=Path, default=None,
                         help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")

@@ -19,6 +19,7 @@ from rwm_gym.atomic import write_text
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym spec`."""
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--from-dmc", metavar="DOMAIN-TASK", help="a dm_control suite task, e.g. acrobot-swingup")
     source.add_argument("--mjcf", type=Path, help="MJCF of a legged robot with a free-floating base")
@@ -35,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym spec`: 0, or 2 with one line on stderr on bad input."""
     from rwm_gym.output_guard import check_output
     from rwm_gym.specgen.draft import fill_normalization
 

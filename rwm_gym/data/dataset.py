@@ -403,7 +403,8 @@ def is_merge_of(out: str | os.PathLike, paths: Sequence[str | os.PathLike]) -> b
 def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
     """Concatenate the episodes of datasets of the same task (spec, columns, dt) into `out` (atomic).
 
-    Specs must agree except for file pointers (`default_checkpoint`) and the `[symmetry]` table. Only the fields every file has are kept (a PPO
+    Specs must agree except for file pointers (`default_checkpoint`) and the `[symmetry]` table. Only the fields every
+    file has are kept (a PPO
     run's `ppo_iteration` is dropped when merged with collector data); metadata["dropped_fields"] names them. The
     merged file keeps the first file's env_id, dt and seed; policy and physics_params are kept when all files agree
     (else policies are joined and physics_params left empty); metadata["merged_from"] records each source.

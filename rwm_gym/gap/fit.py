@@ -41,7 +41,7 @@ def gap_horizons(horizon: int) -> tuple[int, ...]:
     the episodes are too short for the last (a robot that falls within a second), with the horizon itself last."""
     if horizon >= GAP_HORIZONS[-1]:
         return GAP_HORIZONS
-    return tuple(h for h in GAP_HORIZONS if h < horizon) + (horizon,)
+    return (*tuple(h for h in GAP_HORIZONS if h < horizon), horizon)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,8 @@ class FitConfig:
     screened: a second effect can rank low on the coarse grid only because no grid point is near its value."""
     refit_single_effect: bool = True
     """Refit a lone named effect of several parameters (a scoped form, the payload) by least squares from its values,
-    kept if the held-out gap does not grow, as a set of named effects is: the coordinate-wise fit of a per-group form can
+    kept if the held-out gap does not grow, as a set of named effects is: the coordinate-wise fit of a per-group form
+    can
     leave part of the effect in the wrong groups."""
     joint_candidates: int = 2
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are

@@ -118,7 +118,8 @@ def _learned_correction(report: dict) -> list[str]:
         return [*lines, f"{learned['status']}\n"]
     lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
                  f"({learned['explained_fraction']:.1%} of what the named effects left, "
-                 f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+                 f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); "
+                 f"weights `{Path(learned['path']).name}`. {learned['note']}.\n")
     weights = learned["training"]["weights"]
     terms = list(next(iter(weights.values())))
     lines.append("| joints | " + " | ".join(terms) + " |\n|---|" + "---|" * len(terms))

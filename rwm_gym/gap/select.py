@@ -31,6 +31,7 @@ their final values.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -70,7 +71,7 @@ class Selection:
 def combine(named: list[Candidate]) -> Effect:
     """One effect whose parameters are all of `named`'s, in order (for the joint refit)."""
     sizes = [len(e.parameters) for e, _ in named]
-    cuts = np.cumsum([0] + sizes)
+    cuts = np.cumsum([0, *sizes])
 
     def apply(values: np.ndarray) -> dict[str, object]:
         out: dict[str, object] = {}
@@ -418,7 +419,7 @@ def joint_candidates(candidates: list[Candidate], named: list[Candidate], earlie
         better[id(fit)] = (effect, CandidateFit(
             fit.effect, fit.names, fit.units, values[-own:], list(joint.uncertainty[-own:]), joint.train_cost,
             joint.gap, joint.gap_mean, joint.explained_fraction, score=score, p_value=joint.p_value, scope=fit.scope,
-            rejected=joint.rejected, named_refit=[values[a:b] for a, b in zip(cuts[:-1], cuts[1:])]))
+            rejected=joint.rejected, named_refit=[values[a:b] for a, b in itertools.pairwise(cuts)]))
     return [better.get(id(fit), (effect, fit)) for effect, fit in candidates]
 
 

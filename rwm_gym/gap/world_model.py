@@ -156,4 +156,5 @@ def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.
 
 
 def config_dict(config: WorldModelGapConfig) -> dict:
+    """The config as JSON-ready data (tuples as lists), as the report stores it."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}

@@ -2,7 +2,8 @@
 
 `ImaginedCore` has the same interface as the physics cores (`rwm_gym.physics.locomotion.LocomotionCore`,
 `rwm_gym.physics.dmc.DMCCore`): the same observation, and the task's commands, reward and termination
-(the task object of `rwm_gym.task.tasks`, chosen from the checkpoint's spec, the same the physics env uses), fed with the model's predicted state and privileged
+(the task object of `rwm_gym.task.tasks`, chosen from the checkpoint's spec, the same the physics env uses), fed with
+the model's predicted state and privileged
 signals instead of measured ones. Contacts are predicted logits > 0; a task that terminates (ANYmal D) ends an
 episode when the predicted termination probability is > 0.5.
 """

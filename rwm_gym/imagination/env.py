@@ -1,7 +1,8 @@
 """`RWM-AnymalD-v0`, `RWM-Cheetah-v0`, ...: a `gymnasium.Env` whose step queries the world model instead of physics.
 
 Same observation and action spaces, commands, reward and termination as the task's physics env (`AnymalD-MuJoCo-v0`,
-`DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with their own MJCF
+`DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with
+their own MJCF
 model, i.e. ANYmal D) draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the base
 position integrated from the predicted velocity.
 

@@ -3,7 +3,8 @@
 Tensors: `model/<name>` (the state dict), `norm/state_mean`, `norm/state_std` (float64), and for resuming
 `optim/<param index>/<key>` (optimizer state) and `train/<name>` (RNG states). The safetensors header metadata holds
 `format` ("rwm-gym-checkpoint"), `format_version` and `meta`, a JSON object with: model_config, train_config, spec
-(the task spec's TOML text), foot_height_std, provenance (dataset path, sha256, train/val episode ids), stats (iterations,
+(the task spec's TOML text), foot_height_std, provenance (dataset path, sha256, train/val episode ids), stats
+(iterations,
 losses, wall time), extras (free, e.g. the imagined env's reset-data info), package_version, and the optimizer layout
 (param groups and non-tensor state). Saves are atomic: a temp file in the same folder, then os.replace.
 """

@@ -98,7 +98,8 @@ class TrainConfig:
     warmup_gradients: bool = True
     """Backpropagate through the teacher-forced warm-up, as the paper does. Off, the warm-up runs without autograd
     and gradients flow through the F forecast steps only (truncated at each forecast's start): several times the
-    windows per second with many branches per segment (the docs' Results, "World-model error"). Not for models whose warm-up
+    windows per second with many branches per segment (the docs' Results, "World-model error"). Not for models whose
+    warm-up
     carries a loss of its own (rssm's KL)."""
     lr: float = 1e-3
     """Adam learning rate at the start of the schedule."""

@@ -56,7 +56,10 @@ class StateConstraints(nn.Module):
             if config.joint_limits and JOINTS in slices else torch.zeros(0, dtype=torch.long)
         low, high = joint_ranges(spec) if len(joints) else (np.zeros(0), np.zeros(0))
         default = np.asarray(spec.actuator.default_pose, dtype=np.float64)[:len(joints)]
-        to_state = lambda limit: (torch.as_tensor(limit - default, dtype=torch.float32) - mean[joints]) / std[joints]
+
+        def to_state(limit: np.ndarray) -> torch.Tensor:  # a joint angle as the model's normalised state
+            return (torch.as_tensor(limit - default, dtype=torch.float32) - mean[joints]) / std[joints]
+
         self.register_buffer("joint_index", joints)
         self.register_buffer("joint_low", to_state(low))
         self.register_buffer("joint_high", to_state(high))

@@ -33,6 +33,8 @@ from rwm_gym.spec import TaskSpec
 
 @dataclass(frozen=True)
 class EvalConfig:
+    """How a checkpoint's long-horizon error is measured: warm-up, horizons, noise levels, windows."""
+
     history: int = 32
     """H: true rows the model warms up on."""
     horizons: tuple[int, ...] = (8, 32, 100)
@@ -256,11 +258,11 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike |
         for training, ids in _training_files(meta.provenance, training_data):
             seen = episodes_seen_in(dataset, episodes, training, ids)
             if len(seen) == len(episodes):
-                sources = ", ".join(repeated + [str(training.path)])
+                sources = ", ".join([*repeated, str(training.path)])
                 raise ValueError(f"{dataset.path}: every evaluated episode repeats a training episode of {sources}; "
                                  "collect held-out data with another seed")
             if len(seen):
-                episodes, repeated = np.setdiff1d(episodes, seen), repeated + [str(training.path)]
+                episodes, repeated = np.setdiff1d(episodes, seen), [*repeated, str(training.path)]
         if repeated:
             held_out = (f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes of "
                         f"{', '.join(repeated)} left out")

@@ -17,6 +17,8 @@ from rwm_gym.spec import TaskSpec
 
 @dataclass(frozen=True)
 class Normalizer:
+    """The state and foot-height scaling a world model trains and predicts in, saved in its checkpoint."""
+
     state_mean: np.ndarray
     """(S,) float64, in the state's units."""
     state_std: np.ndarray

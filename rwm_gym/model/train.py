@@ -2,7 +2,8 @@
 
 Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
 whole episode); with `branches` > 1 each drawn window start begins a longer segment that carries that many forecasts
-(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a learning-rate schedule over the budget
+(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a
+learning-rate schedule over the budget
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
@@ -45,6 +46,8 @@ RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint
 
 @dataclass
 class TrainResult:
+    """What `train` returns: the model, its statistics and the checkpoint written."""
+
     model: WorldModel
     """The trained model (train mode, on the training device)."""
     stats: dict
@@ -216,9 +219,10 @@ def _training_data(data: Dataset | str | os.PathLike, model_config: ModelConfig)
                       f"{dataset.num_episodes} finished episodes", stacklevel=3)
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
-    if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
+    expected = (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)
+    if expected != sizes:
         raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
-                         f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
+                         f"config's {expected}")
     return dataset
 
 

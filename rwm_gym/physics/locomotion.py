@@ -1,7 +1,8 @@
 """Velocity-tracking locomotion in MuJoCo: the vectorised task core and the single `gymnasium.Env`.
 
 `LocomotionCore` runs N simulations at once on either simulator backend and hands the measured states to the task
-object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the vector
+object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is
+the core with N = 1 behind the standard Gymnasium API, and the vector
 envs in `rwm_gym.vector` are the same core with N > 1 (`make_core`). So the three give identical transitions per seed.
 """
 

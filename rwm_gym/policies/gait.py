@@ -238,7 +238,7 @@ class GaitPolicy:
         wrench = np.concatenate([force, moment], axis=1)  # (N, 6)
 
         # Foot forces f (N, 12) with sum f_i = force, sum r_i x f_i = moment, least sum |f_i|^2 / w_i.
-        blocks = np.concatenate([np.broadcast_to(np.eye(3), feet.shape[:2] + (3, 3)), _skew(feet)], axis=-2)
+        blocks = np.concatenate([np.broadcast_to(np.eye(3), (*feet.shape[:2], 3, 3)), _skew(feet)], axis=-2)
         a = blocks.transpose(0, 2, 1, 3).reshape(-1, 6, 12)  # (N, 6, 12)
         w = np.repeat(weight, 3, axis=1)[:, None, :]
         gram = (a * w) @ a.transpose(0, 2, 1) + 1e-3 * np.eye(6)

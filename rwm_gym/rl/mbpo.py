@@ -3,7 +3,8 @@
 Iteration k: (1) PPO continues in imagination on model k-1, its episodes restarting from real histories of the
 buffer; (2) the policy's tracking score is measured in physics; (3) physics episodes are collected with it, acting
 with no noise, half and all of its own current std (the deterministic policy that is judged, and the exploration PPO
-used in imagination); (4) the model's error on that fresh data is measured (the states the policy now visits); (5) the model is fine-tuned (or retrained) on the buffer:
+used in imagination); (4) the model's error on that fresh data is measured (the states the policy now visits); (5) the
+model is fine-tuned (or retrained) on the buffer:
 `base_episodes` episodes of the starting data plus every fresh episode so far, so the states an imagined policy
 exploits get real data (the cause of exploitation is missing coverage, and this is its fix).
 

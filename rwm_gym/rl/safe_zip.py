@@ -120,7 +120,7 @@ def safe_custom_objects(path: str | os.PathLike) -> dict[str, object]:
         except PolicyFileError as err:
             raise PolicyFileError(f"policy {path}: entry {key!r} {err}, which loading refuses to run (only SB3 "
                                   f"policies, schedules, spaces and torch activations load)") from None
-        except Exception as err:  # noqa: BLE001 (a corrupt pickle raises anything)
+        except Exception as err:
             raise PolicyFileError(f"policy {path}: entry {key!r} cannot be read ({type(err).__name__})") from None
     return objects
 

@@ -105,5 +105,6 @@ def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, sec
 
 
 def summary_line(name: str, e: Evaluation) -> str:
+    """One line of an evaluation: tracking, return, falls and velocity error."""
     return (f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
             f"|dv_xy| {e.lin_vel_error:.3f} m/s")

@@ -24,7 +24,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from rwm_gym.atomic import write_json
 from rwm_gym.rl.policy_file import save_policy
-from rwm_gym.rl.safe_zip import load_policy
 
 
 class TrainingRun:

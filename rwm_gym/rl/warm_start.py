@@ -50,7 +50,8 @@ class CloneConfig:
     """Std of Gaussian noise added to the last-action input while cloning, so the clone does not merely copy its
     previous action (the copycat shortcut of cloning from action histories)."""
     observation_noise: float = 0.0
-    """Scale of the spec's uniform observation noise added to the other inputs while cloning (0: none, 1: the spec's)."""
+    """Scale of the spec's uniform observation noise added to the other inputs while cloning (0: none, 1: the
+    spec's)."""
     val_fraction: float = 0.1
     """Episodes held out to report the validation MSE."""
     seed: int = 0

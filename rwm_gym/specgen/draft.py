@@ -14,6 +14,8 @@ from rwm_gym.specgen.toml_text import significant, table_text
 
 @dataclass
 class Table:
+    """One TOML table of a spec being written: its values, comments per key and a note above it."""
+
     name: str
     values: dict
     comments: dict[str, str] = field(default_factory=dict)
@@ -25,6 +27,8 @@ class Table:
 
 @dataclass
 class SpecDraft:
+    """A spec being generated: header, tables and the choices made without being told."""
+
     header: list[str]
     """Comment lines at the top of the file."""
     tables: list[Table]

@@ -73,7 +73,7 @@ def load_entry_point(target: str, what: str) -> StepFunction:
     for part in attr.split("."):
         function = getattr(function, part, None)
     if not callable(function):
-        raise ValueError(f"{what} entry point {target!r}: {module_name} has no function {attr!r}")  # noqa: TRY004
+        raise ValueError(f"{what} entry point {target!r}: {module_name} has no function {attr!r}")
     return function
 
 
@@ -81,13 +81,13 @@ def spec_entry_points(spec: TaskSpec) -> dict[str, str]:
     """The spec's `[imagination]` entry points ({"reward": ..., "termination": ...}, either may be absent)."""
     table = spec.extra.get(TABLE, {})
     if not isinstance(table, dict):
-        raise ValueError(f"task spec {spec.name}: [{TABLE}] must be a table")  # noqa: TRY004 (a bad spec file)
+        raise ValueError(f"task spec {spec.name}: [{TABLE}] must be a table")
     unknown = sorted(set(table) - set(KEYS))
     if unknown:
         raise ValueError(f"task spec {spec.name}: [{TABLE}] unknown field {unknown[0]!r} (known: {', '.join(KEYS)})")
     for key, value in table.items():
         if not isinstance(value, str):
-            raise ValueError(f"task spec {spec.name}: [{TABLE}] {key} must be a 'module:function' string")  # noqa: TRY004
+            raise ValueError(f"task spec {spec.name}: [{TABLE}] {key} must be a 'module:function' string")
     return dict(table)
 
 

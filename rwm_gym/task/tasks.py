@@ -29,6 +29,8 @@ from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
 
 
 class Task(Protocol):
+    """Commands, reward and termination of N envs, shared by the physics and the imagined cores."""
+
     command: np.ndarray
     """(N, K) the current commands (K = 0 without commands)."""
     terminates: bool
