@@ -18,9 +18,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("rwm_gym.commands.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
     "ppo": ("rwm_gym.commands.ppo", "train PPO in imagination (or physics) and evaluate it in physics"),
     "shac": ("rwm_gym.commands.shac", "train a policy by SHAC: gradients through the world model's imagined rollouts"),
-    "score": ("rwm_gym.commands.score", "tracking score of a policy in physics (or a world model) beside the zero-action floor"),
+    "score": (
+        "rwm_gym.commands.score",
+        "tracking score of a policy in physics (or a world model) beside the zero-action floor",
+    ),
     "mbpo": ("rwm_gym.commands.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
-    "make-measured": ("rwm_gym.commands.make_measured", "make 'measured' data from a simulator with a hidden physical effect"),
+    "make-measured": (
+        "rwm_gym.commands.make_measured",
+        "make 'measured' data from a simulator with a hidden physical effect",
+    ),
     "gap": ("rwm_gym.commands.gap", "find, name and correct the gap between a simulator and measured data"),
     "export": ("rwm_gym.commands.export", "write a dataset as a Minari dataset (needs rwm-gym[minari])"),
     "import": ("rwm_gym.commands.import_", "read a Minari dataset written by `export` back into a dataset"),

@@ -26,12 +26,18 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, *,
-                          types: Mapping[str, Callable[[str], object]] | None = None,
-                          choices: Mapping[str, Sequence[object]] | None = None,
-                          nargs: Mapping[str, str] | None = None, skip: Iterable[str] = (),
-                          defaults_none: bool = False, defaults: object | None = None,
-                          aliases: Mapping[str, Sequence[str]] | None = None) -> None:
+def add_dataclass_options(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    *,
+    types: Mapping[str, Callable[[str], object]] | None = None,
+    choices: Mapping[str, Sequence[object]] | None = None,
+    nargs: Mapping[str, str] | None = None,
+    skip: Iterable[str] = (),
+    defaults_none: bool = False,
+    defaults: object | None = None,
+    aliases: Mapping[str, Sequence[str]] | None = None,
+) -> None:
     """One `--field-name` option per field of the dataclass `cls`: its type (booleans as `--x/--no-x`; `types` for
     fields whose default does not say it, e.g. None), its field docstring and default as the help text.
 
@@ -53,16 +59,25 @@ def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGr
         help_text = f"{docs.get(f.name, '')} (default {shown})".strip().replace("%", "%%")
         value = None if defaults_none else default
         if isinstance(default, bool):
-            parser.add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction, default=value,
-                                help=help_text)
+            parser.add_argument(
+                *flags, dest=f.name, action=argparse.BooleanOptionalAction, default=value, help=help_text
+            )
             continue
         kind = (types or {}).get(f.name, type(default) if default is not None else str)
-        parser.add_argument(*flags, dest=f.name, type=kind, default=value, help=help_text,
-                            choices=(choices or {}).get(f.name), nargs=(nargs or {}).get(f.name))
+        parser.add_argument(
+            *flags,
+            dest=f.name,
+            type=kind,
+            default=value,
+            help=help_text,
+            choices=(choices or {}).get(f.name),
+            nargs=(nargs or {}).get(f.name),
+        )
 
 
-def dataclass_from_args(cls: type, args: argparse.Namespace, *, skip: Iterable[str] = (), base: object | None = None,
-                        **nested):
+def dataclass_from_args(
+    cls: type, args: argparse.Namespace, *, skip: Iterable[str] = (), base: object | None = None, **nested
+):
     """`cls` built from the options `add_dataclass_options` added: lists become tuples; a field left out of `args`
     (skipped) or None there (`defaults_none`) keeps `base`'s value, else its default; `nested` gives the values of
     fields skipped because they hold another dataclass."""
@@ -86,6 +101,7 @@ def parse_dataclass_args(cls: type, argv: Sequence[str] | None = None, **options
 
 def _number(kind: type, low: float, strict: bool) -> Callable[[str], object]:
     """An argparse type: `kind` parsed from the text, finite and >= `low` (> `low` if strict); else a one-line error."""
+
     def parse(text: str):
         try:
             value = kind(text)

@@ -260,8 +260,10 @@ def _symmetry(table: dict | None, joints: tuple[str, ...], where: str) -> Symmet
     signs = tuple(float(v) for v in table["joint_signs"])
     groups = {k: tuple(float(v) for v in values) for k, values in table.get("signs", {}).items()}
     if len(mirror) != len(joints) or len(signs) != len(joints):
-        raise ValueError(f"{where}: [symmetry] joints and joint_signs need one entry per actuated joint "
-                         f"({len(joints)}), got {len(mirror)} and {len(signs)}")
+        raise ValueError(
+            f"{where}: [symmetry] joints and joint_signs need one entry per actuated joint "
+            f"({len(joints)}), got {len(mirror)} and {len(signs)}"
+        )
     if stray := sorted(set(mirror) - set(joints)):
         raise ValueError(f"{where}: [symmetry] joint {stray[0]!r} is not an actuated joint")
     if any(v not in (1.0, -1.0) for values in (signs, *groups.values()) for v in values):
@@ -290,7 +292,9 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             velocity_limit=float(act.get("velocity_limit", "inf")),
         )
         if len(actuator.default_pose) != len(joints):
-            raise ValueError(f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints")
+            raise ValueError(
+                f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints"
+            )
         # [privileged], [command] and [reward] may be left out (no contacts, no commands, the simulator's reward);
         # a table that is there gives its task's numbers (no robot's values stand in as defaults here).
         priv = raw.get("privileged", {})
@@ -318,7 +322,9 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 feet=tuple(priv.get("feet", ())),
                 thighs=tuple(priv.get("thighs", ())),
                 termination_bodies=tuple(priv.get("termination_bodies", ())),
-                foot_height_std=float(priv["foot_height_std"] if priv.get("feet") else priv.get("foot_height_std", 1.0)),
+                foot_height_std=float(
+                    priv["foot_height_std"] if priv.get("feet") else priv.get("foot_height_std", 1.0)
+                ),
             ),
             observation=ObservationSpec(tuple(obs["groups"]), {k: float(v) for k, v in obs.get("noise", {}).items()}),
             command=CommandSpec(

@@ -10,16 +10,26 @@ from rwm_gym.imagination.options import MATMUL_PRECISION_NAMES, ImaginationOptio
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, positive_int
 
 
-def add_imagination_options(parser: argparse.ArgumentParser, *, skip: Iterable[str] = (),
-                            defaults: ImaginationOptions | None = None,
-                            aliases: Mapping[str, Sequence[str]] | None = None,
-                            types: Mapping[str, Callable[[str], object]] | None = None) -> None:
+def add_imagination_options(
+    parser: argparse.ArgumentParser,
+    *,
+    skip: Iterable[str] = (),
+    defaults: ImaginationOptions | None = None,
+    aliases: Mapping[str, Sequence[str]] | None = None,
+    types: Mapping[str, Callable[[str], object]] | None = None,
+) -> None:
     """One flag per `ImaginationOptions` field but those in `skip`, in an "imagination" group of `parser`;
     `defaults`: the command's own default options (default `ImaginationOptions()`)."""
     group = parser.add_argument_group("imagination", "how imagined episodes run (rwm_gym.ImaginationOptions)")
-    add_dataclass_options(group, ImaginationOptions, skip=skip, defaults=defaults, aliases=aliases,
-                          types={"episode_steps": int, "history": positive_int, **(types or {})},
-                          choices={"matmul_precision": MATMUL_PRECISION_NAMES})
+    add_dataclass_options(
+        group,
+        ImaginationOptions,
+        skip=skip,
+        defaults=defaults,
+        aliases=aliases,
+        types={"episode_steps": int, "history": positive_int, **(types or {})},
+        choices={"matmul_precision": MATMUL_PRECISION_NAMES},
+    )
 
 
 def imagination_from_args(args: argparse.Namespace, base: ImaginationOptions | None = None) -> ImaginationOptions:

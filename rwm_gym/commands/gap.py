@@ -27,37 +27,72 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
     parser.add_argument("--out", type=Path, required=True, help="report folder")
     parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
-    parser.add_argument("--scopes", default=",".join(FitConfig.scopes),
-                        help=f"joint-group scopes tried for the best joint effect, comma-separated from "
-                             f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)")
-    parser.add_argument("--max-effects", type=int, default=FitConfig.max_effects,
-                        help="forward selection names at most this many effects")
-    parser.add_argument("--joint-candidates", type=int, default=FitConfig.joint_candidates,
-                        help="at later selection steps, the best candidates also refitted together with the named "
-                             "effects (0: each fitted on top of them, frozen)")
-    parser.add_argument("--learned-correction", action=argparse.BooleanOptionalAction,
-                        default=GapConfig.learned_correction,
-                        help="learn a residual joint torque when a gap above the noise floor remains")
-    parser.add_argument("--sensor-noise", default=None,
-                        help="JSON SensorNoise of the measured data (SI units, e.g. {\"joint_vel\": 0.05}); "
-                             "default: make-measured's")
-    parser.add_argument("--solver-iterations", type=int, default=CONVERGED_SOLVER.iterations,
-                        help="MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)")
-    parser.add_argument("--world-model", default="auto",
-                        help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
-                             "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
-    parser.add_argument("--finetune-iterations", type=int, default=WorldModelGapConfig.iterations,
-                        help="fine-tuning budget (gradient steps) of the world model after correction")
-    parser.add_argument("--regenerate-episodes", type=int, default=WorldModelGapConfig.episodes,
-                        help="episodes regenerated from the corrected simulator for the fine-tuning")
-    parser.add_argument("--device", default=WorldModelGapConfig.device,
-                        help="torch device of the world-model rows (fine-tuning and evaluation): cpu or cuda")
+    parser.add_argument(
+        "--scopes",
+        default=",".join(FitConfig.scopes),
+        help=f"joint-group scopes tried for the best joint effect, comma-separated from "
+        f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)",
+    )
+    parser.add_argument(
+        "--max-effects",
+        type=int,
+        default=FitConfig.max_effects,
+        help="forward selection names at most this many effects",
+    )
+    parser.add_argument(
+        "--joint-candidates",
+        type=int,
+        default=FitConfig.joint_candidates,
+        help="at later selection steps, the best candidates also refitted together with the named "
+        "effects (0: each fitted on top of them, frozen)",
+    )
+    parser.add_argument(
+        "--learned-correction",
+        action=argparse.BooleanOptionalAction,
+        default=GapConfig.learned_correction,
+        help="learn a residual joint torque when a gap above the noise floor remains",
+    )
+    parser.add_argument(
+        "--sensor-noise",
+        default=None,
+        help='JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured\'s',
+    )
+    parser.add_argument(
+        "--solver-iterations",
+        type=int,
+        default=CONVERGED_SOLVER.iterations,
+        help="MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)",
+    )
+    parser.add_argument(
+        "--world-model",
+        default="auto",
+        help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
+        "one for AnymalD-MuJoCo-v0 (else none); none: skip them",
+    )
+    parser.add_argument(
+        "--finetune-iterations",
+        type=int,
+        default=WorldModelGapConfig.iterations,
+        help="fine-tuning budget (gradient steps) of the world model after correction",
+    )
+    parser.add_argument(
+        "--regenerate-episodes",
+        type=int,
+        default=WorldModelGapConfig.episodes,
+        help="episodes regenerated from the corrected simulator for the fine-tuning",
+    )
+    parser.add_argument(
+        "--device",
+        default=WorldModelGapConfig.device,
+        help="torch device of the world-model rows (fine-tuning and evaluation): cpu or cuda",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym gap`: 0, or 2 with one line on stderr on bad input."""
-    wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes,
-                                    device=args.device)
+    wm_config = WorldModelGapConfig(
+        iterations=args.finetune_iterations, episodes=args.regenerate_episodes, device=args.device
+    )
     try:
         sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
         noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
@@ -69,32 +104,50 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         from rwm_gym.output_guard import check_output
 
-        check_output(args.out, inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none")
-                                       else None], overwrite=True, folder=True)
-        report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                         config=GapConfig(val_fraction=args.val_fraction,
-                                          learned_correction=args.learned_correction,
-                                          solver=solver_option(args.solver_iterations)),
-                         fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects,
-                                              joint_candidates=args.joint_candidates), sensor_noise=noise,
-                         world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
+        check_output(
+            args.out,
+            inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none") else None],
+            overwrite=True,
+            folder=True,
+        )
+        report = run_gap(
+            args.sim,
+            args.measured,
+            args.out,
+            sim_kwargs=sim_kwargs,
+            config=GapConfig(
+                val_fraction=args.val_fraction,
+                learned_correction=args.learned_correction,
+                solver=solver_option(args.solver_iterations),
+            ),
+            fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects, joint_candidates=args.joint_candidates),
+            sensor_noise=noise,
+            world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs),
+            wm_config=wm_config,
+        )
     except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors
         print(f"rwm-gym gap: {err}", file=sys.stderr)
         return 2
     floor = report["noise_floor"]
-    print(f"gap {floor['gap']:.4g} vs sensor-noise floor {floor['floor']:.4g} (ratio {floor['ratio']:.2f}, "
-          f"p={floor['p_value']:.2g})")
+    print(
+        f"gap {floor['gap']:.4g} vs sensor-noise floor {floor['floor']:.4g} (ratio {floor['ratio']:.2f}, "
+        f"p={floor['p_value']:.2g})"
+    )
     print(f"effect: {report['effect']} ({report['reason']})")
     for item in report["effects"]:
         print(f"  {item['effect']} ({item['scope']}), {item['share_of_explained_gap']:.0%} of the explained gap")
         for name, value in item["parameters"].items():
             print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}")
-    print(f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
-          f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}")
+    print(
+        f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
+        f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}"
+    )
     learned = report["learned_correction"]
     if learned and learned["status"] == "ok":
-        print(f"learned residual torque (not a named effect): gap {learned['gap_before']:.4g} -> "
-              f"{learned['gap_after']:.4g} (explained {learned['explained_fraction']:.1%})")
+        print(
+            f"learned residual torque (not a named effect): gap {learned['gap_before']:.4g} -> "
+            f"{learned['gap_after']:.4g} (explained {learned['explained_fraction']:.1%})"
+        )
     if "world_model" in report:
         print(world_model_table(report["world_model"]))
     return 0

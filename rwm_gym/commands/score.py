@@ -13,19 +13,33 @@ from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_po
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym score`."""
-    parser.add_argument("--policy", required=True,
-                        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
-                             "or 'random' (correlated random actions)")
+    parser.add_argument(
+        "--policy",
+        required=True,
+        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
+        "or 'random' (correlated random actions)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
-    parser.add_argument("--checkpoint", default=None,
-                        help="score in this world model (the imagined env) instead of physics, same commands and seeds")
-    parser.add_argument("--reset-data", type=Path, default=None,
-                        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
-                             "the checkpoint's; the shipped one's are mostly early falls)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="score in this world model (the imagined env) instead of physics, same commands and seeds",
+    )
+    parser.add_argument(
+        "--reset-data",
+        type=Path,
+        default=None,
+        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
+        "the checkpoint's; the shipped one's are mostly early falls)",
+    )
     parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
     parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
-    parser.add_argument("--commands", type=int, default=16,
-                        help="random commands in the set, beside standing and 1 m/s forward (default: 16)")
+    parser.add_argument(
+        "--commands",
+        type=int,
+        default=16,
+        help="random commands in the set, beside standing and 1 m/s forward (default: 16)",
+    )
     parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
 
@@ -62,23 +76,41 @@ def _score(args: argparse.Namespace) -> int:
     where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
     if args.reset_data is not None:
         where += f" from {args.reset_data}"
-    options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint,
-                   reset_data=args.reset_data)
+    options = dict(
+        seeds=args.seeds,
+        steps=args.steps,
+        num_random=args.commands,
+        checkpoint=args.checkpoint,
+        reset_data=args.reset_data,
+    )
     result = score(policy, **options)
     floor = result if args.policy == "zero" else score(zero_policy, **options)
     table = format_table(result)
-    lines = [summary_line(f"policy {args.policy} in {where}", result),
-             summary_line(f"zero-action floor in {where}", floor)]
+    lines = [
+        summary_line(f"policy {args.policy} in {where}", result),
+        summary_line(f"zero-action floor in {where}", floor),
+    ]
     print(table)
     print("\n".join(lines))
     args.out.mkdir(parents=True, exist_ok=True)
-    write_text(args.out / "score.md", f"# Tracking score of {args.policy} in {where}\n\n```\n{table}\n```\n\n"
-               + "\n".join(f"- {line}" for line in lines) + "\n")
+    write_text(
+        args.out / "score.md",
+        f"# Tracking score of {args.policy} in {where}\n\n```\n{table}\n```\n\n"
+        + "\n".join(f"- {line}" for line in lines)
+        + "\n",
+    )
     plot(result, args.out / "score.png", title=lines[0])
-    report = {"policy": str(args.policy), "where": where, "tracking": result.tracking,
-              "return": result.episode_return, "falls": result.falls, "episodes": result.episodes,
-              "floor": {"tracking": floor.tracking, "return": floor.episode_return, "falls": floor.falls},
-              "evaluation": result.to_dict(), "floor_evaluation": floor.to_dict()}
+    report = {
+        "policy": str(args.policy),
+        "where": where,
+        "tracking": result.tracking,
+        "return": result.episode_return,
+        "falls": result.falls,
+        "episodes": result.episodes,
+        "floor": {"tracking": floor.tracking, "return": floor.episode_return, "falls": floor.falls},
+        "evaluation": result.to_dict(),
+        "floor_evaluation": floor.to_dict(),
+    }
     write_json(args.out / "score.json", report)
     if args.video:
         gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png")

@@ -28,11 +28,20 @@ IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym shac`."""
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
-    parser.add_argument("--reset-data", type=Path, default=None,
-                        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
+    parser.add_argument(
+        "--reset-data",
+        type=Path,
+        default=None,
+        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)",
+    )
     add_imagination_options(parser, skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS))
-    add_dataclass_options(parser.add_argument_group("SHAC"), SHACConfig, nargs={"net_arch": "+"},
-                          types={"net_arch": int}, choices={"activation": ("elu", "tanh", "relu")})
+    add_dataclass_options(
+        parser.add_argument_group("SHAC"),
+        SHACConfig,
+        nargs={"net_arch": "+"},
+        types={"net_arch": int},
+        choices={"activation": ("elu", "tanh", "relu")},
+    )
     parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
     parser.add_argument("--minutes", type=float, default=None, help="stop this process after this wall time")
     parser.add_argument("--run-dir", type=Path, required=True, help="resumable run folder")
@@ -73,8 +82,9 @@ def _train(args: argparse.Namespace) -> int:
     config = dataclass_from_args(SHACConfig, args)
     options = imagination_from_args(args)
     try:
-        core = ImaginedCore(args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data,
-                            options=options)
+        core = ImaginedCore(
+            args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data, options=options
+        )
         imagination = DifferentiableImagination(core)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"rwm-gym shac: {error}") from None
@@ -95,15 +105,31 @@ def _train(args: argparse.Namespace) -> int:
         print(f"resuming {run_folder.folder} at {learner.timesteps:,} steps")
     seed_offset = 7919 * (state.get("restarts", -1) + 1)
     imagination.reset(list(range(core.num_envs)), [args.seed + seed_offset + i for i in range(core.num_envs)])
-    train(learner, model, run_folder, args, state.get("wall_s", 0.0) if resumed else 0.0,
-          state.get("restarts", -1) + 1, config, environment)
+    train(
+        learner,
+        model,
+        run_folder,
+        args,
+        state.get("wall_s", 0.0) if resumed else 0.0,
+        state.get("restarts", -1) + 1,
+        config,
+        environment,
+    )
     out = save_policy(model, args.out)
     print(f"{run_folder.folder}: {learner.timesteps:,} imagined steps in all; wrote {out}")
     return 0
 
 
-def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall_s: float, restarts: int,
-          config: SHACConfig, environment: dict) -> None:
+def train(
+    learner: SHAC,
+    model,
+    run_folder,
+    args: argparse.Namespace,
+    prior_wall_s: float,
+    restarts: int,
+    config: SHACConfig,
+    environment: dict,
+) -> None:
     """Updates until `--timesteps` (or `--minutes`), with snapshots, resume points and one log row per update."""
     import torch
 
@@ -114,9 +140,16 @@ def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall
     def save() -> None:
         save_policy(model, run_folder.latest)
         atomic_write(run_folder.folder / "latest_shac.pt", lambda tmp: torch.save(learner.state_dict(), tmp))
-        write_json(run_folder.state_path, {"shac": _jsonable(asdict(config)), "env": _jsonable(environment),
-                                           "timesteps": learner.timesteps, "restarts": restarts,
-                                           "wall_s": prior_wall_s + time.monotonic() - started})
+        write_json(
+            run_folder.state_path,
+            {
+                "shac": _jsonable(asdict(config)),
+                "env": _jsonable(environment),
+                "timesteps": learner.timesteps,
+                "restarts": restarts,
+                "wall_s": prior_wall_s + time.monotonic() - started,
+            },
+        )
 
     run_folder.folder.mkdir(parents=True, exist_ok=True)
     bar = BudgetBar(steps=args.timesteps, minutes=None, desc="shac", initial=learner.timesteps, unit_scale=True)
@@ -130,8 +163,12 @@ def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall
             stats = learner.update()
             update += 1
             _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
-            bar.show(stats.timesteps, time.monotonic() - started, ret=f"{stats.imagined_return:.3f}",
-                     grad=f"{stats.actor_grad_norm:.2g}")
+            bar.show(
+                stats.timesteps,
+                time.monotonic() - started,
+                ret=f"{stats.imagined_return:.3f}",
+                grad=f"{stats.actor_grad_norm:.2g}",
+            )
             if update % args.save_every == 0:
                 save()
         save()

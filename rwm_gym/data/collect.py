@@ -82,21 +82,35 @@ def collect(
     policies; an SB3 policy acts on a batch, whose float rounding may depend on its size).
     """
     _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers)
-    job = _Job(env_id, policy, seed, min(check_num_envs(num_envs), episodes), action_noise, max_steps,
-               dict(env_kwargs or {}), threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers))
+    job = _Job(
+        env_id,
+        policy,
+        seed,
+        min(check_num_envs(num_envs), episodes),
+        action_noise,
+        max_steps,
+        dict(env_kwargs or {}),
+        threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers),
+    )
     runner = _Runner(job)
     spec, core, horizon = runner.core.spec, runner.core, runner.horizon
     info = DatasetInfo(
-        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core),
+        env_id=env_name(env_id),
+        spec_text=spec.text,
+        dt=spec.policy_dt,
+        columns=dataset_columns(core),
         policy=runner.policy.name,
-        seed=seed, physics_params=core.params.to_dict(),
+        seed=seed,
+        physics_params=core.params.to_dict(),
         metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with claim(out), DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
-        total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
-    ) as bar:
+    with (
+        claim(out),
+        DatasetWriter(out, info, overwrite=overwrite) as writer,
+        tqdm(total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress) as bar,
+    ):
         if workers == 1:
             finished = runner.run(range(episodes))
         else:
@@ -119,9 +133,11 @@ def _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_k
         raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
     if Path(out).exists() and not overwrite:
         raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
-    inputs = [policy if isinstance(policy, str) and policy.endswith(".zip") else None,
-              env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
-              *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file")]
+    inputs = [
+        policy if isinstance(policy, str) and policy.endswith(".zip") else None,
+        env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
+        *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file"),
+    ]
     check_output(out, inputs=inputs, overwrite=overwrite)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -166,8 +182,11 @@ class _Runner:
             kwargs["nthread"] = job.threads
         self.job, self.core = job, make_physics_core(job.env_id, job.num_envs, **kwargs)
         spec = self.core.spec
-        self.policy = (make_policy(job.policy, spec, job.num_envs, action_noise=job.action_noise)
-                       if isinstance(job.policy, str) else job.policy)
+        self.policy = (
+            make_policy(job.policy, spec, job.num_envs, action_noise=job.action_noise)
+            if isinstance(job.policy, str)
+            else job.policy
+        )
         self.horizon = min(job.max_steps or spec.episode_steps, spec.episode_steps)
 
     def run(self, numbers: range) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
@@ -179,7 +198,7 @@ class _Runner:
 
         def start(ids: np.ndarray) -> np.ndarray:
             ks = [k for _, k in zip(ids, todo)]
-            ids = ids[:len(ks)]
+            ids = ids[: len(ks)]
             if len(ids) == 0:
                 return ids
             core.reset(ids, [seed + k for k in ks])

@@ -53,11 +53,20 @@ def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, r
         return
     torque = episode["state"][:, core.spec.state_slices["joint_torque"]]
     episode["qpos"], episode["qvel"], episode["state"] = noisy_measurement(
-        core.layout, core.spec, core.model, episode["qpos"], episode["qvel"], torque, noise, rng)
+        core.layout, core.spec, core.model, episode["qpos"], episode["qvel"], torque, noise, rng
+    )
 
 
-def noisy_measurement(layout, spec, model, qpos: np.ndarray, qvel: np.ndarray, joint_torque: np.ndarray,
-                      noise: SensorNoise, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def noisy_measurement(
+    layout,
+    spec,
+    model,
+    qpos: np.ndarray,
+    qvel: np.ndarray,
+    joint_torque: np.ndarray,
+    noise: SensorNoise,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor readings of true rows: noisy copies of qpos (N, nq), qvel (N, nv) and the state (N, S) built from them
     and the noisy joint torque (N, A). The noise floor of the gap workflow draws its noise here too."""
     qpos, qvel = np.array(qpos, float), np.array(qvel, float)
@@ -111,14 +120,24 @@ def make_measured(
     os.close(fd)
     try:
         n = max(1, min(num_envs, episodes))
-        driver = (ExcitationPolicy(nominal.spec, n) if policy == "excitation" else
-                  make_policy(policy, nominal.spec, n))
+        driver = ExcitationPolicy(nominal.spec, n) if policy == "excitation" else make_policy(policy, nominal.spec, n)
         solved = {"solver": asdict(solver)} if solver is not None else {}
-        collect(env_id, driver, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
-                env_kwargs={**env_kwargs, "physics": hidden, **solved}, overwrite=True, progress=progress)
+        collect(
+            env_id,
+            driver,
+            episodes,
+            raw,
+            seed=seed,
+            num_envs=num_envs,
+            max_steps=max_steps,
+            env_kwargs={**env_kwargs, "physics": hidden, **solved},
+            overwrite=True,
+            progress=progress,
+        )
         source = Dataset.load(raw)
-        info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
-                       complete=False)
+        info = replace(
+            source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={}, complete=False
+        )
         rng = np.random.default_rng([seed, 7])
 
         def noisy_episodes():
@@ -133,8 +152,9 @@ def make_measured(
     return out
 
 
-def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float, xml_file: str | Path | None = None
-                       ) -> Path:
+def write_spring_model(
+    spec, out: str | Path, joint_type: str, stiffness: float, xml_file: str | Path | None = None
+) -> Path:
     """An effect outside the vocabulary, for benchmarks and tests: the robot's MJCF with a torsion spring
     (`stiffness` N·m/rad, rest at the default pose) in every actuated joint whose name ends in `joint_type`, edited
     into the MuJoCo model directly (no `PhysicsParams` field can express it). Writes a standalone MJCF at `out`."""

@@ -32,8 +32,10 @@ def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
     """The checkpoint shipped for an imagined env id (its spec's `task.default_checkpoint`)."""
     spec = shipped_spec(env_id)
     if spec is None or not spec.default_checkpoint:
-        raise ValueError(f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
-                         f"with `rwm-gym collect`, train one with `rwm-gym train`)")
+        raise ValueError(
+            f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
+            f"with `rwm-gym collect`, train one with `rwm-gym train`)"
+        )
     path = assets_dir() / spec.default_checkpoint
     if not path.is_file():
         raise FileNotFoundError(f"the default {env_id} checkpoint {path} is not installed; pass checkpoint=PATH")
@@ -54,9 +56,18 @@ def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
 class ImaginedCore:
     """N imagined rollouts; arrays are (N, ...) numpy, the model runs on `device`."""
 
-    def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                 reset_data: str | Path | None = None, options: ImaginationOptions | None = None,
-                 env_id: str | None = None, reward_fn=None, termination_fn=None):
+    def __init__(
+        self,
+        checkpoint: str | Path | None = None,
+        num_envs: int = 1,
+        *,
+        device: str = "cpu",
+        reset_data: str | Path | None = None,
+        options: ImaginationOptions | None = None,
+        env_id: str | None = None,
+        reward_fn=None,
+        termination_fn=None,
+    ):
         """env_id: the imagined env id this core serves (registration passes it): picks the shipped checkpoint when
         `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides.
         reset_data: dataset of real histories episodes restart from (None: the checkpoint's).
@@ -69,10 +80,15 @@ class ImaginedCore:
         self.num_envs = num_envs = check_num_envs(num_envs)
         self._load_reset_windows(reset_data)
         self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
-                                    reward_fn=reward_fn, termination_fn=termination_fn,
-                                    trust_entry_points=self.options.trust_entry_points,
-                                    source=f"the spec in checkpoint {self.checkpoint}")
+        self.task: Task = make_task(
+            self.spec,
+            num_envs,
+            resample_commands=self.options.resample_commands,
+            reward_fn=reward_fn,
+            termination_fn=termination_fn,
+            trust_entry_points=self.options.trust_entry_points,
+            source=f"the spec in checkpoint {self.checkpoint}",
+        )
         self._check_state_groups()
         self._allocate(num_envs)
 
@@ -80,18 +96,24 @@ class ImaginedCore:
         """The checkpoint's model, set up for the options (disagreement, matmul dtype), and its spec."""
         self.model, self.meta = load_checkpoint(self.checkpoint, device=self.device)
         if self.options.acts_on_disagreement and self.ensemble_size < 2:
-            raise ValueError(f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
-                             "and this model has one head (train it with --ensemble-size 5)")
+            raise ValueError(
+                f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
+                "and this model has one head (train it with --ensemble-size 5)"
+            )
         self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
         if self.options.matmul_precision != "float32":
             if not hasattr(self.model, "set_step_matmul_dtype"):
-                raise ValueError(f"{self.checkpoint}: matmul_precision {self.options.matmul_precision} is implemented "
-                                 f"for RWM models, not {self.model.config.kind}")
+                raise ValueError(
+                    f"{self.checkpoint}: matmul_precision {self.options.matmul_precision} is implemented "
+                    f"for RWM models, not {self.model.config.kind}"
+                )
             self.model.set_step_matmul_dtype(MATMUL_PRECISIONS[self.options.matmul_precision])
         self.spec: TaskSpec = self.meta.spec
         if env_id is not None and self.spec.imagined_env_id != env_id:
-            raise ValueError(f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
-                             f"not of {env_id}")
+            raise ValueError(
+                f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
+                f"not of {env_id}"
+            )
         self.norm = self.meta.normalizer
 
     def _load_reset_windows(self, reset_data: str | Path | None) -> None:
@@ -99,21 +121,30 @@ class ImaginedCore:
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
         reset_dataset = Dataset.load(self._reset_data_path(reset_data))
         if reset_dataset.spec().name != self.spec.name:
-            raise ValueError(f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
-                             f"{self.checkpoint} of {self.spec.name}")
+            raise ValueError(
+                f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
+                f"{self.checkpoint} of {self.spec.name}"
+            )
         self.reset_windows = ResetWindows(reset_dataset, history)
 
     def _check_state_groups(self) -> None:
         """Refuse an option that reads a state group (or limit) the task's spec has not."""
         slices, name = self.spec.state_slices, self.spec.name
         if self.options.fall_tilt > 0 and "projected_gravity" not in slices:
-            raise ValueError(f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which {name} has not")
-        if self.options.torque_halt > 0 and ("joint_torque" not in slices
-                                             or not np.isfinite(self.spec.actuator.effort_limit)):
-            raise ValueError(f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
-                             f"limit, which {name} has not")
+            raise ValueError(
+                f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which {name} has not"
+            )
+        if self.options.torque_halt > 0 and (
+            "joint_torque" not in slices or not np.isfinite(self.spec.actuator.effort_limit)
+        ):
+            raise ValueError(
+                f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
+                f"limit, which {name} has not"
+            )
         if self.options.push_interval_s > 0 and "base_lin_vel" not in slices:
-            raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which {name} has not")
+            raise ValueError(
+                f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which {name} has not"
+            )
 
     def _allocate(self, n: int) -> None:
         """Per-env arrays, generators, hidden states, the warm-up cache and the spaces."""
@@ -130,8 +161,10 @@ class ImaginedCore:
         self.hidden = self.model.initial_hidden(n, self.device)
         template = self.model.initial_hidden(1, self.device)
         self.warm_up_cache = None
-        if (not self.model.warm_hidden_reads_member
-                and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20):
+        if (
+            not self.model.warm_hidden_reads_member
+            and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20
+        ):
             self.warm_up_cache = WarmUpCache(self.reset_windows, template)
         self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
@@ -145,13 +178,17 @@ class ImaginedCore:
             for folder in (self.checkpoint.parent, assets_dir() / "checkpoints"):
                 if (folder / named).is_file():
                     return folder / named
-            raise FileNotFoundError(f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
-                                    f"copy it there or pass reset_data=PATH")
+            raise FileNotFoundError(
+                f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
+                f"copy it there or pass reset_data=PATH"
+            )
         dataset = self.meta.provenance.get("dataset")
         if dataset and Path(dataset).is_file():
             return Path(dataset)
-        raise ValueError(f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
-                         f"{dataset!r} is not here; pass reset_data=PATH")
+        raise ValueError(
+            f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
+            f"{dataset!r} is not here; pass reset_data=PATH"
+        )
 
     @property
     def command(self) -> np.ndarray:
@@ -171,8 +208,9 @@ class ImaginedCore:
         return self.options.acts_on_disagreement or self.options.report_uncertainty
 
     @torch.inference_mode()
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         """Start envs `ids` from real history windows, replaying the full warm-up through the model; hold `commands`
         (len(ids), K) for the episode if given."""
         ids = np.asarray(ids, dtype=int)
@@ -251,10 +289,15 @@ class ImaginedCore:
             halted = self.uncertainty > self.options.uncertainty_halt
             terminated |= halted
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted,
-                "fall_tilt": tipped, "torque_halt": saturated,
-                **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
-                **{f"reward/{k}": v for k, v in terms.items()}}
+        info = {
+            "command": self.command.copy(),
+            "model_diverged": diverged,
+            "uncertainty_halt": halted,
+            "fall_tilt": tipped,
+            "torque_halt": saturated,
+            **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
+            **{f"reward/{k}": v for k, v in terms.items()},
+        }
 
         self.state, self.contact, self.foot_height, self.last_action = next_state, contact, foot_height, actions
         self.steps += 1
@@ -276,8 +319,12 @@ class ImaginedCore:
             noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
             mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
         # The task runs in numpy (the Gymnasium contract): one device-to-host copy per step carries every output.
-        parts = [mean, (p.contact_logits > 0).to(mean.dtype), p.foot_height.to(mean.dtype),
-                 p.termination_logit.to(mean.dtype).unsqueeze(1)]
+        parts = [
+            mean,
+            (p.contact_logits > 0).to(mean.dtype),
+            p.foot_height.to(mean.dtype),
+            p.termination_logit.to(mean.dtype).unsqueeze(1),
+        ]
         if self.needs_uncertainty:
             parts.append(p.uncertainty.to(mean.dtype).unsqueeze(1))
         return torch.cat(parts, dim=1).cpu().numpy()
@@ -289,9 +336,13 @@ class ImaginedCore:
         lin = self.spec.state_slices["base_lin_vel"]
         for i in np.flatnonzero(self.steps % every == 0):
             v = self.options.push_velocity
-            self.state[i, lin.start:lin.start + 2] += self.rngs[i].uniform(-v, v, 2).astype(np.float32)
+            self.state[i, lin.start : lin.start + 2] += self.rngs[i].uniform(-v, v, 2).astype(np.float32)
 
     def record(self) -> dict[str, np.ndarray]:
         """The imagined rows, in the dataset's field names (no simulator state: qpos/qvel are absent)."""
-        return {"state": self.state.copy(), "contact": self.contact.copy(), "foot_height": self.foot_height.copy(),
-                "command": self.command.copy()}
+        return {
+            "state": self.state.copy(),
+            "contact": self.contact.copy(),
+            "foot_height": self.foot_height.copy(),
+            "command": self.command.copy(),
+        }

@@ -29,8 +29,9 @@ def imagination_options(options: ImaginationOptions | None = None, **fields) -> 
     return replace(options or ImaginationOptions(), **fields)
 
 
-def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *,
-                       options: ImaginationOptions | None = None, **kwargs) -> ImaginedCore:
+def make_imagined_core(
+    checkpoint: str | Path | None = None, num_envs: int = 1, *, options: ImaginationOptions | None = None, **kwargs
+) -> ImaginedCore:
     """The imagined core of N rollouts. kwargs: `ImaginedCore`'s (device, reset_data, env_id, reward_fn,
     termination_fn), and fields of `ImaginationOptions` that replace those of `options`."""
     names = {f.name for f in fields(ImaginationOptions)}
@@ -49,13 +50,22 @@ class ImaginedEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
-    def __init__(self, checkpoint: str | Path | None = None, *, render_mode: str | None = None, width: int = 640,
-                 height: int = 480, **kwargs):
+    def __init__(
+        self,
+        checkpoint: str | Path | None = None,
+        *,
+        render_mode: str | None = None,
+        width: int = 640,
+        height: int = 480,
+        **kwargs,
+    ):
         self.core = make_imagined_core(checkpoint, 1, **kwargs)
         self.task_spec = self.core.spec
         if render_mode is not None and not self.task_spec.model:
-            raise ValueError(f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "
-                             "dream with; render its physics env instead")
+            raise ValueError(
+                f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "
+                "dream with; render its physics env instead"
+            )
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}

@@ -69,8 +69,10 @@ class ImaginationOptions:
 
     def __post_init__(self) -> None:
         if self.matmul_precision not in MATMUL_PRECISION_NAMES:
-            raise ValueError(f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "
-                             f"{', '.join(MATMUL_PRECISION_NAMES)})")
+            raise ValueError(
+                f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "
+                f"{', '.join(MATMUL_PRECISION_NAMES)})"
+            )
 
     @property
     def acts_on_disagreement(self) -> bool:

@@ -46,12 +46,15 @@ class LocomotionCore:
         self.solver = SolverSettings.from_dict(solver)
         self.model = build_model(spec, xml_file, self.params, self.solver)
         if not np.isclose(self.model.opt.timestep, spec.physics_dt):
-            raise ValueError(f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
-                             f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s")
+            raise ValueError(
+                f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
+                f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s"
+            )
         self.layout = RobotLayout.from_model(self.model, spec)
         band = dead_band(spec, self.model, self.params)
-        self.sim = (SingleSimulator(self.model, band) if num_envs == 1
-                    else BatchSimulator(self.model, num_envs, nthread, band))
+        self.sim = (
+            SingleSimulator(self.model, band) if num_envs == 1 else BatchSimulator(self.model, num_envs, nthread, band)
+        )
         self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         if self.keyframe < 0:
             raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")
@@ -79,8 +82,9 @@ class LocomotionCore:
         rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
         return build_observation(self.spec, self.current.state[ids], self.command[ids], self.last_action[ids], rngs)
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         """Start new episodes in envs `ids` (re-seeding those with a seed; holding `commands` (len(ids), K) if given);
         return their observations."""
         ids = np.asarray(ids, dtype=int)
@@ -159,8 +163,16 @@ class LocomotionEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
-    def __init__(self, spec: str | TaskSpec = "anymal_d", *, render_mode: str | None = None, width: int = 640,
-                 height: int = 480, camera: str = "track", **kwargs):
+    def __init__(
+        self,
+        spec: str | TaskSpec = "anymal_d",
+        *,
+        render_mode: str | None = None,
+        width: int = 640,
+        height: int = 480,
+        camera: str = "track",
+        **kwargs,
+    ):
         """kwargs as `LocomotionCore`: xml_file, physics, observation_noise, resample_commands, solver."""
         self.core = make_core(spec, 1, **kwargs)
         self.task_spec = self.core.spec

@@ -90,13 +90,21 @@ class MBPOConfig:
             nested = {k: data.pop(k) for k in [k for k in data if k in names]}
             nested["episode_steps"] = data.pop("imagined_episode_steps", cls().imagination.episode_steps)
         known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in known},
-                   imagination=replace(cls().imagination, **nested))
+        return cls(**{k: v for k, v in data.items() if k in known}, imagination=replace(cls().imagination, **nested))
 
 
-def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
-         init_policy: str | Path | None = None, model_kind: str = "rwm", device: str = "cpu",
-         model_free_curve: str | Path | None = None, progress: bool = True) -> dict:
+def mbpo(
+    data: str | Path,
+    out: str | Path,
+    config: MBPOConfig = MBPOConfig(),
+    *,
+    checkpoint: str | Path | None = None,
+    init_policy: str | Path | None = None,
+    model_kind: str = "rwm",
+    device: str = "cpu",
+    model_free_curve: str | Path | None = None,
+    progress: bool = True,
+) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps;
@@ -127,8 +135,9 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     loop.model_config = read_meta(loop.model_path(0)).model_config
     started = time.monotonic() - report["log"][-1]["wall_s"]
     done = report["log"][-1]["iteration"]
-    for k in tqdm(range(done + 1, config.iterations + 1), desc="mbpo", disable=not progress, initial=done,
-                  total=config.iterations):
+    for k in tqdm(
+        range(done + 1, config.iterations + 1), desc="mbpo", disable=not progress, initial=done, total=config.iterations
+    ):
         loop.iteration(k, report, started, starting.spec().physics_env_id)
     plot_curve(report["log"], out / "mbpo.png", model_free)  # also when resumed with nothing left to run
     return report
@@ -143,8 +152,9 @@ class _Loop:
         self.out, self.config, self.device, self.progress, self.model_free = out, config, device, progress, model_free
         self.base = out / "buffer_base.h5"
         self.model_config = None
-        self.ppo_config = PPOConfig(num_envs=config.num_envs, log_std_init=config.log_std_init,
-                                    positive_reward_only=config.positive_reward_only)
+        self.ppo_config = PPOConfig(
+            num_envs=config.num_envs, log_std_init=config.log_std_init, positive_reward_only=config.positive_reward_only
+        )
 
     def model_path(self, k: int) -> Path:
         return self.out / f"model_{k}.safetensors"
@@ -153,9 +163,14 @@ class _Loop:
         """The imagined env of iteration k: model k-1 (k=0: the starting one), episodes restarting from `reset_data`."""
         from rwm_gym.rl.ppo import make_env
 
-        return make_env("imagination", self.config.num_envs, checkpoint=self.model_path(max(k - 1, 0)),
-                        device=self.device, seed=self.config.seed + k,
-                        env_kwargs={"options": self.config.imagination, "reset_data": reset_data})
+        return make_env(
+            "imagination",
+            self.config.num_envs,
+            checkpoint=self.model_path(max(k - 1, 0)),
+            device=self.device,
+            seed=self.config.seed + k,
+            env_kwargs={"options": self.config.imagination, "reset_data": reset_data},
+        )
 
     def trained_on(self, env):
         """What a loaded policy learns from: the zip keeps PPO's settings, not the reward clip."""
@@ -171,12 +186,26 @@ class _Loop:
 
         config = self.config
         previous_config = read_meta(previous).train_config if previous is not None else TrainConfig()
-        train_config = replace(previous_config, iterations=config.model_iterations, minutes=0.0, seed=config.seed + k,
-                               device=self.device, lr=config.model_lr, val_every=max(1, config.model_iterations // 4),
-                               checkpoint_every=config.model_iterations)
+        train_config = replace(
+            previous_config,
+            iterations=config.model_iterations,
+            minutes=0.0,
+            seed=config.seed + k,
+            device=self.device,
+            lr=config.model_lr,
+            val_every=max(1, config.model_iterations // 4),
+            checkpoint_every=config.model_iterations,
+        )
         init = previous if config.model_finetune else None
-        return train(buffer, self.model_config, train_config, self.model_path(k), progress=self.progress, init=init,
-                     overwrite=True).path
+        return train(
+            buffer,
+            self.model_config,
+            train_config,
+            self.model_path(k),
+            progress=self.progress,
+            init=init,
+            overwrite=True,
+        ).path
 
     def start(self, data, starting, checkpoint, init_policy, model_kind: str, started: float) -> dict:
         """Iteration 0: the starting model (trained on `data`, or a copy of `checkpoint`) and policy, scored."""
@@ -203,13 +232,24 @@ class _Loop:
             policy = make_ppo(env, self.ppo_config, seed=config.seed, device=self.device)
         save_policy(policy, self.out / "policy_0.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        report = {"config": config.to_dict(), "data": str(data),
-                  "start_checkpoint": None if checkpoint is None else str(checkpoint),
-                  "ppo": self.ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
-                  "log": [{"iteration": 0, "imagined_steps": 0, "imagined_step_reward": None,
-                           **_physics(evaluation), "model_error_fresh": None,
-                           "physics_samples": int(starting.num_steps), "learning_rate": policy.learning_rate,
-                           "wall_s": time.monotonic() - started}]}
+        report = {
+            "config": config.to_dict(),
+            "data": str(data),
+            "start_checkpoint": None if checkpoint is None else str(checkpoint),
+            "ppo": self.ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
+            "log": [
+                {
+                    "iteration": 0,
+                    "imagined_steps": 0,
+                    "imagined_step_reward": None,
+                    **_physics(evaluation),
+                    "model_error_fresh": None,
+                    "physics_samples": int(starting.num_steps),
+                    "learning_rate": policy.learning_rate,
+                    "wall_s": time.monotonic() - started,
+                }
+            ],
+        }
         self.write_report(report)
         tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
         return report
@@ -227,37 +267,57 @@ class _Loop:
         if fresh_files and not is_merge_of(buffer, [self.base, *fresh_files]):  # written by the iteration before
             merge_datasets([self.base, *fresh_files], buffer)
         # the same path whether resumed or not
-        policy = load_ppo(out / f"policy_{k - 1}.zip", self.trained_on(self.env(k, buffer)), self.ppo_config,
-                          device=self.device)
+        policy = load_ppo(
+            out / f"policy_{k - 1}.zip", self.trained_on(self.env(k, buffer)), self.ppo_config, device=self.device
+        )
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)
-        stats = learn(policy, timesteps=config.ppo_timesteps, target_kl=self.ppo_config.target_kl,
-                      progress=self.progress)
+        stats = learn(
+            policy, timesteps=config.ppo_timesteps, target_kl=self.ppo_config.target_kl, progress=self.progress
+        )
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
         noise = config.action_noise
         if noise is None:  # the deterministic policy the score judges, and the exploring one PPO runs in imagination
             std = float(policy.policy.log_std.detach().exp().mean())
             noise = [0.0, std / 2, std]
-        fresh = _collect(physics_env_id, zip_path, config, k, noise if isinstance(noise, list) else [noise],
-                         out / f"data_{k}.h5", self.progress)
-        model_error = evaluate_checkpoint(self.model_path(k - 1), fresh,
-                                          EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(),
-                                                     device=self.device), all_episodes=True, progress=False)["error"]
+        fresh = _collect(
+            physics_env_id,
+            zip_path,
+            config,
+            k,
+            noise if isinstance(noise, list) else [noise],
+            out / f"data_{k}.h5",
+            self.progress,
+        )
+        model_error = evaluate_checkpoint(
+            self.model_path(k - 1),
+            fresh,
+            EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(), device=self.device),
+            all_episodes=True,
+            progress=False,
+        )["error"]
         merge_datasets([self.base, *fresh_files, fresh], out / "buffer.h5")
         self.retrain(out / "buffer.h5", k, self.model_path(k - 1))
-        row = {"iteration": k, "imagined_steps": previous["imagined_steps"] + stats.timesteps,
-               "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
-               **_physics(evaluation), "model_error_fresh": model_error,
-               "physics_samples": previous["physics_samples"] + int(Dataset.load(fresh).num_steps),
-               "action_noise": noise, "learning_rate": float(policy.learning_rate),
-               "wall_s": time.monotonic() - started}
+        row = {
+            "iteration": k,
+            "imagined_steps": previous["imagined_steps"] + stats.timesteps,
+            "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
+            **_physics(evaluation),
+            "model_error_fresh": model_error,
+            "physics_samples": previous["physics_samples"] + int(Dataset.load(fresh).num_steps),
+            "action_noise": noise,
+            "learning_rate": float(policy.learning_rate),
+            "wall_s": time.monotonic() - started,
+        }
         report["log"].append(row)
         self.write_report(report)
-        tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
-                   f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
-                   f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}")
+        tqdm.write(
+            f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
+            f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
+            f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}"
+        )
         tqdm.write(format_table(evaluation))
 
     def write_report(self, report: dict) -> None:
@@ -271,18 +331,33 @@ class _Loop:
         plot_curve(log, self.out / "mbpo.png", self.model_free)
 
 
-def _collect(env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels: list[float], out: Path,
-             progress: bool) -> Path:
+def _collect(
+    env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels: list[float], out: Path, progress: bool
+) -> Path:
     """Iteration k's physics episodes, split evenly over the action-noise levels, in one file."""
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import merge_datasets
 
-    counts = [config.collect_episodes // len(noise_levels) + (i < config.collect_episodes % len(noise_levels))
-              for i in range(len(noise_levels))]
-    parts = [collect(env_id, str(policy), n, out.with_name(f".{out.stem}_{i}.h5"), seed=config.seed + 1000 * k + 100 * i,
-                     num_envs=min(n, 64), action_noise=level, max_steps=config.collect_steps, overwrite=True,
-                     progress=progress)
-             for i, (n, level) in enumerate(zip(counts, noise_levels)) if n]
+    counts = [
+        config.collect_episodes // len(noise_levels) + (i < config.collect_episodes % len(noise_levels))
+        for i in range(len(noise_levels))
+    ]
+    parts = [
+        collect(
+            env_id,
+            str(policy),
+            n,
+            out.with_name(f".{out.stem}_{i}.h5"),
+            seed=config.seed + 1000 * k + 100 * i,
+            num_envs=min(n, 64),
+            action_noise=level,
+            max_steps=config.collect_steps,
+            overwrite=True,
+            progress=progress,
+        )
+        for i, (n, level) in enumerate(zip(counts, noise_levels))
+        if n
+    ]
     merge_datasets(parts, out)
     for part in parts:
         part.unlink()
@@ -318,9 +393,13 @@ def read_curve(path: str | Path) -> list[tuple[int, float]]:
 
 def _physics(evaluation) -> dict:
     """The log fields of a physics evaluation (`rwm_gym.rl.evaluate_policy.Evaluation`)."""
-    return {"tracking": evaluation.tracking, "physics_return": evaluation.episode_return,
-            "lin_vel_error": evaluation.lin_vel_error,
-            "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
+    return {
+        "tracking": evaluation.tracking,
+        "physics_return": evaluation.episode_return,
+        "lin_vel_error": evaluation.lin_vel_error,
+        "yaw_rate_error": evaluation.yaw_rate_error,
+        "falls": evaluation.falls,
+    }
 
 
 def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] | None = None) -> None:
@@ -342,17 +421,22 @@ def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] 
     axes[0].legend()
     imagined = [r["imagined_steps"] / 1e6 for r in log]
     axes[1].plot(imagined, tracking, "o-")
-    for r, x, y in list(zip(log, imagined, tracking))[::max(1, len(log) // 6)]:
-        axes[1].annotate(f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6),
-                         fontsize=7, ha="center")
+    for r, x, y in list(zip(log, imagined, tracking))[:: max(1, len(log) // 6)]:
+        axes[1].annotate(
+            f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6), fontsize=7, ha="center"
+        )
     for ax in axes[:2]:
         ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
     axes[1].set_xlabel("imagined steps (M)")
     axes[1].set_title("physics tracking against imagined steps (wall time)")
     measured = [r for r in log if r["model_error_fresh"]]
-    for horizon in (measured[0]["model_error_fresh"] if measured else []):
-        axes[2].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
-                     label=f"{horizon} steps")
+    for horizon in measured[0]["model_error_fresh"] if measured else []:
+        axes[2].plot(
+            [r["iteration"] for r in measured],
+            [r["model_error_fresh"][horizon] for r in measured],
+            "o-",
+            label=f"{horizon} steps",
+        )
     axes[2].set_xlabel("iteration")
     axes[2].set_title("model error on the policy's fresh physics data")
     if measured:

@@ -21,8 +21,10 @@ from rwm_gym.atomic import atomic_write
 from rwm_gym.rl.evaluate_policy import Evaluation, as_policy, evaluate_policy, scoring_commands
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
-    ("forward 1.0 m/s", (1.0, 0.0, 0.0)), ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
-    ("turn 1.0 rad/s", (0.0, 0.0, 1.0)), ("stop", (0.0, 0.0, 0.0)),
+    ("forward 1.0 m/s", (1.0, 0.0, 0.0)),
+    ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
+    ("turn 1.0 rad/s", (0.0, 0.0, 1.0)),
+    ("stop", (0.0, 0.0, 0.0)),
 )
 
 
@@ -51,8 +53,16 @@ def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
     return as_policy(policy)
 
 
-def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int = 16, checkpoint: str | None = None,
-          reset_data: str | os.PathLike | None = None, spec: str = "anymal_d") -> Evaluation:
+def score(
+    policy,
+    *,
+    seeds: int = 3,
+    steps: int | None = None,
+    num_random: int = 16,
+    checkpoint: str | None = None,
+    reset_data: str | os.PathLike | None = None,
+    spec: str = "anymal_d",
+) -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
     world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's)."""
     commands = scoring_commands(spec, num_random)
@@ -61,13 +71,25 @@ def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int =
     if checkpoint is not None:
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
-        core = ImaginedCore(checkpoint, len(commands) * seeds, reset_data=reset_data,
-                            options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
+        core = ImaginedCore(
+            checkpoint,
+            len(commands) * seeds,
+            reset_data=reset_data,
+            options=ImaginationOptions(resample_commands=False, report_uncertainty=True),
+        )
     return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
 
 
-def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, seconds_each: float = 3.0,
-                fps: int = 15, size: tuple[int, int] = (400, 272), spec: str = "anymal_d") -> tuple[Path, Path]:
+def record_walk(
+    policy,
+    gif: str | os.PathLike,
+    still: str | os.PathLike,
+    *,
+    seconds_each: float = 3.0,
+    fps: int = 15,
+    size: tuple[int, int] = (400, 272),
+    spec: str = "anymal_d",
+) -> tuple[Path, Path]:
     """Render `policy` in physics through `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
     from PIL import Image, ImageDraw
 
@@ -98,13 +120,19 @@ def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, sec
     finally:
         env.close()
     duration_ms = int(1000 * every * env.task_spec.policy_dt)
-    gif = atomic_write(gif, lambda tmp: frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
-                                                         duration=duration_ms, loop=0))
+    gif = atomic_write(
+        gif,
+        lambda tmp: frames[0].save(
+            tmp, format="GIF", save_all=True, append_images=frames[1:], duration=duration_ms, loop=0
+        ),
+    )
     still = atomic_write(still, lambda tmp: stills[0].save(tmp, format="PNG"))
     return gif, still
 
 
 def summary_line(name: str, e: Evaluation) -> str:
     """One line of an evaluation: tracking, return, falls and velocity error."""
-    return (f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
-            f"|dv_xy| {e.lin_vel_error:.3f} m/s")
+    return (
+        f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
+        f"|dv_xy| {e.lin_vel_error:.3f} m/s"
+    )
