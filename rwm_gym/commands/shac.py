@@ -43,7 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices={"activation": ("elu", "tanh", "relu")},
     )
     parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
-    parser.add_argument("--minutes", type=float, default=None, help="stop this process after this wall time")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="stop this process after this wall time (default: none, the --timesteps budget alone)",
+    )
     parser.add_argument("--run-dir", type=Path, required=True, help="resumable run folder")
     parser.add_argument("--snapshot-every", type=int, default=20, help="updates between policy snapshots")
     parser.add_argument("--save-every", type=int, default=20, help="updates between resume points")
