@@ -46,8 +46,12 @@ from rwm_gym.spec import load_spec
 
 # name -> (model kind, forecast steps in training; 1 = teacher forcing)
 MODELS: dict[str, tuple[str, int | None]] = {
-    "RWM": ("rwm", None), "RWM-TF": ("rwm", 1), "MLP": ("mlp", None), "RSSM": ("rssm", None),
-    "Transformer": ("transformer", None), "no-change": ("no_change", None),
+    "RWM": ("rwm", None),
+    "RWM-TF": ("rwm", 1),
+    "MLP": ("mlp", None),
+    "RSSM": ("rssm", None),
+    "Transformer": ("transformer", None),
+    "no-change": ("no_change", None),
 }
 
 
@@ -83,8 +87,14 @@ class Options:
     @property
     def train_config(self) -> TrainConfig:
         """The shared recipe: TrainConfig's defaults with this budget, seed and device."""
-        return TrainConfig(iterations=self.iterations, minutes=self.cpu_minutes, seed=self.seed, device=self.device,
-                           val_every=self.iterations, checkpoint_every=self.iterations)
+        return TrainConfig(
+            iterations=self.iterations,
+            minutes=self.cpu_minutes,
+            seed=self.seed,
+            device=self.device,
+            val_every=self.iterations,
+            checkpoint_every=self.iterations,
+        )
 
 
 def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
@@ -99,8 +109,17 @@ def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, se
         policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
         policy.name = f"random(rho={rho},sigma={sigma})"
         path = folder / f"{env_id}.part{k}.h5"
-        collect(env_id, policy, episodes, path, seed=seed + 10_000 * k, num_envs=episodes, max_steps=episode_steps,
-                overwrite=True, progress=False)
+        collect(
+            env_id,
+            policy,
+            episodes,
+            path,
+            seed=seed + 10_000 * k,
+            num_envs=episodes,
+            max_steps=episode_steps,
+            overwrite=True,
+            progress=False,
+        )
         parts.append(path)
     merge_datasets(parts, out)
     for path in parts:
@@ -117,15 +136,24 @@ def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Option
     starts = windows.window_starts(val_ids, rows)
     if len(starts) == 0:
         raise ValueError(f"{dataset.path}: no held-out episode has {rows} rows; raise --episode-steps")
-    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[:options.eval_windows]
+    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[: options.eval_windows]
     batch = windows.gather(starts[pick.to(starts.device)], rows)
     model.eval()
-    prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, :rows - 1], horizon, sample=False)
+    prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, : rows - 1], horizon, sample=False)
     return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()
 
 
-SETTINGS = ("episodes", "episode_steps", "iterations", "cpu_minutes", "horizons", "eval_windows", "seed", "device",
-            "models")
+SETTINGS = (
+    "episodes",
+    "episode_steps",
+    "iterations",
+    "cpu_minutes",
+    "horizons",
+    "eval_windows",
+    "seed",
+    "device",
+    "models",
+)
 """Options a saved domain result must share with the current run to be reused."""
 
 
@@ -138,13 +166,19 @@ def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
             bar.update(len(saved["models"]))
             return saved
     start_domain = start = time.perf_counter()
-    dataset = Dataset.load(collect_mix(env_id, options.out / "data", options.episodes, options.episode_steps,
-                                       options.seed))
+    dataset = Dataset.load(
+        collect_mix(env_id, options.out / "data", options.episodes, options.episode_steps, options.seed)
+    )
     spec = dataset.spec()
     base = options.train_config
     _, val_ids = dataset.split_episodes(base.val_fraction, base.seed)
-    results = {"state_dim": spec.state_dim, "action_dim": spec.action_dim, "rows": dataset.num_steps,
-               "collect_wall_s": time.perf_counter() - start, "models": {}}
+    results = {
+        "state_dim": spec.state_dim,
+        "action_dim": spec.action_dim,
+        "rows": dataset.num_steps,
+        "collect_wall_s": time.perf_counter() - start,
+        "models": {},
+    }
     for name in options.models.split(","):
         kind, forecast = MODELS[name]
         bar.set_postfix_str(f"{env_id} {name}")
@@ -154,9 +188,13 @@ def run_domain(env_id: str, options: Options, bar: tqdm) -> dict:
         trained = train(dataset, model_config, config, progress=False, clock=time.process_time)
         wall = time.perf_counter() - start
         errors = horizon_errors(trained.model, dataset, val_ids, options)
-        results["models"][name] = {"errors": errors.tolist(), "train_wall_s": wall, "kind": kind,
-                                   "forecast": config.forecast,
-                                   "iterations": trained.stats["iterations"]}
+        results["models"][name] = {
+            "errors": errors.tolist(),
+            "train_wall_s": wall,
+            "kind": kind,
+            "forecast": config.forecast,
+            "iterations": trained.stats["iterations"],
+        }
         bar.update(1)
     results.update(settings=settings, wall_s=time.perf_counter() - start_domain)
     write_json(path, results)
@@ -179,22 +217,38 @@ def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s
     config = options.train_config
     collect_s = sum(domain["collect_wall_s"] for domain in results.values())
     head = "| domain | model | " + " | ".join(f"h={h}" for h in horizons) + " | iterations | train s |"
-    budget = (f"{options.cpu_minutes:g} CPU-minutes (at most {options.iterations} iterations)" if options.cpu_minutes
-              else f"{options.iterations} iterations")
-    lines = [(f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
-              f"(lower is better). One recipe for every domain: {budget} x "
-              f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
-              f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
-              f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
-              f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."),
-             "", head, "|" + "---|" * (len(horizons) + 4)]
+    budget = (
+        f"{options.cpu_minutes:g} CPU-minutes (at most {options.iterations} iterations)"
+        if options.cpu_minutes
+        else f"{options.iterations} iterations"
+    )
+    lines = [
+        (
+            f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
+            f"(lower is better). One recipe for every domain: {budget} x "
+            f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
+            f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
+            f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
+            f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."
+        ),
+        "",
+        head,
+        "|" + "---|" * (len(horizons) + 4),
+    ]
     for env_id, domain in results.items():
         for name, r in domain["models"].items():
             cells = " | ".join(f"{r['errors'][h - 1]:.3f}" for h in horizons)
-            lines.append(f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['iterations']} "
-                         f"| {r['train_wall_s']:.0f} |")
-    lines += ["", f"Mean rank over {len(results)} domains x {len(horizons)} horizons (1 = lowest error):", "",
-              "| model | mean rank |", "|---|---|"]
+            lines.append(
+                f"| {env_id} (S={domain['state_dim']}) | {name} | {cells} | {r['iterations']} "
+                f"| {r['train_wall_s']:.0f} |"
+            )
+    lines += [
+        "",
+        f"Mean rank over {len(results)} domains x {len(horizons)} horizons (1 = lowest error):",
+        "",
+        "| model | mean rank |",
+        "|---|---|",
+    ]
     lines += [f"| {name} | {rank:.2f} |" for name, rank in sorted(ranks.items(), key=lambda item: item[1])]
     return "\n".join(lines) + "\n"
 
@@ -207,8 +261,9 @@ def plot(results: dict, path: Path) -> None:
 
     n = len(results)
     cols = min(3, n)
-    fig, axes = plt.subplots((n + cols - 1) // cols, cols, figsize=(4.5 * cols, 3.5 * ((n + cols - 1) // cols)),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        (n + cols - 1) // cols, cols, figsize=(4.5 * cols, 3.5 * ((n + cols - 1) // cols)), squeeze=False
+    )
     for ax, (env_id, domain) in zip(axes.flat, results.items()):
         for name, r in domain["models"].items():
             ax.plot(np.arange(1, len(r["errors"]) + 1), r["errors"], label=name)
@@ -241,8 +296,13 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.perf_counter() - start
     wall = sum(domain["wall_s"] for domain in results.values())
     ranks = mean_ranks(results, horizons)
-    summary = {"options": {k: str(v) for k, v in asdict(options).items()}, "wall_s": wall, "elapsed_s": elapsed,
-               "mean_rank": ranks, "domains": results}
+    summary = {
+        "options": {k: str(v) for k, v in asdict(options).items()},
+        "wall_s": wall,
+        "elapsed_s": elapsed,
+        "mean_rank": ranks,
+        "domains": results,
+    }
     write_json(options.out / "results.json", summary)
     table = markdown(results, horizons, ranks, wall, options)
     write_text(options.out / "results.md", table)

@@ -1,4 +1,5 @@
-"""Does a world model's ensemble disagreement see where it is wrong? The heads against a second, separately trained model.
+"""Does a world model's ensemble disagreement see where it is wrong? The heads against a second, separately trained
+model.
 
 The RWM-U penalty reads the disagreement of the model's ensemble heads, which share one GRU trunk. This measures how
 well that signal, and the disagreement with a second model (its own trunk), follow the model's real error:
@@ -40,8 +41,8 @@ def windows(path: str, rows: int, stride: int, count: int, seed: int) -> tuple[n
     for e in range(data.num_episodes):
         episode = data.episode(e)
         for t in range(0, len(episode["state"]) - rows + 1, stride):
-            states.append(episode["state"][t:t + rows])
-            actions.append(episode["action"][t:t + rows - 1])
+            states.append(episode["state"][t : t + rows])
+            actions.append(episode["action"][t : t + rows - 1])
     if not states:
         raise SystemExit(f"{path}: no episode holds {rows} rows")
     pick = np.random.default_rng(seed).choice(len(states), min(count, len(states)), replace=False)
@@ -65,14 +66,21 @@ def on_data(model, meta, second, second_meta, path: str, history: int, horizon: 
     error = (mine.state_mean - x[:, history:]).abs().mean(-1).numpy()  # the forecasts are of rows H..H+N-1
     heads = mine.uncertainty.numpy()
     other = ((mine.state_mean - theirs.state_mean).abs() / 2).mean(-1).numpy()
-    return {"data": path, "windows": len(states), "error": float(error.mean()), "heads": float(heads.mean()),
-            "second_model": float(other.mean()),
-            "corr_error_heads": correlation(error, heads), "corr_error_second_model": correlation(error, other)}
+    return {
+        "data": path,
+        "windows": len(states),
+        "error": float(error.mean()),
+        "heads": float(heads.mean()),
+        "second_model": float(other.mean()),
+        "corr_error_heads": correlation(error, heads),
+        "corr_error_second_model": correlation(error, other),
+    }
 
 
 @torch.no_grad()
-def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta, policy: str, history: int,
-                   steps: int, seeds: int) -> dict:
+def in_imagination(
+    checkpoint: str, reset_data: str | None, second, second_meta, policy: str, history: int, steps: int, seeds: int
+) -> dict:
     from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
     from rwm_gym.rl.evaluate_policy import scoring_commands
     from rwm_gym.rl.score import resolve_policy
@@ -80,8 +88,12 @@ def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta,
     commands = scoring_commands("anymal_d")
     pairs = [(c, s) for c in commands for s in range(seeds)]
     n = len(pairs)
-    core = ImaginedCore(checkpoint, n, reset_data=reset_data,
-                        options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
+    core = ImaginedCore(
+        checkpoint,
+        n,
+        reset_data=reset_data,
+        options=ImaginationOptions(resample_commands=False, report_uncertainty=True),
+    )
     act = resolve_policy(policy, n)
     obs = core.reset(np.arange(n), list(range(n)), np.asarray([c for c, _ in pairs], dtype=np.float32))
     states, actions, heads, alive, running = [core.state.copy()], [], [], np.ones(n, bool), []
@@ -98,40 +110,64 @@ def in_imagination(checkpoint: str, reset_data: str | None, second, second_meta,
     u, live = np.stack(heads, 1), np.stack(running, 1)
     other, head = [], []
     for t in range(history, steps - 1, 8):
-        p, _ = second.forecast(x[:, t - history + 1:t + 1], a[:, t - history + 1:t + 1], 1, sample=False)
+        p, _ = second.forecast(x[:, t - history + 1 : t + 1], a[:, t - history + 1 : t + 1], 1, sample=False)
         ok = live[:, t]
         other.append(((p.state_mean[:, 0] - x[:, t + 1]).abs() / 2).mean(-1).numpy()[ok])
         head.append(u[ok, t])
     other, head = np.concatenate(other), np.concatenate(head)
-    return {"policy": policy, "episodes": n, "running_at_end": int(live[:, -1].sum()), "heads": float(head.mean()),
-            "second_model_one_step": float(other.mean()), "second_model_p90": float(np.quantile(other, 0.9))}
+    return {
+        "policy": policy,
+        "episodes": n,
+        "running_at_end": int(live[:, -1].sum()),
+        "heads": float(head.mean()),
+        "second_model_one_step": float(other.mean()),
+        "second_model_p90": float(np.quantile(other, 0.9)),
+    }
 
 
 def markdown(report: dict) -> str:
-    lines = ["| recorded data | windows | error | heads | second model | corr(error, heads) | corr(error, second) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| recorded data | windows | error | heads | second model | corr(error, heads) | corr(error, second) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
     def r2(value: float | None) -> str:
         return "-" if value is None else f"{value:.2f}"
 
-    lines += [f"| {r['data']} | {r['windows']} | {r['error']:.3f} | {r['heads']:.4f} | {r['second_model']:.3f} | "
-              f"{r2(r['corr_error_heads'])} | {r2(r['corr_error_second_model'])} |" for r in report["data"]]
-    lines += ["", "| inside the model: policy | episodes running at the end | heads | second model, one step (p90) |",
-              "|---|---|---|---|"]
-    lines += [f"| {r['policy']} | {r['running_at_end']} / {r['episodes']} | {r['heads']:.4f} | "
-              f"{r['second_model_one_step']:.3f} ({r['second_model_p90']:.3f}) |" for r in report["imagination"]]
+    lines += [
+        f"| {r['data']} | {r['windows']} | {r['error']:.3f} | {r['heads']:.4f} | {r['second_model']:.3f} | "
+        f"{r2(r['corr_error_heads'])} | {r2(r['corr_error_second_model'])} |"
+        for r in report["data"]
+    ]
+    lines += [
+        "",
+        "| inside the model: policy | episodes running at the end | heads | second model, one step (p90) |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['policy']} | {r['running_at_end']} / {r['episodes']} | {r['heads']:.4f} | "
+        f"{r['second_model_one_step']:.3f} ({r['second_model_p90']:.3f}) |"
+        for r in report["imagination"]
+    ]
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", default="assets/checkpoints/anymal_d_rwm.safetensors",
-                        help="the world model whose disagreement is judged")
+    parser.add_argument(
+        "--checkpoint",
+        default="assets/checkpoints/anymal_d_rwm.safetensors",
+        help="the world model whose disagreement is judged",
+    )
     parser.add_argument("--reset-data", default=None, help="histories of its imagined episodes (default: its own)")
     parser.add_argument("--second", required=True, help="a separately trained world model of the same task")
     parser.add_argument("--data", nargs="*", default=[], help="recorded episodes (HDF5), each a source")
-    parser.add_argument("--policies", nargs="*", default=[],
-                        help="SB3 zips, 'random' (the datasets' correlated random actions), 'zero' or 'gait', run "
-                             "inside the model")
+    parser.add_argument(
+        "--policies",
+        nargs="*",
+        default=[],
+        help="SB3 zips, 'random' (the datasets' correlated random actions), 'zero' or 'gait', run inside the model",
+    )
     parser.add_argument("--history", type=int, default=32)
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--windows", type=int, default=256)
@@ -146,11 +182,22 @@ def main(argv: list[str] | None = None) -> None:
     model, meta = load_checkpoint(args.checkpoint)
     model.set_disagreement(True)
     second, second_meta = load_checkpoint(args.second)
-    report = {"checkpoint": args.checkpoint, "second": args.second, "history": args.history, "horizon": args.horizon,
-              "data": [on_data(model, meta, second, second_meta, path, args.history, args.horizon, args.windows,
-                               args.seed) for path in args.data],
-              "imagination": [in_imagination(args.checkpoint, args.reset_data, second, second_meta, policy,
-                                             args.history, args.steps, args.seeds) for policy in args.policies]}
+    report = {
+        "checkpoint": args.checkpoint,
+        "second": args.second,
+        "history": args.history,
+        "horizon": args.horizon,
+        "data": [
+            on_data(model, meta, second, second_meta, path, args.history, args.horizon, args.windows, args.seed)
+            for path in args.data
+        ],
+        "imagination": [
+            in_imagination(
+                args.checkpoint, args.reset_data, second, second_meta, policy, args.history, args.steps, args.seeds
+            )
+            for policy in args.policies
+        ],
+    }
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "disagreement.json", report)
     table = markdown(report)

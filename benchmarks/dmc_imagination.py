@@ -98,35 +98,63 @@ def run_arm(where: str, env, options: Options, out: Path) -> dict:
     save_policy(model, out / f"ppo_{where}.zip")
     tic = time.perf_counter()
     scores = evaluate(model, options.env, options.eval_seeds)
-    print(f"{where}: {stats.timesteps} PPO steps in {stats.wall_s:.0f} s; physics return "
-          f"{scores['mean']:.1f} +- {scores['std']:.1f}", flush=True)
-    return {"ppo": config.to_dict(), "ppo_steps": stats.timesteps, "ppo_wall_s": stats.wall_s, "log": stats.log,
-            "evaluation": scores, "eval_wall_s": time.perf_counter() - tic}
+    print(
+        f"{where}: {stats.timesteps} PPO steps in {stats.wall_s:.0f} s; physics return "
+        f"{scores['mean']:.1f} +- {scores['std']:.1f}",
+        flush=True,
+    )
+    return {
+        "ppo": config.to_dict(),
+        "ppo_steps": stats.timesteps,
+        "ppo_wall_s": stats.wall_s,
+        "log": stats.log,
+        "evaluation": scores,
+        "eval_wall_s": time.perf_counter() - tic,
+    }
 
 
 def markdown(r: dict, options: Options) -> str:
     imagination, physics = r["imagination"], r["physics"]
-    rows = [("imagination", imagination, r["data_rows"],
-             r["collect_wall_s"] + r["wm_wall_s"] + imagination["ppo_wall_s"],
-             (f"collect {r['collect_wall_s']:.0f} s + world model {r['wm_wall_s']:.0f} s + PPO "
-              f"{imagination['ppo_wall_s']:.0f} s ({imagination['ppo_steps']} imagined steps)")),
-            ("physics", physics, physics["ppo_steps"], physics["ppo_wall_s"],
-             f"PPO {physics['ppo_wall_s']:.0f} s ({physics['ppo_steps']} physics steps)")]
-    lines = [(f"{options.env}: PPO ({options.num_envs} envs x {options.n_steps} steps per update, seed "
-              f"{options.seed}) trained {options.ppo_minutes:g} min in imagination ({r['imagined_env']}, world model "
-              f"{options.wm_iterations} iterations, imagined episodes {options.imagined_episode_steps} steps) or in "
-              f"physics; return of the deterministic policy over {options.eval_seeds} full physics episodes "
-              f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000)."), "",
-             "| trained in | physics return (mean +- std) | physics samples | wall time | of which |",
-             "|---|---|---|---|---|"]
+    rows = [
+        (
+            "imagination",
+            imagination,
+            r["data_rows"],
+            r["collect_wall_s"] + r["wm_wall_s"] + imagination["ppo_wall_s"],
+            (
+                f"collect {r['collect_wall_s']:.0f} s + world model {r['wm_wall_s']:.0f} s + PPO "
+                f"{imagination['ppo_wall_s']:.0f} s ({imagination['ppo_steps']} imagined steps)"
+            ),
+        ),
+        (
+            "physics",
+            physics,
+            physics["ppo_steps"],
+            physics["ppo_wall_s"],
+            f"PPO {physics['ppo_wall_s']:.0f} s ({physics['ppo_steps']} physics steps)",
+        ),
+    ]
+    lines = [
+        (
+            f"{options.env}: PPO ({options.num_envs} envs x {options.n_steps} steps per update, seed "
+            f"{options.seed}) trained {options.ppo_minutes:g} min in imagination ({r['imagined_env']}, world model "
+            f"{options.wm_iterations} iterations, imagined episodes {options.imagined_episode_steps} steps) or in "
+            f"physics; return of the deterministic policy over {options.eval_seeds} full physics episodes "
+            f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000)."
+        ),
+        "",
+        "| trained in | physics return (mean +- std) | physics samples | wall time | of which |",
+        "|---|---|---|---|---|",
+    ]
     e = r["untrained"]["evaluation"]
     lines.append(f"| (untrained: the initial policy of both) | {e['mean']:.1f} +- {e['std']:.1f} | 0 | - | - |")
     for name, arm, samples, wall, detail in rows:
         e = arm["evaluation"]
         lines.append(f"| {name} | {e['mean']:.1f} +- {e['std']:.1f} | {samples} | {wall / 60:.1f} min | {detail} |")
     error = r["wm_val_error"]
-    lines.append(f"\nWorld model: relative L1 validation error of 8-step forecasts "
-                 f"{'-' if error is None else f'{error:.3f}'}.")
+    lines.append(
+        f"\nWorld model: relative L1 validation error of 8-step forecasts {'-' if error is None else f'{error:.3f}'}."
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -139,8 +167,11 @@ def plot(r: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for where in ("imagination", "physics"):
         log = r[where]["log"]
-        ax.plot([row["wall_s"] / 60 for row in log], [row["mean_step_reward"] for row in log],
-                label=f"in {where} (physics return {r[where]['evaluation']['mean']:.0f})")
+        ax.plot(
+            [row["wall_s"] / 60 for row in log],
+            [row["mean_step_reward"] for row in log],
+            label=f"in {where} (physics return {r[where]['evaluation']['mean']:.0f})",
+        )
     ax.set(xlabel="PPO wall time (min)", ylabel="mean step reward in its own env", title=r["env"])
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -160,20 +191,41 @@ def main(argv: list[str] | None = None) -> int:
     spec = data.spec()
 
     tic = time.perf_counter()
-    trained = train(data, model_config_for("rwm", spec),
-                    TrainConfig(iterations=options.wm_iterations, seed=options.seed, device=options.device,
-                                checkpoint_every=options.wm_iterations),
-                    out / "world_model.safetensors")
+    trained = train(
+        data,
+        model_config_for("rwm", spec),
+        TrainConfig(
+            iterations=options.wm_iterations,
+            seed=options.seed,
+            device=options.device,
+            checkpoint_every=options.wm_iterations,
+        ),
+        out / "world_model.safetensors",
+    )
     wm_s = time.perf_counter() - tic
-    print(f"world model: {options.wm_iterations} iterations in {wm_s:.0f} s, validation error "
-          f"{trained.stats['val_error']}", flush=True)
+    print(
+        f"world model: {options.wm_iterations} iterations in {wm_s:.0f} s, validation error "
+        f"{trained.stats['val_error']}",
+        flush=True,
+    )
 
-    result = {"env": options.env, "imagined_env": spec.imagined_env_id, "options": {k: str(v) for k, v in
-                                                                                   asdict(options).items()},
-              "data": str(data.path), "data_rows": int(data.num_steps),
-              "collect_wall_s": collect_s, "wm_wall_s": wm_s, "wm_val_error": trained.stats["val_error"]}
-    imagined = ImaginedSB3VecEnv(trained.path, num_envs=options.num_envs, env_id=spec.imagined_env_id,
-                              device=options.device, episode_steps=options.imagined_episode_steps)
+    result = {
+        "env": options.env,
+        "imagined_env": spec.imagined_env_id,
+        "options": {k: str(v) for k, v in asdict(options).items()},
+        "data": str(data.path),
+        "data_rows": int(data.num_steps),
+        "collect_wall_s": collect_s,
+        "wm_wall_s": wm_s,
+        "wm_val_error": trained.stats["val_error"],
+    }
+    imagined = ImaginedSB3VecEnv(
+        trained.path,
+        num_envs=options.num_envs,
+        env_id=spec.imagined_env_id,
+        device=options.device,
+        episode_steps=options.imagined_episode_steps,
+    )
     imagined.seed(options.seed)
     result["imagination"] = run_arm("imagination", imagined, options, out)
     physics = DMCSB3VecEnv(num_envs=options.num_envs, spec=DMC_SPECS[options.env])

@@ -46,15 +46,21 @@ def table(runs: dict[str, dict[str, dict]], sources: list[str]) -> list[str]:
     for source in sources:
         first = next(iter(runs.values()))[source]
         horizons = first["horizons"]
-        rows += [f"**{source}** ({first['episodes']} episodes; windows per horizon: "
-                 + ", ".join(f"N={n}: {first['windows'][str(n)]}" for n in horizons) + ")", "",
-                 "| model | " + " | ".join(f"N={n}" for n in horizons) + " |", "|---|" + "---|" * len(horizons)]
+        rows += [
+            f"**{source}** ({first['episodes']} episodes; windows per horizon: "
+            + ", ".join(f"N={n}: {first['windows'][str(n)]}" for n in horizons)
+            + ")",
+            "",
+            "| model | " + " | ".join(f"N={n}" for n in horizons) + " |",
+            "|---|" + "---|" * len(horizons),
+        ]
         for label, result in runs.items():
             errors = result[source]["error"]
             rows.append(f"| {label} | " + " | ".join(f"{errors[str(n)]:.3f}" for n in horizons) + " |")
         for floor in ("no change", "predict the mean"):
-            rows.append(f"| *{floor}* | " + " | ".join(f"{first['floors'][floor][str(n)]:.3f}" for n in horizons)
-                        + " |")
+            rows.append(
+                f"| *{floor}* | " + " | ".join(f"{first['floors'][floor][str(n)]:.3f}" for n in horizons) + " |"
+            )
         rows.append("")
     return rows
 
@@ -71,11 +77,15 @@ def main(argv: list[str] | None = None) -> None:
     for source in sources:  # the floors and the comparison hold only on the same windows
         # which episodes: their ids, or only their count where a file predates the ids
         episodes = "episode_ids" if all("episode_ids" in r[source] for r in runs.values()) else "episodes"
-        settings = {label: (r[source]["horizons"], r[source]["windows"], r[source][episodes])
-                    for label, r in runs.items()}
+        settings = {
+            label: (r[source]["horizons"], r[source]["windows"], r[source][episodes]) for label, r in runs.items()
+        }
         if len(set(map(repr, settings.values()))) > 1:
-            parser.error(f"{source}: the runs were not evaluated on the same windows (horizons, windows, {episodes}: "
-                         + "; ".join(f"{label} {value}" for label, value in settings.items()) + ")")
+            parser.error(
+                f"{source}: the runs were not evaluated on the same windows (horizons, windows, {episodes}: "
+                + "; ".join(f"{label} {value}" for label, value in settings.items())
+                + ")"
+            )
     columns = min(len(sources), 2)
     grid_rows = math.ceil(len(sources) / columns)
     fig, axes = plt.subplots(grid_rows, columns, figsize=(6 * columns, 4 * grid_rows), squeeze=False)
@@ -84,14 +94,19 @@ def main(argv: list[str] | None = None) -> None:
             curve = result[source]["running_mean"]
             ax.plot(range(1, len(curve) + 1), curve, label=label)
         first = next(iter(runs.values()))[source]
-        ax.plot(first["horizons"], [first["floors"]["no change"][str(n)] for n in first["horizons"]], "k--o",
-                ms=3, label="no change")
+        ax.plot(
+            first["horizons"],
+            [first["floors"]["no change"][str(n)] for n in first["horizons"]],
+            "k--o",
+            ms=3,
+            label="no change",
+        )
         ax.set_title(source)
         ax.set_xlabel("horizon N (steps open-loop)")
         ax.set_ylabel("relative L1, mean over steps 1..N")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    for ax in list(axes.flat)[len(sources):]:
+    for ax in list(axes.flat)[len(sources) :]:
         ax.axis("off")
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)

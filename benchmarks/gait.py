@@ -24,8 +24,9 @@ from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import observation_slices
 
 
-def rollout(spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, float, float] | None,
-            **gait: float) -> dict[str, np.ndarray]:
+def rollout(
+    spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, float, float] | None, **gait: float
+) -> dict[str, np.ndarray]:
     """Run one env per seed for `steps` policy steps; `command` fixes the command (None: the env samples it).
 
     Returns per seed: `distance` (m, base x displacement in the world at the end or at the fall), `fell` (bool),
@@ -51,18 +52,27 @@ def rollout(spec: TaskSpec, seeds: list[int], steps: int, command: tuple[float, 
         distance = np.where(up, core.sim.arrays()["qpos"][:, 0] - start, distance)
         fell |= terminated
     count = np.maximum(count, 1)
-    return {"seed": np.asarray(seeds), "distance": distance, "fell": fell,
-            "error_xy": error_xy / count, "error_yaw": error_yaw / count}
+    return {
+        "seed": np.asarray(seeds),
+        "distance": distance,
+        "fell": fell,
+        "error_xy": error_xy / count,
+        "error_yaw": error_yaw / count,
+    }
 
 
 def print_table(title: str, result: dict[str, np.ndarray]) -> None:
     print(f"\n{title}")
     print(f"{'seed':>5} {'distance m':>11} {'fell':>5} {'err xy m/s':>11} {'err yaw rad/s':>14}")
     for i in range(len(result["seed"])):
-        print(f"{result['seed'][i]:>5} {result['distance'][i]:>11.2f} {bool(result['fell'][i])!s:>5} "
-              f"{result['error_xy'][i]:>11.3f} {result['error_yaw'][i]:>14.3f}")
-    print(f"{'mean':>5} {result['distance'].mean():>11.2f} {int(result['fell'].sum()):>4}/{len(result['seed'])} "
-          f"{result['error_xy'].mean():>11.3f} {result['error_yaw'].mean():>14.3f}")
+        print(
+            f"{result['seed'][i]:>5} {result['distance'][i]:>11.2f} {bool(result['fell'][i])!s:>5} "
+            f"{result['error_xy'][i]:>11.3f} {result['error_yaw'][i]:>14.3f}"
+        )
+    print(
+        f"{'mean':>5} {result['distance'].mean():>11.2f} {int(result['fell'].sum()):>4}/{len(result['seed'])} "
+        f"{result['error_xy'].mean():>11.3f} {result['error_yaw'].mean():>14.3f}"
+    )
 
 
 def main() -> None:

@@ -44,9 +44,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for noise in args.noise:
             for data_name, data_solver in SOLVERS.items():
-                path = make_measured({args.effect: effect.values_from_magnitude(args.true).tolist()}, args.episodes,
-                                     Path(tmp) / f"{data_name}_{noise}.h5", max_steps=args.steps,
-                                     noise=SensorNoise(scale=noise), solver=data_solver, progress=False)
+                path = make_measured(
+                    {args.effect: effect.values_from_magnitude(args.true).tolist()},
+                    args.episodes,
+                    Path(tmp) / f"{data_name}_{noise}.h5",
+                    max_steps=args.steps,
+                    noise=SensorNoise(scale=noise),
+                    solver=data_solver,
+                    progress=False,
+                )
                 data = Dataset.load(path)
                 windows = make_windows(data, np.arange(data.num_episodes), args.horizon, 5)
                 for resim_name, resim_solver in SOLVERS.items():
@@ -56,8 +62,11 @@ def main() -> None:
                         params = effect.physics(effect.values_from_magnitude(v), PhysicsParams())
                         residual = normalised_residual(spec, resim.rollout(windows, params), windows.target)
                         costs.append(float((residual**2).mean()))
-                    print(f"noise {noise:g} data {data_name:9s} resim {resim_name:9s} "
-                          + " ".join(f"{v:g}:{c:.5f}" for v, c in zip(args.values, costs)), flush=True)
+                    print(
+                        f"noise {noise:g} data {data_name:9s} resim {resim_name:9s} "
+                        + " ".join(f"{v:g}:{c:.5f}" for v, c in zip(args.values, costs)),
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

@@ -77,24 +77,42 @@ def magnitude(name: str, scale: float) -> list[float]:
 
 def grid() -> list[Case]:
     """Every case, in run order: the most informative first, so a partial run covers every kind."""
-    first = [Case("none", "none"), Case("spring_KFE_30", "outside", spring=("KFE", 30.0)),
-             Case("action_delay_1x", "single", {"action_delay": magnitude("action_delay", 1.0)}),
-             Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
-             Case("friction+payload", "pair", {"joint_friction": magnitude("joint_friction", 1.5),
-                                               "payload": magnitude("payload", 1.0)}),
-             Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
-             Case("friction_LF_KFE_6", "joint", per_joint=("joint_friction", "joint", "LF_KFE", 6.0), episodes=12),
-             Case("delay+armature", "pair", {"action_delay": magnitude("action_delay", 1.0),
-                                             "armature": magnitude("armature", 1.0)})]
+    first = [
+        Case("none", "none"),
+        Case("spring_KFE_30", "outside", spring=("KFE", 30.0)),
+        Case("action_delay_1x", "single", {"action_delay": magnitude("action_delay", 1.0)}),
+        Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
+        Case(
+            "friction+payload",
+            "pair",
+            {"joint_friction": magnitude("joint_friction", 1.5), "payload": magnitude("payload", 1.0)},
+        ),
+        Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
+        Case("friction_LF_KFE_6", "joint", per_joint=("joint_friction", "joint", "LF_KFE", 6.0), episodes=12),
+        Case(
+            "delay+armature",
+            "pair",
+            {"action_delay": magnitude("action_delay", 1.0), "armature": magnitude("armature", 1.0)},
+        ),
+    ]
     first += [Case(f"{n}_1x", "single", {n: magnitude(n, 1.0)}) for n in EFFECT_NAMES if n != "action_delay"]
     rest = [Case(f"{n}_{s}x", "single", {n: magnitude(n, s)}) for s in (0.5, 2.0) for n in EFFECT_NAMES]
-    rest += [Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
-             Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),
-             Case("strength+ground", "pair", {"motor_strength": magnitude("motor_strength", 1.0),
-                                              "ground_friction": magnitude("ground_friction", 1.0)}),
-             Case("damping+backlash", "pair", {"joint_damping": magnitude("joint_damping", 1.5),
-                                               "backlash": magnitude("backlash", 1.0)}),
-             Case("spring_HFE_20", "outside", spring=("HFE", 20.0)), Case("none_seed1", "none")]
+    rest += [
+        Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
+        Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),
+        Case(
+            "strength+ground",
+            "pair",
+            {"motor_strength": magnitude("motor_strength", 1.0), "ground_friction": magnitude("ground_friction", 1.0)},
+        ),
+        Case(
+            "damping+backlash",
+            "pair",
+            {"joint_damping": magnitude("joint_damping", 1.5), "backlash": magnitude("backlash", 1.0)},
+        ),
+        Case("spring_HFE_20", "outside", spring=("HFE", 20.0)),
+        Case("none_seed1", "none"),
+    ]
     return first + rest
 
 
@@ -115,9 +133,18 @@ def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> Pat
     if case.spring:
         env_kwargs["xml_file"] = str(write_spring_model(SPEC, tmp / f"{case.name}.xml", *case.spring))
     seed = args.seed + (1 if case.name.endswith("seed1") else 0)
-    return make_measured(case.truth, case.episodes or args.episodes, tmp / f"{source}_{case.name}.h5",
-                         max_steps=args.steps, seed=seed, policy=source, env_kwargs=env_kwargs,
-                         extra_physics=hidden_physics(case), progress=False, overwrite=True)
+    return make_measured(
+        case.truth,
+        case.episodes or args.episodes,
+        tmp / f"{source}_{case.name}.h5",
+        max_steps=args.steps,
+        seed=seed,
+        policy=source,
+        env_kwargs=env_kwargs,
+        extra_physics=hidden_physics(case),
+        progress=False,
+        overwrite=True,
+    )
 
 
 def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
@@ -145,26 +172,41 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> di
             errors[name] = abs(fitted - value) / abs(value - p.nominal)
     learned = report["learned_correction"]
     return {
-        "case": case.name, "kind": case.kind, "source": source, "true": sorted(true),
+        "case": case.name,
+        "kind": case.kind,
+        "source": source,
+        "true": sorted(true),
         "episodes": case.episodes or args.episodes,
-        "truth": case.truth, "per_joint": case.per_joint, "spring": case.spring,
-        "verdict": report["effect"], "named": named, "reason": report["reason"],
-        "correct": (sorted({n for n, _ in named}) == sorted(true) if case.kind not in ("outside", "none") else
-                    report["effect"] == ("unexplained" if case.kind == "outside" else "none")),
-        "scope_correct": (any(n == case.per_joint[0] and s == case.per_joint[1] for n, s in named)
-                          if case.per_joint else None),
+        "truth": case.truth,
+        "per_joint": case.per_joint,
+        "spring": case.spring,
+        "verdict": report["effect"],
+        "named": named,
+        "reason": report["reason"],
+        "correct": (
+            sorted({n for n, _ in named}) == sorted(true)
+            if case.kind not in ("outside", "none")
+            else report["effect"] == ("unexplained" if case.kind == "outside" else "none")
+        ),
+        "scope_correct": (
+            any(n == case.per_joint[0] and s == case.per_joint[1] for n, s in named) if case.per_joint else None
+        ),
         "false_namings": sorted({n for n, _ in named} - true),
         "magnitude_error": errors,
         "explained_fraction": report["explained_fraction"],
-        "learned_explained_fraction": learned["explained_fraction"] if learned and learned["status"] == "ok"
-        else None,
+        "learned_explained_fraction": learned["explained_fraction"] if learned and learned["status"] == "ok" else None,
         "learned_total_explained": (1.0 - learned["gap_after"] / report["gap_before"])
-        if learned and learned["status"] == "ok" else None,
-        "gap_before": report["gap_before"], "floor": report["noise_floor"]["floor"],
-        "floor_corrected": report["residual"]["floor"], "rest_at_floor": not report["residual"]["above_floor"],
-        "floor_ratio": report["noise_floor"]["ratio"], "above_floor": report["noise_floor"]["above_floor"],
+        if learned and learned["status"] == "ok"
+        else None,
+        "gap_before": report["gap_before"],
+        "floor": report["noise_floor"]["floor"],
+        "floor_corrected": report["residual"]["floor"],
+        "rest_at_floor": not report["residual"]["above_floor"],
+        "floor_ratio": report["noise_floor"]["ratio"],
+        "above_floor": report["noise_floor"]["above_floor"],
         "identifiable": {k: v["identifiable"] for k, v in report["identifiability"].items()},
-        "rejected_points": len(report["rejected"]), "wall_s": time.time() - start,
+        "rejected_points": len(report["rejected"]),
+        "wall_s": time.time() - start,
         "settings": settings(args),
     }
 
@@ -182,10 +224,17 @@ def oracle(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict
     before, after = (gap_per_window(SPEC, resim.rollout(held, p), held) for p in (base, true))
     floor = noise_floor(resim, held, true, SensorNoise(), FloorConfig())
     rest = compare_with_floor(after, floor, held, FitConfig().block_rows, FloorConfig())
-    return {"case": case.name, "source": source, "kind": case.kind, "gap_nominal": float(before.mean()),
-            "gap_true": float(after.mean()), "true_explained": float(1.0 - after.mean() / before.mean()),
-            "true_floor": rest["floor"], "true_rest_above_its_floor": rest["above_floor"],
-            "settings": settings(args)}
+    return {
+        "case": case.name,
+        "source": source,
+        "kind": case.kind,
+        "gap_nominal": float(before.mean()),
+        "gap_true": float(after.mean()),
+        "true_explained": float(1.0 - after.mean() / before.mean()),
+        "true_floor": rest["floor"],
+        "true_rest_above_its_floor": rest["above_floor"],
+        "settings": settings(args),
+    }
 
 
 def settings(args: argparse.Namespace) -> dict:
@@ -235,7 +284,8 @@ def summarise(rows: list[dict]) -> dict:
         excess = [excess_explained(r) for r in named_right]
         unnamed = [r for r in rs if r["verdict"] == "unexplained" and r["learned_total_explained"] is not None]
         out[source] = {
-            "cases": len(rs), "errors": len([r for r in rows if r["source"] == source and "error" in r]),
+            "cases": len(rs),
+            "errors": len([r for r in rows if r["source"] == source and "error" in r]),
             "named_correctly": frac([r["correct"] for r in effect]),
             "magnitude_within_25pct_of_named": frac([e <= 0.25 for e in errs]),
             "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
@@ -243,7 +293,8 @@ def summarise(rows: list[dict]) -> dict:
             "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
             # rows reused from before version 17 (`--reuse-above-floor`) have no rest_at_floor
             "explained_ge_70pct_or_rest_at_its_floor_where_named": frac(
-                [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]),
+                [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]
+            ),
             "learned_ge_50pct_where_unexplained": frac([r["learned_total_explained"] >= 0.5 for r in unnamed]),
             "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
             "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
@@ -275,22 +326,34 @@ def markdown(rows: list[dict], summary: dict) -> str:
         named = ", ".join(f"{n} ({s})" for n, s in r["named"]) or r["verdict"]
         err = ", ".join(f"{v:.0%}" for v in r["magnitude_error"].values()) or "-"
         learned = f"{r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None else "-"
-        lines.append(f"| {r['source']} | {r['case']} | {r['kind']} | {named} | {'yes' if r['correct'] else 'no'} | "
-                     f"{err} | {r['explained_fraction']:.0%} | {learned} | {r['floor_ratio']:.2f} |")
+        lines.append(
+            f"| {r['source']} | {r['case']} | {r['kind']} | {named} | {'yes' if r['correct'] else 'no'} | "
+            f"{err} | {r['explained_fraction']:.0%} | {learned} | {r['floor_ratio']:.2f} |"
+        )
     lines += ["", "| figure | " + " | ".join(summary) + " |", "|---|" + "---|" * len(summary)]
     keys = next(iter(summary.values()), {}).keys()
     for key in keys:
         cells = []
         for s in summary.values():
             v = s[key]
-            cells.append(f"{v['fraction']:.0%} (n={v['n']})" if isinstance(v, dict) else
-                         "-" if v is None else f"{v:.2f}" if isinstance(v, float) else str(v))
+            cells.append(
+                f"{v['fraction']:.0%} (n={v['n']})"
+                if isinstance(v, dict)
+                else "-"
+                if v is None
+                else f"{v:.2f}"
+                if isinstance(v, float)
+                else str(v)
+            )
         lines.append(f"| {key} | " + " | ".join(cells) + " |")
     reused = sorted({r["reused_version"] for r in rows if "reused_version" in r})
     if reused:
         count = sum("reused_version" in r for r in rows)
-        lines += ["", f"{count} of {len(rows)} cases (gap above the noise floor) were run at version "
-                      f"{', '.join(map(str, reused))} and reused (`--reuse-above-floor`)."]
+        lines += [
+            "",
+            f"{count} of {len(rows)} cases (gap above the noise floor) were run at version "
+            f"{', '.join(map(str, reused))} and reused (`--reuse-above-floor`).",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -308,13 +371,13 @@ def side_by_side(rows: list[dict]) -> str:
             return "error"
         named = ", ".join(f"{n}" + (f" ({s})" if s != "global" else "") for n, s in r["named"]) or r["verdict"]
         err = "; ".join(f"err {v:.0%}" for v in r["magnitude_error"].values())
-        learned = (f"; learned {r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None
-                   else "")
+        learned = f"; learned {r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None else ""
         mark = "✓" if r["correct"] else "✗"
         above = f" ({excess_explained(r):.0%} above floor)" if r["named"] else ""
         above += "; rest at its floor" if r["named"] and r.get("rest_at_floor") else ""
-        return (f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{above}"
-                f"{learned}")
+        return (
+            f"{mark} {named}" + (f"; {err}" if err else "") + f"; expl. {r['explained_fraction']:.0%}{above}{learned}"
+        )
 
     lines = ["| case | " + " | ".join(sources) + " |", "|---|" + "---|" * len(sources)]
     lines += [f"| {c} | " + " | ".join(cell(by.get((c, s))) for s in sources) + " |" for c in cases]
@@ -331,11 +394,19 @@ def plot(rows: list[dict], path: Path) -> None:
     sources = sorted({r["source"] for r in rows})
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     for i, source in enumerate(sources):
-        acc = [np.mean([r["correct"] for r in rows if r["source"] == source and r["kind"] == k and "error" not in r]
-                       or [np.nan]) for k in kinds]
+        acc = [
+            np.mean(
+                [r["correct"] for r in rows if r["source"] == source and r["kind"] == k and "error" not in r]
+                or [np.nan]
+            )
+            for k in kinds
+        ]
         axes[0].bar(np.arange(len(kinds)) + 0.4 * i - 0.2, acc, 0.4, label=source)
-        pts = [(r["explained_fraction"], r["learned_total_explained"] or r["explained_fraction"]) for r in rows
-               if r["source"] == source and "error" not in r and r["kind"] != "none"]
+        pts = [
+            (r["explained_fraction"], r["learned_total_explained"] or r["explained_fraction"])
+            for r in rows
+            if r["source"] == source and "error" not in r and r["kind"] != "none"
+        ]
         if pts:
             axes[1].scatter(*zip(*pts), label=source, alpha=0.7)
     axes[0].set_xticks(range(len(kinds)), kinds)
@@ -373,10 +444,15 @@ def run_oracle(jobs: list[tuple[Case, str]], args: argparse.Namespace) -> None:
             if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args)):
                 write_json(path, {**oracle(case, source, args, Path(tmp)), "source": Path(source).stem})
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
-    lines = ["| source | case | held-out gap explained by the true simulator | its rest above its own floor |",
-             "|---|---|---|---|"]
-    lines += [f"| {r['source']} | {r['case']} | {r['true_explained']:.0%} | "
-              f"{'yes' if r['true_rest_above_its_floor'] else 'no'} |" for r in rows]
+    lines = [
+        "| source | case | held-out gap explained by the true simulator | its rest above its own floor |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['source']} | {r['case']} | {r['true_explained']:.0%} | "
+        f"{'yes' if r['true_rest_above_its_floor'] else 'no'} |"
+        for r in rows
+    ]
     write_text(args.out / "oracle.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -386,19 +462,31 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("results/gap_table"))
     parser.add_argument("--episodes", type=int, default=9, help="measured episodes per case")
     parser.add_argument("--steps", type=int, default=150, help="policy steps per episode")
-    parser.add_argument("--sources", nargs="*", default=["excitation", "gait"],
-                        help="policies that produce the measured data (excitation, gait, random, an SB3 .zip)")
+    parser.add_argument(
+        "--sources",
+        nargs="*",
+        default=["excitation", "gait"],
+        help="policies that produce the measured data (excitation, gait, random, an SB3 .zip)",
+    )
     parser.add_argument("--cases", nargs="*", default=None, help="case names (default: the whole grid)")
     parser.add_argument("--shard", default="0/1", help="i/n: run every n-th case starting at i")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--summary-only", action="store_true", help="only rebuild the summary from finished cases")
-    parser.add_argument("--oracle", action="store_true",
-                        help="instead of the workflow, the held-out gap the true simulator leaves per case "
-                             "(<out>/oracle/, oracle.md): how much any correction can explain on these data")
-    parser.add_argument("--reuse-above-floor", type=Path, default=None, metavar="DIR",
-                        help="take the cases whose nominal gap was above the noise floor from an earlier run's "
-                             "DIR/cases (for a version whose change reaches only gaps near the floor); each reused "
-                             "row keeps its version in `reused_version`")
+    parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="instead of the workflow, the held-out gap the true simulator leaves per case "
+        "(<out>/oracle/, oracle.md): how much any correction can explain on these data",
+    )
+    parser.add_argument(
+        "--reuse-above-floor",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="take the cases whose nominal gap was above the noise floor from an earlier run's "
+        "DIR/cases (for a version whose change reaches only gaps near the floor); each reused "
+        "row keeps its version in `reused_version`",
+    )
     args = parser.parse_args()
     cases = [c for c in grid() if args.cases is None or c.name in args.cases]
     shard, shards = (int(x) for x in args.shard.split("/"))
@@ -408,7 +496,7 @@ def main() -> None:
     folder = args.out / "cases"
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
-        for case, source in ([] if args.summary_only else jobs):
+        for case, source in [] if args.summary_only else jobs:
             path = folder / f"{Path(source).stem}__{case.name}.json"
             if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
                 continue
@@ -417,13 +505,23 @@ def main() -> None:
             row = run_case(case, source, args, Path(tmp))
             row["source"] = Path(source).stem
             write_json(path, row)
-            print(f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
-                  f"{row.get('named', row.get('error'))} {row.get('wall_s', 0):.0f}s", flush=True)
+            print(
+                f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
+                f"{row.get('named', row.get('error'))} {row.get('wall_s', 0):.0f}s",
+                flush=True,
+            )
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
     rows = [r for r in rows if r.get("settings") == settings(args) or "error" in r]
     summary = summarise(rows)
-    write_json(args.out / "summary.json", {"summary": summary, "cases_finished": len(rows),
-                                           "cases_in_grid": len(grid()) * len(args.sources), "rows": rows})
+    write_json(
+        args.out / "summary.json",
+        {
+            "summary": summary,
+            "cases_finished": len(rows),
+            "cases_in_grid": len(grid()) * len(args.sources),
+            "rows": rows,
+        },
+    )
     write_text(args.out / "gap_table.md", markdown(rows, summary))
     write_text(args.out / "gap_table_side_by_side.md", side_by_side(rows))
     if rows:

@@ -13,7 +13,8 @@ env-steps/s and PPO's own update cost, all measured in one run.
   imagined restarts take each window's cached warm-up state (`ImaginationOptions.warm_up_cache_mb`), and the rate
   with a full warm-up on every restart is printed beside it, as is the rate with `nn.GRU`'s own step in place of
   the fused cell (`RWM.fused_step` off), and with the fused cell's products in bfloat16
-  (`ImaginationOptions.matmul_precision`; the FLOP ceiling stays the fp32 one). Physics runs on `mujoco.batch` with `--threads` threads.
+  (`ImaginationOptions.matmul_precision`; the FLOP ceiling stays the fp32 one). Physics runs on `mujoco.batch`
+  with `--threads` threads.
 - PPO: SB3's `collect_rollouts` and `train` timed separately for `--ppo-rollouts` rollouts of `rwm_gym.rl.ppo`'s
   defaults (n_steps 24, 5 epochs x 4 minibatches) at the same envs, in imagination.
 Prints a table and writes JSON (`--out`).
@@ -103,8 +104,13 @@ def ppo_cost(checkpoint, envs: int, rollouts: int, device: str) -> dict[str, flo
         model.train()
         train.append(time.perf_counter() - start)
     samples = envs * model.n_steps
-    return {"collect_s_per_rollout": float(np.mean(collect)), "train_s_per_rollout": float(np.mean(train)),
-            "samples_per_rollout": samples, "batch_size": model.batch_size, "n_epochs": model.n_epochs}
+    return {
+        "collect_s_per_rollout": float(np.mean(collect)),
+        "train_s_per_rollout": float(np.mean(train)),
+        "samples_per_rollout": samples,
+        "batch_size": model.batch_size,
+        "n_epochs": model.n_epochs,
+    }
 
 
 def main() -> None:
@@ -114,9 +120,15 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--checkpoint", default=None, help="world model (default: the shipped one)")
-    parser.add_argument("--uncertainty-penalty", type=float, default=0.0,
-                        help="RWM-U penalty of the imagined env (> 0 runs every ensemble head)")
-    parser.add_argument("--ppo-rollouts", type=int, default=1, help="PPO rollouts timed at the largest --envs (0: skip)")
+    parser.add_argument(
+        "--uncertainty-penalty",
+        type=float,
+        default=0.0,
+        help="RWM-U penalty of the imagined env (> 0 runs every ensemble head)",
+    )
+    parser.add_argument(
+        "--ppo-rollouts", type=int, default=1, help="PPO rollouts timed at the largest --envs (0: skip)"
+    )
     parser.add_argument("--out", type=Path, default=Path("results/imagination_speed.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -127,21 +139,49 @@ def main() -> None:
     ceiling = max(gflops.values()) * 1e9 / flop
     rows = []
     for n in args.envs:
-        imagined = rate(make_imagined_core(args.checkpoint, n, device=args.device,
-                                           uncertainty_penalty=args.uncertainty_penalty), args.seconds)
-        uncached = rate(make_imagined_core(args.checkpoint, n, device=args.device, warm_up_cache_mb=0.0,
-                                           uncertainty_penalty=args.uncertainty_penalty), args.seconds)
-        unfused_core = make_imagined_core(args.checkpoint, n, device=args.device,
-                                          uncertainty_penalty=args.uncertainty_penalty)
+        imagined = rate(
+            make_imagined_core(args.checkpoint, n, device=args.device, uncertainty_penalty=args.uncertainty_penalty),
+            args.seconds,
+        )
+        uncached = rate(
+            make_imagined_core(
+                args.checkpoint,
+                n,
+                device=args.device,
+                warm_up_cache_mb=0.0,
+                uncertainty_penalty=args.uncertainty_penalty,
+            ),
+            args.seconds,
+        )
+        unfused_core = make_imagined_core(
+            args.checkpoint, n, device=args.device, uncertainty_penalty=args.uncertainty_penalty
+        )
         unfused_core.model.fused_step = False
         unfused = rate(unfused_core, args.seconds)
-        bf16 = rate(make_imagined_core(args.checkpoint, n, device=args.device, matmul_precision="bfloat16",
-                                       uncertainty_penalty=args.uncertainty_penalty), args.seconds)
+        bf16 = rate(
+            make_imagined_core(
+                args.checkpoint,
+                n,
+                device=args.device,
+                matmul_precision="bfloat16",
+                uncertainty_penalty=args.uncertainty_penalty,
+            ),
+            args.seconds,
+        )
         physics = rate(make_core("anymal_d", n, nthread=args.threads), args.seconds)
-        rows.append({"envs": n, "imagined_steps_per_s": imagined, "ceiling_fraction": imagined / ceiling,
-                     "imagined_steps_per_s_warm_up_every_reset": uncached, "imagined_steps_per_s_nn_gru": unfused,
-                     "imagined_steps_per_s_bf16": bf16, "bf16_speedup": bf16 / imagined,
-                     "physics_steps_per_s": physics, "ratio": imagined / physics})
+        rows.append(
+            {
+                "envs": n,
+                "imagined_steps_per_s": imagined,
+                "ceiling_fraction": imagined / ceiling,
+                "imagined_steps_per_s_warm_up_every_reset": uncached,
+                "imagined_steps_per_s_nn_gru": unfused,
+                "imagined_steps_per_s_bf16": bf16,
+                "bf16_speedup": bf16 / imagined,
+                "physics_steps_per_s": physics,
+                "ratio": imagined / physics,
+            }
+        )
     # measured again after the rates: on a shared machine the best of the two is the closer estimate of the peak
     again = matmul_gflops(max(args.envs), min(args.seconds, 3.0), args.device)
     gflops = {k: max(v, again[k]) for k, v in gflops.items()}
@@ -151,24 +191,44 @@ def main() -> None:
     ppo = ppo_cost(args.checkpoint, max(args.envs), args.ppo_rollouts, args.device) if args.ppo_rollouts else None
     load = os.getloadavg()
 
-    print(f"model: {flop / 1e6:.3f} MFLOP per env-step ({'all heads' if args.uncertainty_penalty > 0 else 'own head'}"
-          f", dense layers); matmul fp32 {', '.join(f'{k} {v:.1f}' for k, v in gflops.items())} GFLOP/s "
-          f"({args.threads} threads); ceiling {ceiling:,.0f} env-steps/s; load average {load[0]:.2f}")
-    print(f"| envs | imagined env-steps/s ({args.device}) | of ceiling | without the warm-up cache "
-          f"| with nn.GRU's step (not fused) | bf16 products (x fp32) | physics env-steps/s ({args.threads} threads) | imagined / physics |")
+    print(
+        f"model: {flop / 1e6:.3f} MFLOP per env-step ({'all heads' if args.uncertainty_penalty > 0 else 'own head'}"
+        f", dense layers); matmul fp32 {', '.join(f'{k} {v:.1f}' for k, v in gflops.items())} GFLOP/s "
+        f"({args.threads} threads); ceiling {ceiling:,.0f} env-steps/s; load average {load[0]:.2f}"
+    )
+    print(
+        f"| envs | imagined env-steps/s ({args.device}) | of ceiling | without the warm-up cache "
+        f"| with nn.GRU's step (not fused) | bf16 products (x fp32) "
+        f"| physics env-steps/s ({args.threads} threads) | imagined / physics |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['envs']} | {r['imagined_steps_per_s']:,.0f} | {r['ceiling_fraction']:.0%} "
-              f"| {r['imagined_steps_per_s_warm_up_every_reset']:,.0f} | {r['imagined_steps_per_s_nn_gru']:,.0f} "
-              f"| {r['imagined_steps_per_s_bf16']:,.0f} ({r['bf16_speedup']:.2f}x) | {r['physics_steps_per_s']:,.0f} | {r['ratio']:.2f} |")
+        print(
+            f"| {r['envs']} | {r['imagined_steps_per_s']:,.0f} | {r['ceiling_fraction']:.0%} "
+            f"| {r['imagined_steps_per_s_warm_up_every_reset']:,.0f} | {r['imagined_steps_per_s_nn_gru']:,.0f} "
+            f"| {r['imagined_steps_per_s_bf16']:,.0f} ({r['bf16_speedup']:.2f}x) "
+            f"| {r['physics_steps_per_s']:,.0f} | {r['ratio']:.2f} |"
+        )
     if ppo:
         per_step = ppo["samples_per_rollout"]
-        print(f"PPO ({per_step} samples per rollout, batch {ppo['batch_size']}, {ppo['n_epochs']} epochs): collect "
-              f"{ppo['collect_s_per_rollout']:.2f} s ({per_step / ppo['collect_s_per_rollout']:,.0f} steps/s), train "
-              f"{ppo['train_s_per_rollout']:.2f} s ({per_step / ppo['train_s_per_rollout']:,.0f} samples/s)")
-    write_json(args.out, {"threads": args.threads, "device": args.device, "flop_per_env_step": flop,
-                          "matmul_gflops": gflops, "ceiling_steps_per_s": ceiling, "rows": rows, "ppo": ppo,
-                          "loadavg": list(load)})
+        print(
+            f"PPO ({per_step} samples per rollout, batch {ppo['batch_size']}, {ppo['n_epochs']} epochs): collect "
+            f"{ppo['collect_s_per_rollout']:.2f} s ({per_step / ppo['collect_s_per_rollout']:,.0f} steps/s), train "
+            f"{ppo['train_s_per_rollout']:.2f} s ({per_step / ppo['train_s_per_rollout']:,.0f} samples/s)"
+        )
+    write_json(
+        args.out,
+        {
+            "threads": args.threads,
+            "device": args.device,
+            "flop_per_env_step": flop,
+            "matmul_gflops": gflops,
+            "ceiling_steps_per_s": ceiling,
+            "rows": rows,
+            "ppo": ppo,
+            "loadavg": list(load),
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -36,10 +36,23 @@ def main(argv: list[str] | None = None) -> None:
     from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
     with tempfile.TemporaryDirectory() as folder:
-        standing = collect("AnymalD-MuJoCo-v0", "zero", args.episodes, Path(folder) / "standing.h5", seed=args.seed,
-                           num_envs=min(64, args.episodes), max_steps=160, action_noise=0.1, progress=False)
-        core = ImaginedCore(args.checkpoint, args.envs, reset_data=standing,
-                            options=ImaginationOptions(episode_steps=args.steps + 1, resample_commands=False))
+        standing = collect(
+            "AnymalD-MuJoCo-v0",
+            "zero",
+            args.episodes,
+            Path(folder) / "standing.h5",
+            seed=args.seed,
+            num_envs=min(64, args.episodes),
+            max_steps=160,
+            action_noise=0.1,
+            progress=False,
+        )
+        core = ImaginedCore(
+            args.checkpoint,
+            args.envs,
+            reset_data=standing,
+            options=ImaginationOptions(episode_steps=args.steps + 1, resample_commands=False),
+        )
         core.reset(np.arange(args.envs), [args.seed + i for i in range(args.envs)])
     joints, gravity = core.spec.state_slices["joint_pos"], core.spec.state_slices["projected_gravity"]
     running = np.ones(args.envs, dtype=bool)
@@ -51,16 +64,23 @@ def main(argv: list[str] | None = None) -> None:
         if step % 10 == 0 or step == 1:
             alive = core.state[running]
             tilt = np.degrees(np.arccos(np.clip(-alive[:, gravity][:, 2], -1, 1))).mean() if running.any() else np.nan
-            row = {"step": step, "running": float(running.mean()),
-                   "joint_offset_rad": float(np.abs(alive[:, joints]).mean()) if running.any() else None,
-                   "tilt_deg": float(tilt)}
+            row = {
+                "step": step,
+                "running": float(running.mean()),
+                "joint_offset_rad": float(np.abs(alive[:, joints]).mean()) if running.any() else None,
+                "tilt_deg": float(tilt),
+            }
             rows.append(row)
             print(f"{step:>5} {row['running']:>8.2f} {row['joint_offset_rad'] or float('nan'):>19.3f} {tilt:>9.1f}")
     print(f"load average {os.getloadavg()[0]:.2f}; in physics the standing robot never falls")
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        print(write_json(args.out / "standing.json", {"checkpoint": str(core.checkpoint), "envs": args.envs,
-                                                      "episodes": args.episodes, "rows": rows}))
+        print(
+            write_json(
+                args.out / "standing.json",
+                {"checkpoint": str(core.checkpoint), "envs": args.envs, "episodes": args.episodes, "rows": rows},
+            )
+        )
 
 
 if __name__ == "__main__":

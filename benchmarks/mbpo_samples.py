@@ -32,8 +32,9 @@ def n_mf(path: Path, max_falls: int = 1) -> int:
     """Model-free PPO's physics samples when it first reaches the target tracking with at most `max_falls` falls
     (N_mf as `benchmarks/ppo_curve.py` defines it: 32.2 M for the shipped teacher)."""
     rows = list(csv.DictReader(path.open()))
-    return next(int(r["timesteps"]) for r in rows
-                if float(r["tracking"]) >= TRACKING_TARGET and int(r["falls"]) <= max_falls)
+    return next(
+        int(r["timesteps"]) for r in rows if float(r["tracking"]) >= TRACKING_TARGET and int(r["falls"]) <= max_falls
+    )
 
 
 def rows_of(run: Path, label: str, prior: int, n_model_free: int) -> list[dict]:
@@ -41,9 +42,17 @@ def rows_of(run: Path, label: str, prior: int, n_model_free: int) -> list[dict]:
     if not report.is_file():
         raise SystemExit(f"{report}: no such file (an `rwm-gym mbpo --out {run}` run writes it)")
     log = json.loads(report.read_text())["log"]
-    return [{"run": label, "iteration": r["iteration"], "physics_samples": prior + r["physics_samples"],
-             "fraction_of_n_mf": (prior + r["physics_samples"]) / n_model_free, "tracking": r["tracking"],
-             "falls": r["falls"]} for r in log]
+    return [
+        {
+            "run": label,
+            "iteration": r["iteration"],
+            "physics_samples": prior + r["physics_samples"],
+            "fraction_of_n_mf": (prior + r["physics_samples"]) / n_model_free,
+            "tracking": r["tracking"],
+            "falls": r["falls"],
+        }
+        for r in log
+    ]
 
 
 def earlier_rows(path: Path, name: str) -> list[dict]:
@@ -55,9 +64,17 @@ def earlier_rows(path: Path, name: str) -> list[dict]:
         raise SystemExit(f"{path}: no run named like {name!r}")
     if len({r["run"] for r in rows}) > 1:
         raise SystemExit(f"{path}: {name!r} names more than one run ({', '.join(sorted({r['run'] for r in rows}))})")
-    return [{"run": r["run"], "iteration": int(r["iteration"]), "physics_samples": int(r["physics_samples"]),
-             "fraction_of_n_mf": float(r["fraction_of_n_mf"]), "tracking": float(r["tracking"]),
-             "falls": int(r["falls"])} for r in rows]
+    return [
+        {
+            "run": r["run"],
+            "iteration": int(r["iteration"]),
+            "physics_samples": int(r["physics_samples"]),
+            "fraction_of_n_mf": float(r["fraction_of_n_mf"]),
+            "tracking": float(r["tracking"]),
+            "falls": int(r["falls"]),
+        }
+        for r in rows
+    ]
 
 
 def main() -> None:
@@ -65,8 +82,14 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, nargs="+", required=True, help="rwm-gym mbpo run folders")
     parser.add_argument("--labels", nargs="+", help="one per run (default: the folders' names)")
     parser.add_argument("--prior", type=int, nargs="+", help="physics rows behind each run's start (default 0)")
-    parser.add_argument("--earlier", nargs=2, action="append", default=[], metavar=("CSV", "RUN"),
-                        help="also draw a run from a CSV this script wrote (repeatable)")
+    parser.add_argument(
+        "--earlier",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("CSV", "RUN"),
+        help="also draw a run from a CSV this script wrote (repeatable)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix (.png and .csv)")
     args = parser.parse_args()
     labels = args.labels or [run.name for run in args.runs]
@@ -96,11 +119,17 @@ def main() -> None:
         ax.axvline(fraction * total / 1e6, color="grey", linestyle=":", linewidth=0.8)
         ax.annotate(f"{fraction:.0%} of N_mf", (fraction * total / 1e6, 0.02), fontsize=7, rotation=90)
     ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
-    ax.set(xscale="log", xlabel="physics samples behind the policy (M, log)", ylabel="physics tracking",
-           title="MBPO-PPO against model-free PPO", ylim=(0, 1))
+    ax.set(
+        xscale="log",
+        xlabel="physics samples behind the policy (M, log)",
+        ylabel="physics tracking",
+        title="MBPO-PPO against model-free PPO",
+        ylim=(0, 1),
+    )
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.2))
-    ax_falls.set(xscale="log", xlabel="physics samples behind the policy (M, log)", ylabel="falls in 54 episodes",
-                 title="falls")
+    ax_falls.set(
+        xscale="log", xlabel="physics samples behind the policy (M, log)", ylabel="falls in 54 episodes", title="falls"
+    )
     fig.tight_layout()
     png, table = args.out.with_suffix(".png"), args.out.with_suffix(".csv")
     png.parent.mkdir(parents=True, exist_ok=True)
@@ -113,9 +142,11 @@ def main() -> None:
     print(f"N_mf {total:,}; wrote {png} and {table}")
     for label in labels:
         best = max((r for r in rows if r["run"] == label), key=lambda r: r["tracking"])
-        print(f"{label}: best tracking {best['tracking']:.3f} ({best['falls']} falls) at iteration "
-              f"{best['iteration']}, {best['physics_samples']:,} physics samples "
-              f"({best['fraction_of_n_mf']:.1%} of N_mf)")
+        print(
+            f"{label}: best tracking {best['tracking']:.3f} ({best['falls']} falls) at iteration "
+            f"{best['iteration']}, {best['physics_samples']:,} physics samples "
+            f"({best['fraction_of_n_mf']:.1%} of N_mf)"
+        )
 
 
 if __name__ == "__main__":

@@ -95,19 +95,35 @@ def main() -> None:
                     env.reset()
                 for stream, actions in streams.items():
                     rate = {name: timed_rate(env, actions, args.seconds) for name, env in envs.items()}
-                    rows.append({"envs": n, "threads": threads, "actions": stream, **rate,
-                                 "ratio": rate[SHIPPED] / rate[PREVIOUS], "loadavg": os.getloadavg()[0]})
+                    rows.append(
+                        {
+                            "envs": n,
+                            "threads": threads,
+                            "actions": stream,
+                            **rate,
+                            "ratio": rate[SHIPPED] / rate[PREVIOUS],
+                            "loadavg": os.getloadavg()[0],
+                        }
+                    )
                     r = rows[-1]
-                    print(f"{n:5d} envs {threads} thr {stream:8s}: {r[SHIPPED]:8,.0f} vs {r[PREVIOUS]:8,.0f} "
-                          f"env-steps/s, x{r['ratio']:.2f} (load {r['loadavg']:.2f})", flush=True)
+                    print(
+                        f"{n:5d} envs {threads} thr {stream:8s}: {r[SHIPPED]:8,.0f} vs {r[PREVIOUS]:8,.0f} "
+                        f"env-steps/s, x{r['ratio']:.2f} (load {r['loadavg']:.2f})",
+                        flush=True,
+                    )
                 for env in envs.values():
                     env.close()
         stand = {name: [standing(xml, seed) for seed in range(args.stand_seeds)] for name, xml in models.items()}
 
-    lines = [f"| envs | threads | actions | {SHIPPED} env-steps/s | {PREVIOUS} env-steps/s | ratio | load avg |",
-             "|---:|---:|---|---:|---:|---:|---:|"]
-    lines += [f"| {r['envs']} | {r['threads']} | {r['actions']} | {r[SHIPPED]:,.0f} | {r[PREVIOUS]:,.0f} | "
-              f"{r['ratio']:.2f} | {r['loadavg']:.2f} |" for r in rows]
+    lines = [
+        f"| envs | threads | actions | {SHIPPED} env-steps/s | {PREVIOUS} env-steps/s | ratio | load avg |",
+        "|---:|---:|---|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['envs']} | {r['threads']} | {r['actions']} | {r[SHIPPED]:,.0f} | {r[PREVIOUS]:,.0f} | "
+        f"{r['ratio']:.2f} | {r['loadavg']:.2f} |"
+        for r in rows
+    ]
     for name, results in stand.items():
         stood = [dz for ok, dz in results if ok]
         sink = f", base height change 1-20 s: {1000 * np.mean(stood):+.1f} mm (mean)" if stood else ""
@@ -116,8 +132,10 @@ def main() -> None:
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_text(args.out.with_suffix(".md"), table + "\n")
-    write_json(args.out.with_suffix(".json"), {
-        "rows": rows, "standing": {k: [{"stands": ok, "base_dz_m": dz} for ok, dz in v] for k, v in stand.items()}})
+    write_json(
+        args.out.with_suffix(".json"),
+        {"rows": rows, "standing": {k: [{"stands": ok, "base_dz_m": dz} for ok, dz in v] for k, v in stand.items()}},
+    )
 
 
 if __name__ == "__main__":

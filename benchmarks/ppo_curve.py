@@ -23,8 +23,17 @@ from rwm_gym.atomic import atomic_write, save_png, write_json
 from rwm_gym.rl.score import score, zero_policy
 from rwm_gym.rl.training_run import TrainingRun
 
-FIELDS = ["timesteps", "wall_s", "tracking", "return", "falls", "episodes", "loadavg", "imagined_tracking",
-          "imagined_falls"]
+FIELDS = [
+    "timesteps",
+    "wall_s",
+    "tracking",
+    "return",
+    "falls",
+    "episodes",
+    "loadavg",
+    "imagined_tracking",
+    "imagined_falls",
+]
 
 
 def wall_at(run: TrainingRun, timesteps: int) -> float | None:
@@ -55,14 +64,28 @@ def main() -> None:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--max-falls", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="default: RUN/curve")
-    parser.add_argument("--every", type=int, default=0,
-                        help="score only the first snapshot at or past each multiple of this many env steps (0: all)")
-    parser.add_argument("--trained-in", choices=("physics", "imagination"), default="physics",
-                        help="where the run trained (labels the plot: physics or imagined env steps)")
-    parser.add_argument("--checkpoint", default=None,
-                        help="also score every snapshot inside this world model (imagined tracking and falls)")
-    parser.add_argument("--reset-data", default=None,
-                        help="with --checkpoint: histories the imagined episodes start from (default: the model's)")
+    parser.add_argument(
+        "--every",
+        type=int,
+        default=0,
+        help="score only the first snapshot at or past each multiple of this many env steps (0: all)",
+    )
+    parser.add_argument(
+        "--trained-in",
+        choices=("physics", "imagination"),
+        default="physics",
+        help="where the run trained (labels the plot: physics or imagined env steps)",
+    )
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="also score every snapshot inside this world model (imagined tracking and falls)",
+    )
+    parser.add_argument(
+        "--reset-data",
+        default=None,
+        help="with --checkpoint: histories the imagined episodes start from (default: the model's)",
+    )
     args = parser.parse_args()
     run = TrainingRun(args.run_dir)
     out = args.out or run.folder / "curve"
@@ -75,17 +98,28 @@ def main() -> None:
         row = done.get(steps)
         if row is None:
             e = score(str(snapshot), seeds=args.seeds)
-            row = {"timesteps": steps, "wall_s": wall_at(run, steps), "tracking": round(e.tracking, 4),
-                   "return": round(e.episode_return, 3), "falls": e.falls, "episodes": e.episodes,
-                   "loadavg": os.getloadavg()[0]}
+            row = {
+                "timesteps": steps,
+                "wall_s": wall_at(run, steps),
+                "tracking": round(e.tracking, 4),
+                "return": round(e.episode_return, 3),
+                "falls": e.falls,
+                "episodes": e.episodes,
+                "loadavg": os.getloadavg()[0],
+            }
             rows.append(row)
-            print(f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, "
-                  f"falls {e.falls}/{e.episodes}", flush=True)
+            print(
+                f"{snapshot.name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, "
+                f"falls {e.falls}/{e.episodes}",
+                flush=True,
+            )
         if args.checkpoint and not row.get("imagined_tracking"):
             e = score(str(snapshot), seeds=args.seeds, checkpoint=args.checkpoint, reset_data=args.reset_data)
             row.update(imagined_tracking=round(e.tracking, 4), imagined_falls=e.falls)
-            print(f"{snapshot.name} in the world model: tracking {e.tracking:.3f}, falls {e.falls}/{e.episodes}",
-                  flush=True)
+            print(
+                f"{snapshot.name} in the world model: tracking {e.tracking:.3f}, falls {e.falls}/{e.episodes}",
+                flush=True,
+            )
         atomic_write(table, lambda tmp: _write_csv(tmp, rows))
     rows.sort(key=lambda r: int(r["timesteps"]))
     floor_path = out / "floor.json"
@@ -98,12 +132,23 @@ def main() -> None:
     reached = [r for r in rows if float(r["tracking"]) >= args.threshold and int(r["falls"]) <= args.max_falls]
     n_mf = int(reached[0]["timesteps"]) if reached else None
     best = max(rows, key=lambda r: float(r["tracking"])) if rows else None
-    write_json(out / "curve.json", {"run_dir": str(run.folder), "threshold": args.threshold,
-                                    "max_falls": args.max_falls, "n_mf": n_mf, "floor": floor, "best": best,
-                                    "rows": rows})
+    write_json(
+        out / "curve.json",
+        {
+            "run_dir": str(run.folder),
+            "threshold": args.threshold,
+            "max_falls": args.max_falls,
+            "n_mf": n_mf,
+            "floor": floor,
+            "best": best,
+            "rows": rows,
+        },
+    )
     _plot(rows, floor, args.threshold, out / "curve.png", args.trained_in)
-    print(f"floor (zero action): tracking {floor['tracking']:.3f}; best snapshot: {best}; "
-          f"N_mf (tracking >= {args.threshold}, falls <= {args.max_falls}): {n_mf}")
+    print(
+        f"floor (zero action): tracking {floor['tracking']:.3f}; best snapshot: {best}; "
+        f"N_mf (tracking >= {args.threshold}, falls <= {args.max_falls}): {n_mf}"
+    )
 
 
 def _write_csv(path: str, rows: list[dict]) -> None:
@@ -134,8 +179,11 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_i
         axes[0].plot(*zip(*imagined), "s--", color="tab:orange", label="the same, inside the world model")
     axes[0].set_ylabel("tracking score (physics unless said)")
     axes[0].legend()
-    fig.suptitle("PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
-                 if trained_in == "imagination" else "model-free PPO in MuJoCo physics, ANYmal D")
+    fig.suptitle(
+        "PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
+        if trained_in == "imagination"
+        else "model-free PPO in MuJoCo physics, ANYmal D"
+    )
     fig.tight_layout()
     save_png(fig, path, dpi=100)
 

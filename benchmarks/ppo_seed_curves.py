@@ -26,9 +26,19 @@ def read_curve(run: Path) -> list[dict]:
     if not table.is_file():
         raise SystemExit(f"{table}: no such file (run benchmarks/ppo_curve.py --run-dir {run} first)")
     rows = list(csv.DictReader(table.open()))
-    return sorted(({"timesteps": int(r["timesteps"]), "wall_s": float(r["wall_s"]), "tracking": float(r["tracking"]),
-                    "falls": int(r["falls"]), "episodes": int(r["episodes"])} for r in rows),
-                  key=lambda r: r["timesteps"])
+    return sorted(
+        (
+            {
+                "timesteps": int(r["timesteps"]),
+                "wall_s": float(r["wall_s"]),
+                "tracking": float(r["tracking"]),
+                "falls": int(r["falls"]),
+                "episodes": int(r["episodes"]),
+            }
+            for r in rows
+        ),
+        key=lambda r: r["timesteps"],
+    )
 
 
 def main() -> None:

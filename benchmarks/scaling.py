@@ -58,7 +58,7 @@ def timed(command: list[str]) -> dict:
     entry = {"wall_s": time.perf_counter() - tic, "loadavg_before": load}
     summary = [line for line in done.stdout.splitlines() if line.endswith("}") and "{" in line]
     if summary:  # rwm-gym train's own timing of its loop, without process start-up and data loading
-        entry["loop_s"] = json.loads(summary[-1][summary[-1].index("{"):])["wall_s"]
+        entry["loop_s"] = json.loads(summary[-1][summary[-1].index("{") :])["wall_s"]
     return entry
 
 
@@ -72,18 +72,63 @@ def main(argv: list[str] | None = None) -> dict:
     for _ in range(options.rounds):
         for n in (1, options.processes):
             path = out / f"collect_{n}.h5"
-            runs.setdefault(f"collect x{n}", []).append(timed(
-                [*cli, "collect", "--policy", "gait", "--episodes", str(options.episodes), "--max-steps",
-                 str(options.episode_steps), "--num-envs", str(options.num_envs), "--workers", str(n),
-                 "--out", str(path), "--overwrite"]))
-            launcher = cli if n == 1 else [sys.executable, "-m", "torch.distributed.run", "--standalone",
-                                           f"--nproc_per_node={n}", "-m", "rwm_gym.cli"]
+            runs.setdefault(f"collect x{n}", []).append(
+                timed(
+                    [
+                        *cli,
+                        "collect",
+                        "--policy",
+                        "gait",
+                        "--episodes",
+                        str(options.episodes),
+                        "--max-steps",
+                        str(options.episode_steps),
+                        "--num-envs",
+                        str(options.num_envs),
+                        "--workers",
+                        str(n),
+                        "--out",
+                        str(path),
+                        "--overwrite",
+                    ]
+                )
+            )
+            launcher = (
+                cli
+                if n == 1
+                else [
+                    sys.executable,
+                    "-m",
+                    "torch.distributed.run",
+                    "--standalone",
+                    f"--nproc_per_node={n}",
+                    "-m",
+                    "rwm_gym.cli",
+                ]
+            )
             checkpoint = out / f"train_{n}.safetensors"
             checkpoint.unlink(missing_ok=True)
-            runs.setdefault(f"train x{n}", []).append(timed(
-                [*launcher, "train", "--data", data, "--out", str(checkpoint), "--iterations", str(options.iterations),
-                 "--batch-size", str(options.batch_size), "--val-every", str(options.iterations), "--device",
-                 options.device, "--quiet"]))
+            runs.setdefault(f"train x{n}", []).append(
+                timed(
+                    [
+                        *launcher,
+                        "train",
+                        "--data",
+                        data,
+                        "--out",
+                        str(checkpoint),
+                        "--iterations",
+                        str(options.iterations),
+                        "--batch-size",
+                        str(options.batch_size),
+                        "--val-every",
+                        str(options.iterations),
+                        "--device",
+                        options.device,
+                        "--quiet",
+                    ]
+                )
+            )
     same = (out / "collect_1.h5").read_bytes() == (out / f"collect_{options.processes}.h5").read_bytes()
     result = {"options": asdict(options), "cpu_count": os.cpu_count(), "identical_collections": same, "runs": runs}
     (out / "scaling.json").write_text(json.dumps(result, indent=2))
@@ -94,8 +139,10 @@ def main(argv: list[str] | None = None) -> dict:
         base = min(e["wall_s"] for e in runs[f"{kind} x1"])
         amount, unit = (options.episodes, "ep/s") if kind == "collect" else (options.iterations, "it/s")
         loop = f"{best['loop_s']:7.1f}" if "loop_s" in best else f"{'-':>7s}"
-        print(f"{name:12s} {best['wall_s']:11.1f} {amount / best['wall_s']:9.2f} {unit} {base / best['wall_s']:8.2f} "
-              f"{loop} {best['loadavg_before']:11.2f}")
+        print(
+            f"{name:12s} {best['wall_s']:11.1f} {amount / best['wall_s']:9.2f} {unit} {base / best['wall_s']:8.2f} "
+            f"{loop} {best['loadavg_before']:11.2f}"
+        )
     print(f"collections byte-identical: {same}")
     return result
 

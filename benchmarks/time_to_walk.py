@@ -34,22 +34,40 @@ WALKS = {"tracking": 0.80, "max_falls": 2}
 
 MODEL = "assets/checkpoints/anymal_d_rwm_cover.safetensors"
 EPISODES = ["--episode-steps=50", "--torque-halt=0.95"]
-PPO_SHARED = [*EPISODES, "--uncertainty-penalty=10.0", "--uncertainty-floor=0.02", "--uncertainty-halt=0.06",
-              "--positive-reward-only", "--log-std-init=-1.0"]
+PPO_SHARED = [
+    *EPISODES,
+    "--uncertainty-penalty=10.0",
+    "--uncertainty-floor=0.02",
+    "--uncertainty-halt=0.06",
+    "--positive-reward-only",
+    "--log-std-init=-1.0",
+]
 """What every PPO recipe shares: the shipped from-scratch recipe's imagined episodes and policy start."""
 
 RECIPES: dict[str, tuple[str, str, list[str]]] = {
     "reference": ("PPO, 4096 envs, fp32, 1 thread (the shipped recipe)", "ppo", ["--num-envs=4096"]),
-    "fast": ("PPO, 4096 envs, bf16 products (the quick start)", "ppo",
-             ["--num-envs=4096", "--matmul-precision=bfloat16"]),
-    "envs1024": ("PPO, 1024 envs, fall tilt 30, bf16", "ppo",
-                 ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16"]),
-    "envs1024_symmetry": ("PPO, 1024 envs, fall tilt 30, bf16, mirror augmentation", "ppo",
-                          ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16", "--symmetry"]),
+    "fast": (
+        "PPO, 4096 envs, bf16 products (the quick start)",
+        "ppo",
+        ["--num-envs=4096", "--matmul-precision=bfloat16"],
+    ),
+    "envs1024": (
+        "PPO, 1024 envs, fall tilt 30, bf16",
+        "ppo",
+        ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16"],
+    ),
+    "envs1024_symmetry": (
+        "PPO, 1024 envs, fall tilt 30, bf16, mirror augmentation",
+        "ppo",
+        ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16", "--symmetry"],
+    ),
     "envs512": ("PPO, 512 envs, fall tilt 30", "ppo", ["--num-envs=512", "--fall-tilt=30"]),
     "envs256": ("PPO, 256 envs, fall tilt 30", "ppo", ["--num-envs=256", "--fall-tilt=30"]),
-    "shac": ("SHAC, 1024 envs, horizon 16, fall tilt 30", "shac", ["--num-envs=1024", "--horizon=16",
-                                                                   "--fall-tilt=30"]),
+    "shac": (
+        "SHAC, 1024 envs, horizon 16, fall tilt 30",
+        "shac",
+        ["--num-envs=1024", "--horizon=16", "--fall-tilt=30"],
+    ),
 }
 """name -> (what, learner, its options beyond the shared ones)."""
 
@@ -57,11 +75,33 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
 def train(recipe: str, seed: int, minutes: float, threads: int, run_dir: Path, snapshot_every: int) -> None:
     """One resumable training run of `minutes` of wall time (a killed run continues where it stopped)."""
     _, learner, options = RECIPES[recipe]
-    shared = PPO_SHARED + ["--in", "imagination", "--no-eval"] if learner == "ppo" else EPISODES
-    command = [sys.executable, "-m", "rwm_gym.cli", learner, "--checkpoint", str(shipped_file(MODEL)), *shared,
-               *options, "--timesteps", str(10**9), "--minutes", str(minutes), "--run-dir", str(run_dir),
-               "--save-every", str(snapshot_every), "--snapshot-every", str(snapshot_every),
-               "--threads", str(threads), "--seed", str(seed), "--out", str(run_dir / "policy.zip")]
+    shared = [*PPO_SHARED, "--in", "imagination", "--no-eval"] if learner == "ppo" else EPISODES
+    command = [
+        sys.executable,
+        "-m",
+        "rwm_gym.cli",
+        learner,
+        "--checkpoint",
+        str(shipped_file(MODEL)),
+        *shared,
+        *options,
+        "--timesteps",
+        str(10**9),
+        "--minutes",
+        str(minutes),
+        "--run-dir",
+        str(run_dir),
+        "--save-every",
+        str(snapshot_every),
+        "--snapshot-every",
+        str(snapshot_every),
+        "--threads",
+        str(threads),
+        "--seed",
+        str(seed),
+        "--out",
+        str(run_dir / "policy.zip"),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     subprocess.run(command, check=True, env=env)
 
@@ -75,8 +115,13 @@ def snapshots_by_minute(run_dir: Path, every: float) -> list[tuple[float, int, P
     """(training minutes, imagined steps, snapshot) of the last snapshot at or before each multiple of `every`
     minutes, and the final one."""
     wall = {int(r["timesteps"]): float(r["total_wall_s"]) / 60 for r in log_rows(run_dir)}
-    snaps = sorted(((wall.get(int(p.stem.split("_")[1]), 0.0), int(p.stem.split("_")[1]), p)
-                    for p in (run_dir / "snapshots").glob("step_*.zip")), key=lambda t: t[1])
+    snaps = sorted(
+        (
+            (wall.get(int(p.stem.split("_")[1]), 0.0), int(p.stem.split("_")[1]), p)
+            for p in (run_dir / "snapshots").glob("step_*.zip")
+        ),
+        key=lambda t: t[1],
+    )
     if not snaps:
         return []
     marks = [every * k for k in range(1, int(snaps[-1][0] // every) + 1)]
@@ -93,10 +138,18 @@ def score_run(run_dir: Path, every: float, seeds: int) -> list[dict]:
     for minute, steps, path in snapshots_by_minute(run_dir, every):
         if steps not in rows:
             result = score(str(path), seeds=seeds)
-            rows[steps] = {"minutes": round(minute, 3), "timesteps": steps, "tracking": round(result.tracking, 4),
-                           "falls": result.falls, "episodes": result.episodes}
-            print(f"{run_dir.name} {minute:5.2f} min {steps / 1e6:6.2f} M steps: tracking {result.tracking:.3f}, "
-                  f"falls {result.falls}/{result.episodes}", flush=True)
+            rows[steps] = {
+                "minutes": round(minute, 3),
+                "timesteps": steps,
+                "tracking": round(result.tracking, 4),
+                "falls": result.falls,
+                "episodes": result.episodes,
+            }
+            print(
+                f"{run_dir.name} {minute:5.2f} min {steps / 1e6:6.2f} M steps: tracking {result.tracking:.3f}, "
+                f"falls {result.falls}/{result.episodes}",
+                flush=True,
+            )
             with table.open("w", newline="") as f:
                 writer = csv.DictWriter(f, fieldnames=["minutes", "timesteps", "tracking", "falls", "episodes"])
                 writer.writeheader()
@@ -105,8 +158,9 @@ def score_run(run_dir: Path, every: float, seeds: int) -> list[dict]:
 
 
 def first_walking(rows: list[dict]) -> dict | None:
-    return next((r for r in rows if float(r["tracking"]) >= WALKS["tracking"]
-                 and int(r["falls"]) <= WALKS["max_falls"]), None)
+    return next(
+        (r for r in rows if float(r["tracking"]) >= WALKS["tracking"] and int(r["falls"]) <= WALKS["max_falls"]), None
+    )
 
 
 def summarize(out: Path) -> dict:
@@ -119,12 +173,16 @@ def summarize(out: Path) -> dict:
             if not table.is_file():
                 continue
             rows = list(csv.DictReader(table.open()))
-            meta = json.loads((run_dir / "benchmark.json").read_text()) if (run_dir / "benchmark.json").is_file() \
-                else {}
+            meta = (
+                json.loads((run_dir / "benchmark.json").read_text()) if (run_dir / "benchmark.json").is_file() else {}
+            )
             walking = first_walking(rows)
-            runs[run_dir.name] = {**meta, "curve": rows,
-                                  "walks_at_minutes": None if walking is None else float(walking["minutes"]),
-                                  "walks_at_steps": None if walking is None else int(walking["timesteps"])}
+            runs[run_dir.name] = {
+                **meta,
+                "curve": rows,
+                "walks_at_minutes": None if walking is None else float(walking["minutes"]),
+                "walks_at_steps": None if walking is None else int(walking["timesteps"]),
+            }
         what, learner, options = RECIPES[recipe_dir.name]
         summary["recipes"][recipe_dir.name] = {"what": what, "learner": learner, "options": options, "seeds": runs}
     return summary
@@ -147,14 +205,26 @@ def plot(summary: dict, floor: float | None, path: Path) -> Path:
             rows = run["curve"]
             label = f"{name}: {recipe['what']}" if j == 0 else None
             tracking = [float(r["tracking"]) for r in rows]
-            axes[0].plot([float(r["minutes"]) for r in rows], tracking, "o-", color=colours[i % len(colours)],
-                         alpha=0.8, label=label)
-            axes[1].plot([int(r["timesteps"]) / 1e6 for r in rows], tracking, "o-", color=colours[i % len(colours)],
-                         alpha=0.8)
+            axes[0].plot(
+                [float(r["minutes"]) for r in rows],
+                tracking,
+                "o-",
+                color=colours[i % len(colours)],
+                alpha=0.8,
+                label=label,
+            )
+            axes[1].plot(
+                [int(r["timesteps"]) / 1e6 for r in rows], tracking, "o-", color=colours[i % len(colours)], alpha=0.8
+            )
     shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
     for j, run in enumerate(shipped["seeds"]):
-        axes[1].plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], ":",
-                     color="0.3", label="shipped recipe to 40 M steps (its JSON)" if j == 0 else None)
+        axes[1].plot(
+            [r["timesteps"] / 1e6 for r in run["curve"]],
+            [r["tracking"] for r in run["curve"]],
+            ":",
+            color="0.3",
+            label="shipped recipe to 40 M steps (its JSON)" if j == 0 else None,
+        )
     for ax in axes:
         if floor is not None:
             ax.axhline(floor, color="0.5", ls="--")
@@ -189,10 +259,18 @@ def main() -> int:
                 run_dir.mkdir(parents=True, exist_ok=True)
                 load_before, started = os.getloadavg()[0], time.monotonic()
                 train(args.recipe, seed, args.minutes, args.threads, run_dir, args.snapshot_every)
-                write_json(run_dir / "benchmark.json", {
-                    "seed": seed, "threads": args.threads, "minutes_budget": args.minutes,
-                    "process_s": round(time.monotonic() - started, 1), "loadavg_before": load_before,
-                    "loadavg_after": os.getloadavg()[0], "cpu": _cpu_name()})
+                write_json(
+                    run_dir / "benchmark.json",
+                    {
+                        "seed": seed,
+                        "threads": args.threads,
+                        "minutes_budget": args.minutes,
+                        "process_s": round(time.monotonic() - started, 1),
+                        "loadavg_before": load_before,
+                        "loadavg_after": os.getloadavg()[0],
+                        "cpu": _cpu_name(),
+                    },
+                )
             score_run(run_dir, args.score_every, args.score_seeds)
     summary = summarize(args.out)
     floor_path = args.out / "floor.json"
@@ -206,8 +284,10 @@ def main() -> int:
     figure = plot(summary, floor, args.out / "time_to_walk.png")
     for name, recipe in summary["recipes"].items():
         times = [run["walks_at_minutes"] for run in recipe["seeds"].values()]
-        print(f"{name:10s} {recipe['what']}: walks at " + ", ".join(
-            "not within the budget" if t is None else f"{t:.1f} min" for t in times))
+        print(
+            f"{name:10s} {recipe['what']}: walks at "
+            + ", ".join("not within the budget" if t is None else f"{t:.1f} min" for t in times)
+        )
     print(f"wrote {args.out / 'summary.json'} and {figure}")
     return 0
 

@@ -74,12 +74,26 @@ class Options:
 
 
 def arms(options: Options) -> dict[str, TrainConfig]:
-    base = TrainConfig(seed=options.seed, iterations=0, minutes=max(options.minutes, 1e-3), val_every=options.val_every,
-                       checkpoint_every=10 ** 9)
-    return {"old": base,
-            "new": TrainConfig(**{**base.to_dict(), "batch_size": options.new_batch,
-                                  "branches": options.new_branches, "branch_stride": options.new_stride,
-                                  "lr": options.new_lr, "warmup_gradients": options.new_warmup_gradients})}
+    base = TrainConfig(
+        seed=options.seed,
+        iterations=0,
+        minutes=max(options.minutes, 1e-3),
+        val_every=options.val_every,
+        checkpoint_every=10**9,
+    )
+    return {
+        "old": base,
+        "new": TrainConfig(
+            **{
+                **base.to_dict(),
+                "batch_size": options.new_batch,
+                "branches": options.new_branches,
+                "branch_stride": options.new_stride,
+                "lr": options.new_lr,
+                "warmup_gradients": options.new_warmup_gradients,
+            }
+        ),
+    }
 
 
 def throughput(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: Options, threads: int) -> dict:
@@ -106,8 +120,12 @@ def throughput(data: Dataset, kind: str, configs: dict[str, TrainConfig], option
                 train_step(loss_fn, optimizer, params, batch, 1.0)
             rates[name].append(options.steps * config.batch_size / (time.perf_counter() - tic))
     ratios = [n / o for n, o in zip(rates["new"], rates["old"])]
-    return {"windows_per_s": {k: statistics.median(v) for k, v in rates.items()}, "rounds": rates,
-            "ratio_median": statistics.median(ratios), "ratios": ratios}
+    return {
+        "windows_per_s": {k: statistics.median(v) for k, v in rates.items()},
+        "rounds": rates,
+        "ratio_median": statistics.median(ratios),
+        "ratios": ratios,
+    }
 
 
 def curves(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: Options) -> dict:
@@ -119,9 +137,12 @@ def curves(data: Dataset, kind: str, configs: dict[str, TrainConfig], options: O
         if name not in options.curve_arms.split(","):
             continue
         result = train(data, model_config, config, progress=False, clock=time.process_time)
-        out[name] = {"log": result.stats["log"], "iterations": result.stats["iterations"],
-                     "windows": result.stats["iterations"] * config.batch_size,
-                     "final_val_error": result.stats["val_error"]}
+        out[name] = {
+            "log": result.stats["log"],
+            "iterations": result.stats["iterations"],
+            "windows": result.stats["iterations"] * config.batch_size,
+            "final_val_error": result.stats["val_error"],
+        }
     return out
 
 
@@ -133,28 +154,42 @@ def error_at(log: list[dict], seconds: float) -> float | None:
 
 def markdown(results: dict, options: Options) -> str:
     configs = results["arms"]
-    lines = [f"Data {options.data}; old: batch {configs['old']['batch_size']} windows of H + F rows; new: batch "
-             f"{configs['new']['batch_size']} = {configs['new']['batch_size'] // configs['new']['branches']} segments x "
-             f"{configs['new']['branches']} branches (stride {configs['new']['branch_stride']}). Load average at the "
-             f"start {results['loadavg_start']}, at the end {results['loadavg_end']}; new lr {configs['new']['lr']}."]
+    lines = [
+        f"Data {options.data}; old: batch {configs['old']['batch_size']} windows of H + F rows; new: batch "
+        f"{configs['new']['batch_size']} = {configs['new']['batch_size'] // configs['new']['branches']} segments x "
+        f"{configs['new']['branches']} branches (stride {configs['new']['branch_stride']}). Load average at the "
+        f"start {results['loadavg_start']}, at the end {results['loadavg_end']}; new lr {configs['new']['lr']}."
+    ]
     if results["throughput"]:
-        lines += ["", "| model | threads | old windows/s | new windows/s | new/old (median of rounds) | per round |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "| model | threads | old windows/s | new windows/s | new/old (median of rounds) | per round |",
+            "|---|---|---|---|---|---|",
+        ]
     for row in results["throughput"]:
         rate = row["windows_per_s"]
-        lines.append(f"| {row['kind']} | {row['threads']} | {rate['old']:.0f} | {rate['new']:.0f} | "
-                     f"{row['ratio_median']:.2f}x | {', '.join(f'{r:.2f}' for r in row['ratios'])} |")
+        lines.append(
+            f"| {row['kind']} | {row['threads']} | {rate['old']:.0f} | {rate['new']:.0f} | "
+            f"{row['ratio_median']:.2f}x | {', '.join(f'{r:.2f}' for r in row['ratios'])} |"
+        )
     if results.get("curves"):
         budget = 60 * options.minutes
         marks = [budget * f for f in (0.25, 0.5, 0.75, 1.0)]
-        lines += ["", f"Validation error (8-step open-loop, held-out episodes) after CPU minutes, {options.kinds.split(',')[0]}, "
-                  "1 thread:", "",
-                  "| arm | " + " | ".join(f"{m / 60:.1f} min" for m in marks) + " | iterations | windows |",
-                  "|---" * (len(marks) + 3) + "|"]
+        lines += [
+            "",
+            f"Validation error (8-step open-loop, held-out episodes) after CPU minutes, {options.kinds.split(',')[0]}, "
+            "1 thread:",
+            "",
+            "| arm | " + " | ".join(f"{m / 60:.1f} min" for m in marks) + " | iterations | windows |",
+            "|---" * (len(marks) + 3) + "|",
+        ]
         for name, curve in results["curves"].items():
             cells = [error_at(curve["log"], m) for m in marks]
-            lines.append(f"| {name} | " + " | ".join("-" if c is None else f"{c:.4f}" for c in cells)
-                         + f" | {curve['iterations']} | {curve['windows']} |")
+            lines.append(
+                f"| {name} | "
+                + " | ".join("-" if c is None else f"{c:.4f}" for c in cells)
+                + f" | {curve['iterations']} | {curve['windows']} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -166,10 +201,18 @@ def plot(results: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for name, curve in results["curves"].items():
-        ax.plot([r["wall_s"] / 60 for r in curve["log"]], [r["val_error"] for r in curve["log"]], marker=".",
-                label=f"{name} ({curve['windows']} windows)")
-    ax.set(xlabel="CPU minutes (one thread)", ylabel="validation relative L1 error (8-step forecast)", yscale="log",
-           title="paper windows (old) vs forecast branches (new)")
+        ax.plot(
+            [r["wall_s"] / 60 for r in curve["log"]],
+            [r["val_error"] for r in curve["log"]],
+            marker=".",
+            label=f"{name} ({curve['windows']} windows)",
+        )
+    ax.set(
+        xlabel="CPU minutes (one thread)",
+        ylabel="validation relative L1 error (8-step forecast)",
+        yscale="log",
+        title="paper windows (old) vs forecast branches (new)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -182,14 +225,23 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     data = Dataset.load(options.data)
     configs = arms(options)
-    results: dict = {"options": asdict(options), "arms": {k: v.to_dict() for k, v in configs.items()},
-                     "loadavg_start": Path("/proc/loadavg").read_text().split()[0], "throughput": []}
+    results: dict = {
+        "options": asdict(options),
+        "arms": {k: v.to_dict() for k, v in configs.items()},
+        "loadavg_start": Path("/proc/loadavg").read_text().split()[0],
+        "throughput": [],
+    }
     for kind in options.kinds.split(","):
         for threads in (int(t) for t in options.threads.split(",") if t):
             row = throughput(data, kind, configs, options, threads)
             results["throughput"].append({"kind": kind, "threads": threads, **row})
-            print(kind, threads, {k: round(v) for k, v in row["windows_per_s"].items()},
-                  f"ratio {row['ratio_median']:.2f}", flush=True)
+            print(
+                kind,
+                threads,
+                {k: round(v) for k, v in row["windows_per_s"].items()},
+                f"ratio {row['ratio_median']:.2f}",
+                flush=True,
+            )
     if options.minutes > 0:
         results["curves"] = curves(data, options.kinds.split(",")[0], configs, options)
         plot(results, out / "val_vs_minutes.png")

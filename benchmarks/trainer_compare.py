@@ -33,8 +33,10 @@ def label(arm: str, config: dict) -> str:
     if config["branches"] == 1:
         setting = f"{config['batch_size']} windows of {config['history']} + {config['forecast']} rows"
     else:
-        setting = (f"{config['batch_size'] // config['branches']} x {config['branches']} branches, "
-                   f"stride {config['branch_stride']}")
+        setting = (
+            f"{config['batch_size'] // config['branches']} x {config['branches']} branches, "
+            f"stride {config['branch_stride']}"
+        )
     return f"{arm}: {setting}" + ("" if config["warmup_gradients"] else ", no warm-up gradients")
 
 
@@ -43,18 +45,25 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="output folders of benchmarks/trainer.py")
     parser.add_argument("--out", type=Path, required=True, help="path stem of the PNG and the table")
     args = parser.parse_args()
-    rows = ["| run | arm | " + " | ".join(f"{m:g} min" for m in MARKS) + " | iterations | windows/s, 1 thread |",
-            "|---|---|" + "---|" * (len(MARKS) + 2)]
+    rows = [
+        "| run | arm | " + " | ".join(f"{m:g} min" for m in MARKS) + " | iterations | windows/s, 1 thread |",
+        "|---|---|" + "---|" * (len(MARKS) + 2),
+    ]
     fig, ax = plt.subplots(figsize=(8, 5))
     for run in args.runs:
         result = json.loads((run / "results.json").read_text())
-        rates = next((t["windows_per_s"] for t in result.get("throughput", [])
-                      if t["kind"] == "rwm" and t["threads"] == 1), {})
+        rates = next(
+            (t["windows_per_s"] for t in result.get("throughput", []) if t["kind"] == "rwm" and t["threads"] == 1), {}
+        )
         for arm, curve in result["curves"].items():
             name = label(arm, result["arms"][arm])
             log = curve["log"]
-            ax.plot([row["wall_s"] / 60 for row in log], [row["val_error"] for row in log],
-                    ls="--" if arm == "old" else "-", label=f"{run.name}, {name}")
+            ax.plot(
+                [row["wall_s"] / 60 for row in log],
+                [row["val_error"] for row in log],
+                ls="--" if arm == "old" else "-",
+                label=f"{run.name}, {name}",
+            )
             marks = " | ".join("-" if (e := error_at(log, 60 * m)) is None else f"{e:.4f}" for m in MARKS)
             rate = f"{rates[arm]:.0f}" if arm in rates else "-"
             rows.append(f"| {run.name} | {name} | {marks} | {curve['iterations']:,} | {rate} |")

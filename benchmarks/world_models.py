@@ -9,7 +9,8 @@ horizon, per state group, and with noise on the history. "No change" and "predic
 
 The budget is equal iterations (`--iterations`) or equal minutes (`--minutes`, counted in this process's CPU time
 with `--cpu-clock`, so other jobs on a shared machine do not count). `--models` picks rows of MODELS, which also holds
-the ablations of the trainer and of the state constraints (RWM-branches: 8 segments x 32 branches; RWM+gravity, RWM+limits,
+the ablations of the trainer and of the state constraints (RWM-branches: 8 segments x 32 branches; RWM+gravity,
+RWM+limits,
 RWM+physics: `ModelConfig.unit_gravity` / `joint_limits`).
 
 Writes `results.json`, `results.md` and `error_vs_horizon_<source>.png` (+ data and checkpoints) to `--out`.
@@ -39,10 +40,15 @@ from rwm_gym.options import parse_dataclass_args
 
 # name -> (model kind, TrainConfig fields that differ from the common ones, ModelConfig fields)
 MODELS: dict[str, tuple[str, dict, dict]] = {
-    "RWM": ("rwm", {}, {}), "RWM-TF": ("rwm", {"forecast": 1}, {}), "MLP": ("mlp", {}, {}),
-    "RSSM": ("rssm", {}, {}), "Transformer": ("transformer", {}, {}), "no-change": ("no_change", {}, {}),
+    "RWM": ("rwm", {}, {}),
+    "RWM-TF": ("rwm", {"forecast": 1}, {}),
+    "MLP": ("mlp", {}, {}),
+    "RSSM": ("rssm", {}, {}),
+    "Transformer": ("transformer", {}, {}),
+    "no-change": ("no_change", {}, {}),
     "RWM-branches": ("rwm", {"batch_size": 256, "branches": 32}, {}),
-    "RWM+gravity": ("rwm", {}, {"unit_gravity": True}), "RWM+limits": ("rwm", {}, {"joint_limits": True}),
+    "RWM+gravity": ("rwm", {}, {"unit_gravity": True}),
+    "RWM+limits": ("rwm", {}, {"joint_limits": True}),
     "RWM+physics": ("rwm", {}, {"unit_gravity": True, "joint_limits": True}),
 }
 DEFAULT_MODELS = "RWM,RWM-TF,MLP,RSSM,Transformer,no-change"
@@ -112,12 +118,31 @@ def dataset(options: Options) -> Path:
     if options.data:
         parts = [Path(p) for p in options.data.split(",")]
     else:
-        parts = [collect(options.env, "gait", options.gait_episodes, out / "data" / "gait.h5", seed=options.seed,
-                         num_envs=options.num_envs, action_noise=options.action_noise,
-                         max_steps=options.episode_steps, overwrite=True, workers=options.workers),
-                 collect(options.env, "random", options.random_episodes, out / "data" / "random.h5",
-                         seed=options.seed + 1, num_envs=options.num_envs, max_steps=options.episode_steps,
-                         overwrite=True, workers=options.workers)]
+        parts = [
+            collect(
+                options.env,
+                "gait",
+                options.gait_episodes,
+                out / "data" / "gait.h5",
+                seed=options.seed,
+                num_envs=options.num_envs,
+                action_noise=options.action_noise,
+                max_steps=options.episode_steps,
+                overwrite=True,
+                workers=options.workers,
+            ),
+            collect(
+                options.env,
+                "random",
+                options.random_episodes,
+                out / "data" / "random.h5",
+                seed=options.seed + 1,
+                num_envs=options.num_envs,
+                max_steps=options.episode_steps,
+                overwrite=True,
+                workers=options.workers,
+            ),
+        ]
     if len(parts) == 1:
         return parts[0]
     merge_datasets(parts, merged)
@@ -132,28 +157,43 @@ def markdown(results: dict, source: str, data: Dataset, options: Options, wall_s
     budget = f"{options.iterations} iterations" if options.iterations else ""
     if options.minutes:
         budget += (" or " if budget else "") + f"{options.minutes} {'CPU ' if options.cpu_clock else ''}minutes"
-    lines = [f"Source {source}: {first['episodes']} held-out episodes ({first['episode_set']}). Trained on "
-             f"{data.num_episodes} episodes / {data.num_steps} rows; {budget} per model, batch {options.batch_size} "
-             f"windows ({options.branches} branches per segment unless the row says otherwise), {options.loss} state "
-             f"loss, seed {options.seed}, "
-             f"device {options.device}, total {wall_s / 60:.1f} min. Relative L1 error of open-loop mean predictions "
-             f"after {first['history']} true steps (lower is better); floors on the same windows.", "",
-             "| model | " + " | ".join(f"N={h}" for h in horizons) + f" | max abs pred N={horizons[-1]} | "
-             f"contact acc N={horizons[0]} | " + " | ".join(f"noise {s} N={ref}" for s in noise)
-             + " | iterations | train s | eval s |",
-             "|---" * (len(horizons) + len(noise) + 6) + "|"]
+    lines = [
+        f"Source {source}: {first['episodes']} held-out episodes ({first['episode_set']}). Trained on "
+        f"{data.num_episodes} episodes / {data.num_steps} rows; {budget} per model, batch {options.batch_size} "
+        f"windows ({options.branches} branches per segment unless the row says otherwise), {options.loss} state "
+        f"loss, seed {options.seed}, "
+        f"device {options.device}, total {wall_s / 60:.1f} min. Relative L1 error of open-loop mean predictions "
+        f"after {first['history']} true steps (lower is better); floors on the same windows.",
+        "",
+        "| model | " + " | ".join(f"N={h}" for h in horizons) + f" | max abs pred N={horizons[-1]} | "
+        f"contact acc N={horizons[0]} | "
+        + " | ".join(f"noise {s} N={ref}" for s in noise)
+        + " | iterations | train s | eval s |",
+        "|---" * (len(horizons) + len(noise) + 6) + "|",
+    ]
     for name, by_source in results.items():
         r = by_source[source]
         acc = r["contact_accuracy"][horizons[0]]
         cells = [f"{r['error'][h]:.3f}" for h in horizons] + [f"{r['max_abs'][horizons[-1]]['prediction']:.1f}"]
         cells += ["-" if acc is None else f"{acc:.3f}"] + [f"{r['noise'][s][ref]:.3f}" for s in noise]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['iterations']} | {r['train_wall_s']:.0f} | "
-                     f"{r['eval_wall_s']:.0f} |")
+        lines.append(
+            f"| {name} | " + " | ".join(cells) + f" | {r['iterations']} | {r['train_wall_s']:.0f} | "
+            f"{r['eval_wall_s']:.0f} |"
+        )
     for floor, errors in first["floors"].items():
-        lines.append(f"| *{floor}* | " + " | ".join(f"{errors[h]:.3f}" for h in horizons)
-                     + f" | {first['max_abs'][horizons[-1]]['data']:.1f} (data) |" + " |" * (len(noise) + 4))
-    lines += ["", f"Per-group error at N={ref}:", "", "| model | " + " | ".join(groups) + " |",
-              "|---" * (1 + len(groups)) + "|"]
+        lines.append(
+            f"| *{floor}* | "
+            + " | ".join(f"{errors[h]:.3f}" for h in horizons)
+            + f" | {first['max_abs'][horizons[-1]]['data']:.1f} (data) |"
+            + " |" * (len(noise) + 4)
+        )
+    lines += [
+        "",
+        f"Per-group error at N={ref}:",
+        "",
+        "| model | " + " | ".join(groups) + " |",
+        "|---" * (1 + len(groups)) + "|",
+    ]
     for name, by_source in results.items():
         r = by_source[source]
         lines.append(f"| {name} | " + " | ".join(f"{r['group_error'][ref][g]:.3f}" for g in groups) + " |")
@@ -172,22 +212,41 @@ def main(argv: list[str] | None = None) -> int:
     distributed.barrier(world)
     data = Dataset.load(dataset(options))
     spec = data.spec()
-    evaluation = EvalConfig(max_windows=options.max_windows, seed=options.seed, device=options.device,
-                            noise_levels=tuple(float(s) for s in options.noise.split(",") if s))
+    evaluation = EvalConfig(
+        max_windows=options.max_windows,
+        seed=options.seed,
+        device=options.device,
+        noise_levels=tuple(float(s) for s in options.noise.split(",") if s),
+    )
     sources = options.test_data.split(",") if options.test_data else [str(data.path)]
     clock = time.process_time if options.cpu_clock else time.monotonic
     results: dict[str, dict] = {}
     for name in tqdm(options.models.split(","), desc="models", unit="model", disable=not world.is_main):
         kind, train_fields, model_fields = MODELS[name]
-        common = dict(batch_size=options.batch_size, branches=options.branches, branch_stride=options.branch_stride,
-                      warmup_gradients=options.warmup_gradients, loss=options.loss, iterations=options.iterations,
-                      minutes=options.minutes, seed=options.seed, device=options.device,
-                      val_every=max(1, options.iterations // 10 or 50),
-                      checkpoint_every=options.iterations or 10 ** 9)
+        common = dict(
+            batch_size=options.batch_size,
+            branches=options.branches,
+            branch_stride=options.branch_stride,
+            warmup_gradients=options.warmup_gradients,
+            loss=options.loss,
+            iterations=options.iterations,
+            minutes=options.minutes,
+            seed=options.seed,
+            device=options.device,
+            val_every=max(1, options.iterations // 10 or 50),
+            checkpoint_every=options.iterations or 10**9,
+        )
         config = train_config_for(kind, TrainConfig(**{**common, **train_fields}))  # rssm keeps warm-up gradients
         tic = time.perf_counter()
-        trained = train(data, model_config_for(kind, spec, **model_fields), config, out / f"{name}.safetensors",
-                        progress=False, overwrite=True, clock=clock)
+        trained = train(
+            data,
+            model_config_for(kind, spec, **model_fields),
+            config,
+            out / f"{name}.safetensors",
+            progress=False,
+            overwrite=True,
+            clock=clock,
+        )
         wall = time.perf_counter() - tic
         if not world.is_main:  # under torchrun every rank trains, rank 0 scores and writes
             continue
@@ -196,23 +255,40 @@ def main(argv: list[str] | None = None) -> int:
             tic = time.perf_counter()
             scores = evaluate_checkpoint(trained.path, source, evaluation, progress=False)
             results[name][Path(source).stem] = {
-                **scores, "train_wall_s": wall, "train_budget_s": trained.stats["wall_s"],
-                "eval_wall_s": time.perf_counter() - tic, "iterations": trained.stats["iterations"],
-                "val_error": trained.stats["val_error"], "log": trained.stats["log"]}
+                **scores,
+                "train_wall_s": wall,
+                "train_budget_s": trained.stats["wall_s"],
+                "eval_wall_s": time.perf_counter() - tic,
+                "iterations": trained.stats["iterations"],
+                "val_error": trained.stats["val_error"],
+                "log": trained.stats["log"],
+            }
         print(name, {s: [round(r["error"][h], 3) for h in r["error"]] for s, r in results[name].items()}, flush=True)
     distributed.close_world()
     if not world.is_main:
         return 0
     wall = time.perf_counter() - started
-    write_json(out / "results.json", {"options": asdict(options), "world_size": world.size, "rows": data.num_steps,
-                                      "episodes": data.num_episodes, "wall_s": wall,
-                                      "loadavg_end": Path("/proc/loadavg").read_text().split()[0], "models": results})
+    write_json(
+        out / "results.json",
+        {
+            "options": asdict(options),
+            "world_size": world.size,
+            "rows": data.num_steps,
+            "episodes": data.num_episodes,
+            "wall_s": wall,
+            "loadavg_end": Path("/proc/loadavg").read_text().split()[0],
+            "models": results,
+        },
+    )
     table = "\n".join(markdown(results, Path(s).stem, data, options, wall) for s in sources)
     atomic_write(out / "results.md", lambda tmp: Path(tmp).write_text(table))
     for source in sources:
         stem = Path(source).stem
-        plot_running_mean({name: r[stem] for name, r in results.items()}, out / f"error_vs_horizon_{stem}.png",
-                          title=f"ANYmal D, {stem}: error against the open-loop horizon")
+        plot_running_mean(
+            {name: r[stem] for name, r in results.items()},
+            out / f"error_vs_horizon_{stem}.png",
+            title=f"ANYmal D, {stem}: error against the open-loop horizon",
+        )
     print(table)
     return 0
 

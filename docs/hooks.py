@@ -28,7 +28,9 @@ def cli_reference() -> str:
         parser = build_parser(name)
         sub = next(a for a in parser._actions if a.dest == "command").choices[name]  # argparse keeps no public map
         sub.prog = f"rwm-gym {name}"
-        sections.append(f"## `rwm-gym {name}`\n\n{summary[0].upper()}{summary[1:]}.\n\n```text\n{sub.format_help()}```\n")
+        sections.append(
+            f"## `rwm-gym {name}`\n\n{summary[0].upper()}{summary[1:]}.\n\n```text\n{sub.format_help()}```\n"
+        )
     return "\n".join(sections)
 
 

@@ -178,12 +178,13 @@ def load_resume_point(path: Path, agent: Agent, optimizer: torch.optim.Adam, arg
     """Restore what `save_resume_point` wrote; refuses a folder started with other settings."""
     with safe_open(path, "pt") as f:
         progress = json.loads(f.metadata()["progress"])
-        tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open has no __iter__)
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
     started, now = progress["args"], asdict(args)
     changed = [k for k in now if k not in RESUMABLE_CHANGES and started.get(k) != now[k]]
     if changed:
-        raise SystemExit(f"cleanrl_ppo: {path.parent} was started with other settings ({', '.join(changed)}); "
-                         f"use another --run-dir")
+        raise SystemExit(
+            f"cleanrl_ppo: {path.parent} was started with other settings ({', '.join(changed)}); use another --run-dir"
+        )
     agent.load_state_dict({k.removeprefix("agent."): v for k, v in tensors.items() if k.startswith("agent.")})
     moments: dict[int, dict] = {}
     for key, value in tensors.items():
@@ -199,10 +200,15 @@ def main(args: Args) -> dict:
     torch.manual_seed(args.seed)
     kwargs = {}
     if args.env_id.startswith("RWM-"):
-        kwargs = {"checkpoint": args.checkpoint, "episode_steps": args.episode_steps,
-                  "uncertainty_penalty": args.uncertainty_penalty, "uncertainty_floor": args.uncertainty_floor,
-                  "uncertainty_halt": args.uncertainty_halt, "fall_tilt": args.fall_tilt,
-                  "torque_halt": args.torque_halt}
+        kwargs = {
+            "checkpoint": args.checkpoint,
+            "episode_steps": args.episode_steps,
+            "uncertainty_penalty": args.uncertainty_penalty,
+            "uncertainty_floor": args.uncertainty_floor,
+            "uncertainty_halt": args.uncertainty_halt,
+            "fall_tilt": args.fall_tilt,
+            "torque_halt": args.torque_halt,
+        }
     envs = gym.make_vec(args.env_id, num_envs=args.num_envs, vectorization_mode="vector_entry_point", **kwargs)
     n, obs_dim = args.num_envs, envs.single_observation_space.shape[0]
     act_dim = envs.single_action_space.shape[0]
@@ -210,8 +216,16 @@ def main(args: Args) -> dict:
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
 
     resume = Path(args.run_dir) / "resume.safetensors" if args.run_dir else None
-    progress = {"args": asdict(args), "update": 0, "step": 0, "episodes": 0, "lr": args.learning_rate,
-                "restarts": 0, "wall_s": 0.0, "mean_step_reward": []}
+    progress = {
+        "args": asdict(args),
+        "update": 0,
+        "step": 0,
+        "episodes": 0,
+        "lr": args.learning_rate,
+        "restarts": 0,
+        "wall_s": 0.0,
+        "mean_step_reward": [],
+    }
     if resume is not None and resume.is_file():
         progress = load_resume_point(resume, agent, optimizer, args)
         progress["restarts"] += 1
@@ -290,12 +304,23 @@ def main(args: Args) -> dict:
                 group["lr"] = lr
         mean_step_reward = float(rew_buf.mean())
         progress["mean_step_reward"].append(mean_step_reward)
-        progress.update(update=update, step=progress["step"] + batch, episodes=progress["episodes"] + len(finished),
-                        lr=lr, wall_s=time.monotonic() - started)
-        ended = (f"{len(finished):4d} episodes ended, mean return {np.mean(finished):+.3f}" if finished
-                 else "no episode ended")
-        print(f"update {update:4d}  steps {progress['step']:9d}  mean step reward {mean_step_reward:+.5f}  {ended}  "
-              f"kl {kl:.4f}  lr {lr:.1e}  {progress['step'] / progress['wall_s']:6.0f} steps/s", flush=True)
+        progress.update(
+            update=update,
+            step=progress["step"] + batch,
+            episodes=progress["episodes"] + len(finished),
+            lr=lr,
+            wall_s=time.monotonic() - started,
+        )
+        ended = (
+            f"{len(finished):4d} episodes ended, mean return {np.mean(finished):+.3f}"
+            if finished
+            else "no episode ended"
+        )
+        print(
+            f"update {update:4d}  steps {progress['step']:9d}  mean step reward {mean_step_reward:+.5f}  {ended}  "
+            f"kl {kl:.4f}  lr {lr:.1e}  {progress['step'] / progress['wall_s']:6.0f} steps/s",
+            flush=True,
+        )
         if resume is not None and update % args.save_every == 0:
             save_resume_point(resume, agent, optimizer, progress)
 
@@ -303,8 +328,12 @@ def main(args: Args) -> dict:
     if resume is not None:
         save_resume_point(resume, agent, optimizer, progress)
     print(f"wrote {save_actor(agent, args.out, args)}")
-    result = {"steps": progress["step"], "mean_step_reward": progress["mean_step_reward"],
-              "episodes": progress["episodes"], "lr": lr}
+    result = {
+        "steps": progress["step"],
+        "mean_step_reward": progress["mean_step_reward"],
+        "episodes": progress["episodes"],
+        "lr": lr,
+    }
     if args.score:
         from rwm_gym.rl.score import score, summary_line, zero_policy
 

@@ -16,15 +16,15 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
 
-from rwm_gym.policies.gait import GaitPolicy  # noqa: E402
-from rwm_gym.imagination.core import default_checkpoint  # noqa: E402
-from rwm_gym.imagination.dream import DreamRenderer  # noqa: E402
-from rwm_gym.model.checkpoint import load_checkpoint  # noqa: E402
-from rwm_gym.physics.locomotion import LocomotionEnv  # noqa: E402
+from rwm_gym.imagination.core import default_checkpoint
+from rwm_gym.imagination.dream import DreamRenderer
+from rwm_gym.model.checkpoint import load_checkpoint
+from rwm_gym.physics.locomotion import LocomotionEnv
+from rwm_gym.policies.gait import GaitPolicy
 
 
 def physics_rollout(steps: int, seed: int, command: tuple[float, float, float]):

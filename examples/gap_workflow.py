@@ -38,8 +38,13 @@ def main() -> None:
 
     hidden = parse_effects(load_spec("anymal_d"), [args.effect], [args.magnitude])
     measured = make_measured(hidden, args.episodes, args.out / "measured.h5", max_steps=args.steps, overwrite=True)
-    report = run_gap(SIM, measured, args.out / "report", world_model=resolve_world_model(args.world_model, SIM, {}),
-                     wm_config=WorldModelGapConfig(iterations=args.finetune_iterations))
+    report = run_gap(
+        SIM,
+        measured,
+        args.out / "report",
+        world_model=resolve_world_model(args.world_model, SIM, {}),
+        wm_config=WorldModelGapConfig(iterations=args.finetune_iterations),
+    )
     print((args.out / "report" / "report.md").read_text())
     print(f"hidden: {args.effect} = {args.magnitude}; named: {report['effect']} {report['parameters']}")
 

@@ -71,8 +71,11 @@ def stage(name: str, command: list[str], timings: dict) -> None:
     print(f"[{name}] {shlex.join(command)}", flush=True)
     tic = time.perf_counter()
     subprocess.run(command, check=True)
-    timings["stages"][name] = {"command": shlex.join(command), "wall_s": time.perf_counter() - tic,
-                               "loadavg_after": os.getloadavg()}
+    timings["stages"][name] = {
+        "command": shlex.join(command),
+        "wall_s": time.perf_counter() - tic,
+        "loadavg_after": os.getloadavg(),
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -83,35 +86,116 @@ def main(argv: list[str] | None = None) -> dict:
     gpus = options.gpus or (torch.cuda.device_count() if cuda else 1)
     workers = options.workers or os.cpu_count() or 1
     cli = [sys.executable, "-m", "rwm_gym.cli"]
-    timings = {"options": asdict(options), "machine": {
-        "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
-        "cpu_count": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
-        "loadavg_before": os.getloadavg()}, "stages": {}}
+    timings = {
+        "options": asdict(options),
+        "machine": {
+            "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "loadavg_before": os.getloadavg(),
+        },
+        "stages": {},
+    }
 
     parts = []
-    for policy, episodes, noise, seed in (("gait", options.episodes, 0.3, options.seed),
-                                          ("random", max(1, options.episodes // 4), 0.0, options.seed + 1)):
+    for policy, episodes, noise, seed in (
+        ("gait", options.episodes, 0.3, options.seed),
+        ("random", max(1, options.episodes // 4), 0.0, options.seed + 1),
+    ):
         path = out / "data" / f"{policy}.h5"
-        stage(f"collect_{policy}", [*cli, "collect", "--policy", policy, "--episodes", str(episodes),
-                                    "--num-envs", str(options.num_envs), "--workers", str(workers),
-                                    "--action-noise", str(noise), "--max-steps", str(options.episode_steps),
-                                    "--seed", str(seed), "--out", str(path), "--overwrite"], timings)
+        stage(
+            f"collect_{policy}",
+            [
+                *cli,
+                "collect",
+                "--policy",
+                policy,
+                "--episodes",
+                str(episodes),
+                "--num-envs",
+                str(options.num_envs),
+                "--workers",
+                str(workers),
+                "--action-noise",
+                str(noise),
+                "--max-steps",
+                str(options.episode_steps),
+                "--seed",
+                str(seed),
+                "--out",
+                str(path),
+                "--overwrite",
+            ],
+            timings,
+        )
         parts.append(path)
     data = out / "data" / "mix.h5"
     merge_datasets(parts, data)
 
     checkpoint = out / "rwm.safetensors"
-    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={gpus}",
-                "-m", "rwm_gym.cli"] if gpus > 1 else cli
+    launcher = (
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={gpus}", "-m", "rwm_gym.cli"]
+        if gpus > 1
+        else cli
+    )
     checkpoint.unlink(missing_ok=True)
-    stage("train", [*launcher, "train", "--data", str(data), "--out", str(checkpoint), "--device", options.device,
-                    "--iterations", str(options.iterations), "--batch-size", str(options.batch_size),
-                    "--seed", str(options.seed), "--quiet"], timings)
-    stage("evaluate", [*cli, "evaluate", "--checkpoint", str(checkpoint), "--data", str(data), "--device",
-                       options.device, "--out", str(out / "evaluation"), "--quiet"], timings)
-    ppo = [*cli, "ppo", "--in", "imagination", "--checkpoint", str(checkpoint), "--device", options.device,
-           "--num-envs", str(options.ppo_envs), "--timesteps", str(options.ppo_timesteps), "--seed",
-           str(options.seed), "--out", str(out / "policy.zip")]
+    stage(
+        "train",
+        [
+            *launcher,
+            "train",
+            "--data",
+            str(data),
+            "--out",
+            str(checkpoint),
+            "--device",
+            options.device,
+            "--iterations",
+            str(options.iterations),
+            "--batch-size",
+            str(options.batch_size),
+            "--seed",
+            str(options.seed),
+            "--quiet",
+        ],
+        timings,
+    )
+    stage(
+        "evaluate",
+        [
+            *cli,
+            "evaluate",
+            "--checkpoint",
+            str(checkpoint),
+            "--data",
+            str(data),
+            "--device",
+            options.device,
+            "--out",
+            str(out / "evaluation"),
+            "--quiet",
+        ],
+        timings,
+    )
+    ppo = [
+        *cli,
+        "ppo",
+        "--in",
+        "imagination",
+        "--checkpoint",
+        str(checkpoint),
+        "--device",
+        options.device,
+        "--num-envs",
+        str(options.ppo_envs),
+        "--timesteps",
+        str(options.ppo_timesteps),
+        "--seed",
+        str(options.seed),
+        "--out",
+        str(out / "policy.zip"),
+    ]
     stage("ppo", ppo + ([] if options.ppo_eval else ["--no-eval"]), timings)
 
     timings["total_s"] = sum(s["wall_s"] for s in timings["stages"].values())

@@ -44,13 +44,23 @@ def main() -> None:
     for name, policy, episodes, max_steps, noise, seed in PARTS:
         part = args.out / f"{name}.h5"
         try:
-            finished = not args.overwrite and finished_collection(part, episodes=episodes, seed=seed,
-                                                                  what=f"this script's {name} part")
+            finished = not args.overwrite and finished_collection(
+                part, episodes=episodes, seed=seed, what=f"this script's {name} part"
+            )
         except DatasetError as error:
             raise SystemExit(f"{error} (pass --overwrite)") from None
         if not finished:
-            collect("AnymalD-MuJoCo-v0", policy, episodes, part, seed=seed, num_envs=args.num_envs,
-                    action_noise=noise, max_steps=max_steps, overwrite=True)
+            collect(
+                "AnymalD-MuJoCo-v0",
+                policy,
+                episodes,
+                part,
+                seed=seed,
+                num_envs=args.num_envs,
+                action_noise=noise,
+                max_steps=max_steps,
+                overwrite=True,
+            )
         parts.append(part)
         print(f"{name}: {Dataset.load(part).num_steps} rows")
     merge_datasets(parts, mix)

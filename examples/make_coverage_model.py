@@ -39,16 +39,26 @@ SHIPPED = assets_dir() / "checkpoints" / "anymal_d_rwm_mbpo.safetensors"
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policies", nargs="+", required=True,
-                        help="SB3 zips (or 'random', 'zero', 'gait') whose physics episodes the model learns")
+    parser.add_argument(
+        "--policies",
+        nargs="+",
+        required=True,
+        help="SB3 zips (or 'random', 'zero', 'gait') whose physics episodes the model learns",
+    )
     parser.add_argument("--base", type=Path, required=True, help="the base mix (examples/make_base_mix.py)")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--checkpoint", type=Path, default=SHIPPED,
-                        help="the model to fine-tune (default: the shipped MBPO model)")
+    parser.add_argument(
+        "--checkpoint", type=Path, default=SHIPPED, help="the model to fine-tune (default: the shipped MBPO model)"
+    )
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy and noise level")
     parser.add_argument("--max-steps", type=int, default=400, help="cap on an episode's policy steps")
-    parser.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.26],
-                        help="action-noise std levels (0.26: the from-scratch policies' own std at 40 M steps)")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        nargs="+",
+        default=[0.0, 0.26],
+        help="action-noise std levels (0.26: the from-scratch policies' own std at 40 M steps)",
+    )
     parser.add_argument("--first-seed", type=int, default=80_000, help="part i's episodes start from seed + 100 i")
     parser.add_argument("--iterations", type=int, default=600, help="fine-tuning steps")
     parser.add_argument("--lr", type=float, default=3e-4, help="fine-tuning learning rate (cosine schedule)")
@@ -60,8 +70,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if not given.is_file():
             parser.error(f"{given}: no such file")
     if not 1 <= args.episodes <= 100 or args.iterations < 1 or args.first_seed < 0:
-        parser.error("--episodes must be 1-100 (part i's seeds start at --first-seed + 100 i), --iterations >= 1 and "
-                     "--first-seed >= 0")
+        parser.error(
+            "--episodes must be 1-100 (part i's seeds start at --first-seed + 100 i), --iterations >= 1 and "
+            "--first-seed >= 0"
+        )
     return args
 
 
@@ -75,8 +87,18 @@ def collect_parts(args: argparse.Namespace) -> list[Path]:
         except DatasetError as error:
             raise SystemExit(str(error)) from None
         if not finished:
-            collect("AnymalD-MuJoCo-v0", policy, args.episodes, part, seed=seed, num_envs=16, action_noise=noise,
-                    max_steps=args.max_steps, overwrite=True, progress=not args.quiet)
+            collect(
+                "AnymalD-MuJoCo-v0",
+                policy,
+                args.episodes,
+                part,
+                seed=seed,
+                num_envs=16,
+                action_noise=noise,
+                max_steps=args.max_steps,
+                overwrite=True,
+                progress=not args.quiet,
+            )
         parts.append(part)
     return parts
 
@@ -91,21 +113,49 @@ def main(argv: list[str] | None = None) -> Path:
         merge_datasets([args.base, *parts], buffer)
 
     start = read_meta(args.checkpoint)
-    config = replace(start.train_config, iterations=args.iterations, minutes=0.0, seed=args.seed, lr=args.lr,
-                     val_every=max(1, args.iterations // 4), checkpoint_every=100, device="cpu")
-    fine_tune = train(buffer, start.model_config, config, args.out / "train.safetensors", resume=True,
-                      init=args.checkpoint, progress=not args.quiet)
+    config = replace(
+        start.train_config,
+        iterations=args.iterations,
+        minutes=0.0,
+        seed=args.seed,
+        lr=args.lr,
+        val_every=max(1, args.iterations // 4),
+        checkpoint_every=100,
+        device="cpu",
+    )
+    fine_tune = train(
+        buffer,
+        start.model_config,
+        config,
+        args.out / "train.safetensors",
+        resume=True,
+        init=args.checkpoint,
+        progress=not args.quiet,
+    )
 
     model, meta = load_checkpoint(fine_tune.path)
-    rows = {"start_model": start.provenance.get("dataset_steps"), "base": Dataset.load(args.base).num_steps,
-            "own": sum(Dataset.load(part).num_steps for part in parts)}
+    rows = {
+        "start_model": start.provenance.get("dataset_steps"),
+        "base": Dataset.load(args.base).num_steps,
+        "own": sum(Dataset.load(part).num_steps for part in parts),
+    }
     command = " ".join(argv if argv is not None else sys.argv[1:])
-    extras = {"reset_data": start.extras.get("reset_data"),
-              "made_by": f"python examples/make_coverage_model.py {command}", "policies": list(args.policies),
-              "physics_rows": {**rows, "total": sum(v or 0 for v in rows.values())}}
+    extras = {
+        "reset_data": start.extras.get("reset_data"),
+        "made_by": f"python examples/make_coverage_model.py {command}",
+        "policies": list(args.policies),
+        "physics_rows": {**rows, "total": sum(v or 0 for v in rows.values())},
+    }
     extras = {key: value for key, value in extras.items() if value is not None}
-    out = save_checkpoint(args.out / "model.safetensors", model, meta.spec, train_config=meta.train_config,
-                          provenance=meta.provenance, stats=meta.stats, extras=extras)
+    out = save_checkpoint(
+        args.out / "model.safetensors",
+        model,
+        meta.spec,
+        train_config=meta.train_config,
+        provenance=meta.provenance,
+        stats=meta.stats,
+        extras=extras,
+    )
     print(f"wrote {out}: val error {meta.stats['val_error']:.4f}; physics rows behind it {extras['physics_rows']}")
     return out
 

@@ -12,7 +12,8 @@ was the default before the last two: `git show f0dc796:assets/checkpoints/anymal
            --batch-size 256 --branches 4 --branch-stride 8 --unit-gravity --joint-limits --minutes 95 --iterations 0
 
 2. Fine-tuned in six iterations of the MBPO loop (`rwm-gym mbpo` with 192 physics
-   episodes of up to 400 steps and 300 model steps per iteration, `--iterations 6`, from stage 1's model; `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
+   episodes of up to 400 steps and 300 model steps per iteration, `--iterations 6`, from stage 1's model;
+   `data/base/mix.h5` is its 208 k-row physics mix): `model_6`.
 
 3. Fine-tuned on that mix with 32-step forecasts (80 min, 1,409 iterations x 256 windows; `--init` trains on the
    `--data` files alone and keeps the model's config):
@@ -73,10 +74,15 @@ DATA_MIX = (
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("assets/checkpoints"))
-    parser.add_argument("--data-dir", type=Path, default=Path("data/default_checkpoint"),
-                        help="folder for the collected data and the merged mix")
-    parser.add_argument("--data", type=Path, nargs="*", default=[],
-                        help="more datasets of the task to train on (merged into the mix)")
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=Path("data/default_checkpoint"),
+        help="folder for the collected data and the merged mix",
+    )
+    parser.add_argument(
+        "--data", type=Path, nargs="*", default=[], help="more datasets of the task to train on (merged into the mix)"
+    )
     parser.add_argument("--iterations", type=int, default=2000, help="gradient steps (0: only --minutes)")
     parser.add_argument("--minutes", type=float, default=0.0, help="wall-clock budget (0: only --iterations)")
     parser.add_argument("--batch-size", type=int, default=64, help="forecast windows per gradient step")
@@ -85,15 +91,27 @@ def main() -> None:
     parser.add_argument("--ensemble", type=int, default=5, help="state heads")
     parser.add_argument("--unit-gravity", action="store_true", help="ModelConfig.unit_gravity")
     parser.add_argument("--joint-limits", action="store_true", help="ModelConfig.joint_limits")
-    parser.add_argument("--init", type=Path, default=None, metavar="CKPT",
-                        help="fine-tune this checkpoint on the --data files alone (no collected mix)")
+    parser.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        metavar="CKPT",
+        help="fine-tune this checkpoint on the --data files alone (no collected mix)",
+    )
     parser.add_argument("--forecast", type=int, default=8, help="forecast steps per training window")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate at the start of the schedule")
-    parser.add_argument("--warmup-gradients", action=argparse.BooleanOptionalAction, default=True,
-                        help="backpropagate through the teacher-forced warm-up (TrainConfig.warmup_gradients)")
+    parser.add_argument(
+        "--warmup-gradients",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="backpropagate through the teacher-forced warm-up (TrainConfig.warmup_gradients)",
+    )
     parser.add_argument("--loss", choices=("mse", "nll"), default="mse", help="state loss (TrainConfig.loss)")
-    parser.add_argument("--reset-std-band", action="store_true",
-                        help="with --init: free the std of an mse-trained model first (TrainConfig.reset_std_band)")
+    parser.add_argument(
+        "--reset-std-band",
+        action="store_true",
+        help="with --init: free the std of an mse-trained model first (TrainConfig.reset_std_band)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core CPU)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
@@ -110,8 +128,9 @@ def main() -> None:
     for policy, episodes, steps, noise, seed in mix:
         path = args.data_dir / f"{policy}_noise{noise}_seed{seed}.h5"
         if not path.exists():
-            collect("AnymalD-MuJoCo-v0", policy, episodes, path, seed=seed, num_envs=16, action_noise=noise,
-                    max_steps=steps)
+            collect(
+                "AnymalD-MuJoCo-v0", policy, episodes, path, seed=seed, num_envs=16, action_noise=noise, max_steps=steps
+            )
         parts.append(path)
     name = ("finetune" if args.init else "anymal_d_mix") + "".join(f"+{extra.stem}" for extra in args.data)
     data = args.data[0] if args.init and len(args.data) == 1 else args.data_dir / f"{name}.h5"
@@ -120,15 +139,28 @@ def main() -> None:
 
     spec = load_spec("anymal_d")
     checkpoint = args.out / "anymal_d_rwm.safetensors"
-    config = TrainConfig(iterations=args.iterations, minutes=args.minutes, batch_size=args.batch_size,
-                         branches=args.branches, branch_stride=args.branch_stride, forecast=args.forecast, lr=args.lr,
-                         warmup_gradients=args.warmup_gradients, loss=args.loss, reset_std_band=args.reset_std_band,
-                         device=args.device, seed=0, val_every=250, checkpoint_every=250)
+    config = TrainConfig(
+        iterations=args.iterations,
+        minutes=args.minutes,
+        batch_size=args.batch_size,
+        branches=args.branches,
+        branch_stride=args.branch_stride,
+        forecast=args.forecast,
+        lr=args.lr,
+        warmup_gradients=args.warmup_gradients,
+        loss=args.loss,
+        reset_std_band=args.reset_std_band,
+        device=args.device,
+        seed=0,
+        val_every=250,
+        checkpoint_every=250,
+    )
     if args.init:
         model_config = read_meta(args.init).model_config
     else:
-        model_config = model_config_for("rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity,
-                                        joint_limits=args.joint_limits)
+        model_config = model_config_for(
+            "rwm", spec, ensemble_size=args.ensemble, unit_gravity=args.unit_gravity, joint_limits=args.joint_limits
+        )
     train(data, model_config, config, checkpoint, resume=True, init=args.init)
 
     reset_sources = [*parts[1:2], *args.data]
@@ -138,11 +170,21 @@ def main() -> None:
         reset_sources = [args.data_dir / f"reset_sources_{name}.h5"]
     reset = make_reset_data(reset_sources[0], args.out / "anymal_d_reset.h5", episodes=24, rows=160, seed=0)
     model, meta = load_checkpoint(checkpoint)
-    extras = {"reset_data": reset.name, "made_by": "python examples/make_default_checkpoint.py " + " ".join(sys.argv[1:]),
-              "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in mix]
-              + [{"file": str(extra)} for extra in args.data]}
-    save_checkpoint(checkpoint, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
-                    stats=meta.stats, extras=extras)
+    extras = {
+        "reset_data": reset.name,
+        "made_by": "python examples/make_default_checkpoint.py " + " ".join(sys.argv[1:]),
+        "data_mix": [dict(zip(("policy", "episodes", "max_steps", "action_noise", "seed"), m)) for m in mix]
+        + [{"file": str(extra)} for extra in args.data],
+    }
+    save_checkpoint(
+        checkpoint,
+        model,
+        meta.spec,
+        train_config=meta.train_config,
+        provenance=meta.provenance,
+        stats=meta.stats,
+        extras=extras,
+    )
     print(f"wrote {checkpoint} and {reset}")
 
 

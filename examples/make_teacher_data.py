@@ -54,19 +54,38 @@ def main() -> None:
 
     snapshots = run.snapshot_files()
     final = run.latest if run.latest.is_file() else snapshots[-1]
-    stages = {"early": snapshots[max(1, len(snapshots) // 10)], "middle": snapshots[len(snapshots) // 2],
-              "final": final}
+    stages = {
+        "early": snapshots[max(1, len(snapshots) // 10)],
+        "middle": snapshots[len(snapshots) // 2],
+        "final": final,
+    }
     manifest = {"run_dir": str(run.folder), "experience_parts": [str(p) for p in parts], "stages": {}}
     for k, (stage, policy) in enumerate(stages.items()):
-        path = collect("AnymalD-MuJoCo-v0", str(policy), args.episodes, args.out / f"heldout_{stage}.h5",
-                       seed=HELD_OUT_SEED + 10_000 * k, num_envs=args.num_envs, overwrite=args.overwrite)
+        path = collect(
+            "AnymalD-MuJoCo-v0",
+            str(policy),
+            args.episodes,
+            args.out / f"heldout_{stage}.h5",
+            seed=HELD_OUT_SEED + 10_000 * k,
+            num_envs=args.num_envs,
+            overwrite=args.overwrite,
+        )
         data = Dataset.load(path)
-        manifest["stages"][stage] = {"policy": str(policy), "file": str(path), "episodes": data.num_episodes,
-                                     "rows": int(data.num_steps), "mb": round(path.stat().st_size / 1e6, 1)}
+        manifest["stages"][stage] = {
+            "policy": str(policy),
+            "file": str(path),
+            "episodes": data.num_episodes,
+            "rows": int(data.num_steps),
+            "mb": round(path.stat().st_size / 1e6, 1),
+        }
     data = Dataset.load(experience)
-    manifest["experience"] = {"file": str(experience), "episodes": data.num_episodes, "rows": int(data.num_steps),
-                              "mb": round(experience.stat().st_size / 1e6, 1),
-                              "ppo_iterations": [int(data["ppo_iteration"].min()), int(data["ppo_iteration"].max())]}
+    manifest["experience"] = {
+        "file": str(experience),
+        "episodes": data.num_episodes,
+        "rows": int(data.num_steps),
+        "mb": round(experience.stat().st_size / 1e6, 1),
+        "ppo_iterations": [int(data["ppo_iteration"].min()), int(data["ppo_iteration"].max())],
+    }
     manifest["wall_s"] = round(time.monotonic() - started, 1)
     write_json(args.out / "manifest.json", manifest)
     print(manifest)

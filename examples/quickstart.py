@@ -32,19 +32,31 @@ at 0.23 with none)."""
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--timesteps", type=int, default=7_077_888,
-                        help="PPO budget in imagined steps (default: 72 rollouts of 4096 x 24, about 7 min on 2 cores)")
+    parser.add_argument(
+        "--timesteps",
+        type=int,
+        default=7_077_888,
+        help="PPO budget in imagined steps (default: 72 rollouts of 4096 x 24, about 7 min on 2 cores)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--num-envs", type=int, default=None, help="imagined robots (default: the recipe's)")
     parser.add_argument("--score-seeds", type=int, default=3, help="physics episodes per scoring command")
     parser.add_argument("--score-steps", type=int, default=None, help="policy steps per scoring episode (default 20 s)")
     parser.add_argument("--device", default="cpu", help="where PPO and the world model run (cuda on a GPU)")
     parser.add_argument("--threads", default="2", help="torch CPU threads (1 on a machine busy with other jobs)")
-    parser.add_argument("--precision", choices=("bfloat16", "float32"), default=None,
-                        help="the world model's products (default: bfloat16 where the CPU has it, else float32)")
+    parser.add_argument(
+        "--precision",
+        choices=("bfloat16", "float32"),
+        default=None,
+        help="the world model's products (default: bfloat16 where the CPU has it, else float32)",
+    )
     parser.add_argument("--out", type=Path, default=Path("quickstart"))
-    parser.add_argument("--video", action=argparse.BooleanOptionalAction, default=True,
-                        help="write walk.gif (skipped with a note where offscreen GL is missing)")
+    parser.add_argument(
+        "--video",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="write walk.gif (skipped with a note where offscreen GL is missing)",
+    )
     args = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", args.threads)  # before torch is imported
     import time
@@ -57,14 +69,39 @@ def main() -> int:
     recipe = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
     precision = args.precision or default_precision(args.device)
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
-    print(f"PPO from scratch in {Path(recipe['world_model']['checkpoint']).stem}: {num_envs} imagined "
-          f"robots, {args.timesteps:,} steps, {args.threads} threads, {precision} products")
+    print(
+        f"PPO from scratch in {Path(recipe['world_model']['checkpoint']).stem}: {num_envs} imagined "
+        f"robots, {args.timesteps:,} steps, {args.threads} threads, {precision} products"
+    )
     started = time.monotonic()
-    code = cli(["ppo", "--in", "imagination", *ppo_options(recipe), f"--num-envs={num_envs}",
-                "--matmul-precision", precision,
-                "--timesteps", str(args.timesteps), "--run-dir", str(args.out / "run"), "--save-every", "5",
-                "--snapshot-every", "24", "--device", args.device, "--threads", args.threads,
-                "--seed", str(args.seed), "--no-eval", "--out", str(args.out / "policy.zip")])
+    code = cli(
+        [
+            "ppo",
+            "--in",
+            "imagination",
+            *ppo_options(recipe),
+            f"--num-envs={num_envs}",
+            "--matmul-precision",
+            precision,
+            "--timesteps",
+            str(args.timesteps),
+            "--run-dir",
+            str(args.out / "run"),
+            "--save-every",
+            "5",
+            "--snapshot-every",
+            "24",
+            "--device",
+            args.device,
+            "--threads",
+            args.threads,
+            "--seed",
+            str(args.seed),
+            "--no-eval",
+            "--out",
+            str(args.out / "policy.zip"),
+        ]
+    )
     if code:
         return code
     trained = time.monotonic() - started
@@ -74,9 +111,11 @@ def main() -> int:
     floor, teacher = recipe["score"]["floor"], json.loads((policies / "anymal_d_ppo_physics.json").read_text())
     print(f"this policy, in physics:  {score_text(result.tracking, result.falls, result.episodes)}")
     print(f"standing still (floor):   {score_text(floor['tracking'], floor['falls'], recipe['score']['episodes'])}")
-    print(f"this recipe at {recipe['imagined_steps'] / 1e6:.0f} M steps: "
-          f"{score_text(recipe['score']['tracking'], recipe['score']['falls'], recipe['score']['episodes'])} "
-          f"(shipped: {policies / recipe['policy']})")
+    print(
+        f"this recipe at {recipe['imagined_steps'] / 1e6:.0f} M steps: "
+        f"{score_text(recipe['score']['tracking'], recipe['score']['falls'], recipe['score']['episodes'])} "
+        f"(shipped: {policies / recipe['policy']})"
+    )
     print(f"physics-trained teacher:  {score_text(teacher['score']['tracking'], teacher['score']['falls'], 54)}")
     files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png")]
     if args.video:
@@ -86,10 +125,12 @@ def main() -> int:
             print(f"no video ({type(error).__name__}); set MUJOCO_GL=egl where libEGL is installed")
     print("files: " + ", ".join(str(f) for f in files))
     walks = result.tracking >= WALKS[0] and result.falls <= WALKS[1]
-    print(("VERDICT: it walks" if walks else "VERDICT: it does not walk yet")
-          + f" after {steps / 1e6:.1f} M imagined steps in {trained / 60:.1f} min (walking: tracking >= {WALKS[0]}"
-          f" with <= {WALKS[1]} falls)" + ("" if walks else "; --timesteps 40000000 continues this run to where the "
-                                           "recipe walks"))
+    print(
+        ("VERDICT: it walks" if walks else "VERDICT: it does not walk yet")
+        + f" after {steps / 1e6:.1f} M imagined steps in {trained / 60:.1f} min (walking: tracking >= {WALKS[0]}"
+        f" with <= {WALKS[1]} falls)"
+        + ("" if walks else "; --timesteps 40000000 continues this run to where the recipe walks")
+    )
     return 0
 
 
@@ -112,8 +153,11 @@ def ppo_options(recipe: dict) -> list[str]:
     """`rwm-gym ppo` options of the recipe, read from its JSON (its numbers live there once)."""
     from rwm_gym.resources import shipped_file
 
-    options = ["--checkpoint", str(shipped_file(recipe["world_model"]["checkpoint"])),
-               f"--log-std-init={recipe['ppo']['log_std_init']}"]
+    options = [
+        "--checkpoint",
+        str(shipped_file(recipe["world_model"]["checkpoint"])),
+        f"--log-std-init={recipe['ppo']['log_std_init']}",
+    ]
     for name, value in recipe["env"]["imagination"].items():
         if value is not None:  # reset_data None: the windows the checkpoint names
             options.append(f"--{name.replace('_', '-')}={value}")
@@ -133,8 +177,13 @@ def plot_curve(recipe: dict, timesteps: int, tracking: float, floor: float, path
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for run in recipe["seeds"]:
-        ax.plot([r["timesteps"] / 1e6 for r in run["curve"]], [r["tracking"] for r in run["curve"]], ".-", alpha=0.7,
-                label=f"the recipe, seed {run['seed']}")
+        ax.plot(
+            [r["timesteps"] / 1e6 for r in run["curve"]],
+            [r["tracking"] for r in run["curve"]],
+            ".-",
+            alpha=0.7,
+            label=f"the recipe, seed {run['seed']}",
+        )
     ax.plot([timesteps / 1e6], [tracking], "r*", markersize=14, label="this run")
     ax.axhline(floor, color="0.5", ls="--", label="standing still")
     ax.axhline(WALKS[0], color="tab:green", ls=":", label=f"walks ({WALKS[0]}, <= {WALKS[1]} falls)")

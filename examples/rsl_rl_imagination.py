@@ -72,9 +72,15 @@ def main(args: Args) -> dict:
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    env = ImaginedRslRlVecEnv(args.checkpoint, args.num_envs, seed=args.seed, device=args.device,
-                              reset_data=args.reset_data, episode_steps=args.episode_steps,
-                              uncertainty_penalty=args.uncertainty_penalty)
+    env = ImaginedRslRlVecEnv(
+        args.checkpoint,
+        args.num_envs,
+        seed=args.seed,
+        device=args.device,
+        reset_data=args.reset_data,
+        episode_steps=args.episode_steps,
+        uncertainty_penalty=args.uncertainty_penalty,
+    )
     train_cfg = rsl_rl_train_cfg(PPOConfig(num_envs=args.num_envs), run_name="rwm_imagination")
     runner = OnPolicyRunner(env, train_cfg, log_dir=args.log_dir, device=args.device)
     runner.learn(num_learning_iterations=args.iterations)
@@ -95,8 +101,9 @@ def main(args: Args) -> dict:
 
 def parse_args(argv: list[str] | None = None) -> Args:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    add_dataclass_options(parser, Args, types={"checkpoint": str, "reset_data": str, "episode_steps": int,
-                                               "score_steps": int})
+    add_dataclass_options(
+        parser, Args, types={"checkpoint": str, "reset_data": str, "episode_steps": int, "score_steps": int}
+    )
     return Args(**vars(parser.parse_args(argv)))
 
 

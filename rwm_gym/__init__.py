@@ -38,7 +38,7 @@ EXPORTS: dict[str, str] = {
     "DMCEnv": "rwm_gym.physics.dmc",
     "DMCGymVectorEnv": "rwm_gym.vector.gym_vector_env",
     "DMCSB3VecEnv": "rwm_gym.vector.sb3_vec_env",
-    "ImaginationOptions": "rwm_gym.imagination.core",
+    "ImaginationOptions": "rwm_gym.imagination.options",
     "PhysicsParams": "rwm_gym.physics.params",
     "default_checkpoint": "rwm_gym.imagination.core",
     # policies: PPO in imagination or physics, MBPO, and the tracking score that judges them in physics

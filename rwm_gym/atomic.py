@@ -34,10 +34,12 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> Pat
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` to `path` atomically (UTF-8); returns the path."""
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def write_json(path: str | os.PathLike, data: object) -> Path:
+    """Write `data` as indented JSON to `path` atomically; returns the path."""
     return write_text(path, json.dumps(data, indent=2))
 
 

@@ -26,12 +26,15 @@ linearly: a bound turns a typo (num_envs=100000) into an error instead of a mach
 
 
 class BatchedCore(Protocol):
+    """N environments stepped together: the contract every physics and imagined core meets (arrays (N, ...))."""
+
     num_envs: int
     single_observation_space: gym.spaces.Box
     single_action_space: gym.spaces.Box
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray: ...
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray: ...
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]: ...
 
@@ -52,7 +55,9 @@ def check_actions(actions: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     if actions.shape != shape:
         raise ValueError(f"action has shape {actions.shape}, expected {shape}")
     if not np.all(np.isfinite(actions)):
-        raise ValueError(f"action contains NaN or inf at env(s) {np.flatnonzero(~np.isfinite(actions).all(-1)).tolist()}")
+        raise ValueError(
+            f"action contains NaN or inf at env(s) {np.flatnonzero(~np.isfinite(actions).all(-1)).tolist()}"
+        )
     return np.clip(actions, -1.0, 1.0)
 
 
@@ -80,10 +85,14 @@ def commands_from_options(options: dict | None, n: int, command_names: Sequence[
     try:
         command = np.asarray(options["command"], dtype=np.float32)
     except (TypeError, ValueError):
-        raise ValueError(f"command must be {k} numbers ({', '.join(command_names)}), got {options['command']!r}") from None
+        raise ValueError(
+            f"command must be {k} numbers ({', '.join(command_names)}), got {options['command']!r}"
+        ) from None
     if command.shape == (k,):
         command = np.repeat(command[None], n, axis=0)
     if command.shape != (n, k) or not np.all(np.isfinite(command)):
-        raise ValueError(f"command must be {k} finite numbers ({', '.join(command_names)}) or one row per env "
-                         f"({n}, {k}), got shape {command.shape}")
+        raise ValueError(
+            f"command must be {k} finite numbers ({', '.join(command_names)}) or one row per env "
+            f"({n}, {k}), got shape {command.shape}"
+        )
     return command

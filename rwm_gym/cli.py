@@ -1,8 +1,7 @@
-"""The `rwm-gym` command: one subcommand per job, each implemented in the module that owns the job.
+"""The `rwm-gym` command: one subcommand per job, each a module of `rwm_gym.commands`.
 
-Each module listed in `COMMANDS` defines `add_arguments(parser)` and `run(args) -> int | None` (a module serving
-several commands, named "module:NAME", defines `add_NAME_arguments` and `run_NAME`); it is imported only when its
-subcommand runs, so `rwm-gym --help` stays fast.
+Each module listed in `COMMANDS` defines `add_arguments(parser)` and `run(args) -> int | None`; it is imported only
+when its subcommand runs, so `rwm-gym --help` stays fast.
 """
 
 from __future__ import annotations
@@ -13,18 +12,24 @@ import importlib
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "spec": ("rwm_gym.specgen.command", "write a task spec for a dm_control task or a legged robot's MJCF"),
-    "collect": ("rwm_gym.data.collect", "collect episodes from a physics env into an HDF5 dataset"),
-    "train": ("rwm_gym.model.train_command", "train a world model (RWM or a baseline) on a dataset"),
-    "evaluate": ("rwm_gym.model.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
-    "ppo": ("rwm_gym.rl.ppo_command", "train PPO in imagination (or physics) and evaluate it in physics"),
-    "shac": ("rwm_gym.rl.shac_command", "train a policy by SHAC: gradients through the world model's imagined rollouts"),
-    "score": ("rwm_gym.rl.score", "tracking score of a policy in physics (or a world model) beside the zero-action floor"),
-    "mbpo": ("rwm_gym.rl.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
-    "make-measured": ("rwm_gym.gap.measured", "make 'measured' data from a simulator with a hidden physical effect"),
-    "gap": ("rwm_gym.gap.workflow", "find, name and correct the gap between a simulator and measured data"),
-    "export": ("rwm_gym.data.minari_io:export", "write a dataset as a Minari dataset (needs rwm-gym[minari])"),
-    "import": ("rwm_gym.data.minari_io:import", "read a Minari dataset written by `export` back into a dataset"),
+    "spec": ("rwm_gym.commands.spec", "write a task spec for a dm_control task or a legged robot's MJCF"),
+    "collect": ("rwm_gym.commands.collect", "collect episodes from a physics env into an HDF5 dataset"),
+    "train": ("rwm_gym.commands.train", "train a world model (RWM or a baseline) on a dataset"),
+    "evaluate": ("rwm_gym.commands.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
+    "ppo": ("rwm_gym.commands.ppo", "train PPO in imagination (or physics) and evaluate it in physics"),
+    "shac": ("rwm_gym.commands.shac", "train a policy by SHAC: gradients through the world model's imagined rollouts"),
+    "score": (
+        "rwm_gym.commands.score",
+        "tracking score of a policy in physics (or a world model) beside the zero-action floor",
+    ),
+    "mbpo": ("rwm_gym.commands.mbpo", "MBPO-PPO loop: collect, retrain the model, PPO in imagination, repeat"),
+    "make-measured": (
+        "rwm_gym.commands.make_measured",
+        "make 'measured' data from a simulator with a hidden physical effect",
+    ),
+    "gap": ("rwm_gym.commands.gap", "find, name and correct the gap between a simulator and measured data"),
+    "export": ("rwm_gym.commands.export", "write a dataset as a Minari dataset (needs rwm-gym[minari])"),
+    "import": ("rwm_gym.commands.import_", "read a Minari dataset written by `export` back into a dataset"),
 }
 
 
@@ -50,11 +55,9 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         return f"{text} (default %(default)s)".strip()
 
 
-def _entry(target: str, what: str):
-    """The `add_arguments` / `run` function ("what") of a COMMANDS target."""
-    module, _, name = target.partition(":")
-    attr = (f"add_{name}_arguments" if what == "add_arguments" else f"run_{name}") if name else what
-    return getattr(importlib.import_module(module), attr)
+def _entry(module: str, what: str):
+    """The `add_arguments` or `run` function ("what") of a command module."""
+    return getattr(importlib.import_module(module), what)
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
@@ -76,6 +79,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run `rwm-gym ARGV`; the exit status (2 with one line on stderr for what the command did not word itself)."""
     argv = sys.argv[1:] if argv is None else argv
     selected = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(selected).parse_args(argv)

@@ -37,8 +37,14 @@ def _clash(out: Path, source: Path) -> str | None:
     return None
 
 
-def check_output(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (), overwrite: bool = False,
-                 folder: bool = False, flag: str = "--out") -> Path:
+def check_output(
+    out: str | os.PathLike,
+    *,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    overwrite: bool = False,
+    folder: bool = False,
+    flag: str = "--out",
+) -> Path:
     """The resolved `out` (a file, or a folder if `folder`), after refusing what would destroy data or fail only at
     the end of the run."""
     path = resolved(out)
@@ -49,8 +55,9 @@ def check_output(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike |
         if how is not None:
             raise OutputError(f"{flag} {out} {how} the input {source}: write the result elsewhere")
     if path.is_dir() != folder and path.exists():
-        raise OutputError(f"{flag} {out} is a {'file' if folder else 'folder'}; give the path of a "
-                          f"{'folder' if folder else 'file'}")
+        raise OutputError(
+            f"{flag} {out} is a {'file' if folder else 'folder'}; give the path of a {'folder' if folder else 'file'}"
+        )
     if path.exists() and not overwrite:
         raise OutputError(f"{flag} {out} exists (pass --overwrite to replace it)")
     parent = next(p for p in (path.parent, *path.parent.parents) if p.exists())
@@ -66,6 +73,7 @@ _HELD: dict[Path, list[int]] = {}
 
 
 def lock_path(out: Path) -> Path:
+    """The lock file beside `out` that a run holds while it writes `out`."""
     return out.with_name(f".{out.name}.lock")
 
 
@@ -100,8 +108,9 @@ def _lock(lock: Path, out: str | os.PathLike) -> int:
         except OSError as err:
             os.close(fd)
             if err.errno in (errno.EAGAIN, errno.EACCES):
-                raise OutputError(f"{out} is being written by another run (lock {lock}); wait for it or write "
-                                  "elsewhere") from None
+                raise OutputError(
+                    f"{out} is being written by another run (lock {lock}); wait for it or write elsewhere"
+                ) from None
             raise
         try:
             if os.stat(lock).st_ino == os.fstat(fd).st_ino:

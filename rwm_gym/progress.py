@@ -23,8 +23,17 @@ class BudgetBar:
     Both arguments of `show` are totals since the bar's start (absolute, not increments); the bar stops at its total.
     """
 
-    def __init__(self, *, steps: int | None, minutes: float | None, desc: str, unit: str = "step",
-                 initial: int = 0, disable: bool = False, unit_scale: bool = False):
+    def __init__(
+        self,
+        *,
+        steps: int | None,
+        minutes: float | None,
+        desc: str,
+        unit: str = "step",
+        initial: int = 0,
+        disable: bool = False,
+        unit_scale: bool = False,
+    ):
         if not steps and not minutes:
             raise ValueError("BudgetBar needs a budget: steps and/or minutes")
         self.by_time = not steps
@@ -33,12 +42,25 @@ class BudgetBar:
         self.seconds = 60 * minutes if minutes else None
         if self.by_time:
             self.total = max(1, math.ceil(self.seconds))
-            self.bar = tqdm(total=self.total, desc=desc, unit="s", disable=disable, dynamic_ncols=True,
-                            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s of the budget [{elapsed}{postfix}]")
+            self.bar = tqdm(
+                total=self.total,
+                desc=desc,
+                unit="s",
+                disable=disable,
+                dynamic_ncols=True,
+                bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s of the budget [{elapsed}{postfix}]",
+            )
         else:
             self.total = int(steps)
-            self.bar = tqdm(total=self.total, initial=min(initial, self.total), desc=desc, unit=unit,
-                            unit_scale=unit_scale, disable=disable, dynamic_ncols=True)
+            self.bar = tqdm(
+                total=self.total,
+                initial=min(initial, self.total),
+                desc=desc,
+                unit=unit,
+                unit_scale=unit_scale,
+                disable=disable,
+                dynamic_ncols=True,
+            )
 
     def show(self, steps_done: int, seconds: float, **postfix) -> None:
         """Move the bar to `steps_done` (step budget) or `seconds` (time budget), capped at the total."""

@@ -36,12 +36,14 @@ SIMULATORS: dict[str, dict[str, str]] = {
 }
 """Simulator name -> entry points of its single env, Gymnasium VectorEnv and the batched core the collectors drive."""
 
-IMAGINED_ENTRY = {"entry_point": "rwm_gym.imagination.env:ImaginedEnv",
-                  "vector_entry_point": "rwm_gym.vector.gym_vector_env:ImaginedGymVectorEnv"}
+IMAGINED_ENTRY = {
+    "entry_point": "rwm_gym.imagination.env:ImaginedEnv",
+    "vector_entry_point": "rwm_gym.vector.gym_vector_env:ImaginedGymVectorEnv",
+}
 
 
 def simulator_of(tables: dict | TaskSpec) -> str:
-    """"dm_control" for a spec with a `[dm_control]` table, else "mujoco"."""
+    """ "dm_control" for a spec with a `[dm_control]` table, else "mujoco"."""
     extra = tables.extra if isinstance(tables, TaskSpec) else tables
     return "dm_control" if "dm_control" in extra else "mujoco"
 
@@ -62,8 +64,9 @@ PHYSICS_ENVS: dict[str, dict] = {
 }
 """Registered physics id -> entry points and kwargs (`spec`: the shipped spec's name)."""
 
-DMC_SPECS: dict[str, str] = {task["physics_env_id"]: name for name, (sim, task) in _SHIPPED.items()
-                             if sim == "dm_control"}
+DMC_SPECS: dict[str, str] = {
+    task["physics_env_id"]: name for name, (sim, task) in _SHIPPED.items() if sim == "dm_control"
+}
 """dm_control physics id -> shipped spec name (e.g. "DMC-Cheetah-Run-v0" -> "dmc_cheetah_run")."""
 
 IMAGINED_ENVS: dict[str, dict] = {
@@ -74,8 +77,11 @@ IMAGINED_ENVS: dict[str, dict] = {
 checkpoint=PATH); a checkpoint of another task is refused."""
 
 GENERIC_ENVS: dict[str, dict] = {
-    "Physics-v0": {"entry_point": "rwm_gym.registration:make_physics_env",
-                   "vector_entry_point": "rwm_gym.registration:make_physics_vector_env", "kwargs": {}},
+    "Physics-v0": {
+        "entry_point": "rwm_gym.registration:make_physics_env",
+        "vector_entry_point": "rwm_gym.registration:make_physics_vector_env",
+        "kwargs": {},
+    },
     "Imagined-v0": {**IMAGINED_ENTRY, "kwargs": {}},
 }
 """Ids that take their task from an argument: `spec=` (a path, a shipped name or a TaskSpec) or `checkpoint=`."""
@@ -103,8 +109,10 @@ def resolve_spec(env: str | Path | TaskSpec) -> TaskSpec:
             return load_spec(path)
         except (OSError, UnicodeDecodeError) as err:
             raise ValueError(f"spec file {name!r} cannot be read ({err})") from None
-    raise ValueError(f"unknown env {name!r}: not a registered physics id ({', '.join(sorted(PHYSICS_ENVS))}) "
-                     f"nor a spec file (*.toml)")
+    raise ValueError(
+        f"unknown env {name!r}: not a registered physics id ({', '.join(sorted(PHYSICS_ENVS))}) "
+        f"nor a spec file (*.toml)"
+    )
 
 
 def env_name(env: str | Path | TaskSpec) -> str:
@@ -140,6 +148,7 @@ def make_physics_vector_env(num_envs: int = 1, spec: str | Path | TaskSpec | Non
 
 
 def register_all() -> None:
+    """Register every rwm-gym env id with Gymnasium (string entry points: no MuJoCo or torch imported)."""
     for env_id, entry in {**PHYSICS_ENVS, **IMAGINED_ENVS, **GENERIC_ENVS}.items():
         if env_id in gym.registry:
             continue

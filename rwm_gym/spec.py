@@ -35,6 +35,8 @@ class Group:
 
 @dataclass(frozen=True)
 class ActuatorSpec:
+    """The actuated joints and their position servos (spec `[actuator]`)."""
+
     joints: tuple[str, ...]
     default_pose: tuple[float, ...]
     """rad, one per joint."""
@@ -52,6 +54,8 @@ class ActuatorSpec:
 
 @dataclass(frozen=True)
 class PrivilegedSpec:
+    """The bodies whose contacts, heights and falls the world model predicts (spec `[privileged]`)."""
+
     contact_bodies: tuple[str, ...]
     contact_threshold: float
     """N: a body is in contact when its net contact force exceeds this."""
@@ -64,6 +68,8 @@ class PrivilegedSpec:
 
 @dataclass(frozen=True)
 class CommandSpec:
+    """The velocity commands: names, uniform ranges, resampling period (s) and standing share (spec `[command]`)."""
+
     names: tuple[str, ...]
     low: tuple[float, ...]
     high: tuple[float, ...]
@@ -74,6 +80,8 @@ class CommandSpec:
 
 @dataclass(frozen=True)
 class RewardSpec:
+    """The reward terms' weights and shaping constants (spec `[reward]`)."""
+
     weights: dict[str, float]
     tracking_sigma: float
     feet_air_time_target: float
@@ -81,6 +89,8 @@ class RewardSpec:
 
 @dataclass(frozen=True)
 class ObservationSpec:
+    """The policy observation's groups, in order, and their noise (spec `[observation]`)."""
+
     groups: tuple[str, ...]
     noise: dict[str, float]
 
@@ -250,8 +260,10 @@ def _symmetry(table: dict | None, joints: tuple[str, ...], where: str) -> Symmet
     signs = tuple(float(v) for v in table["joint_signs"])
     groups = {k: tuple(float(v) for v in values) for k, values in table.get("signs", {}).items()}
     if len(mirror) != len(joints) or len(signs) != len(joints):
-        raise ValueError(f"{where}: [symmetry] joints and joint_signs need one entry per actuated joint "
-                         f"({len(joints)}), got {len(mirror)} and {len(signs)}")
+        raise ValueError(
+            f"{where}: [symmetry] joints and joint_signs need one entry per actuated joint "
+            f"({len(joints)}), got {len(mirror)} and {len(signs)}"
+        )
     if stray := sorted(set(mirror) - set(joints)):
         raise ValueError(f"{where}: [symmetry] joint {stray[0]!r} is not an actuated joint")
     if any(v not in (1.0, -1.0) for values in (signs, *groups.values()) for v in values):
@@ -280,7 +292,9 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             velocity_limit=float(act.get("velocity_limit", "inf")),
         )
         if len(actuator.default_pose) != len(joints):
-            raise ValueError(f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints")
+            raise ValueError(
+                f"{where}: actuator.default_pose has {len(actuator.default_pose)} values for {len(joints)} joints"
+            )
         # [privileged], [command] and [reward] may be left out (no contacts, no commands, the simulator's reward);
         # a table that is there gives its task's numbers (no robot's values stand in as defaults here).
         priv = raw.get("privileged", {})
@@ -308,7 +322,9 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
                 feet=tuple(priv.get("feet", ())),
                 thighs=tuple(priv.get("thighs", ())),
                 termination_bodies=tuple(priv.get("termination_bodies", ())),
-                foot_height_std=float(priv["foot_height_std"] if priv.get("feet") else priv.get("foot_height_std", 1.0)),
+                foot_height_std=float(
+                    priv["foot_height_std"] if priv.get("feet") else priv.get("foot_height_std", 1.0)
+                ),
             ),
             observation=ObservationSpec(tuple(obs["groups"]), {k: float(v) for k, v in obs.get("noise", {}).items()}),
             command=CommandSpec(

@@ -19,8 +19,10 @@ def swingup(transition) -> np.ndarray:
 
         _ENV = suite.load("acrobot", "swingup", task_kwargs={"random": 0})
     physics = _ENV.physics
-    angles = {j: np.arctan2(transition.column(f"joint_sin/{j}"), transition.column(f"joint_cos/{j}"))
-              for j in ("shoulder", "elbow")}
+    angles = {
+        j: np.arctan2(transition.column(f"joint_sin/{j}"), transition.column(f"joint_cos/{j}"))
+        for j in ("shoulder", "elbow")
+    }
     out = np.zeros(len(transition.next_state))
     for i in range(len(out)):
         for joint, angle in angles.items():

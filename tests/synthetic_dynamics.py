@@ -19,20 +19,25 @@ SPEC = load_spec("anymal_d")
 
 def info_for(spec: TaskSpec = SPEC) -> DatasetInfo:
     return DatasetInfo(
-        env_id=spec.physics_env_id, spec_text=spec.text, dt=spec.policy_dt,
+        env_id=spec.physics_env_id,
+        spec_text=spec.text,
+        dt=spec.policy_dt,
         columns={"state": list(spec.state_columns), "action": list(spec.actuator.joints)},
-        policy="synthetic linear system", seed=0, physics_params={},
+        policy="synthetic linear system",
+        seed=0,
+        physics_params={},
     )
 
 
-def linear_episodes(num_episodes: int = 12, rows: tuple[int, int] = (40, 70), seed: int = 0,
-                    spec: TaskSpec = SPEC) -> list[dict[str, np.ndarray]]:
+def linear_episodes(
+    num_episodes: int = 12, rows: tuple[int, int] = (40, 70), seed: int = 0, spec: TaskSpec = SPEC
+) -> list[dict[str, np.ndarray]]:
     rng = np.random.default_rng(seed)
     s_dim, a_dim = spec.state_dim, spec.action_dim
     m = 0.98 * np.eye(s_dim)
     for i in range(0, s_dim - 1, 2):  # planar rotations of pairs of dims, 0.1 to 0.3 rad per step
         angle = 0.1 + 0.2 * i / s_dim
-        m[i:i + 2, i:i + 2] = 0.98 * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        m[i : i + 2, i : i + 2] = 0.98 * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     n = np.random.default_rng(124).normal(size=(s_dim, a_dim)) * 0.1
     episodes = []
     for e in range(num_episodes):
@@ -46,16 +51,20 @@ def linear_episodes(num_episodes: int = 12, rows: tuple[int, int] = (40, 70), se
         terminated = np.zeros(length, bool)
         truncated = np.zeros(length, bool)
         (terminated if e % 3 == 0 else truncated)[-1] = True
-        episodes.append({
-            "state": (z * spec.state_std + spec.state_mean).astype(np.float32),
-            "action": a.astype(np.float32),
-            "contact": z[:, :spec.contact_dim] > 0,
-            "foot_height": (0.05 * np.tanh(z[:, :spec.foot_dim])).astype(np.float32),
-            "terminated": terminated, "truncated": truncated,
-            "command": np.zeros((length, len(spec.command.names)), np.float32),
-            "reward": np.zeros(length, np.float32),
-            "qpos": np.zeros((length, 1)), "qvel": np.zeros((length, 1)),
-        })
+        episodes.append(
+            {
+                "state": (z * spec.state_std + spec.state_mean).astype(np.float32),
+                "action": a.astype(np.float32),
+                "contact": z[:, : spec.contact_dim] > 0,
+                "foot_height": (0.05 * np.tanh(z[:, : spec.foot_dim])).astype(np.float32),
+                "terminated": terminated,
+                "truncated": truncated,
+                "command": np.zeros((length, len(spec.command.names)), np.float32),
+                "reward": np.zeros(length, np.float32),
+                "qpos": np.zeros((length, 1)),
+                "qvel": np.zeros((length, 1)),
+            }
+        )
     return episodes
 
 

@@ -16,8 +16,10 @@ JOINTS = [f"{leg}_{j}" for leg in LEGS for j in ("HAA", "HFE", "KFE")]
 DEFAULT_POSE_RAD = [0.0, 0.4, -0.8, 0.0, 0.4, -0.8, 0.0, -0.4, 0.8, 0.0, -0.4, 0.8]
 URDF_MASS_KG = 57.1244  # sum of every <mass> in ANYbotics' anymal.urdf (d5bf4dc), when the file is not at hand
 REPO = Path(__file__).resolve().parents[1]
-URDF_CANDIDATES = (Path("/work/shared/reference/anymal_d/anymal.urdf"),
-                   REPO.parent / "shared" / "reference" / "anymal_d" / "anymal.urdf")
+URDF_CANDIDATES = (
+    Path("/work/shared/reference/anymal_d/anymal.urdf"),
+    REPO.parent / "shared" / "reference" / "anymal_d" / "anymal.urdf",
+)
 
 
 @pytest.fixture(scope="module")

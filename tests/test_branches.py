@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 from rwm_gym.model import MODEL_KINDS, Prediction, build_model, model_config_for
 from rwm_gym.model.branches import branch_starts, branched_forecast
@@ -18,7 +19,6 @@ from rwm_gym.model.factory import train_config_for
 from rwm_gym.model.losses import segment_loss, window_loss
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=2, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim
@@ -32,9 +32,13 @@ def tiny(kind: str, ensemble: int = 1):
 
 def random_window(batch: int, rows: int) -> Window:
     g = torch.Generator().manual_seed(1)
-    return Window(torch.randn(batch, rows, S, generator=g), torch.rand(batch, rows, A, generator=g) * 2 - 1,
-                  (torch.rand(batch, rows, C, generator=g) > 0.5).float(), torch.randn(batch, rows, F, generator=g),
-                  (torch.rand(batch, rows, generator=g) > 0.8).float())
+    return Window(
+        torch.randn(batch, rows, S, generator=g),
+        torch.rand(batch, rows, A, generator=g) * 2 - 1,
+        (torch.rand(batch, rows, C, generator=g) > 0.5).float(),
+        torch.randn(batch, rows, F, generator=g),
+        (torch.rand(batch, rows, generator=g) > 0.8).float(),
+    )
 
 
 def loss_and_grads(fn, model, window, config, member):
@@ -74,10 +78,11 @@ def test_every_branch_is_the_papers_forecast_from_its_own_history(kind: str, mon
     with torch.no_grad():
         branches, _ = branched_forecast(model, window.states, window.actions, config, member)
         for i, j in enumerate(branch_starts(config).tolist()):
-            paper, _ = model.forecast(window.states[:, :j + 1], window.actions, config.forecast, sample=False,
-                                      member=member)
+            paper, _ = model.forecast(
+                window.states[:, : j + 1], window.actions, config.forecast, sample=False, member=member
+            )
             for name in ("state_mean", "state_std", "contact_logits", "foot_height", "termination_logit"):
-                torch.testing.assert_close(getattr(branches, name)[i::config.branches], getattr(paper, name))
+                torch.testing.assert_close(getattr(branches, name)[i :: config.branches], getattr(paper, name))
 
 
 @pytest.mark.parametrize("kind", ["rwm", "rssm"])  # first step read from the teacher-forced pass / recomputed
@@ -102,7 +107,7 @@ def test_branches_feed_back_their_own_samples_with_gradients(kind: str, monkeypa
     monkeypatch.setattr(Prediction, "sample", spy_sample)
     monkeypatch.setattr(model, "step", spy_step)
     prediction, _ = branched_forecast(model, window.states, window.actions, config)
-    fed = inputs[-(config.forecast - 1):]  # the steps after the first
+    fed = inputs[-(config.forecast - 1) :]  # the steps after the first
     true_next = window.states[:, branch_starts(config).unsqueeze(1) + 1 + torch.arange(config.forecast)].flatten(0, 1)
     for k, state in enumerate(fed, start=1):
         assert state is samples[k - 1] and state.requires_grad
@@ -188,8 +193,18 @@ def test_legacy_train_config_reads_as_one_branch() -> None:
 def test_run_with_branches_resumes_to_the_same_weights(kind: str, warmup_gradients: bool, tmp_path: Path) -> None:
     data = write_linear_dataset(tmp_path / "linear.h5")
     config = model_config_for(kind, SPEC, **TINY, ensemble_size=2)
-    run = TrainConfig(history=6, forecast=3, batch_size=12, branches=4, branch_stride=2, iterations=8, val_every=4,
-                      checkpoint_every=3, val_fraction=0.25, warmup_gradients=warmup_gradients)
+    run = TrainConfig(
+        history=6,
+        forecast=3,
+        batch_size=12,
+        branches=4,
+        branch_stride=2,
+        iterations=8,
+        val_every=4,
+        checkpoint_every=3,
+        val_fraction=0.25,
+        warmup_gradients=warmup_gradients,
+    )
     full = train(data, config, run, progress=False).model.state_dict()
 
     def interrupt_at_5(iteration: int, stats: dict) -> None:

@@ -10,23 +10,28 @@ import pytest
 import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
+from synthetic_dynamics import SPEC
 
 from rwm_gym.model import MODEL_KINDS, build_model, model_config_for
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, read_meta, save_checkpoint
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.spec import parse_spec
-from synthetic_dynamics import SPEC
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
-
 
 
 def saved(path: Path, kind: str = "rwm", **options) -> Path:
     torch.manual_seed(0)
     model = build_model(model_config_for(kind, SPEC, **{**TINY, **options}))
-    return save_checkpoint(path, model, SPEC, train_config=TrainConfig(iterations=7),
-                           provenance={"dataset": "d.h5", "sha256": "ab"}, stats={"iterations": 7},
-                           extras={"reset": {"episodes": [1, 2]}})
+    return save_checkpoint(
+        path,
+        model,
+        SPEC,
+        train_config=TrainConfig(iterations=7),
+        provenance={"dataset": "d.h5", "sha256": "ab"},
+        stats={"iterations": 7},
+        extras={"reset": {"episodes": [1, 2]}},
+    )
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)
@@ -58,12 +63,14 @@ def test_metadata_round_trip(tmp_path: Path) -> None:
 def test_checkpoint_of_another_layout_is_refused(tmp_path: Path) -> None:
     path = saved(tmp_path / "m.safetensors")
     blocks = SPEC.text.split("[[state]]")  # keep the first two state groups (6 columns) and the rest of the spec
-    small = parse_spec("[[state]]".join(blocks[:3]) + SPEC.text[SPEC.text.index("[privileged]"):])
+    small = parse_spec("[[state]]".join(blocks[:3]) + SPEC.text[SPEC.text.index("[privileged]") :])
     assert small.state_dim == 6
     with pytest.raises(CheckpointError, match=r"m\.safetensors: .*state layout has 45 columns, expected 6"):
         load_checkpoint(path, expect_spec=small)
     renamed = parse_spec(SPEC.text.replace('name = "joint_torque"', 'name = "joint_effort"'))
-    with pytest.raises(CheckpointError, match="state column 33 is 'joint_torque/LF_HAA', expected 'joint_effort/LF_HAA'"):
+    with pytest.raises(
+        CheckpointError, match="state column 33 is 'joint_torque/LF_HAA', expected 'joint_effort/LF_HAA'"
+    ):
         load_checkpoint(path, expect_spec=renamed)
 
 
@@ -71,8 +78,10 @@ def test_truncated_and_foreign_files_fail_in_one_line(tmp_path: Path) -> None:
     path = saved(tmp_path / "m.safetensors")
     cut = tmp_path / "cut.safetensors"
     cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    for bad, pattern in ((cut, "not a safetensors file or truncated"),
-                         (tmp_path / "junk.safetensors", "not a safetensors file or truncated")):
+    for bad, pattern in (
+        (cut, "not a safetensors file or truncated"),
+        (tmp_path / "junk.safetensors", "not a safetensors file or truncated"),
+    ):
         if not bad.exists():
             bad.write_bytes(b"definitely not a checkpoint" * 10)
         with pytest.raises(CheckpointError, match=pattern) as err:
@@ -101,8 +110,12 @@ def test_newer_version_and_shape_mismatch_are_named(tmp_path: Path) -> None:
     newer = rewrite(path, tmp_path / "newer.safetensors", header_change={"format_version": "99"})
     with pytest.raises(CheckpointError, match="format_version '99' not supported"):
         load_checkpoint(newer)
-    wider = rewrite(path, tmp_path / "wider.safetensors",
-                    meta_change=lambda m: m["model_config"].update(hidden_size=32))
-    with pytest.raises(CheckpointError, match=r"tensor 'model/state_gru\.weight_ih_l0' has shape \(48, 57\), "
-                                              r"the model config expects \(96, 57\)"):
+    wider = rewrite(
+        path, tmp_path / "wider.safetensors", meta_change=lambda m: m["model_config"].update(hidden_size=32)
+    )
+    with pytest.raises(
+        CheckpointError,
+        match=r"tensor 'model/state_gru\.weight_ih_l0' has shape \(48, 57\), "
+        r"the model config expects \(96, 57\)",
+    ):
         load_checkpoint(wider)

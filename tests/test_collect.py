@@ -52,7 +52,8 @@ def test_collection_is_deterministic_and_independent_of_env_count(tmp_path):
 
 
 def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
-    """Episodes of different lengths (random actions make ANYmal fall) finish out of order; the file does not show it."""
+    """Episodes of different lengths (random actions make ANYmal fall) finish out of order; the file does not show
+    it."""
     kwargs = dict(seed=0, max_steps=100, progress=False)
     one = collect(ENV_ID, "random", 7, tmp_path / "one.h5", num_envs=1, **kwargs)
     two = collect(ENV_ID, "random", 7, tmp_path / "two.h5", num_envs=3, workers=2, **kwargs)
@@ -65,8 +66,10 @@ def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
 def test_the_zero_policy_stands_still_and_its_noise_is_seeded(tmp_path):
     path = collect(ENV_ID, "zero", 2, tmp_path / "zero.h5", seed=0, max_steps=40, progress=False)
     assert np.all(Dataset.load(path)["action"] == 0.0)
-    noisy = [collect(ENV_ID, "zero", 2, tmp_path / f"noisy{k}.h5", seed=0, max_steps=40, action_noise=0.1,
-                     progress=False) for k in range(2)]
+    noisy = [
+        collect(ENV_ID, "zero", 2, tmp_path / f"noisy{k}.h5", seed=0, max_steps=40, action_noise=0.1, progress=False)
+        for k in range(2)
+    ]
     actions = Dataset.load(noisy[0])["action"]
     assert 0.05 < actions.std() < 0.15 and np.array_equal(actions, Dataset.load(noisy[1])["action"])
 
@@ -98,14 +101,28 @@ def test_finished_collection_keeps_a_whole_part_and_refuses_another_seeds_file(t
     collect("AnymalD-MuJoCo-v0", "random", 2, part, seed=7, max_steps=10, progress=False)
     assert finished_collection(part, episodes=2, seed=7)
     assert not finished_collection(part, episodes=3, seed=7)  # fewer episodes than asked: collected again
-    with pytest.raises(DatasetError, match="part.h5 exists and is not part 3 \\(seed 7, not 8\\)"):
+    with pytest.raises(DatasetError, match=r"part\.h5 exists and is not part 3 \(seed 7, not 8\)"):
         finished_collection(part, episodes=2, seed=8, what="part 3")
 
 
 def test_killed_collection_keeps_finished_episodes(tmp_path):
     out = tmp_path / "killed.h5"
-    cmd = [sys.executable, "-m", "rwm_gym.cli", "collect", "--policy", "random", "--episodes", "1000",
-           "--num-envs", "1", "--max-steps", "20", "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rwm_gym.cli",
+        "collect",
+        "--policy",
+        "random",
+        "--episodes",
+        "1000",
+        "--num-envs",
+        "1",
+        "--max-steps",
+        "20",
+        "--out",
+        str(out),
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 60
@@ -116,21 +133,24 @@ def test_killed_collection_keeps_finished_episodes(tmp_path):
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     assert not out.exists()  # --out only ever holds a whole file; the killed run's episodes are in the partial file
-    partial, = tmp_path.glob("killed.h5.partial-*")
+    (partial,) = tmp_path.glob("killed.h5.partial-*")
     ds = Dataset.load(partial)
     assert 1 <= ds.num_episodes < 1000 and not ds.info.complete
     assert np.all(ds.episode_lengths >= 2)
 
 
-@pytest.mark.parametrize("bad, message", [
-    (["--episodes", "0"], "episodes must be a positive integer"),
-    (["--episodes", "-3"], "episodes must be a positive integer"),
-    (["--max-steps", "-5"], "max_steps must be a positive"),
-    (["--num-envs", "0"], "num_envs must be an integer"),
-    (["--env", "Nope-v0"], "unknown env 'Nope-v0'"),
-    (["--policy", "nope"], "unknown policy 'nope'"),
-    (["--physics", "{bad"], "--physics is not valid JSON"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (["--episodes", "0"], "episodes must be a positive integer"),
+        (["--episodes", "-3"], "episodes must be a positive integer"),
+        (["--max-steps", "-5"], "max_steps must be a positive"),
+        (["--num-envs", "0"], "num_envs must be an integer"),
+        (["--env", "Nope-v0"], "unknown env 'Nope-v0'"),
+        (["--policy", "nope"], "unknown policy 'nope'"),
+        (["--physics", "{bad"], "--physics is not valid JSON"),
+    ],
+)
 def test_bad_collect_options_give_one_line_errors_and_write_nothing(tmp_path, capsys, bad, message):
     out = tmp_path / "d.h5"
     assert main(["collect", "--out", str(out), "--episodes", "1", "--max-steps", "2", *bad]) == 2

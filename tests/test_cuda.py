@@ -10,6 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from synthetic_dynamics import write_linear_dataset
+from test_distributed import assert_same_weights, tensors, train_cli
 
 import rwm_gym  # noqa: F401
 from rwm_gym.data.collect import collect
@@ -19,8 +21,6 @@ from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.spec import load_spec
-from synthetic_dynamics import write_linear_dataset
-from test_distributed import assert_same_weights, tensors, train_cli
 
 DEVICE = "cuda"
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no cuda device visible to torch")
@@ -46,19 +46,27 @@ def test_training_on_cuda_matches_the_cpu(data: Path, tmp_path: Path) -> None:
     close = [torch.isclose(a[k], b[k], rtol=1e-3, atol=1e-4).float().mean().item() for k in a if k.startswith("model/")]
     assert min(close) > 0.99
     cpu_scores = evaluate_checkpoint(cpu, data, EvalConfig(horizons=(4,), max_windows=32), progress=False)
-    cuda_scores = evaluate_checkpoint(cpu, data, EvalConfig(horizons=(4,), max_windows=32, device=DEVICE),
-                                      progress=False)
+    cuda_scores = evaluate_checkpoint(
+        cpu, data, EvalConfig(horizons=(4,), max_windows=32, device=DEVICE), progress=False
+    )
     assert cuda_scores["error"]["4"] == pytest.approx(cpu_scores["error"]["4"], rel=1e-4)
 
 
 def imagined_checkpoint(folder: Path) -> Path:
     """A tiny RWM of ANYmal D trained on a few random episodes, which also serve as its reset data."""
-    data = collect("AnymalD-MuJoCo-v0", "random", 4, folder / "data.h5", seed=0, num_envs=2, max_steps=60,
-                   progress=False)
-    config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32,
-                              ensemble_size=2)
-    train(data, config, TrainConfig(history=8, forecast=4, batch_size=16, iterations=10, val_every=1000,
-                                    checkpoint_every=1000), folder / "model.safetensors", progress=False)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 4, folder / "data.h5", seed=0, num_envs=2, max_steps=60, progress=False
+    )
+    config = model_config_for(
+        "rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32, ensemble_size=2
+    )
+    train(
+        data,
+        config,
+        TrainConfig(history=8, forecast=4, batch_size=16, iterations=10, val_every=1000, checkpoint_every=1000),
+        folder / "model.safetensors",
+        progress=False,
+    )
     return folder / "model.safetensors"
 
 

@@ -33,11 +33,19 @@ NQ, NV = 19, 18
 
 def make_info(**changes) -> DatasetInfo:
     info = DatasetInfo(
-        env_id=SPEC.physics_env_id, spec_text=SPEC.text, dt=SPEC.policy_dt,
-        columns={"state": list(SPEC.state_columns), "action": list(SPEC.actuator.joints),
-                 "contact": list(SPEC.privileged.contact_bodies), "foot_height": list(SPEC.privileged.feet),
-                 "command": list(SPEC.command.names)},
-        policy="random uniform", seed=7, physics_params={"friction": 0.8, "base_mass_kg": 50.0},
+        env_id=SPEC.physics_env_id,
+        spec_text=SPEC.text,
+        dt=SPEC.policy_dt,
+        columns={
+            "state": list(SPEC.state_columns),
+            "action": list(SPEC.actuator.joints),
+            "contact": list(SPEC.privileged.contact_bodies),
+            "foot_height": list(SPEC.privileged.feet),
+            "command": list(SPEC.command.names),
+        },
+        policy="random uniform",
+        seed=7,
+        physics_params={"friction": 0.8, "base_mass_kg": 50.0},
         metadata={"note": "test", "nested": {"a": [1, 2]}},
     )
     return DatasetInfo(**{**info.__dict__, **changes})
@@ -154,7 +162,7 @@ def test_merge(tmp_path: Path, path: Path, episodes) -> None:
     assert not is_merge_of(out, [path, other])
     bad = tmp_path / "bad.h5"
     write_dataset(bad, make_info(spec_text=SPEC.text.replace("episode_steps = 1000", "episode_steps = 999")), more)
-    with pytest.raises(DatasetError, match="bad.h5.*'spec'"):
+    with pytest.raises(DatasetError, match=r"bad.h5.*'spec'"):
         merge_datasets([path, bad], tmp_path / "never.h5")
 
 
@@ -164,8 +172,9 @@ def test_merge_ignores_file_pointers_and_drops_fields_not_in_every_file(tmp_path
     assert "default_checkpoint" in SPEC.text and SPEC.symmetry is not None
     rng = np.random.default_rng(2)
     ppo = [{**make_episode(rng, 3, extra=True), "ppo_iteration": np.full(4, 7, np.int32)} for _ in range(2)]
-    older_spec = "\n".join(line for line in SPEC.text.split("\n[symmetry]")[0].splitlines()
-                            if not line.startswith("default_checkpoint"))
+    older_spec = "\n".join(
+        line for line in SPEC.text.split("\n[symmetry]")[0].splitlines() if not line.startswith("default_checkpoint")
+    )
     assert "symmetry" not in older_spec
     other = tmp_path / "ppo.h5"
     write_dataset(other, make_info(spec_text=older_spec), ppo)
@@ -189,6 +198,7 @@ def _set_attr(name, value):
 def _set_first_length(delta):
     def edit(f):
         f["episode_lengths"][0] += delta
+
     return edit
 
 
@@ -222,7 +232,7 @@ def test_not_hdf5_and_truncated(tmp_path: Path, path: Path) -> None:
     text.write_text("this is not an HDF5 file\n")
     with pytest.raises(DatasetError, match=f"{text}: file: not a readable HDF5 file"):
         Dataset.load(text)
-    with pytest.raises(FileNotFoundError, match="absent.h5"):
+    with pytest.raises(FileNotFoundError, match=r"absent.h5"):
         Dataset.load(tmp_path / "absent.h5")
     data = path.read_bytes()
     cut = tmp_path / "cut.h5"
@@ -295,7 +305,7 @@ def test_writer_killed_midway_keeps_finished_episodes(tmp_path: Path) -> None:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
     assert not out.exists()  # the destination only ever holds a whole file that plain h5py opens
-    partial, = tmp_path.glob("killed.h5.partial-*")
+    (partial,) = tmp_path.glob("killed.h5.partial-*")
     ds = Dataset.load(partial)
     assert ds.num_episodes == 3 and not ds.info.complete and ds.num_steps == 15
     np.testing.assert_array_equal(ds.episode(2)["state"], _third_state())
@@ -304,13 +314,16 @@ def test_writer_killed_midway_keeps_finished_episodes(tmp_path: Path) -> None:
 def test_a_second_process_writing_the_same_file_fails_at_once(tmp_path: Path, episodes) -> None:
     """Two `collect` runs on one file: the second stops before writing anything, the first finishes its file."""
     out = tmp_path / "shared.h5"
-    second = ("import sys; from rwm_gym.data.dataset import DatasetWriter; from tests.test_dataset import make_info\n"
-              "try:\n    DatasetWriter(sys.argv[1], make_info(), overwrite=True)\n"
-              "except ValueError as err:\n    print(err); sys.exit(3)")
+    second = (
+        "import sys; from rwm_gym.data.dataset import DatasetWriter; from tests.test_dataset import make_info\n"
+        "try:\n    DatasetWriter(sys.argv[1], make_info(), overwrite=True)\n"
+        "except ValueError as err:\n    print(err); sys.exit(3)"
+    )
     with DatasetWriter(out, make_info(), overwrite=True) as first:
         first.append_episode(episodes[0])
-        run = subprocess.run([sys.executable, "-c", second, str(out)], capture_output=True, text=True,
-                             cwd=Path(__file__).parent.parent)
+        run = subprocess.run(
+            [sys.executable, "-c", second, str(out)], capture_output=True, text=True, cwd=Path(__file__).parent.parent
+        )
         assert run.returncode == 3 and "being written by another run" in run.stdout, run.stderr
     with h5py.File(out, "r") as f:  # plain h5py, no SWMR flags
         assert bool(f.attrs["complete"]) and len(f["episode_lengths"]) == 1
@@ -342,6 +355,7 @@ def test_rows_beyond_sum_ignored_while_incomplete(path: Path, episodes) -> None:
         for name in f["steps"]:
             data = f["steps"][name]
             data.resize(len(data) + 3, axis=0)
+
     _edit(path, append_orphan_rows)
     ds = Dataset.load(path)
     assert not ds.info.complete and ds.num_episodes == 6

@@ -15,29 +15,56 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors import safe_open
+from synthetic_dynamics import write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.model import distributed
 from rwm_gym.model.checkpoint import read_meta
-from synthetic_dynamics import write_linear_dataset
 
 TESTS = Path(__file__).parent
-RUN = ["--teacher-forcing", "--loss", "nll", "--schedule", "constant", "--history", "6", "--batch-size", "8",
-       "--val-every", "1", "--checkpoint-every", "3", "--val-fraction", "0.25", "--hidden-size", "16",
-       "--num-layers", "1", "--head-hidden", "16", "--ensemble-size", "2", "--quiet"]
+RUN = [
+    "--teacher-forcing",
+    "--loss",
+    "nll",
+    "--schedule",
+    "constant",
+    "--history",
+    "6",
+    "--batch-size",
+    "8",
+    "--val-every",
+    "1",
+    "--checkpoint-every",
+    "3",
+    "--val-fraction",
+    "0.25",
+    "--hidden-size",
+    "16",
+    "--num-layers",
+    "1",
+    "--head-hidden",
+    "16",
+    "--ensemble-size",
+    "2",
+    "--quiet",
+]
 
 
 def torchrun(*args: str, nproc: int = 2) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1",
-           "PYTHONPATH": os.pathsep.join(filter(None, [str(TESTS.parent), str(TESTS), os.environ.get("PYTHONPATH")]))}
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(TESTS.parent), str(TESTS), os.environ.get("PYTHONPATH")])),
+    }
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}", *args]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     return done
 
 
-def train_cli(data: Path, out: Path, iterations: int, *, ranks: int, resume: bool = False,
-              extra: list[str] | None = None) -> None:
+def train_cli(
+    data: Path, out: Path, iterations: int, *, ranks: int, resume: bool = False, extra: list[str] | None = None
+) -> None:
     args = ["train", "--data", str(data), "--out", str(out), "--iterations", str(iterations), *RUN, *(extra or [])]
     args += ["--resume"] if resume else []
     if ranks == 1:
@@ -73,8 +100,9 @@ def single(data: Path, tmp_path_factory) -> Path:
     return out
 
 
-def test_two_ranks_follow_the_single_process_loss_curve_in_the_same_format(data: Path, single: Path,
-                                                                             tmp_path: Path) -> None:
+def test_two_ranks_follow_the_single_process_loss_curve_in_the_same_format(
+    data: Path, single: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "ddp.safetensors"
     train_cli(data, out, 6, ranks=2)
     one, two = read_meta(single), read_meta(out)

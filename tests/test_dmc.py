@@ -27,8 +27,10 @@ STEPS = 50
 def datasets(tmp_path_factory) -> dict[str, Path]:
     """Two short random episodes of every domain, collected once."""
     folder = tmp_path_factory.mktemp("dmc")
-    return {env_id: collect(env_id, "random", 2, folder / f"{env_id}.h5", num_envs=2, max_steps=STEPS,
-                            progress=False) for env_id in IDS}
+    return {
+        env_id: collect(env_id, "random", 2, folder / f"{env_id}.h5", num_envs=2, max_steps=STEPS, progress=False)
+        for env_id in IDS
+    }
 
 
 @pytest.mark.parametrize("env_id", IDS)
@@ -46,8 +48,8 @@ def test_spaces_and_state_layout_follow_the_spec(env_id: str) -> None:
     assert env.action_space.shape == (env.physics.model.nu,)
     obs, _ = env.reset(seed=0)
     record = env.record()
-    np.testing.assert_array_equal(obs[:spec.state_dim], record["state"])  # observation = state, then last action
-    np.testing.assert_array_equal(obs[spec.state_dim:], 0.0)
+    np.testing.assert_array_equal(obs[: spec.state_dim], record["state"])  # observation = state, then last action
+    np.testing.assert_array_equal(obs[spec.state_dim :], 0.0)
     data = env.physics.data.ptr
     np.testing.assert_array_equal(record["qpos"], data.qpos)
     if "projected_gravity" in spec.state_slices:  # a free or planar base: unit gravity in the base frame
@@ -57,8 +59,10 @@ def test_spaces_and_state_layout_follow_the_spec(env_id: str) -> None:
         base = mujoco.mj_name2id(env.physics.model.ptr, mujoco.mjtObj.mjOBJ_BODY, spec.base_body)
         assert record["state"][spec.state_slices["base_height"]][0] == pytest.approx(data.xpos[base, 2])
     joint_vel = spec.state_slices["joint_vel"]
-    adr = [env.physics.model.ptr.jnt_dofadr[mujoco.mj_name2id(env.physics.model.ptr, mujoco.mjtObj.mjOBJ_JOINT, j)]
-           for j in spec.state[list(spec.state_slices).index("joint_vel")].columns]
+    adr = [
+        env.physics.model.ptr.jnt_dofadr[mujoco.mj_name2id(env.physics.model.ptr, mujoco.mjtObj.mjOBJ_JOINT, j)]
+        for j in spec.state[list(spec.state_slices).index("joint_vel")].columns
+    ]
     np.testing.assert_allclose(record["state"][joint_vel], data.qvel[adr], rtol=1e-6)
 
 
@@ -105,8 +109,11 @@ def test_contacts_come_from_mujoco_contacts_with_the_partner() -> None:
         env.step(np.zeros(env.action_space.shape))
     contact = env.record()["contact"]
     model, data = env.physics.model.ptr, env.physics.data.ptr
-    touching = {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g])
-                for c in data.contact for g in (c.geom1, c.geom2)}
+    touching = {
+        mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g])
+        for c in data.contact
+        for g in (c.geom1, c.geom2)
+    }
     expected = [body in touching for body in env.task_spec.privileged.contact_bodies]
     np.testing.assert_array_equal(contact, expected)
     assert contact.any()

@@ -12,16 +12,23 @@ from pathlib import Path
 import pytest
 
 import rwm_gym
+from rwm_gym.cli import COMMANDS
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
-USER_TEXT = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md")),
-             *sorted((ROOT / "benchmarks").glob("*.md"))]
+USER_TEXT = [
+    README,
+    ROOT / "CHANGELOG.md",
+    *sorted((ROOT / "docs").rglob("*.md")),
+    *sorted((ROOT / "benchmarks").glob("*.md")),
+]
 CODE_TEXT = sorted((ROOT / "rwm_gym").rglob("*.py"))
 
 # narration of past work: numbered work periods, tracker numbers, run letters and wall-clock times of day
-ORDINALS = ("first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|thirteenth|fourteenth|"
-            "fifteenth|sixteenth|seventeenth|eighteenth|nineteenth|twentieth|thirtieth")
+ORDINALS = (
+    "first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|thirteenth|fourteenth|"
+    "fifteenth|sixteenth|seventeenth|eighteenth|nineteenth|twentieth|thirtieth"
+)
 NARRATION = {
     "a numbered work period": re.compile(rf"\bsessions?\b|\b(twenty-)?({ORDINALS})[ -](session|period|round)\b", re.I),
     "an issue number": re.compile(r"\bissues? #?\d+", re.I),
@@ -37,8 +44,11 @@ def test_readme_is_short() -> None:
 @pytest.mark.parametrize("path", USER_TEXT + CODE_TEXT, ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_narration_of_past_work(path: Path) -> None:
     text = path.read_text()
-    found = [f"{what}: {m.group(0)!r} at line {text[:m.start()].count(chr(10)) + 1}"
-             for what, pattern in NARRATION.items() for m in pattern.finditer(text)]
+    found = [
+        f"{what}: {m.group(0)!r} at line {text[: m.start()].count(chr(10)) + 1}"
+        for what, pattern in NARRATION.items()
+        for m in pattern.finditer(text)
+    ]
     assert not found, "; ".join(found[:5])
 
 
@@ -57,13 +67,20 @@ def test_the_api_page_documents_every_public_name() -> None:
 
 
 def test_mkdocs_build_is_strict_clean(tmp_path: Path) -> None:
-    pytest.importorskip("mkdocs", reason="needs the docs tools: pip install \".[docs]\"")
-    pytest.importorskip("mkdocstrings", reason="needs the docs tools: pip install \".[docs]\"")
+    pytest.importorskip("mkdocs", reason='needs the docs tools: pip install ".[docs]"')
+    pytest.importorskip("mkdocstrings", reason='needs the docs tools: pip install ".[docs]"')
     if shutil.which("git") is None:
         pytest.skip("git not found")
-    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-d", str(tmp_path / "site")],
-                          cwd=ROOT, capture_output=True, text=True, check=False, timeout=300,
-                          env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1",
-                               "NO_MKDOCS_2_WARNING": "1"})
+    done = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-d", str(tmp_path / "site")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=300,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "NO_MKDOCS_2_WARNING": "1"},
+    )
     assert done.returncode == 0, done.stderr[-3000:]
-    assert (tmp_path / "site" / "reference" / "cli" / "index.html").read_text().count("usage: rwm-gym ") == 11
+    assert (tmp_path / "site" / "reference" / "cli" / "index.html").read_text().count("usage: rwm-gym ") == len(
+        COMMANDS
+    )

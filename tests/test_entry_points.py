@@ -18,9 +18,16 @@ def _transitions(data) -> Transition:
     spec, starts = data.spec(), np.ones(data.num_steps, dtype=bool)
     starts[data.episode_starts] = False  # rows that follow a transition
     rows = np.flatnonzero(starts)
-    return Transition(spec, data["state"][rows - 1], data["action"][rows - 1], data["state"][rows],
-                      data["contact"][rows], data["foot_height"][rows], data["command"][rows - 1],
-                      data["action"][rows - 2] * (rows - 2 >= 0)[:, None]), rows
+    return Transition(
+        spec,
+        data["state"][rows - 1],
+        data["action"][rows - 1],
+        data["state"][rows],
+        data["contact"][rows],
+        data["foot_height"][rows],
+        data["command"][rows - 1],
+        data["action"][rows - 2] * (rows - 2 >= 0)[:, None],
+    ), rows
 
 
 def test_the_acrobot_reward_entry_point_equals_the_suite_reward_on_real_states(tmp_path: Path) -> None:
@@ -39,18 +46,22 @@ def test_entry_points_come_from_the_spec_and_arguments_win() -> None:
     spec = parse_spec(base.text + '\n[imagination]\nreward = "tests.acrobot_reward:swingup"\n')
     reward, termination = step_functions(spec, trust=True)
     assert reward.__name__ == "swingup" and termination is None
+
     def mine(t):
         return np.zeros(len(t.next_state))
 
     assert step_functions(spec, reward_fn=mine)[0] is mine
 
 
-@pytest.mark.parametrize("table, message", [
-    ('reward = "no_such_module_xyz:f"', "cannot import 'no_such_module_xyz'"),
-    ('reward = "tests.acrobot_reward:nothing"', "has no function 'nothing'"),
-    ('reward = "just_a_name"', "expected 'module:function'"),
-    ('rewards = "tests.acrobot_reward:swingup"', "unknown field 'rewards'"),
-])
+@pytest.mark.parametrize(
+    "table, message",
+    [
+        ('reward = "no_such_module_xyz:f"', "cannot import 'no_such_module_xyz'"),
+        ('reward = "tests.acrobot_reward:nothing"', "has no function 'nothing'"),
+        ('reward = "just_a_name"', "expected 'module:function'"),
+        ('rewards = "tests.acrobot_reward:swingup"', "unknown field 'rewards'"),
+    ],
+)
 def test_bad_entry_points_fail_in_one_line(table: str, message: str) -> None:
     spec = parse_spec(load_spec("dmc_finger_spin").text + f"\n[imagination]\n{table}\n")
     with pytest.raises(ValueError, match=message) as err:
@@ -61,8 +72,16 @@ def test_bad_entry_points_fail_in_one_line(table: str, message: str) -> None:
 def test_transition_columns_by_name() -> None:
     spec = load_spec("dmc_finger_spin")
     state = np.arange(2 * spec.state_dim, dtype=float).reshape(2, -1)
-    t = Transition(spec, state, np.zeros((2, 2)), state + 100, np.zeros((2, 0), bool), np.zeros((2, 0)),
-                   np.zeros((2, 0)), np.zeros((2, 2)))
+    t = Transition(
+        spec,
+        state,
+        np.zeros((2, 2)),
+        state + 100,
+        np.zeros((2, 0), bool),
+        np.zeros((2, 0)),
+        np.zeros((2, 0)),
+        np.zeros((2, 2)),
+    )
     k = spec.state_columns.index("joint_vel/hinge")
     np.testing.assert_array_equal(t.column("joint_vel/hinge"), state[:, k] + 100)
     np.testing.assert_array_equal(t.column("joint_vel/hinge", before=True), state[:, k])

@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import rwm_gym  # noqa: F401  (registers the envs)
+import rwm_gym
 from rwm_gym.imagination.core import default_checkpoint
 from rwm_gym.task.observation import observation_slices
 from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
@@ -57,9 +57,9 @@ def test_resample_commands_switch_on_the_physics_env():
 @pytest.mark.parametrize("env_id", [PHYSICS, IMAGINED])
 def test_vector_env_holds_the_command_through_auto_resets(env_id):
     vec = make_vec(env_id, 2, **({"episode_steps": 3} if env_id == IMAGINED else {"xml_file": None}))
-    obs, _ = vec.reset(seed=0, options={"command": COMMAND})
+    vec.reset(seed=0, options={"command": COMMAND})
     for _ in range(4):
-        obs, _, terminated, truncated, info = vec.step(np.zeros((2, 12), np.float32))
+        _obs, _, _terminated, _truncated, info = vec.step(np.zeros((2, 12), np.float32))
     np.testing.assert_allclose(info["command"], np.tile(COMMAND, (2, 1)), rtol=1e-6)
 
 
@@ -114,7 +114,7 @@ def test_reset_data_of_another_task_is_refused(tmp_path):
     from rwm_gym.data.collect import collect
 
     other = collect("DMC-Cheetah-Run-v0", "random", 1, tmp_path / "cheetah.h5", max_steps=3, progress=False)
-    with pytest.raises(ValueError, match="reset data .* is of task DMC-Cheetah-Run, the world model .* of AnymalD"):
+    with pytest.raises(ValueError, match=r"reset data .* is of task DMC-Cheetah-Run, the world model .* of AnymalD"):
         gym.make(IMAGINED, reset_data=other)
 
 
@@ -150,8 +150,9 @@ def test_record_video_writes_an_mp4_with_the_video_extra(tmp_path):
         env.render()
     except Exception as err:  # no OpenGL backend on this machine
         pytest.skip(f"offscreen rendering unavailable (set MUJOCO_GL=egl or osmesa): {err}")
-    env = gym.wrappers.RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda episode: True,
-                                   disable_logger=True)
+    env = gym.wrappers.RecordVideo(
+        env, str(tmp_path / "videos"), episode_trigger=lambda episode: True, disable_logger=True
+    )
     env.reset(seed=0)
     for _ in range(10):
         env.step(np.zeros(12, np.float32))
@@ -167,22 +168,32 @@ def test_a_rendering_script_that_forgets_close_exits_without_a_traceback(env_id)
     import sys
     from pathlib import Path
 
-    script = (f"import gymnasium as gym, rwm_gym\nenv = gym.make({env_id!r}, render_mode='rgb_array', width=64, "
-              f"height=48)\nenv.reset(seed=0)\nprint(env.render().shape)\n")
+    script = (
+        f"import gymnasium as gym, rwm_gym\nenv = gym.make({env_id!r}, render_mode='rgb_array', width=64, "
+        f"height=48)\nenv.reset(seed=0)\nprint(env.render().shape)\n"
+    )
     root = str(Path(rwm_gym.__file__).parents[1])
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONPATH": root})
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": root},
+    )
     if done.returncode != 0:
         pytest.skip(f"offscreen rendering unavailable: {done.stderr.strip().splitlines()[-1:]}")
     assert "(48, 64, 3)" in done.stdout
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr
 
 
-@pytest.mark.parametrize(("env_id", "not_imported"), [
-    (PHYSICS, {"stable_baselines3", "torch"}),
-    ("DMC-Cheetah-Run-v0", {"stable_baselines3", "torch"}),
-    (IMAGINED, {"stable_baselines3"}),
-])
+@pytest.mark.parametrize(
+    ("env_id", "not_imported"),
+    [
+        (PHYSICS, {"stable_baselines3", "torch"}),
+        ("DMC-Cheetah-Run-v0", {"stable_baselines3", "torch"}),
+        (IMAGINED, {"stable_baselines3"}),
+    ],
+)
 def test_a_gymnasium_vector_env_does_not_import_sb3(env_id, not_imported):
     """`rwm_gym.vector` keeps each API's adapters in their own module: a Gymnasium user steps physics without SB3 or
     torch, and imagination without SB3."""
@@ -191,12 +202,19 @@ def test_a_gymnasium_vector_env_does_not_import_sb3(env_id, not_imported):
     import sys
     from pathlib import Path
 
-    script = (f"import sys, gymnasium as gym, rwm_gym\n"
-              f"env = gym.make_vec({env_id!r}, num_envs=2, vectorization_mode='vector_entry_point')\n"
-              f"env.reset(seed=0)\nenv.step(env.action_space.sample())\n"
-              f"print(sorted(set({sorted(not_imported)!r}) & set(sys.modules)))\n")
+    script = (
+        f"import sys, gymnasium as gym, rwm_gym\n"
+        f"env = gym.make_vec({env_id!r}, num_envs=2, vectorization_mode='vector_entry_point')\n"
+        f"env.reset(seed=0)\nenv.step(env.action_space.sample())\n"
+        f"print(sorted(set({sorted(not_imported)!r}) & set(sys.modules)))\n"
+    )
     root = str(Path(rwm_gym.__file__).parents[1])
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONPATH": root})
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": root},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "[]"

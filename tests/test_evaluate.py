@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic_dynamics import SPEC, info_for, write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset, write_dataset
@@ -16,8 +17,6 @@ from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.evaluate import EvalConfig, evaluate, evaluate_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, info_for, write_linear_dataset
-
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +35,7 @@ def test_no_change_error_matches_a_hand_computation(data: Path) -> None:
     for e in range(ds.num_episodes):
         z = norm.normalize_state(ds.episode(e)["state"].astype(np.float64))
         for start in range(len(z) - 15 + 1):
-            last, future = z[start + 9], z[start + 10:start + 15]  # prediction = the last history row, 5 steps on
+            last, future = z[start + 9], z[start + 10 : start + 15]  # prediction = the last history row, 5 steps on
             errors.append((np.abs(future - last).sum(-1) / np.abs(future).sum(-1)).mean())
             mean_errors.append((np.abs(future - data_mean).sum(-1) / np.abs(future).sum(-1)).mean())
     assert result["windows"]["5"] == len(errors)
@@ -68,12 +67,20 @@ def test_episodes_that_repeat_training_episodes_are_left_out(data: Path, tmp_pat
     run = TrainConfig(history=8, forecast=4, batch_size=8, iterations=1, val_fraction=0.34)
     train(data, model_config_for("rwm", SPEC, hidden_size=16, num_layers=1, head_hidden=16), run, out, progress=False)
     provenance = read_meta(out).provenance
-    trained, fresh = Dataset.load(data), Dataset.load(write_linear_dataset(tmp_path / "fresh.h5", num_episodes=3,
-                                                                           seed=7))
+    trained, fresh = (
+        Dataset.load(data),
+        Dataset.load(write_linear_dataset(tmp_path / "fresh.h5", num_episodes=3, seed=7)),
+    )
     mixed = tmp_path / "mixed.h5"  # one training episode, one validation episode, three new ones
-    write_dataset(mixed, info_for(SPEC), [trained.episode(provenance["train_episodes"][0]),
-                                          trained.episode(provenance["val_episodes"][0]),
-                                          *(fresh.episode(i) for i in range(3))])
+    write_dataset(
+        mixed,
+        info_for(SPEC),
+        [
+            trained.episode(provenance["train_episodes"][0]),
+            trained.episode(provenance["val_episodes"][0]),
+            *(fresh.episode(i) for i in range(3)),
+        ],
+    )
     config = EvalConfig(history=8, horizons=(4,), max_horizon=4, noise_levels=(), max_windows=64)
     result = evaluate_checkpoint(out, mixed, config, progress=False)
     assert result["episodes"] == 4 and "left out" in result["episode_set"]
@@ -86,8 +93,24 @@ def test_episodes_that_repeat_training_episodes_are_left_out(data: Path, tmp_pat
 
 def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, capsys) -> None:
     ckpt = save_checkpoint(tmp_path / "still.safetensors", build_model(model_config_for("no_change", SPEC)), SPEC)
-    code = main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), "--out", str(tmp_path / "ev"),
-                 "--history", "8", "--horizons", "4", "--noise", "0.1", "--quiet"])
+    code = main(
+        [
+            "evaluate",
+            "--checkpoint",
+            str(ckpt),
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "ev"),
+            "--history",
+            "8",
+            "--horizons",
+            "4",
+            "--noise",
+            "0.1",
+            "--quiet",
+        ]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert "no_change" in printed and "joint_torque" in printed and "noise std" in printed
@@ -97,8 +120,27 @@ def test_cli_prints_table_and_writes_json_and_plot(data: Path, tmp_path: Path, c
     assert (tmp_path / "ev" / "error_vs_horizon.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["evaluate", "--checkpoint", str(tmp_path / "nope.safetensors"), "--data", str(data)]) == 2
     other = write_linear_dataset(tmp_path / "other.h5", num_episodes=3, seed=7)  # several sources, one table each
-    assert main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), str(other), "--out", str(tmp_path / "two"),
-                 "--history", "8", "--horizons", "4", "--noise", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--checkpoint",
+                str(ckpt),
+                "--data",
+                str(data),
+                str(other),
+                "--out",
+                str(tmp_path / "two"),
+                "--history",
+                "8",
+                "--horizons",
+                "4",
+                "--noise",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert capsys.readouterr().out.count("no_change on") == 2
     saved = json.loads((tmp_path / "two" / "evaluation.json").read_text())
     assert set(saved["sources"]) == {"linear", "other"}
@@ -111,13 +153,16 @@ def test_the_plotted_line_meets_every_table_value(data: Path, tmp_path: Path) ->
 
     ds = Dataset.load(data)
     config = EvalConfig(history=10, horizons=(3, 8), max_horizon=20, noise_levels=(), max_windows=7)
-    result = evaluate(build_model(model_config_for("no_change", SPEC)), ds, Normalizer.from_spec(SPEC), SPEC, config,
-                      progress=False)
+    result = evaluate(
+        build_model(model_config_for("no_change", SPEC)), ds, Normalizer.from_spec(SPEC), SPEC, config, progress=False
+    )
     by_horizon = result["running_mean_by_horizon"]
     assert sorted(by_horizon, key=int) == [str(n) for n in result["horizons"]]
     for key, error in result["error"].items():
         assert len(by_horizon[key]) == int(key) and by_horizon[key][-1] == pytest.approx(error, rel=1e-6)
     longest = str(result["longest"])  # the older single curve, over the longest horizon's windows, misses them
-    assert any(abs(result["running_mean"][int(k) - 1] - result["error"][k]) > 1e-6 for k in result["error"] if k != longest)
+    assert any(
+        abs(result["running_mean"][int(k) - 1] - result["error"][k]) > 1e-6 for k in result["error"] if k != longest
+    )
     plot_running_mean({"no change": result}, tmp_path / "plot.png")
     assert (tmp_path / "plot.png").stat().st_size > 0

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from script_loader import BENCHMARKS, EXAMPLES, load_script
 
 
@@ -31,8 +30,20 @@ def test_cleanrl_ppo_trains_on_the_imagined_vector_env(tmp_path):
     from safetensors.torch import load_file
 
     example = load_example("cleanrl_ppo")
-    args = example.parse_args(["--num-envs", "4", "--num-steps", "8", "--total-steps", "96", "--episode-steps", "10",
-                               "--out", str(tmp_path / "actor.safetensors")])
+    args = example.parse_args(
+        [
+            "--num-envs",
+            "4",
+            "--num-steps",
+            "8",
+            "--total-steps",
+            "96",
+            "--episode-steps",
+            "10",
+            "--out",
+            str(tmp_path / "actor.safetensors"),
+        ]
+    )
     result = example.main(args)
     assert result["steps"] == 96 and len(result["mean_step_reward"]) == 3
     assert all(math.isfinite(r) for r in result["mean_step_reward"])
@@ -51,8 +62,20 @@ def test_cleanrl_ppo_trains_on_the_imagined_vector_env(tmp_path):
 def test_cleanrl_ppo_adapts_its_learning_rate_to_the_kl(tmp_path):
     """rsl_rl's schedule: every update whose KL is above twice the target divides lr by 1.5, below half multiplies."""
     example = load_example("cleanrl_ppo")
-    base = ["--num-envs", "4", "--num-steps", "8", "--total-steps", "96", "--episode-steps", "10",
-            "--learning-rate", "1e-3", "--out", str(tmp_path / "actor.safetensors")]
+    base = [
+        "--num-envs",
+        "4",
+        "--num-steps",
+        "8",
+        "--total-steps",
+        "96",
+        "--episode-steps",
+        "10",
+        "--learning-rate",
+        "1e-3",
+        "--out",
+        str(tmp_path / "actor.safetensors"),
+    ]
     assert example.main(example.parse_args([*base, "--target-kl", "1e-12"]))["lr"] == pytest.approx(1e-3 / 1.5**3)
     assert example.main(example.parse_args([*base, "--target-kl", "100"]))["lr"] == pytest.approx(1e-3 * 1.5**3)
     assert example.main(example.parse_args([*base, "--target-kl", "0"]))["lr"] == 1e-3
@@ -86,8 +109,22 @@ def test_cleanrl_ppo_actor_is_scored_in_physics(tmp_path):
     from rwm_gym.rl.score import score
 
     example = load_example("cleanrl_ppo")
-    example.main(example.parse_args(["--num-envs", "4", "--num-steps", "8", "--total-steps", "32",
-                                     "--episode-steps", "10", "--out", str(tmp_path / "actor.safetensors")]))
+    example.main(
+        example.parse_args(
+            [
+                "--num-envs",
+                "4",
+                "--num-steps",
+                "8",
+                "--total-steps",
+                "32",
+                "--episode-steps",
+                "10",
+                "--out",
+                str(tmp_path / "actor.safetensors"),
+            ]
+        )
+    )
     evaluation = score(example.load_actor(tmp_path / "actor.safetensors"), seeds=1, steps=5, num_random=0)
     assert evaluation.episodes == 2 and 0.0 <= evaluation.tracking <= 1.0
 
@@ -100,9 +137,24 @@ def test_cleanrl_ppo_takes_the_walking_recipes_settings(tmp_path):
     example = load_example("cleanrl_ppo")
     assert torch.allclose(example.Agent([0.0] * 48, [1.0] * 48, 12, log_std_init=-1.0).log_std, torch.full((12,), -1.0))
     model = assets_dir() / "checkpoints" / "anymal_d_rwm_mbpo.safetensors"
-    recipe = ["--checkpoint", str(model), "--num-envs", "8", "--num-steps", "8", "--total-steps", "64",
-              "--uncertainty-penalty", "10", "--uncertainty-halt", "1e-9", "--log-std-init", "-1",
-              "--out", str(tmp_path / "actor.safetensors")]
+    recipe = [
+        "--checkpoint",
+        str(model),
+        "--num-envs",
+        "8",
+        "--num-steps",
+        "8",
+        "--total-steps",
+        "64",
+        "--uncertainty-penalty",
+        "10",
+        "--uncertainty-halt",
+        "1e-9",
+        "--log-std-init",
+        "-1",
+        "--out",
+        str(tmp_path / "actor.safetensors"),
+    ]
     clipped = example.main(example.parse_args([*recipe, "--positive-reward-only"]))["mean_step_reward"]
     raw = example.main(example.parse_args(recipe))["mean_step_reward"]
     assert min(clipped) >= 0.0 > min(raw)
@@ -118,11 +170,23 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     import subprocess
 
     out = tmp_path / "qs"
-    tiny = ["--timesteps", "64", "--num-envs", "8", "--score-seeds", "1", "--score-steps", "20", "--no-video",
-            "--out", str(out)]
+    tiny = [
+        "--timesteps",
+        "64",
+        "--num-envs",
+        "8",
+        "--score-seeds",
+        "1",
+        "--score-steps",
+        "20",
+        "--no-video",
+        "--out",
+        str(out),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    run = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
-                         env=env, timeout=600)
+    run = subprocess.run(
+        [sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True, env=env, timeout=600
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     lines = run.stdout.splitlines()
     assert len(lines) <= 20 and lines[-1].startswith("VERDICT: it does not walk yet")
@@ -139,8 +203,9 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     expected = {k: v for k, v in shipped["env"]["imagination"].items() if v is not None}
     assert state["env"]["imagination"] in (expected, {**expected, "matmul_precision": "bfloat16"})
     # the same command again finds the run finished instead of starting over
-    again = subprocess.run([sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True,
-                           env=env, timeout=600)
+    again = subprocess.run(
+        [sys.executable, str(EXAMPLES / "quickstart.py"), *tiny], capture_output=True, text=True, env=env, timeout=600
+    )
     assert again.returncode == 0, again.stderr[-2000:]
     assert "already has its 64 steps" in again.stdout
     assert json.loads((out / "run" / "state.json").read_text())["timesteps"] == state["timesteps"]
@@ -150,9 +215,31 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
 def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
     """The GPU pipeline's logic on tiny budgets with --device cpu (no GPU on CI; the script is written for one)."""
     example = load_example("gpu_pipeline")
-    timings = example.main(["--device", "cpu", "--out", str(tmp_path), "--episodes", "4", "--episode-steps", "80",
-                            "--num-envs", "2", "--workers", "2", "--iterations", "4", "--batch-size", "8",
-                            "--ppo-timesteps", "256", "--ppo-envs", "8", "--no-ppo-eval"])
+    timings = example.main(
+        [
+            "--device",
+            "cpu",
+            "--out",
+            str(tmp_path),
+            "--episodes",
+            "4",
+            "--episode-steps",
+            "80",
+            "--num-envs",
+            "2",
+            "--workers",
+            "2",
+            "--iterations",
+            "4",
+            "--batch-size",
+            "8",
+            "--ppo-timesteps",
+            "256",
+            "--ppo-envs",
+            "8",
+            "--no-ppo-eval",
+        ]
+    )
     assert list(timings["stages"]) == ["collect_gait", "collect_random", "train", "evaluate", "ppo"]
     assert (tmp_path / "rwm.safetensors").is_file() and (tmp_path / "policy.zip").is_file()
     assert (tmp_path / "timings.json").is_file()
@@ -161,8 +248,20 @@ def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
 def test_rsl_rl_example_trains_in_imagination_and_scores_in_physics(tmp_path):
     pytest.importorskip("rsl_rl", reason="rsl-rl-lib is not installed (pip install '.[rsl-rl]')")
     example = load_example("rsl_rl_imagination")
-    args = example.parse_args(["--num-envs", "4", "--iterations", "1", "--episode-steps", "10", "--log-dir",
-                               str(tmp_path), "--score-steps", "10"])
+    args = example.parse_args(
+        [
+            "--num-envs",
+            "4",
+            "--iterations",
+            "1",
+            "--episode-steps",
+            "10",
+            "--log-dir",
+            str(tmp_path),
+            "--score-steps",
+            "10",
+        ]
+    )
     result = example.main(args)
     assert result["imagined_steps"] == 4 * 24
     assert 0.0 <= result["tracking"] <= 1.0 and 0.0 <= result["floor"] <= 1.0
@@ -179,32 +278,66 @@ def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(
     assert module.n_mf(module.MODEL_FREE) == 32_243_712
     run = tmp_path / "run"
     run.mkdir()
-    log = [{"iteration": 0, "physics_samples": 1000, "tracking": 0.2, "falls": 0},
-           {"iteration": 1, "physics_samples": 3000, "tracking": 0.85, "falls": 2}]
+    log = [
+        {"iteration": 0, "physics_samples": 1000, "tracking": 0.2, "falls": 0},
+        {"iteration": 1, "physics_samples": 3000, "tracking": 0.85, "falls": 2},
+    ]
     (run / "mbpo.json").write_text(json.dumps({"log": log}))
-    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "500",
-                                      "--out", str(tmp_path / "fig")])
+    monkeypatch.setattr(
+        sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "500", "--out", str(tmp_path / "fig")]
+    )
     module.main()
     rows = list(csv.DictReader((tmp_path / "fig.csv").open()))
     assert [int(r["physics_samples"]) for r in rows] == [1500, 3500]
     assert float(rows[1]["fraction_of_n_mf"]) == pytest.approx(3500 / 32_243_712)
     assert (tmp_path / "fig.png").stat().st_size > 0
     assert "best tracking 0.850 (2 falls) at iteration 1, 3,500 physics samples" in capsys.readouterr().out
-    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "1", "2",
-                                      "--out", str(tmp_path / "fig")])
+    monkeypatch.setattr(
+        sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--prior", "1", "2", "--out", str(tmp_path / "fig")]
+    )
     with pytest.raises(SystemExit):
         module.main()
     # a run whose folder is gone is drawn from the CSV written for it, beside a new one
-    monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--labels", "new",
-                                      "--earlier", str(tmp_path / "fig.csv"), "ru", "--out", str(tmp_path / "both")])
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "mbpo_samples.py",
+            "--runs",
+            str(run),
+            "--labels",
+            "new",
+            "--earlier",
+            str(tmp_path / "fig.csv"),
+            "ru",
+            "--out",
+            str(tmp_path / "both"),
+        ],
+    )
     module.main()
     rows = list(csv.DictReader((tmp_path / "both.csv").open()))
-    assert [(r["run"], int(r["physics_samples"])) for r in rows] == [("run", 1500), ("run", 3500), ("new", 1000),
-                                                                      ("new", 3000)]
+    assert [(r["run"], int(r["physics_samples"])) for r in rows] == [
+        ("run", 1500),
+        ("run", 3500),
+        ("new", 1000),
+        ("new", 3000),
+    ]
     for name in ("B", ""):  # no run, or more than one, named like it
-        monkeypatch.setattr(sys, "argv", ["mbpo_samples.py", "--runs", str(run), "--earlier",
-                                          str(tmp_path / "both.csv"), name, "--out", str(tmp_path / "x")])
-        with pytest.raises(SystemExit, match="no run named|more than one run"):
+        monkeypatch.setattr(
+            sys,
+            "argv",
+            [
+                "mbpo_samples.py",
+                "--runs",
+                str(run),
+                "--earlier",
+                str(tmp_path / "both.csv"),
+                name,
+                "--out",
+                str(tmp_path / "x"),
+            ],
+        )
+        with pytest.raises(SystemExit, match=r"no run named|more than one run"):
             module.main()
 
 
@@ -234,17 +367,48 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
     from rwm_gym.model.train import train
     from rwm_gym.spec import load_spec
 
-    base = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "base.h5", seed=0, num_envs=4, max_steps=40,
-                   progress=False)
+    base = collect(
+        "AnymalD-MuJoCo-v0", "random", 4, tmp_path / "base.h5", seed=0, num_envs=4, max_steps=40, progress=False
+    )
     config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32)
-    start = train(base, config, TrainConfig(history=8, forecast=4, iterations=20, batch_size=16, val_every=20,
-                                            val_fraction=0.25, lr=1e-3), tmp_path / "start.safetensors",
-                  progress=False).path
+    start = train(
+        base,
+        config,
+        TrainConfig(history=8, forecast=4, iterations=20, batch_size=16, val_every=20, val_fraction=0.25, lr=1e-3),
+        tmp_path / "start.safetensors",
+        progress=False,
+    ).path
     example = load_example("make_coverage_model")
     out = tmp_path / "cover"
-    argv = ["--policies", "zero", "random", "--noise", "0.0", "0.3", "--episodes", "2", "--max-steps", "30",
-            "--iterations", "4", "--lr", "5e-4", "--seed", "3", "--first-seed", "500", "--threads", "1", "--quiet",
-            "--base", str(base), "--checkpoint", str(start), "--out", str(out)]
+    argv = [
+        "--policies",
+        "zero",
+        "random",
+        "--noise",
+        "0.0",
+        "0.3",
+        "--episodes",
+        "2",
+        "--max-steps",
+        "30",
+        "--iterations",
+        "4",
+        "--lr",
+        "5e-4",
+        "--seed",
+        "3",
+        "--first-seed",
+        "500",
+        "--threads",
+        "1",
+        "--quiet",
+        "--base",
+        str(base),
+        "--checkpoint",
+        str(start),
+        "--out",
+        str(out),
+    ]
     model = example.main(argv)
 
     parts = sorted((out / "own").glob("part_*.h5"))
@@ -253,8 +417,17 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
     assert Dataset.load(out / "buffer.h5").num_steps == Dataset.load(base).num_steps + own_rows
     meta, started = read_meta(model), read_meta(start)
     assert meta.train_config == started.train_config.__class__(
-        **{**vars(started.train_config), "iterations": 4, "lr": 5e-4, "seed": 3, "val_every": 1,
-           "checkpoint_every": 100, "minutes": 0.0, "device": "cpu"})
+        **{
+            **vars(started.train_config),
+            "iterations": 4,
+            "lr": 5e-4,
+            "seed": 3,
+            "val_every": 1,
+            "checkpoint_every": 100,
+            "minutes": 0.0,
+            "device": "cpu",
+        }
+    )
     assert meta.provenance["init_checkpoint"] == str(start) and meta.stats["iterations"] == 4
     rows = meta.extras["physics_rows"]
     assert rows["own"] == own_rows and rows["total"] == rows["start_model"] + rows["base"] + own_rows

@@ -18,15 +18,34 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-
-import rwm_gym  # noqa: F401  (registers the envs)
-from rwm_gym.cli import main
-from rwm_gym.resources import assets_dir
 from synthetic_dynamics import SPEC, info_for, linear_episodes, write_linear_dataset
 
+import rwm_gym
+from rwm_gym.cli import main
+from rwm_gym.resources import assets_dir
+
 SHIPPED_POLICIES = sorted((assets_dir() / "policies").glob("*.zip"))
-TINY_TRAIN = ["--model", "rwm", "--iterations", "2", "--history", "4", "--forecast", "2", "--batch-size", "4",
-              "--hidden-size", "8", "--num-layers", "1", "--head-hidden", "8", "--val-fraction", "0.25", "--quiet"]
+TINY_TRAIN = [
+    "--model",
+    "rwm",
+    "--iterations",
+    "2",
+    "--history",
+    "4",
+    "--forecast",
+    "2",
+    "--batch-size",
+    "4",
+    "--hidden-size",
+    "8",
+    "--num-layers",
+    "1",
+    "--head-hidden",
+    "8",
+    "--val-fraction",
+    "0.25",
+    "--quiet",
+]
 
 
 def one_line_error(capsys, *words: str) -> str:
@@ -57,8 +76,10 @@ def malicious_zip(folder: Path, key: str = "lr_schedule") -> tuple[Path, Path]:
             payload = src.read(info)
             if info.filename == "data":
                 data = json.loads(payload)
-                data[key] = {":type:": "<class 'object'>",
-                             ":serialized:": base64.b64encode(cloudpickle.dumps(_RunsCode(marker))).decode()}
+                data[key] = {
+                    ":type:": "<class 'object'>",
+                    ":serialized:": base64.b64encode(cloudpickle.dumps(_RunsCode(marker))).decode(),
+                }
                 payload = json.dumps(data).encode()
             out.writestr(info, payload)
     return evil, marker
@@ -78,6 +99,7 @@ def checkpoint(data: Path, tmp_path_factory) -> Path:
 
 # X1: policy zips ----------------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("key", ["lr_schedule", "observation_space", "policy_kwargs"])
 def test_a_malicious_policy_zip_runs_nothing_through_any_loader(tmp_path: Path, key: str) -> None:
     from rwm_gym.policies.factory import make_policy
@@ -92,13 +114,29 @@ def test_a_malicious_policy_zip_runs_nothing_through_any_loader(tmp_path: Path, 
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("command", [
-    ["score", "--policy", "{evil}", "--out", "{tmp}/score", "--seeds", "1", "--commands", "0", "--steps", "2"],
-    ["collect", "--policy", "{evil}", "--out", "{tmp}/d.h5", "--episodes", "1", "--max-steps", "2", "--num-envs", "1"],
-    ["make-measured", "--policy", "{evil}", "--out", "{tmp}/m.h5", "--episodes", "1", "--max-steps", "2"],
-])
-def test_commands_given_a_malicious_policy_zip_fail_in_one_line_and_run_nothing(tmp_path: Path, capsys,
-                                                                                command) -> None:
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["score", "--policy", "{evil}", "--out", "{tmp}/score", "--seeds", "1", "--commands", "0", "--steps", "2"],
+        [
+            "collect",
+            "--policy",
+            "{evil}",
+            "--out",
+            "{tmp}/d.h5",
+            "--episodes",
+            "1",
+            "--max-steps",
+            "2",
+            "--num-envs",
+            "1",
+        ],
+        ["make-measured", "--policy", "{evil}", "--out", "{tmp}/m.h5", "--episodes", "1", "--max-steps", "2"],
+    ],
+)
+def test_commands_given_a_malicious_policy_zip_fail_in_one_line_and_run_nothing(
+    tmp_path: Path, capsys, command
+) -> None:
     evil, marker = malicious_zip(tmp_path)
     assert main([c.format(evil=evil, tmp=tmp_path) for c in command]) == 2
     one_line_error(capsys, "lr_schedule")
@@ -108,8 +146,11 @@ def test_commands_given_a_malicious_policy_zip_fail_in_one_line_and_run_nothing(
 def test_no_module_loads_sb3_zips_any_other_way() -> None:
     """mbpo --init-policy, ppo's resume and --keep-best, ...: every load goes through the safe loader."""
     package = Path(rwm_gym.__file__).parent
-    offenders = [str(p.relative_to(package)) for p in package.rglob("*.py")
-                 if p.name != "safe_zip.py" and "PPO.load(" in p.read_text().replace("`PPO.load(", "")]
+    offenders = [
+        str(p.relative_to(package))
+        for p in package.rglob("*.py")
+        if p.name != "safe_zip.py" and "PPO.load(" in p.read_text().replace("`PPO.load(", "")
+    ]
     assert offenders == []
 
 
@@ -134,8 +175,9 @@ def test_a_training_run_zip_with_its_run_state_loads_safely(tmp_path: Path) -> N
 
     from rwm_gym.rl.safe_zip import load_policy
 
-    model = PPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2), n_steps=128, batch_size=64, n_epochs=1,
-                device="cpu")
+    model = PPO(
+        "MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2), n_steps=128, batch_size=64, n_epochs=1, device="cpu"
+    )
     model.learn(512)
     model.save(tmp_path / "p.zip")
     loaded = load_policy(tmp_path / "p.zip")
@@ -150,31 +192,70 @@ def _pendulum_policy(path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("make, words", [
-    (lambda folder: (folder / "p.zip").write_text("not a zip") and folder / "p.zip", ["not a readable"]),
-    (lambda folder: (folder / "p.zip").write_bytes(SHIPPED_POLICIES[0].read_bytes()[:3000]) and folder / "p.zip",
-     ["not a readable"]),
-    (lambda folder: _pendulum_policy(folder / "p.zip"), ["observations (3,)", "(48,)"]),
-])
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda folder: (folder / "p.zip").write_text("not a zip") and folder / "p.zip", ["not a readable"]),
+        (
+            lambda folder: (folder / "p.zip").write_bytes(SHIPPED_POLICIES[0].read_bytes()[:3000]) and folder / "p.zip",
+            ["not a readable"],
+        ),
+        (lambda folder: _pendulum_policy(folder / "p.zip"), ["observations (3,)", "(48,)"]),
+    ],
+)
 def test_policy_files_that_are_not_anymal_policies_fail_in_one_line(tmp_path: Path, capsys, make, words) -> None:
     policy = make(tmp_path)
-    assert main(["collect", "--policy", str(policy), "--out", str(tmp_path / "d.h5"), "--episodes", "1",
-                 "--max-steps", "2", "--num-envs", "1"]) == 2
+    assert (
+        main(
+            [
+                "collect",
+                "--policy",
+                str(policy),
+                "--out",
+                str(tmp_path / "d.h5"),
+                "--episodes",
+                "1",
+                "--max-steps",
+                "2",
+                "--num-envs",
+                "1",
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, *words)
-    assert main(["score", "--policy", str(policy), "--out", str(tmp_path / "s"), "--seeds", "1", "--commands", "0",
-                 "--steps", "2"]) == 2
+    assert (
+        main(
+            [
+                "score",
+                "--policy",
+                str(policy),
+                "--out",
+                str(tmp_path / "s"),
+                "--seeds",
+                "1",
+                "--commands",
+                "0",
+                "--steps",
+                "2",
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, *words)
 
 
 # X2: entry points carried by files -----------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def entry_point_checkpoint(tmp_path: Path, monkeypatch) -> tuple[Path, Path, Path]:
     """(checkpoint, its data, marker): the data's spec names `planted:reward`, a module that writes the marker
     when imported, found on sys.path as a module in the working directory would be."""
     marker = tmp_path / "imported.txt"
-    (tmp_path / "planted.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n"
-                                         "def reward(t):\n    return t.next_state[:, 0] * 0\n")
+    (tmp_path / "planted.py").write_text(
+        f"open({str(marker)!r}, 'w').write('ran')\ndef reward(t):\n    return t.next_state[:, 0] * 0\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     spec_text = SPEC.text + '\n[imagination]\nreward = "planted:reward"\n'
     from rwm_gym.data.dataset import write_dataset
@@ -210,17 +291,42 @@ def test_a_checkpoint_naming_an_entry_point_imports_nothing_unless_trusted(entry
 def test_ppo_on_a_checkpoint_naming_an_entry_point_refuses_it_in_one_line(entry_point_checkpoint, capsys) -> None:
     checkpoint, data, marker = entry_point_checkpoint
     with pytest.raises(SystemExit) as stop:
-        main(["ppo", "--checkpoint", str(checkpoint), "--reset-data", str(data), "--timesteps", "64",
-              "--out", str(checkpoint.with_name("p.zip")), "--no-eval"])
+        main(
+            [
+                "ppo",
+                "--checkpoint",
+                str(checkpoint),
+                "--reset-data",
+                str(data),
+                "--timesteps",
+                "64",
+                "--out",
+                str(checkpoint.with_name("p.zip")),
+                "--no-eval",
+            ]
+        )
     assert "module 'planted'" in str(stop.value) and "--trust-entry-points" in str(stop.value)
     assert not marker.exists()
 
 
 # Outputs never clobber inputs or each other ------------------------------------------------------------------------
 
+
 def _collect(out: Path, *extra: str) -> list[str]:
-    return ["collect", "--policy", "zero", "--episodes", "1", "--max-steps", "3", "--num-envs", "1",
-            "--out", str(out), *extra]
+    return [
+        "collect",
+        "--policy",
+        "zero",
+        "--episodes",
+        "1",
+        "--max-steps",
+        "3",
+        "--num-envs",
+        "1",
+        "--out",
+        str(out),
+        *extra,
+    ]
 
 
 def test_l1_a_failed_collect_overwrite_keeps_the_good_file(tmp_path: Path, capsys, monkeypatch) -> None:
@@ -270,8 +376,7 @@ def test_l2_train_refuses_its_dataset_as_out(data: Path, tmp_path: Path, capsys)
     assert Path(copy).read_bytes() == before
 
 
-def test_l3_l4_ppo_refuses_its_checkpoint_as_out_and_an_existing_out(checkpoint: Path, tmp_path: Path,
-                                                                     capsys) -> None:
+def test_l3_l4_ppo_refuses_its_checkpoint_as_out_and_an_existing_out(checkpoint: Path, tmp_path: Path, capsys) -> None:
     model = Path(shutil.copy(checkpoint, tmp_path / "m.safetensors"))
     before = model.read_bytes()
     with pytest.raises(SystemExit) as stop:
@@ -311,8 +416,7 @@ def test_l6_l7_a_second_writer_of_the_same_out_fails_at_once(data: Path, tmp_pat
     out = tmp_path / ("d.h5" if command == "collect" else "m.safetensors")
     fd = _lock(lock_path(resolved(out)), out)
     try:
-        argv = _collect(out) if command == "collect" else ["train", "--data", str(data), "--out", str(out),
-                                                           *TINY_TRAIN]
+        argv = _collect(out) if command == "collect" else ["train", "--data", str(data), "--out", str(out), *TINY_TRAIN]
         assert main(argv) == 2
         one_line_error(capsys, "being written by another run")
         assert not out.exists()
@@ -334,9 +438,10 @@ def test_orphaned_temp_files_are_removed_by_the_next_write(tmp_path: Path) -> No
 
 
 @pytest.mark.parametrize("out", ["{tmp}/a_file/m.safetensors", "{tmp}"])
-def test_unwritable_or_odd_outs_fail_before_the_run_in_one_line(data: Path, tmp_path: Path, capsys,
-                                                                monkeypatch, out) -> None:
-    import rwm_gym.model.train_command as train_command
+def test_unwritable_or_odd_outs_fail_before_the_run_in_one_line(
+    data: Path, tmp_path: Path, capsys, monkeypatch, out
+) -> None:
+    import rwm_gym.commands.train as train_command
 
     (tmp_path / "a_file").write_text("")
     monkeypatch.setattr(train_command, "train", lambda *a, **k: pytest.fail("the run started"))
@@ -347,8 +452,7 @@ def test_unwritable_or_odd_outs_fail_before_the_run_in_one_line(data: Path, tmp_
     assert "is a file" in str(stop.value)
 
 
-def test_a_full_disk_while_saving_a_checkpoint_is_one_line(data: Path, tmp_path: Path, capsys,
-                                                           monkeypatch) -> None:
+def test_a_full_disk_while_saving_a_checkpoint_is_one_line(data: Path, tmp_path: Path, capsys, monkeypatch) -> None:
     import rwm_gym.model.checkpoint as checkpoint_module
 
     def disk_full(tensors, path, metadata=None):
@@ -363,12 +467,19 @@ def test_a_full_disk_while_saving_a_checkpoint_is_one_line(data: Path, tmp_path:
 
 # Fail early and in one line ----------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("argv", [
-    ["ppo", "--timesteps", "-100"], ["ppo", "--minutes", "-1"], ["ppo", "--minutes", "nan"],
-    ["mbpo", "--data", "d.h5", "--out", "r", "--iterations", "0"],
-    ["mbpo", "--data", "d.h5", "--out", "r", "--iterations", "-2"],
-    ["collect", "--out", "d.h5", "--action-noise", "nan"], ["collect", "--out", "d.h5", "--action-noise", "-1"],
-])
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["ppo", "--timesteps", "-100"],
+        ["ppo", "--minutes", "-1"],
+        ["ppo", "--minutes", "nan"],
+        ["mbpo", "--data", "d.h5", "--out", "r", "--iterations", "0"],
+        ["mbpo", "--data", "d.h5", "--out", "r", "--iterations", "-2"],
+        ["collect", "--out", "d.h5", "--action-noise", "nan"],
+        ["collect", "--out", "d.h5", "--action-noise", "-1"],
+    ],
+)
 def test_bad_counts_and_amounts_are_refused_by_the_parser(argv, capsys, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)  # were an option let through, its run writes here
     with pytest.raises(SystemExit) as stop:
@@ -395,21 +506,23 @@ def test_collect_refuses_non_finite_physics(tmp_path: Path, capsys, physics: str
 
 
 def test_evaluate_refuses_a_horizon_past_its_cap(checkpoint: Path, data: Path, capsys) -> None:
-    assert main(["evaluate", "--checkpoint", str(checkpoint), "--data", str(data), "--horizons", "100000",
-                 "--quiet"]) == 2
+    assert (
+        main(["evaluate", "--checkpoint", str(checkpoint), "--data", str(data), "--horizons", "100000", "--quiet"]) == 2
+    )
     one_line_error(capsys, "100000")
 
 
 @pytest.mark.parametrize("damage", ["nan weight", "zero std"])
-def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_at_load(checkpoint: Path, tmp_path: Path,
-                                                                      damage: str) -> None:
+def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_at_load(
+    checkpoint: Path, tmp_path: Path, damage: str
+) -> None:
     from safetensors import safe_open
     from safetensors.torch import save_file
 
     from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
 
     with safe_open(checkpoint, "pt") as f:
-        tensors, meta = {k: f.get_tensor(k) for k in f.keys()}, f.metadata()  # noqa: SIM118
+        tensors, meta = {k: f.get_tensor(k) for k in f.keys()}, f.metadata()
     name = next(k for k in tensors if k.startswith("model/")) if damage == "nan weight" else "norm/state_std"
     tensors[name] = torch.full_like(tensors[name], float("nan") if damage == "nan weight" else 0.0)
     save_file(tensors, tmp_path / "bad.safetensors", metadata=meta)
@@ -418,15 +531,15 @@ def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_at_load(checkpoint
 
 
 def test_train_resume_without_a_file_is_an_error(data: Path, tmp_path: Path, capsys) -> None:
-    assert main(["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), "--resume",
-                 *TINY_TRAIN]) == 2
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), "--resume", *TINY_TRAIN]) == 2
     one_line_error(capsys, "nothing to resume")
 
 
 @pytest.mark.parametrize("option", [["--hidden-size", "100000"], ["--batch-size", str(10**7)]])
-def test_a_model_too_big_for_the_machine_is_refused_before_allocating(data: Path, tmp_path: Path, capsys,
-                                                                      monkeypatch, option) -> None:
-    import rwm_gym.model.train_command as train_command
+def test_a_model_too_big_for_the_machine_is_refused_before_allocating(
+    data: Path, tmp_path: Path, capsys, monkeypatch, option
+) -> None:
+    import rwm_gym.commands.train as train_command
 
     monkeypatch.setattr(train_command, "train", lambda *a, **k: pytest.fail("the run started"))  # never allocate
     argv = ["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), *TINY_TRAIN, *option]

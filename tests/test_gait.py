@@ -6,10 +6,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from rwm_gym.policies.gait import GaitPolicy
-from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.physics.locomotion import LocomotionCore
 from rwm_gym.physics.params import build_model
+from rwm_gym.policies.gait import GaitPolicy
+from rwm_gym.policies.leg_kinematics import LegKinematics
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")

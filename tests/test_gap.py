@@ -63,8 +63,10 @@ def test_measured_data_hides_the_effect(tmp_path):
     data = Dataset.load(path)
     windows = make_windows(data, np.arange(2), 5, 4)
     resim = Resimulator(SPEC)
-    errors = [float((normalised_residual(SPEC, resim.rollout(windows, p), windows.target) ** 2).mean())
-              for p in (PhysicsParams(), PhysicsParams(armature=0.1))]
+    errors = [
+        float((normalised_residual(SPEC, resim.rollout(windows, p), windows.target) ** 2).mean())
+        for p in (PhysicsParams(), PhysicsParams(armature=0.1))
+    ]
     assert errors[1] < 0.5 * errors[0]
 
 
@@ -79,8 +81,15 @@ def test_resimulation_reproduces_noise_free_data_exactly(tmp_path, physics):
 
 
 def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
-    params = PhysicsParams(joint_friction=1.5, armature=0.05, action_delay=0.01, payload_mass=5.0,
-                           payload_com=(0.1, 0.0, 0.0), motor_strength=0.9, ground_friction=0.5)
+    params = PhysicsParams(
+        joint_friction=1.5,
+        armature=0.05,
+        action_delay=0.01,
+        payload_mass=5.0,
+        payload_com=(0.1, 0.0, 0.0),
+        motor_strength=0.9,
+        ground_friction=0.5,
+    )
     paths = write_corrected(SPEC, params, tmp_path)
     assert PhysicsParams.from_dict(json.loads(open(paths["physics"]).read())["physics"]) == params
     written, direct = mujoco.MjModel.from_xml_path(paths["mjcf"]), build_model(SPEC, params=params)
@@ -94,10 +103,14 @@ def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
     np.testing.assert_allclose(runs[0], runs[1], atol=2e-3)  # MJCF holds 6 significant digits
 
 
-@pytest.mark.parametrize("params", [
-    PhysicsParams(joint_friction=1.3, joint_damping=0.7, armature=tuple(np.linspace(0.0, 0.1, 12))),
-    PhysicsParams(payload_mass=3.0, payload_com=(0.1, 0.0, 0.05), ground_friction=0.4, motor_strength=0.8),
-    PhysicsParams(action_delay=0.005, kp_scale=1.2, kd_scale=0.5, torque_limit=50.0)])
+@pytest.mark.parametrize(
+    "params",
+    [
+        PhysicsParams(joint_friction=1.3, joint_damping=0.7, armature=tuple(np.linspace(0.0, 0.1, 12))),
+        PhysicsParams(payload_mass=3.0, payload_com=(0.1, 0.0, 0.05), ground_friction=0.4, motor_strength=0.8),
+        PhysicsParams(action_delay=0.005, kp_scale=1.2, kd_scale=0.5, torque_limit=50.0),
+    ],
+)
 def test_model_cache_gives_the_compiled_model(params):
     """The gap fit's cache writes parameters into a once-compiled structure; every field must equal a fresh compile."""
     cache = ModelCache(SPEC, solver=CONVERGED_SOLVER)
@@ -120,8 +133,11 @@ def test_backlash_is_a_dead_band_of_the_position_error():
     q = qpos[0, band.qpos_adr]
     ctrl[0, band.actuator_ids] = q + np.linspace(-0.05, 0.05, 12)
     rewritten = band.control(ctrl, qpos)[0, band.actuator_ids] - q
-    np.testing.assert_allclose(rewritten, np.sign(ctrl[0, band.actuator_ids] - q) *
-                               np.maximum(np.abs(ctrl[0, band.actuator_ids] - q) - 0.01, 0.0), atol=1e-12)
+    np.testing.assert_allclose(
+        rewritten,
+        np.sign(ctrl[0, band.actuator_ids] - q) * np.maximum(np.abs(ctrl[0, band.actuator_ids] - q) - 0.01, 0.0),
+        atol=1e-12,
+    )
     assert DeadBand.from_model(model, SPEC.actuator.joints, np.zeros(12)) is None
     with pytest.raises(ValueError, match="backlash"):
         DeadBand.from_model(model, SPEC.actuator.joints, np.full(12, -0.01))
@@ -149,22 +165,28 @@ def _tiny_world_model(path):
 
     data = collect(SIM, "gait", 4, path.parent / "nominal.h5", max_steps=80, num_envs=4, progress=False)
     config = model_config_for("rwm", SPEC, hidden_size=16, num_layers=1, head_hidden=16)
-    train(data, config, TrainConfig(history=8, forecast=4, batch_size=8, iterations=20, val_every=20,
-                                    checkpoint_every=20), path, progress=False)
+    train(
+        data,
+        config,
+        TrainConfig(history=8, forecast=4, batch_size=8, iterations=20, val_every=20, checkpoint_every=20),
+        path,
+        progress=False,
+    )
     return path
 
 
-TINY_WM = WorldModelGapConfig(episodes=2, max_steps=60, iterations=20, batch_size=8, forecast=4, history=8,
-                              horizons=(1, 5, 25))
+TINY_WM = WorldModelGapConfig(
+    episodes=2, max_steps=60, iterations=20, batch_size=8, forecast=4, history=8, horizons=(1, 5, 25)
+)
 
 
-def _hidden_and_check(tmp_path, name: str, scale: float = 1.0, episodes: int = 6, steps: int = 150,
-                      world_model=None):
+def _hidden_and_check(tmp_path, name: str, scale: float = 1.0, episodes: int = 6, steps: int = 150, world_model=None):
     effect = EFFECTS[name]
     p = effect.parameters[0]
     true = p.nominal + scale * (p.default - p.nominal)
-    data = make_measured({name: effect.values_from_magnitude(true)}, episodes, tmp_path / "m.h5", max_steps=steps,
-                         progress=False)
+    data = make_measured(
+        {name: effect.values_from_magnitude(true)}, episodes, tmp_path / "m.h5", max_steps=steps, progress=False
+    )
     report = run_gap(SIM, data, tmp_path / "report", progress=False, world_model=world_model, wm_config=TINY_WM)
     assert report["effect"] == name, report["reason"]
     assert report["scope"] == "global"  # a global effect is not taken for a per-leg one
@@ -178,12 +200,19 @@ EPISODES = {"backlash": 9}
 """Measured episodes per test where 6 leave too few held-out blocks for the significance test."""
 
 
-
 @pytest.mark.parametrize("name", [n for n in EFFECT_NAMES if n != "backlash"])
 def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name):
     report = _hidden_and_check(tmp_path, name, episodes=EPISODES.get(name, 6))
-    assert set(report) >= {"effect", "parameters", "explained_fraction", "gap_before", "gap_after", "where",
-                           "corrected", "plots"}
+    assert set(report) >= {
+        "effect",
+        "parameters",
+        "explained_fraction",
+        "gap_before",
+        "gap_after",
+        "where",
+        "corrected",
+        "plots",
+    }
 
 
 def test_a_robot_that_collapses_within_a_second_is_scored_on_the_steps_it_has(tmp_path):
@@ -201,14 +230,23 @@ def test_a_robot_that_collapses_within_a_second_is_scored_on_the_steps_it_has(tm
 
 def test_backlash_workflow_and_world_model_rows(tmp_path):
     """Backlash hidden: named, fitted, written as an env option; then the world-model rows with a tiny model."""
-    report = _hidden_and_check(tmp_path, "backlash", episodes=EPISODES["backlash"],
-                               world_model=_tiny_world_model(tmp_path / "tiny.safetensors"))
+    report = _hidden_and_check(
+        tmp_path,
+        "backlash",
+        episodes=EPISODES["backlash"],
+        world_model=_tiny_world_model(tmp_path / "tiny.safetensors"),
+    )
     corrected = json.loads(open(report["corrected"]["physics"]).read())["physics"]
     assert corrected["backlash"] == pytest.approx(report["parameters"]["backlash"])
     assert "backlash" in open(report["corrected"]["mjcf"]).read().split("<mujoco")[0]
     wm = report["world_model"]
-    assert set(wm["error"]) == {"nominal_sim", "corrected_sim", "world_model_nominal", "world_model_corrected",
-                                "world_model_control"}
+    assert set(wm["error"]) == {
+        "nominal_sim",
+        "corrected_sim",
+        "world_model_nominal",
+        "world_model_corrected",
+        "world_model_control",
+    }
     assert list(wm["windows"]) == ["1", "5", "25"] and all(n > 0 for n in wm["windows"].values())
     for n in wm["windows"]:
         assert wm["error"]["corrected_sim"][n] < wm["error"]["nominal_sim"][n]
@@ -220,8 +258,12 @@ def test_backlash_workflow_and_world_model_rows(tmp_path):
 def test_per_leg_form_of_joint_effects():
     assert leg_groups(SPEC) == {"LF": [0, 1, 2], "RF": [3, 4, 5], "LH": [6, 7, 8], "RH": [9, 10, 11]}
     leg = per_leg(EFFECTS["joint_friction"], SPEC)
-    assert [p.name for p in leg.parameters] == ["joint_friction_LF", "joint_friction_RF", "joint_friction_LH",
-                                                "joint_friction_RH"]
+    assert [p.name for p in leg.parameters] == [
+        "joint_friction_LF",
+        "joint_friction_RF",
+        "joint_friction_LH",
+        "joint_friction_RH",
+    ]
     assert leg.physics([1.0, 2.0, 3.0, 4.0]).joint_friction == (1.0,) * 3 + (2.0,) * 3 + (3.0,) * 3 + (4.0,) * 3
     assert per_leg(EFFECTS["torque_limit"], SPEC).physics([10, 20, 30, 40]).torque_limit[3:6] == (20.0,) * 3
     assert per_leg(EFFECTS["payload"], SPEC) is None and per_leg(EFFECTS["action_delay"], SPEC) is None
@@ -229,8 +271,9 @@ def test_per_leg_form_of_joint_effects():
 
 def test_workflow_finds_friction_in_one_leg(tmp_path):
     true = [6.0] * 3 + [0.0] * 9  # N·m, the LF leg only
-    data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true},
-                         progress=False)
+    data = make_measured(
+        {}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true}, progress=False
+    )
     report = run_gap(SIM, data, tmp_path / "report", progress=False)
     assert (report["effect"], report["scope"]) == ("joint_friction", "leg"), report["reason"]
     fitted = report["parameters"]
@@ -261,15 +304,22 @@ def test_cli_without_effect_says_none(tmp_path, capsys):
 
 _KNOWN_LIMITS = {
     ("torque_limit", 0.5): "56 N·m is reached in few windows: on 6 episodes even the cross-fitted test misses "
-                           "p < 0.01 / candidates (p = 0.004), so none; the grid's 9 episodes name it",
+    "p < 0.01 / candidates (p = 0.004), so none; the grid's 9 episodes name it",
     ("torque_limit", 2.0): "clipped to 8 N·m the robot collapses: no episode is long enough for held-out windows",
     ("backlash", 0.5): "0.015 rad lies at the sensor-noise floor: named on the grid's 9 episodes, not always on 6",
 }
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,scale", [
-    pytest.param(n, s, marks=pytest.mark.xfail(reason=_KNOWN_LIMITS[n, s], strict=False)) if (n, s) in _KNOWN_LIMITS
-    else (n, s) for s in (0.5, 2.0) for n in EFFECT_NAMES])
+@pytest.mark.parametrize(
+    "name,scale",
+    [
+        pytest.param(n, s, marks=pytest.mark.xfail(reason=_KNOWN_LIMITS[n, s], strict=False))
+        if (n, s) in _KNOWN_LIMITS
+        else (n, s)
+        for s in (0.5, 2.0)
+        for n in EFFECT_NAMES
+    ],
+)
 def test_workflow_other_magnitudes(tmp_path, name, scale):
     _hidden_and_check(tmp_path, name, scale, episodes=EPISODES.get(name, 6))

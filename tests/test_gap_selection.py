@@ -16,13 +16,17 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
-from rwm_gym.gap.learned import (LearnedCorrectionConfig, LinearResidualTorque, group_matrix, load_correction,
-                                 save_correction)
+from rwm_gym.gap.learned import (
+    LearnedCorrectionConfig,
+    LinearResidualTorque,
+    group_matrix,
+    load_correction,
+    save_correction,
+)
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows
-from rwm_gym.gap.scope import (JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates,
-                               scoped)
+from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
 from rwm_gym.spec import load_spec
@@ -52,8 +56,16 @@ def test_blow_up_is_rejected_with_mujocos_reason(nominal_data, capfd):
     damping = EFFECTS["joint_damping"]
     train = make_windows(nominal_data, np.arange(3), 5, 8)
     rejected: list[str] = []
-    fit = fit_effect(damping, resim, train, PhysicsParams(), FitConfig(max_evaluations=3), np.array([500.0]),
-                     (499.0, 500.0), rejected)
+    fit = fit_effect(
+        damping,
+        resim,
+        train,
+        PhysicsParams(),
+        FitConfig(max_evaluations=3),
+        np.array([500.0]),
+        (499.0, 500.0),
+        rejected,
+    )
     assert rejected and all("joint_damping=" in r and "QACC" in r for r in rejected)
     before = gap_per_window(SPEC, resim.rollout(windows, PhysicsParams()), windows)
     fit.values = [500.0]
@@ -96,12 +108,16 @@ def test_spring_model_edits_the_mjcf(tmp_path):
 
 
 @pytest.mark.slow  # a known limit that costs ~50 s: kept out of the default run
-@pytest.mark.xfail(strict=False, reason="measured on 6 episodes with the pyramidal-cone MJCF: 'unexplained' (global "
-                   "friction 21 %, p=0.12); the 9-episode grid case named it (KFE, error 9 %)")
+@pytest.mark.xfail(
+    strict=False,
+    reason="measured on 6 episodes with the pyramidal-cone MJCF: 'unexplained' (global "
+    "friction 21 %, p=0.12); the 9-episode grid case named it (KFE, error 9 %)",
+)
 def test_friction_in_one_joint_type_is_named_per_joint_type(tmp_path):
     true = [0.0, 0.0, 4.0] * 4  # N·m, the knees (KFE) only
-    data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true},
-                         progress=False)
+    data = make_measured(
+        {}, 6, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true}, progress=False
+    )
     report = run_gap(SIM, data, tmp_path / "report", progress=False, fit_config=FitConfig(scopes=("joint_type",)))
     assert report["noise_floor"]["above_floor"]
     assert (report["effect"], report["scope"]) == ("joint_friction", "joint_type"), report["reason"]
@@ -113,10 +129,17 @@ def test_friction_in_one_joint_type_is_named_per_joint_type(tmp_path):
 
 @pytest.mark.slow  # two selection steps and a joint refit on 9 episodes: the heaviest gap test
 def test_two_effects_are_named_in_order_with_their_shares(tmp_path):
-    data = make_measured({"joint_friction": [3.0], "payload": [8.0, 0.1, 0.0]}, 9, tmp_path / "m.h5",
-                         max_steps=150, progress=False)
-    report = run_gap(SIM, data, tmp_path / "report", progress=False, fit_config=FitConfig(scopes=()),
-                     config=GapConfig(learned_correction=False))
+    data = make_measured(
+        {"joint_friction": [3.0], "payload": [8.0, 0.1, 0.0]}, 9, tmp_path / "m.h5", max_steps=150, progress=False
+    )
+    report = run_gap(
+        SIM,
+        data,
+        tmp_path / "report",
+        progress=False,
+        fit_config=FitConfig(scopes=()),
+        config=GapConfig(learned_correction=False),
+    )
     named = [e["effect"] for e in report["effects"]]
     assert sorted(named) == ["joint_friction", "payload"], report["reason"]
     assert sum(e["share_of_explained_gap"] for e in report["effects"]) == pytest.approx(1.0)
@@ -129,8 +152,7 @@ def test_what_is_left_is_judged_against_the_corrected_simulators_floor(tmp_path)
     """Floor friction 0.3 under the walking gait: the feet slip, and the same sensor noise carries about 3x further
     than in the nominal simulator. Named and fitted right, the effect leaves a gap above the nominal floor that is
     noise under the corrected simulator; it is judged against that floor, so no residual torque is learned for it."""
-    data = make_measured({"ground_friction": [0.3]}, 9, tmp_path / "m.h5", max_steps=150, policy="gait",
-                         progress=False)
+    data = make_measured({"ground_friction": [0.3]}, 9, tmp_path / "m.h5", max_steps=150, policy="gait", progress=False)
     report = run_gap(SIM, data, tmp_path / "report", progress=False)
     assert report["effect"] == "ground_friction", report["reason"]
     assert abs(report["parameters"]["ground_friction"] - 0.3) <= 0.25 * 0.7
@@ -146,8 +168,9 @@ def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     `none`), and the learned residual torque shrinks the held-out gap; the report says it is learned, and its knee
     weight is the spring (N·m per rad of deflection), while the other joint types get none. Walking data."""
     xml = write_spring_model(SPEC, tmp_path / "spring.xml", "KFE", 30.0)
-    data = make_measured({}, 6, tmp_path / "m.h5", max_steps=150, env_kwargs={"xml_file": str(xml)},
-                         policy="gait", progress=False)
+    data = make_measured(
+        {}, 6, tmp_path / "m.h5", max_steps=150, env_kwargs={"xml_file": str(xml)}, policy="gait", progress=False
+    )
     report = run_gap(SIM, data, tmp_path / "report", progress=False)
     assert report["noise_floor"]["above_floor"] and report["noise_floor"]["ratio"] > 2
     assert report["effect"] == "unexplained" and report["effects"] == [], report["reason"]
@@ -195,8 +218,11 @@ def test_friction_in_one_joint_is_found_at_that_joint(tmp_path):
     knee = SPEC.actuator.joints.index("LF_KFE")
     true = np.zeros(12)
     true[knee] = 6.0  # N·m
-    data = Dataset.load(make_measured({}, 8, tmp_path / "m.h5", max_steps=150,
-                                      extra_physics={"joint_friction": true.tolist()}, progress=False))
+    data = Dataset.load(
+        make_measured(
+            {}, 8, tmp_path / "m.h5", max_steps=150, extra_physics={"joint_friction": true.tolist()}, progress=False
+        )
+    )
     train_ids, held_ids = data.split_episodes(GapConfig.val_fraction, GapConfig.split_seed)
     train, held = make_windows(data, train_ids, 5, GapConfig.fit_stride), make_windows(data, held_ids, 25, 5)
     resim, base, config = Resimulator(SPEC), PhysicsParams(), FitConfig()
@@ -235,12 +261,18 @@ def test_the_two_best_joint_effects_that_reduce_the_gap_are_fitted_in_their_scop
     from rwm_gym.gap.fit import CandidateFit
 
     def fitted(name, score, status="ok"):
-        return CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, explained_fraction=score, score=score,
-                            status=status)
+        return CandidateFit(
+            name, [name], ["1"], [1.0], [0.1], 0.0, explained_fraction=score, score=score, status=status
+        )
 
-    fits = [fitted("payload", 0.5), fitted("joint_damping", 0.2), fitted("joint_friction", 0.1),
-            fitted("motor_strength", 0.05), fitted("armature", -0.3),
-            fitted("backlash", 0.4, status="rejected: blew up")]
+    fits = [
+        fitted("payload", 0.5),
+        fitted("joint_damping", 0.2),
+        fitted("joint_friction", 0.1),
+        fitted("motor_strength", 0.05),
+        fitted("armature", -0.3),
+        fitted("backlash", 0.4, status="rejected: blew up"),
+    ]
     tried = []
     monkeypatch.setattr(scope, "_scoped_fits", lambda best, effect, *args: tried.append(effect.name) or [])
     monkeypatch.setattr(scope, "outlying_joint", lambda *args: None)
@@ -263,7 +295,7 @@ def test_a_large_gap_on_short_held_out_episodes_can_still_be_significant():
     floor = np.full(12, 0.01)
     gap = floor + np.linspace(1.0, 2.0, 12)  # every window far above the floor
     assert paired_p_value(gap, floor, windows, block_rows=25) < 0.01
-    assert 2.0 ** -MIN_BLOCKS < 0.01
+    assert 2.0**-MIN_BLOCKS < 0.01
     assert paired_p_value(floor, gap, windows, block_rows=25) > 0.5  # and a gap below it is not
 
 
@@ -290,13 +322,23 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
     from rwm_gym.gap.fit import CandidateFit
 
     def fitted(name, values, score):
-        return CandidateFit(name, [name] * len(values), ["1"] * len(values), list(values), [0.1] * len(values), 0.0,
-                            explained_fraction=score, score=score)
+        return CandidateFit(
+            name,
+            [name] * len(values),
+            ["1"] * len(values),
+            list(values),
+            [0.1] * len(values),
+            0.0,
+            explained_fraction=score,
+            score=score,
+        )
 
     named = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8))]
-    candidates = [(EFFECTS["action_delay"], fitted("action_delay", [0.005], 0.10)),
-                  (EFFECTS["payload"], fitted("payload", [1.0, 0.0, 0.0], 0.05)),
-                  (EFFECTS["joint_damping"], fitted("joint_damping", [0.5], 0.01))]
+    candidates = [
+        (EFFECTS["action_delay"], fitted("action_delay", [0.005], 0.10)),
+        (EFFECTS["payload"], fitted("payload", [1.0, 0.0, 0.0], 0.05)),
+        (EFFECTS["joint_damping"], fitted("joint_damping", [0.5], 0.01)),
+    ]
     joint_gap = {"action_delay": 0.2, "payload": 0.99}  # held-out gap of each joint fit, `current` being 1.0
     seen = []
 
@@ -313,39 +355,49 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
 
     monkeypatch.setattr(select, "fit_effect", fake_fit)
     monkeypatch.setattr(select, "score_fit", fake_score)
-    out = select.joint_candidates(candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)),
-                                  FitConfig())
+    out = select.joint_candidates(
+        candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig()
+    )
     assert seen == ["armature+action_delay", "armature+payload"]  # the two best, not joint_damping
     delay, payload, damping = (fit for _, fit in out)
     assert delay.named_refit == [[0.05]] and delay.values == [0.005]
     assert delay.score == pytest.approx(0.8) and delay.p_value == 1e-4
     assert payload is candidates[1][1]  # 1 - 0.99 x 1.2 charged for its 3 parameters: worse than fitted alone
     assert damping is candidates[2][1] and damping.named_refit is None
-    assert select.named_params(named, out[0], PhysicsParams(), PhysicsParams()) == \
-        EFFECTS["armature"].physics([0.05], PhysicsParams())
+    assert select.named_params(named, out[0], PhysicsParams(), PhysicsParams()) == EFFECTS["armature"].physics(
+        [0.05], PhysicsParams()
+    )
     # the best of the step before (not named, here joint_damping) is fitted jointly too, from its value there
     seen.clear()
-    earlier = [(EFFECTS["armature"], fitted("armature", [0.1], 0.8)),
-               (EFFECTS["joint_damping"], fitted("joint_damping", [0.7], 0.6))]
+    earlier = [
+        (EFFECTS["armature"], fitted("armature", [0.1], 0.8)),
+        (EFFECTS["joint_damping"], fitted("joint_damping", [0.7], 0.6)),
+    ]
     joint_gap["joint_damping"] = 0.5
     starts = []
-    monkeypatch.setattr(select, "fit_effect", lambda effect, *args, **kwargs: starts.append(list(args[4])) or
-                        fake_fit(effect, *args, **kwargs))
-    out = select.joint_candidates(candidates, named, earlier, None, None, None, PhysicsParams(), np.ones((4, 3)),
-                                  FitConfig())
+    monkeypatch.setattr(
+        select,
+        "fit_effect",
+        lambda effect, *args, **kwargs: starts.append(list(args[4])) or fake_fit(effect, *args, **kwargs),
+    )
+    out = select.joint_candidates(
+        candidates, named, earlier, None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig()
+    )
     assert seen == ["armature+action_delay", "armature+payload", "armature+joint_damping"]
     assert starts[-1] == [0.1, 0.7] and out[2][1].named_refit == [[0.05]]
 
 
-@pytest.mark.parametrize("p_value,floor_ratio,explained,named", [
-    (1e-4, 1.2, 0.25, True),    # the whole gap is not above the floor, but the candidate's own test is, Bonferroni
-    (5e-3, 1.2, 0.25, False),   # significant alone, not over the step's candidates: none
-    (1e-4, 0.9, 0.25, False),   # the gap is below the floor: nothing is left to explain
-    (5e-3, 3.0, 0.25, True),    # above the floor: a quarter of the gap is 37 % of what lies above it
-    (5e-3, 3.0, 0.15, False),   # ... but 15 % of the gap is 22 % of that: too little
-])
-def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, p_value, floor_ratio, explained,
-                                                                   named):
+@pytest.mark.parametrize(
+    "p_value,floor_ratio,explained,named",
+    [
+        (1e-4, 1.2, 0.25, True),  # the whole gap is not above the floor, but the candidate's own test is, Bonferroni
+        (5e-3, 1.2, 0.25, False),  # significant alone, not over the step's candidates: none
+        (1e-4, 0.9, 0.25, False),  # the gap is below the floor: nothing is left to explain
+        (5e-3, 3.0, 0.25, True),  # above the floor: a quarter of the gap is 37 % of what lies above it
+        (5e-3, 3.0, 0.15, False),  # ... but 15 % of the gap is 22 % of that: too little
+    ],
+)
+def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, p_value, floor_ratio, explained, named):
     """A small backlash or torque limit shows in a few windows: the gap as a whole is not significantly above the
     sensor-noise floor, though fitting the effect removes a significant part of it. Step 1 asks each candidate's own
     held-out test then (at the significance over the number of candidates); the share it must explain is of the gap
@@ -357,14 +409,27 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     above = floor_ratio >= 2.0
 
     def test_floor(gap, floor, held, block_rows, config):
-        return {"gap": float(gap.mean()), "floor": float(floor.mean()), "ratio": floor_ratio, "p_value": 0.3,
-                "above_floor": above and gap.mean() > 0.9}
+        return {
+            "gap": float(gap.mean()),
+            "floor": float(floor.mean()),
+            "ratio": floor_ratio,
+            "p_value": 0.3,
+            "above_floor": above and gap.mean() > 0.9,
+        }
 
     def fits(effects, *args):
         out = []
         for i, name in enumerate(effects):
-            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=1.0 - (explained if i == 0 else 0.0),
-                               p_value=p_value if i == 0 else 1.0)
+            fit = CandidateFit(
+                name,
+                [name],
+                ["1"],
+                [1.0],
+                [0.1],
+                0.0,
+                gap_mean=1.0 - (explained if i == 0 else 0.0),
+                p_value=p_value if i == 0 else 1.0,
+            )
             fit.explained_fraction = fit.score = 1.0 - fit.gap_mean
             out.append(fit)
         return out
@@ -376,21 +441,26 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("backlash", "joint_friction", "armature", "payload")}
-    selection = select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), before, floor, FitConfig(),
-                                      progress=False)
+    selection = select.select_effects(
+        effects, SPEC, resim, None, None, PhysicsParams(), before, floor, FitConfig(), progress=False
+    )
     assert selection.verdict == ("backlash" if named else "none" if not above else "unexplained"), selection.reason
     if not above:
         assert "Bonferroni" in selection.reason and "p < 0.0025" in selection.reason
 
 
-@pytest.mark.parametrize("cross_p,with_cross,named,best_gap", [
-    (1e-4, True, True, 0.75),    # fails on the held-out third alone (p=5e-3 > 0.0025), passes on every episode
-    (5e-3, True, False, 0.75),   # the cross-fitted test is not stronger: none
-    (1e-4, False, False, 0.75),  # no swapped windows: the held-out test alone decides
-    (1e-4, True, False, 1.0),    # the best explains nothing (a nominal case): no second test, nothing built for it
-])
-def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypatch, cross_p, with_cross, named,
-                                                                         best_gap):
+@pytest.mark.parametrize(
+    "cross_p,with_cross,named,best_gap",
+    [
+        (1e-4, True, True, 0.75),  # fails on the held-out third alone (p=5e-3 > 0.0025), passes on every episode
+        (5e-3, True, False, 0.75),  # the cross-fitted test is not stronger: none
+        (1e-4, False, False, 0.75),  # no swapped windows: the held-out test alone decides
+        (1e-4, True, False, 1.0),  # the best explains nothing (a nominal case): no second test, nothing built for it
+    ],
+)
+def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
+    monkeypatch, cross_p, with_cross, named, best_gap
+):
     """A 0.5x torque limit removes most of a gap near the floor, but three held-out episodes hold too few blocks for
     p < 0.01 over the step's candidates. The best candidate is then tested on every episode (2-fold cross-fitting),
     and named if that test passes at the same Bonferroni level; the reason says which test decided."""
@@ -400,26 +470,55 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(monkeypa
     def fits(effects, *args):
         out = []
         for i, name in enumerate(effects):
-            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=best_gap if i == 0 else 1.0,
-                               p_value=5e-3 if i == 0 else 1.0)
+            fit = CandidateFit(
+                name,
+                [name],
+                ["1"],
+                [1.0],
+                [0.1],
+                0.0,
+                gap_mean=best_gap if i == 0 else 1.0,
+                p_value=5e-3 if i == 0 else 1.0,
+            )
             fit.explained_fraction = fit.score = 1.0 - fit.gap_mean
             out.append(fit)
         return out
 
     tested = []
-    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
-        "gap": float(gap.mean()), "floor": 0.8, "ratio": 1.25, "p_value": 0.3, "above_floor": False})
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, *args: {
+            "gap": float(gap.mean()),
+            "floor": 0.8,
+            "ratio": 1.25,
+            "p_value": 0.3,
+            "above_floor": False,
+        },
+    )
     monkeypatch.setattr(select, "fit_all", fits)
     monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.75))
-    monkeypatch.setattr(select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect)
-                        or cross_p)
+    monkeypatch.setattr(
+        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p
+    )
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
     built = []
     cross = (lambda: built.append(1) or select.CrossFit(None, None)) if with_cross else None
-    selection = select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
-                                      np.full((20, 3), 0.8), FitConfig(), progress=False, cross=cross)
+    selection = select.select_effects(
+        effects,
+        SPEC,
+        resim,
+        None,
+        None,
+        PhysicsParams(),
+        np.ones((20, 3)),
+        np.full((20, 3), 0.8),
+        FitConfig(),
+        progress=False,
+        cross=cross,
+    )
     needed = with_cross and best_gap < 1.0
     assert tested == (["torque_limit"] if needed else [])
     assert built == ([1] if needed else [])  # the swapped windows are built once, and only when the test needs them
@@ -436,9 +535,18 @@ def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monke
 
     def windows(episodes, rows=4):
         w = len(episodes) * rows
-        return Windows(np.repeat(episodes, rows), np.tile(np.arange(rows) * 25, len(episodes)), np.zeros((w, 3, 2)),
-                       np.zeros((w, 3, 2)), np.zeros((w, 27, 12)), np.zeros((w, 5)), np.zeros((w, 25, 5)),
-                       np.zeros((w, 4)), horizon=25, warmup=2)
+        return Windows(
+            np.repeat(episodes, rows),
+            np.tile(np.arange(rows) * 25, len(episodes)),
+            np.zeros((w, 3, 2)),
+            np.zeros((w, 3, 2)),
+            np.zeros((w, 27, 12)),
+            np.zeros((w, 5)),
+            np.zeros((w, 25, 5)),
+            np.zeros((w, 4)),
+            horizon=25,
+            warmup=2,
+        )
 
     held, fit_here, score_here = windows([7, 8]), windows([7, 8]), windows([0, 1, 2, 3])
     fitted_on, seen = [], {}
@@ -456,14 +564,23 @@ def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monke
     monkeypatch.setattr(select, "fit_effect", fake_fit)
     monkeypatch.setattr(select, "paired_p_value", fake_p)
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, w: np.full((len(w), 3), sim))
-    resim = SimpleNamespace(spec=SPEC, rollout=lambda w, params: rollout_of[id(w)] * (
-        0.5 if params.torque_limit is not None else 1.0))
+    resim = SimpleNamespace(
+        spec=SPEC, rollout=lambda w, params: rollout_of[id(w)] * (0.5 if params.torque_limit is not None else 1.0)
+    )
     candidate = (effect, CandidateFit("torque_limit", ["t"], ["N·m"], [56.0], [1.0], 0.0))
-    p = select.cross_fitted_p_value(candidate, resim, held, select.CrossFit(fit_here, score_here), PhysicsParams(),
-                                    np.ones((len(held), 3)), FitConfig(), 0.001)
+    p = select.cross_fitted_p_value(
+        candidate,
+        resim,
+        held,
+        select.CrossFit(fit_here, score_here),
+        PhysicsParams(),
+        np.ones((len(held), 3)),
+        FitConfig(),
+        0.001,
+    )
     assert p == 1e-5 and fitted_on == [fit_here]
     assert seen["episodes"] == {0, 1, 2, 3, 7, 8}
-    np.testing.assert_allclose(seen["larger"], [1.0] * 8 + [2.0] * 16)   # nominal: held, then the fitting episodes
+    np.testing.assert_allclose(seen["larger"], [1.0] * 8 + [2.0] * 16)  # nominal: held, then the fitting episodes
     np.testing.assert_allclose(seen["smaller"], [0.5] * 8 + [1.0] * 16)  # with the effect at each direction's fit
 
 
@@ -475,14 +592,30 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     from rwm_gym.gap.fit import CandidateFit
 
     def fitted(name, explained, status="ok", scope_name="global", p_value=1.0):
-        return CandidateFit(name, [name], ["1"], [0.0], [0.1], 0.0, gap_mean=1.0 - explained,
-                            explained_fraction=explained, score=explained, p_value=p_value, status=status,
-                            scope=scope_name)
+        return CandidateFit(
+            name,
+            [name],
+            ["1"],
+            [0.0],
+            [0.1],
+            0.0,
+            gap_mean=1.0 - explained,
+            explained_fraction=explained,
+            score=explained,
+            p_value=p_value,
+            status=status,
+            scope=scope_name,
+        )
 
     tried = []
     monkeypatch.setattr(scope, "_scoped_fits", lambda best, effect, *args: tried.append(effect.name) or [])
-    fits = [fitted("payload", 0.0), fitted("joint_damping", 0.0), fitted("armature", -0.1),
-            fitted("backlash", 0.0, status="rejected: blew up"), fitted("joint_friction", 0.2)]
+    fits = [
+        fitted("payload", 0.0),
+        fitted("joint_damping", 0.0),
+        fitted("armature", -0.1),
+        fitted("backlash", 0.0, status="rejected: blew up"),
+        fitted("joint_friction", 0.2),
+    ]
     scope.every_scope(fits, {"joint_friction"}, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig())
     assert tried == ["joint_damping", "armature"]
 
@@ -491,24 +624,47 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
 
     def every(fits, scoped, *args):
         calls.append(sorted(scoped))
-        return [(scope.scoped(EFFECTS["armature"], SPEC, "joint_type"),
-                 fitted("armature", 0.5, scope_name="joint_type", p_value=1e-4))]
+        return [
+            (
+                scope.scoped(EFFECTS["armature"], SPEC, "joint_type"),
+                fitted("armature", 0.5, scope_name="joint_type", p_value=1e-4),
+            )
+        ]
 
-    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
-        "gap": float(gap.mean()), "floor": 0.2, "ratio": 5.0, "p_value": 1e-4 if above[0] else 0.3,
-        "above_floor": above[0] and gap.mean() > 0.9})
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, *args: {
+            "gap": float(gap.mean()),
+            "floor": 0.2,
+            "ratio": 5.0,
+            "p_value": 1e-4 if above[0] else 0.3,
+            "above_floor": above[0] and gap.mean() > 0.9,
+        },
+    )
     monkeypatch.setattr(select, "fit_all", lambda effects, *args: [fitted(n, 0.0) for n in effects])
     monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
     monkeypatch.setattr(select, "every_scope", every)
-    monkeypatch.setattr(select, "joint_refit", lambda named, resim, train, held, base, current, config: (
-        named, base, current, None))
+    monkeypatch.setattr(
+        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    )
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("armature", "joint_damping", "payload")}
 
     def run(config=FitConfig()):
-        return select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
-                                     np.full((20, 3), 0.2), config, progress=False)
+        return select.select_effects(
+            effects,
+            SPEC,
+            resim,
+            None,
+            None,
+            PhysicsParams(),
+            np.ones((20, 3)),
+            np.full((20, 3), 0.2),
+            config,
+            progress=False,
+        )
 
     selection = run()
     assert (selection.verdict, selection.named[0][1].scope) == ("armature", "joint_type")
@@ -526,8 +682,18 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
     from rwm_gym.gap.fit import CandidateFit
 
     def fitted(name, explained, p_value=1.0):
-        return CandidateFit(name, [name], ["1"], [0.0], [0.1], 0.0, gap_mean=1.0 - explained,
-                            explained_fraction=explained, score=explained, p_value=p_value)
+        return CandidateFit(
+            name,
+            [name],
+            ["1"],
+            [0.0],
+            [0.1],
+            0.0,
+            gap_mean=1.0 - explained,
+            explained_fraction=explained,
+            score=explained,
+            p_value=p_value,
+        )
 
     refine_calls = []
 
@@ -537,8 +703,17 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
             return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.1 * len(effects) / 4)]
         return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.6, 1e-4)]
 
-    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
-        "gap": float(gap.mean()), "floor": 0.01, "ratio": 50.0, "p_value": 1e-4, "above_floor": gap.mean() > 0.9})
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, *args: {
+            "gap": float(gap.mean()),
+            "floor": 0.01,
+            "ratio": 50.0,
+            "p_value": 1e-4,
+            "above_floor": gap.mean() > 0.9,
+        },
+    )
     monkeypatch.setattr(select, "fit_all", fit_all)
     monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
     monkeypatch.setattr(select, "every_scope", lambda *args: [])
@@ -548,8 +723,18 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
 
     def run(config=None):
         refine_calls.clear()
-        return select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
-                                     np.full((20, 3), 0.01), config or FitConfig(), progress=False)
+        return select.select_effects(
+            effects,
+            SPEC,
+            resim,
+            None,
+            None,
+            PhysicsParams(),
+            np.ones((20, 3)),
+            np.full((20, 3), 0.01),
+            config or FitConfig(),
+            progress=False,
+        )
 
     selection = run()
     assert selection.verdict == "ground_friction" and refine_calls == [None, 4]  # step 2 starts below the floor
@@ -568,16 +753,40 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
     per_type = scoped(EFFECTS["armature"], SPEC, "joint_type")
 
     def fitted(name, explained, values, scope_name="global"):
-        return CandidateFit(name, [name] * len(values), ["kg·m²"] * len(values), values, [0.1] * len(values), 0.0,
-                            gap_mean=1.0 - explained, explained_fraction=explained, score=explained, p_value=1e-4,
-                            scope=scope_name)
+        return CandidateFit(
+            name,
+            [name] * len(values),
+            ["kg·m²"] * len(values),
+            values,
+            [0.1] * len(values),
+            0.0,
+            gap_mean=1.0 - explained,
+            explained_fraction=explained,
+            score=explained,
+            p_value=1e-4,
+            scope=scope_name,
+        )
 
     refits = []
-    monkeypatch.setattr(select, "compare_with_floor", lambda gap, *args: {
-        "gap": float(gap.mean()), "floor": 0.01, "ratio": 50.0, "p_value": 1e-4, "above_floor": gap.mean() > 0.9})
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, *args: {
+            "gap": float(gap.mean()),
+            "floor": 0.01,
+            "ratio": 50.0,
+            "p_value": 1e-4,
+            "above_floor": gap.mean() > 0.9,
+        },
+    )
     monkeypatch.setattr(select, "fit_all", lambda effects, *args: [fitted(n, 0.0, [0.0]) for n in effects])
-    monkeypatch.setattr(select, "joint_refit", lambda named, resim, train, held, base, current, config: (
-        refits.append([e.name for e, _ in named]) or (named, base, current, {"kept": True})))
+    monkeypatch.setattr(
+        select,
+        "joint_refit",
+        lambda named, resim, train, held, base, current, config: (
+            refits.append([e.name for e, _ in named]) or (named, base, current, {"kept": True})
+        ),
+    )
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("armature", "joint_damping")}
@@ -585,8 +794,18 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
     def run(candidate, config):
         refits.clear()
         monkeypatch.setattr(select, "scope_candidates", lambda *args: [candidate])
-        return select.select_effects(effects, SPEC, resim, None, None, PhysicsParams(), np.ones((20, 3)),
-                                     np.full((20, 3), 0.01), config, progress=False)
+        return select.select_effects(
+            effects,
+            SPEC,
+            resim,
+            None,
+            None,
+            PhysicsParams(),
+            np.ones((20, 3)),
+            np.full((20, 3), 0.01),
+            config,
+            progress=False,
+        )
 
     lone = (per_type, fitted("armature", 0.5, [0.006, 0.083, 0.006], "joint_type"))
     assert run(lone, FitConfig()).joint_refit == {"kept": True} and refits == [["armature"]]
@@ -595,11 +814,14 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
     assert run(one_parameter, FitConfig()).verdict == "joint_damping" and refits == []
 
 
-@pytest.mark.parametrize("floor,best_explains,rival_explains,ambiguous", [
-    (0.43, 0.18, 0.0, False),   # ground friction at half its default on walking data: a gap 2.3x the floor
-    (0.02, 0.50, 0.45, True),   # far above the floor: half the gap and 45 % of it are alike
-    (0.43, 0.18, 0.15, True),   # ... and near it, 18 % and 15 %
-])
+@pytest.mark.parametrize(
+    "floor,best_explains,rival_explains,ambiguous",
+    [
+        (0.43, 0.18, 0.0, False),  # ground friction at half its default on walking data: a gap 2.3x the floor
+        (0.02, 0.50, 0.45, True),  # far above the floor: half the gap and 45 % of it are alike
+        (0.43, 0.18, 0.15, True),  # ... and near it, 18 % and 15 %
+    ],
+)
 def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_explains, rival_explains, ambiguous):
     """A candidate that explains nothing is no rival of one that removes a third of what lies above the floor, however
     close the floor is: the remaining gaps are compared above it."""
@@ -607,8 +829,18 @@ def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_expl
     from rwm_gym.gap.select import name_step
 
     def fitted(name, explained, p_value):
-        fit = CandidateFit(name, [name], ["1"], [0.0], [0.1], 0.0, gap_mean=1.0 - explained,
-                           explained_fraction=explained, score=explained, p_value=p_value)
+        fit = CandidateFit(
+            name,
+            [name],
+            ["1"],
+            [0.0],
+            [0.1],
+            0.0,
+            gap_mean=1.0 - explained,
+            explained_fraction=explained,
+            score=explained,
+            p_value=p_value,
+        )
         fit.excess_explained = explained / (1.0 - floor)
         return (EFFECTS[name], fit)
 
@@ -618,8 +850,7 @@ def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_expl
     assert ("ambiguous" in reason) == ambiguous
 
 
-@pytest.mark.parametrize("to_beat,fitted_scopes", [(-1.0, ["leg", "joint_type"]), (0.87, ["joint_type"]),
-                                                   (0.95, [])])
+@pytest.mark.parametrize("to_beat,fitted_scopes", [(-1.0, ["leg", "joint_type"]), (0.87, ["joint_type"]), (0.95, [])])
 def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, to_beat, fitted_scopes):
     """A scoped form scores at most 1 less its charge (per leg 4 values: 0.85, per joint type 3: 0.90) even if it left
     no gap at all; where the step's best candidate already scores more, fitting it could never change the verdict."""
@@ -638,8 +869,9 @@ def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, 
     monkeypatch.setattr(scope, "fit_coordinatewise", fake_fit)
     monkeypatch.setattr(scope, "score_fit", fake_score)
     best = CandidateFit("joint_friction", ["f"], ["N m"], [1.0], [0.1], 0.0, score=0.6)
-    out = scope._scoped_fits(best, EFFECTS["joint_friction"], SPEC, None, [], None, PhysicsParams(), None,
-                             FitConfig(), to_beat)
+    out = scope._scoped_fits(
+        best, EFFECTS["joint_friction"], SPEC, None, [], None, PhysicsParams(), None, FitConfig(), to_beat
+    )
     assert fitted == fitted_scopes and [f.scope for _, f in out] == fitted_scopes
 
 
@@ -662,8 +894,9 @@ def test_learned_torque_is_the_groups_linear_law_and_round_trips(tmp_path):
     loaded = load_correction(tmp_path / "c.safetensors", SPEC)
     np.testing.assert_array_equal(loaded.torque(q, qd, default), torque)
     assert loaded.groups == names
-    other = dataclasses.replace(SPEC, actuator=dataclasses.replace(SPEC.actuator,
-                                                                   joints=tuple(reversed(SPEC.actuator.joints))))
+    other = dataclasses.replace(
+        SPEC, actuator=dataclasses.replace(SPEC.actuator, joints=tuple(reversed(SPEC.actuator.joints)))
+    )
     with pytest.raises(ValueError, match="joints differ"):
         load_correction(tmp_path / "c.safetensors", other)
     from safetensors.numpy import save_file

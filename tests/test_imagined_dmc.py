@@ -31,13 +31,24 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("rwm_dmc")
     out = {}
     for env_id in IDS:
-        data = collect(PHYSICS[env_id], "random", 2, folder / f"{env_id}.h5", num_envs=2, max_steps=40,
-                       progress=False)
+        data = collect(PHYSICS[env_id], "random", 2, folder / f"{env_id}.h5", num_envs=2, max_steps=40, progress=False)
         spec = load_spec(DMC_SPECS[PHYSICS[env_id]])
         config = model_config_for("rwm", spec, hidden_size=16, num_layers=1, head_hidden=16)
-        out[env_id] = train(data, config, TrainConfig(history=6, forecast=3, batch_size=8, iterations=5,
-                                                      val_every=1000, checkpoint_every=1000, val_fraction=0.0),
-                            folder / f"{env_id}.safetensors", progress=False).path
+        out[env_id] = train(
+            data,
+            config,
+            TrainConfig(
+                history=6,
+                forecast=3,
+                batch_size=8,
+                iterations=5,
+                val_every=1000,
+                checkpoint_every=1000,
+                val_fraction=0.0,
+            ),
+            folder / f"{env_id}.safetensors",
+            progress=False,
+        ).path
     return out
 
 
@@ -104,7 +115,7 @@ def test_sb3_vecenv_truncates_at_the_time_limit_and_never_terminates(checkpoints
     venv = ImaginedSB3VecEnv(checkpoints[env_id], num_envs=2, env_id=env_id, episode_steps=4)
     venv.seed(0)
     assert venv.reset().shape == (2, 30)
-    for t in range(4):
+    for _t in range(4):
         _, rewards, dones, infos = venv.step(np.zeros((2, 6), dtype=np.float32))
         assert rewards.shape == (2,) and np.all(rewards >= 0)
     assert dones.all() and all(info["TimeLimit.truncated"] for info in infos)
@@ -113,8 +124,11 @@ def test_sb3_vecenv_truncates_at_the_time_limit_and_never_terminates(checkpoints
 def test_a_missing_or_foreign_checkpoint_is_refused_in_one_line(checkpoints) -> None:
     with pytest.raises(ValueError, match="RWM-Cheetah-v0 needs checkpoint=PATH: rwm-gym ships no trained world model"):
         gym.make("RWM-Cheetah-v0")
-    with pytest.raises(ValueError, match=r"RWM-Cheetah-v0.safetensors: a world model of DMC-Cheetah-Run .* not of "
-                                         r"RWM-Walker-v0"):
+    with pytest.raises(
+        ValueError,
+        match=r"RWM-Cheetah-v0.safetensors: a world model of DMC-Cheetah-Run .* not of "
+        r"RWM-Walker-v0",
+    ):
         gym.make("RWM-Walker-v0", checkpoint=checkpoints["RWM-Cheetah-v0"])
     with pytest.raises(ValueError, match="push_interval_s needs a base_lin_vel state group"):
         gym.make("RWM-Finger-v0", checkpoint=checkpoints["RWM-Finger-v0"], push_interval_s=1.0)

@@ -28,17 +28,30 @@ ENV_ID = "RWM-AnymalD-v0"
 def checkpoint(tmp_path_factory):
     """A tiny RWM (2 ensemble heads) trained 30 iterations on 6 short random episodes, with its reset data."""
     folder = tmp_path_factory.mktemp("rwm")
-    data = collect("AnymalD-MuJoCo-v0", "random", 6, folder / "data.h5", seed=0, num_envs=2, max_steps=60,
-                   progress=False)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 6, folder / "data.h5", seed=0, num_envs=2, max_steps=60, progress=False
+    )
     spec = load_spec("anymal_d")
     config = model_config_for("rwm", spec, hidden_size=32, num_layers=1, head_hidden=32, ensemble_size=2)
     path = folder / "model.safetensors"
-    train(data, config, TrainConfig(history=8, forecast=4, batch_size=16, iterations=30, val_every=1000,
-                                    checkpoint_every=1000), path, progress=False)
+    train(
+        data,
+        config,
+        TrainConfig(history=8, forecast=4, batch_size=16, iterations=30, val_every=1000, checkpoint_every=1000),
+        path,
+        progress=False,
+    )
     make_reset_data(data, folder / "reset.h5", episodes=4)
     model, meta = load_checkpoint(path)
-    save_checkpoint(path, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
-                    stats=meta.stats, extras={"reset_data": "reset.h5"})
+    save_checkpoint(
+        path,
+        model,
+        meta.spec,
+        train_config=meta.train_config,
+        provenance=meta.provenance,
+        stats=meta.stats,
+        extras={"reset_data": "reset.h5"},
+    )
     return path
 
 
@@ -58,7 +71,7 @@ def _rollout(env, seed, steps=25):
     rng = np.random.default_rng(seed)
     out, rewards = [obs], []
     for _ in range(steps):
-        obs, r, term, trunc, info = env.step(rng.uniform(-1, 1, 12).astype(np.float32))
+        obs, r, term, trunc, _info = env.step(rng.uniform(-1, 1, 12).astype(np.float32))
         out.append(obs)
         rewards.append(r)
         if term or trunc:
@@ -89,8 +102,9 @@ def test_batched_env_matches_single_envs(checkpoint):
     n, steps, seed = 3, 20, 5
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (steps, n, 12)).astype(np.float32)
-    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", checkpoint=checkpoint,
-                       episode_steps=1000)
+    vec = gym.make_vec(
+        ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", checkpoint=checkpoint, episode_steps=1000
+    )
     obs_b, _ = vec.reset(seed=seed)
     trajectory = [obs_b]
     for t in range(steps):
@@ -113,13 +127,19 @@ def test_divergence_guard_ends_the_episode_without_nan(checkpoint, tmp_path):
             if "state_head" in name or "head" in name:
                 p.mul_(1e4)
     broken = tmp_path / "broken.safetensors"
-    save_checkpoint(broken, model, meta.spec, train_config=meta.train_config, provenance=meta.provenance,
-                    extras={"reset_data": str(checkpoint.parent / "reset.h5")})
+    save_checkpoint(
+        broken,
+        model,
+        meta.spec,
+        train_config=meta.train_config,
+        provenance=meta.provenance,
+        extras={"reset_data": str(checkpoint.parent / "reset.h5")},
+    )
     env = ImaginedEnv(broken)
     env.reset(seed=0)
     diverged = False
     for _ in range(20):
-        obs, reward, terminated, truncated, info = env.step(np.zeros(12, dtype=np.float32))
+        obs, reward, terminated, _truncated, info = env.step(np.zeros(12, dtype=np.float32))
         assert np.all(np.isfinite(obs)) and np.isfinite(reward)
         if info["model_diverged"]:
             assert terminated
@@ -135,7 +155,7 @@ def test_sb3_vecenv_and_uncertainty_penalty(checkpoint):
     venv.seed(0)
     obs = venv.reset()
     assert obs.shape == (4, 48)
-    _, rewards, dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
+    _, rewards, _dones, infos = venv.step(np.zeros((4, 12), dtype=np.float32))
     assert all(info["uncertainty"] >= 0 for info in infos)
     plain = ImaginedSB3VecEnv(checkpoint, num_envs=4)
     plain.seed(0)
@@ -216,14 +236,20 @@ def test_the_halt_ends_episodes_where_the_ensemble_disagrees(checkpoint):
 
 def test_an_uncertainty_option_on_a_one_head_model_is_refused(tmp_path):
     """One head has no disagreement: a penalty or halt on it would silently do nothing."""
-    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=0, num_envs=2, max_steps=30,
-                   progress=False)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=0, num_envs=2, max_steps=30, progress=False
+    )
     config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=16, num_layers=1, head_hidden=16)
     assert config.ensemble_size == 1
-    path = train(data, config, TrainConfig(history=8, forecast=4, batch_size=8, iterations=2, val_every=1000),
-                 tmp_path / "one_head.safetensors", progress=False).path
+    path = train(
+        data,
+        config,
+        TrainConfig(history=8, forecast=4, batch_size=8, iterations=2, val_every=1000),
+        tmp_path / "one_head.safetensors",
+        progress=False,
+    ).path
     for option in ({"uncertainty_penalty": 10.0}, {"uncertainty_halt": 0.06}):
-        with pytest.raises(ValueError, match="one_head.safetensors: .*one head .*--ensemble-size 5"):
+        with pytest.raises(ValueError, match=r"one_head.safetensors: .*one head .*--ensemble-size 5"):
             ImaginedEnv(path, reset_data=data, **option)
     ImaginedEnv(path, reset_data=data, uncertainty_floor=0.02)  # a floor alone charges nothing
 
@@ -231,9 +257,9 @@ def test_an_uncertainty_option_on_a_one_head_model_is_refused(tmp_path):
 def test_bad_checkpoints_fail_clearly(checkpoint, tmp_path):
     truncated = tmp_path / "cut.safetensors"
     truncated.write_bytes(checkpoint.read_bytes()[:1000])
-    with pytest.raises(CheckpointError, match="cut.safetensors"):
+    with pytest.raises(CheckpointError, match=r"cut.safetensors"):
         ImaginedEnv(truncated)
-    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+    with pytest.raises(FileNotFoundError, match=r"missing.safetensors"):
         ImaginedEnv(tmp_path / "missing.safetensors")
 
 
@@ -265,7 +291,7 @@ def _vec_rollout(checkpoint, steps=30, **options):
     rng = np.random.default_rng(0)
     rewards, infos = [], []
     for _ in range(steps):
-        obs, reward, done, info = core.step(rng.uniform(-1, 1, (5, 12)).astype(np.float32))
+        obs, reward, _done, info = core.step(rng.uniform(-1, 1, (5, 12)).astype(np.float32))
         out.append(obs)
         rewards.append(reward)
         infos.append(info)
@@ -345,12 +371,13 @@ def test_random_first_episode_length_spreads_the_first_restarts(checkpoint):
     later = np.array([0, 5, 31])
     core.reset(later)
     assert (core.steps[later] == 0).all()  # an env's next episode is a whole one
-    venv = ImaginedSB3VecEnv(checkpoint, num_envs=32, episode_steps=10, random_first_episode_length=True,
-                             divergence_bound=1e9)
+    venv = ImaginedSB3VecEnv(
+        checkpoint, num_envs=32, episode_steps=10, random_first_episode_length=True, divergence_bound=1e9
+    )
     venv.seed(0)
     venv.reset()
     ends = []
     for _ in range(10):
-        _, _, dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
+        _, _, _dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
         ends.append(sum(info.get("TimeLimit.truncated", False) for info in infos))
     assert sum(ends) >= 20 and max(ends) < 32  # restarts come on different steps, not all at once

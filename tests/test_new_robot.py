@@ -16,18 +16,71 @@ import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.cli import main
 from tests.legged_mjcf import quadruped_xml
 
-TINY_TRAIN = ["--iterations", "4", "--history", "4", "--forecast", "2", "--batch-size", "8", "--hidden-size", "16",
-              "--num-layers", "1", "--head-hidden", "16", "--val-fraction", "0.25", "--quiet"]
+TINY_TRAIN = [
+    "--iterations",
+    "4",
+    "--history",
+    "4",
+    "--forecast",
+    "2",
+    "--batch-size",
+    "8",
+    "--hidden-size",
+    "16",
+    "--num-layers",
+    "1",
+    "--head-hidden",
+    "16",
+    "--val-fraction",
+    "0.25",
+    "--quiet",
+]
 
 
 def _world_model(spec: Path, folder: Path, capsys) -> Path:
     """collect, train and evaluate through the CLI; returns the checkpoint."""
     data, ckpt = folder / "data.h5", folder / "model.safetensors"
-    assert main(["collect", "--env", str(spec), "--policy", "random", "--episodes", "4", "--num-envs", "2",
-                 "--max-steps", "30", "--out", str(data)]) == 0
+    assert (
+        main(
+            [
+                "collect",
+                "--env",
+                str(spec),
+                "--policy",
+                "random",
+                "--episodes",
+                "4",
+                "--num-envs",
+                "2",
+                "--max-steps",
+                "30",
+                "--out",
+                str(data),
+            ]
+        )
+        == 0
+    )
     assert main(["train", "--data", str(data), "--out", str(ckpt), *TINY_TRAIN]) == 0
-    assert main(["evaluate", "--checkpoint", str(ckpt), "--data", str(data), "--history", "4", "--horizons", "2",
-                 "--max-horizon", "4", "--all-episodes", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--checkpoint",
+                str(ckpt),
+                "--data",
+                str(data),
+                "--history",
+                "4",
+                "--horizons",
+                "2",
+                "--max-horizon",
+                "4",
+                "--all-episodes",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "rwm on" in capsys.readouterr().out
     return ckpt
 
@@ -51,8 +104,10 @@ def _ppo_in_imagination(ckpt: Path) -> float:
 def test_a_legged_mjcf_from_nothing_to_ppo_in_imagination(tmp_path: Path, capsys) -> None:
     (tmp_path / "robot.xml").write_text(quadruped_xml())
     spec = tmp_path / "robot.toml"
-    assert main(["spec", "--mjcf", str(tmp_path / "robot.xml"), "--out", str(spec), "--episodes", "2",
-                 "--steps", "30"]) == 0
+    assert (
+        main(["spec", "--mjcf", str(tmp_path / "robot.xml"), "--out", str(spec), "--episodes", "2", "--steps", "30"])
+        == 0
+    )
     ckpt = _world_model(spec, tmp_path, capsys)
     env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt))
     assert env.unwrapped.task_spec.imagined_env_id == "RWM-TinyQuad-v0"
@@ -74,8 +129,24 @@ def test_the_imagined_env_takes_reward_and_termination_functions_and_says_when_i
     spec = tmp_path / "acrobot.toml"
     assert main(["spec", "--from-dmc", "acrobot-swingup", "--out", str(spec), "--episodes", "1", "--steps", "10"]) == 0
     data, ckpt = tmp_path / "data.h5", tmp_path / "model.safetensors"
-    assert main(["collect", "--env", str(spec), "--policy", "random", "--episodes", "2", "--max-steps", "20",
-                 "--out", str(data)]) == 0
+    assert (
+        main(
+            [
+                "collect",
+                "--env",
+                str(spec),
+                "--policy",
+                "random",
+                "--episodes",
+                "2",
+                "--max-steps",
+                "20",
+                "--out",
+                str(data),
+            ]
+        )
+        == 0
+    )
     assert main(["train", "--data", str(data), "--out", str(ckpt), *TINY_TRAIN]) == 0
     try:
         gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt))
@@ -91,8 +162,9 @@ def test_the_imagined_env_takes_reward_and_termination_functions_and_says_when_i
         return np.full(len(t.next_state), after_five.calls >= 5)
 
     after_five.calls = 0
-    env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(ckpt), reward_fn=upright, termination_fn=after_five,
-                   divergence_bound=1e9)  # a 4-iteration model may leave the normal range; score it anyway
+    env = gym.make(
+        "rwm_gym:Imagined-v0", checkpoint=str(ckpt), reward_fn=upright, termination_fn=after_five, divergence_bound=1e9
+    )  # a 4-iteration model may leave the normal range; score it anyway
     obs, _ = env.reset(seed=0)
     for step in range(1, 6):
         obs, reward, terminated, _, _ = env.step(env.action_space.sample())

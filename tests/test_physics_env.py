@@ -49,7 +49,7 @@ def test_state_layout_and_privileged_signals(env):
 def test_zero_action_stands_without_falling(env):
     env.reset(seed=3)
     for _ in range(250):  # 5 s; the 20 s check is in benchmarks/physics.py
-        _, _, terminated, truncated, info = env.step(np.zeros(12))
+        _, _, terminated, _truncated, _info = env.step(np.zeros(12))
         assert not terminated
     record = env.unwrapped.record()
     assert env.unwrapped.data.qpos[2] > 0.45  # base height, m
@@ -104,7 +104,7 @@ def test_batched_env_matches_single_envs_step_for_step():
     batched = [obs_b]
     rewards_b = []
     for t in range(steps):
-        obs_b, r, term, trunc, _ = vec.step(actions[t])
+        obs_b, r, _term, _trunc, _ = vec.step(actions[t])
         batched.append(obs_b)
         rewards_b.append(r)
     for i in range(n):
@@ -112,7 +112,7 @@ def test_batched_env_matches_single_envs_step_for_step():
         obs, _ = env.reset(seed=seed + i)
         np.testing.assert_array_equal(obs, batched[0][i])
         for t in range(steps):
-            obs, r, term, trunc, _ = env.step(actions[t, i])
+            obs, r, _term, _trunc, _ = env.step(actions[t, i])
             np.testing.assert_array_equal(obs, batched[t + 1][i])
             assert r == rewards_b[t][i]
 
@@ -122,7 +122,7 @@ def test_sb3_vecenv_autoreset_follows_sb3_rules():
     venv.seed(0)
     venv.reset()
     venv.core.steps[:] = venv.core.spec.episode_steps - 1
-    obs, rewards, dones, infos = venv.step(np.zeros((2, 12)))
+    obs, _rewards, dones, infos = venv.step(np.zeros((2, 12)))
     assert dones.all()
     for i in range(2):
         assert infos[i]["TimeLimit.truncated"] is True

@@ -13,6 +13,7 @@ import torch
 from stable_baselines3 import PPO
 
 from rwm_gym.cli import main
+from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 from rwm_gym.rl.ppo import PPOConfig, learn, make_env, make_ppo, warm_up_critic
 
@@ -39,8 +40,30 @@ def test_ppo_trains_in_physics():
 
 def test_cli_ppo_in_physics_writes_zip_and_report(tmp_path, capsys):
     out = tmp_path / "policy.zip"
-    rc = main(["ppo", "--in", "physics", "--timesteps", "256", "--num-envs", "8", "--n-steps", "16",
-               "--net-arch", "32", "32", "--out", str(out), "--eval-seeds", "1", "--eval-steps", "20", "--threads", "1"])
+    rc = main(
+        [
+            "ppo",
+            "--in",
+            "physics",
+            "--timesteps",
+            "256",
+            "--num-envs",
+            "8",
+            "--n-steps",
+            "16",
+            "--net-arch",
+            "32",
+            "32",
+            "--out",
+            str(out),
+            "--eval-seeds",
+            "1",
+            "--eval-steps",
+            "20",
+            "--threads",
+            "1",
+        ]
+    )
     assert rc == 0 and out.is_file() and out.with_suffix(".png").is_file()
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["where"] == "physics" and report["ppo"]["net_arch"] == [32, 32]
@@ -82,8 +105,9 @@ def tiny_checkpoint(tmp_path_factory):
     from rwm_gym.spec import load_spec
 
     folder = tmp_path_factory.mktemp("tiny_rwm")
-    data = collect("AnymalD-MuJoCo-v0", "random", 6, folder / "data.h5", seed=0, num_envs=6, max_steps=60,
-                   progress=False)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 6, folder / "data.h5", seed=0, num_envs=6, max_steps=60, progress=False
+    )
     config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=64, num_layers=1, head_hidden=64)
     train_config = TrainConfig(history=8, forecast=4, iterations=100, batch_size=32, val_every=100, val_fraction=0.2)
     return train(data, config, train_config, folder / "tiny.safetensors", progress=False).path
@@ -95,8 +119,7 @@ def test_ppo_trains_in_imagination(tiny_checkpoint):
     (That the imagined return rises is not asserted: on this tiny, briefly trained model it is not robust across seeds
     within a test-sized budget.)"""
     config = PPOConfig(num_envs=32, n_steps=25, net_arch=(64, 64))
-    env = make_env("imagination", config.num_envs, checkpoint=tiny_checkpoint, seed=0,
-                   env_kwargs={"episode_steps": 25})
+    env = make_env("imagination", config.num_envs, checkpoint=tiny_checkpoint, seed=0, env_kwargs={"episode_steps": 25})
     model = make_ppo(env, config, seed=0)
     before = [p.detach().clone() for p in model.policy.parameters()]
     stats = learn(model, timesteps=3 * config.num_envs * config.n_steps, progress=False)
@@ -137,8 +160,7 @@ def test_imagined_return_rises_on_the_shipped_model():
     model = make_ppo(env, config, seed=0)
     rollout = config.num_envs * config.n_steps
     before = [row["mean_step_reward"] for row in warm_up_critic(model, 10 * rollout, progress=False).log]
-    after = [row["mean_step_reward"] for row in learn(model, timesteps=25 * rollout, target_kl=0.0,
-                                                       progress=False).log]
+    after = [row["mean_step_reward"] for row in learn(model, timesteps=25 * rollout, target_kl=0.0, progress=False).log]
     initial = max(np.mean(before[:5]), np.mean(before[5:10]))
     assert np.mean(after[-5:]) > initial + 0.1 * abs(initial), (before, after)
 
@@ -150,18 +172,35 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
-    data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60,
-                   progress=False)
-    start = make_ppo(make_env("imagination", 8, checkpoint=tiny_checkpoint, seed=0),
-                     PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32)), seed=0)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", seed=3, num_envs=4, max_steps=60, progress=False
+    )
+    start = make_ppo(
+        make_env("imagination", 8, checkpoint=tiny_checkpoint, seed=0),
+        PPOConfig(num_envs=8, n_steps=16, net_arch=(32, 32)),
+        seed=0,
+    )
     start.save(tmp_path / "start.zip")
-    config = MBPOConfig(iterations=2, ppo_timesteps=128, num_envs=8, imagined_episode_steps=20, collect_episodes=2,
-                        collect_steps=48, base_episodes=3, model_iterations=5, model_finetune=True, model_lr=3e-4,
-                        critic_warmup_steps=128, eval_seeds=1, eval_steps=20)
+    config = MBPOConfig(
+        iterations=2,
+        ppo_timesteps=128,
+        num_envs=8,
+        imagination=ImaginationOptions(episode_steps=20),
+        collect_episodes=2,
+        collect_steps=48,
+        base_episodes=3,
+        model_iterations=5,
+        model_finetune=True,
+        model_lr=3e-4,
+        critic_warmup_steps=128,
+        eval_seeds=1,
+        eval_steps=20,
+    )
     run = dict(checkpoint=tiny_checkpoint, init_policy=tmp_path / "start.zip", progress=False)
     merged_into, merge = [], rwm_gym.data.dataset.merge_datasets
-    monkeypatch.setattr(rwm_gym.data.dataset, "merge_datasets", lambda paths, out: merged_into.append(out) or
-                        merge(paths, out))
+    monkeypatch.setattr(
+        rwm_gym.data.dataset, "merge_datasets", lambda paths, out: merged_into.append(out) or merge(paths, out)
+    )
     report = mbpo(data, tmp_path / "mbpo", config, **run)
     monkeypatch.undo()
     assert [Path(p).name for p in merged_into].count("buffer.h5") == 2  # once per iteration, not again at the next
@@ -195,14 +234,16 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
         mbpo(data, tmp_path / "resumed", replace(config, model_lr=1e-3), **run)
 
 
-def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std(tiny_checkpoint, tmp_path,
-                                                                                   monkeypatch):
+def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std(
+    tiny_checkpoint, tmp_path, monkeypatch
+):
     from rwm_gym.data.collect import collect
     from rwm_gym.rl import ppo
     from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
-    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=40,
-                   progress=False)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=40, progress=False
+    )
     seen = []
     real_learn = ppo.learn
 
@@ -222,9 +263,20 @@ def test_mbpo_trains_on_clipped_rewards_and_starts_a_fresh_policy_at_its_log_std
         return stats
 
     monkeypatch.setattr(ppo, "learn", learn)
-    config = MBPOConfig(iterations=1, ppo_timesteps=64, num_envs=8, imagined_episode_steps=20, collect_episodes=1,
-                        collect_steps=48, model_iterations=2, model_finetune=True, eval_seeds=1, eval_steps=10,
-                        positive_reward_only=True, log_std_init=-1.0)
+    config = MBPOConfig(
+        iterations=1,
+        ppo_timesteps=64,
+        num_envs=8,
+        imagination=ImaginationOptions(episode_steps=20),
+        collect_episodes=1,
+        collect_steps=48,
+        model_iterations=2,
+        model_finetune=True,
+        eval_seeds=1,
+        eval_steps=10,
+        positive_reward_only=True,
+        log_std_init=-1.0,
+    )
     report = mbpo(data, tmp_path / "mbpo", config, checkpoint=tiny_checkpoint, progress=False)
     [(wrapper, rewards)] = seen
     assert wrapper is ppo.PositiveReward and rewards.size and rewards.min() >= 0.0
@@ -238,10 +290,17 @@ def test_mbpo_trains_its_own_starting_model_with_an_ensemble_where_the_halt_need
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
-    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=60,
-                   progress=False)
-    config = MBPOConfig(iterations=0, num_envs=8, imagined_episode_steps=20, model_iterations=1, eval_seeds=1,
-                        eval_steps=10, uncertainty_halt=0.06)
+    data = collect(
+        "AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", seed=3, num_envs=2, max_steps=60, progress=False
+    )
+    config = MBPOConfig(
+        iterations=0,
+        num_envs=8,
+        model_iterations=1,
+        eval_seeds=1,
+        eval_steps=10,
+        imagination=ImaginationOptions(episode_steps=20, uncertainty_halt=0.06),
+    )
     mbpo(data, tmp_path / "mbpo", config, progress=False)
     assert read_meta(tmp_path / "mbpo" / "model_0.safetensors").model_config.ensemble_size == 5
 
@@ -249,45 +308,86 @@ def test_mbpo_trains_its_own_starting_model_with_an_ensemble_where_the_halt_need
 def test_an_mbpo_run_from_before_a_new_field_resumes_with_its_default(tmp_path):
     from rwm_gym.rl.mbpo import MBPOConfig, _check_resume
 
-    older = {k: v for k, v in MBPOConfig().to_dict().items() if k not in ("uncertainty_floor", "uncertainty_halt")}
+    # a run folder of 0.1: the imagination options flat beside the loop's, without the fields added since
+    older = {k: v for k, v in MBPOConfig().to_dict().items() if k != "imagination"}
+    older.update(
+        imagined_episode_steps=250,
+        uncertainty_penalty=0.0,
+        fall_tilt=0.0,
+        torque_halt=0.0,
+        random_first_episode_length=False,
+        trust_entry_points=False,
+    )
     _check_resume({"config": older}, MBPOConfig(iterations=9), tmp_path / "mbpo.json")  # only iterations changed
     with pytest.raises(ValueError, match="other settings \\(uncertainty_halt\\)"):
-        _check_resume({"config": older}, MBPOConfig(uncertainty_halt=0.06), tmp_path / "mbpo.json")
+        _check_resume(
+            {"config": older},
+            MBPOConfig(imagination=ImaginationOptions(episode_steps=250, uncertainty_halt=0.06)),
+            tmp_path / "mbpo.json",
+        )
 
 
-def test_mbpo_passes_every_imagination_option_it_has_to_the_imagined_env():
-    from rwm_gym.imagination.core import ImaginationOptions
-    from rwm_gym.rl.mbpo import MBPOConfig, imagination_kwargs
+def test_mbpo_reads_the_imagination_options_of_old_and_new_run_folders():
+    from rwm_gym.rl.mbpo import MBPOConfig
 
-    config = MBPOConfig(imagined_episode_steps=50, uncertainty_halt=0.06, fall_tilt=30.0, torque_halt=0.95,
-                        random_first_episode_length=True)
-    kwargs = imagination_kwargs(config)
-    assert kwargs == {"episode_steps": 50, "uncertainty_penalty": 0.0, "uncertainty_floor": 0.0,
-                      "uncertainty_halt": 0.06, "fall_tilt": 30.0, "torque_halt": 0.95,
-                      "random_first_episode_length": True, "trust_entry_points": False}
-    assert ImaginationOptions(**kwargs).torque_halt == 0.95
+    flat = {
+        "iterations": 2,
+        "imagined_episode_steps": 50,
+        "uncertainty_halt": 0.06,
+        "fall_tilt": 30.0,
+        "torque_halt": 0.95,
+        "random_first_episode_length": True,
+        "trust_entry_points": False,
+    }
+    config = MBPOConfig.from_dict(flat)
+    assert config.iterations == 2
+    assert config.imagination == ImaginationOptions(
+        episode_steps=50, uncertainty_halt=0.06, fall_tilt=30.0, torque_halt=0.95, random_first_episode_length=True
+    )
+    assert MBPOConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
 
 
 def test_mbpo_options_come_from_its_config_fields():
     import argparse
 
-    from rwm_gym.rl import mbpo
+    from rwm_gym.commands import mbpo
 
     parser = argparse.ArgumentParser()
     mbpo.add_arguments(parser)
-    args = parser.parse_args(["--data", "d.h5", "--out", "o", "--model-finetune", "--iterations", "2",
-                              "--model-lr", "3e-4"])
+    args = parser.parse_args(
+        ["--data", "d.h5", "--out", "o", "--model-finetune", "--iterations", "2", "--model-lr", "3e-4"]
+    )
     assert (args.model_finetune, args.iterations, args.model_lr) == (True, 2, 3e-4)
     assert parser.parse_args(["--data", "d", "--out", "o", "--no-model-finetune"]).model_finetune is False
     defaults = parser.parse_args(["--data", "d", "--out", "o"])
     assert defaults.model_finetune is False and defaults.ppo_timesteps == mbpo.MBPOConfig.ppo_timesteps
     assert "Fine-tune the current world model" in parser.format_help()
+    assert defaults.episode_steps == 250  # the loop's own default time limit, under its old flag name too
+    assert parser.parse_args(["--data", "d", "--out", "o", "--imagined-episode-steps", "50"]).episode_steps == 50
 
 
 def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1",
-            "--run-dir", str(run), "--no-eval", "--out", str(run / "final.zip"), "--episode-steps", "20"]
+    args = [
+        "ppo",
+        "--in",
+        "imagination",
+        "--num-envs",
+        "8",
+        "--n-steps",
+        "8",
+        "--net-arch",
+        "16",
+        "--threads",
+        "1",
+        "--run-dir",
+        str(run),
+        "--no-eval",
+        "--out",
+        str(run / "final.zip"),
+        "--episode-steps",
+        "20",
+    ]
     assert main([*args, "--timesteps", "64"]) == 0
     state = json.loads((run / "state.json").read_text())
     assert state["env"] == {"where": "imagination", "checkpoint": None, "imagination": {"episode_steps": 20}}
@@ -299,8 +399,26 @@ def test_a_run_dir_records_its_env_and_refuses_another_on_resume(tmp_path, capsy
 
 def test_sample_predictions_reaches_the_imagined_env_and_its_record(tmp_path):
     run = tmp_path / "run"
-    args = ["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1",
-            "--run-dir", str(run), "--no-eval", "--out", str(run / "final.zip"), "--timesteps", "64"]
+    args = [
+        "ppo",
+        "--in",
+        "imagination",
+        "--num-envs",
+        "8",
+        "--n-steps",
+        "8",
+        "--net-arch",
+        "16",
+        "--threads",
+        "1",
+        "--run-dir",
+        str(run),
+        "--no-eval",
+        "--out",
+        str(run / "final.zip"),
+        "--timesteps",
+        "64",
+    ]
     assert main([*args, "--sample-predictions"]) == 0
     state = json.loads((run / "state.json").read_text())
     assert state["env"]["imagination"] == {"sample_predictions": True}
@@ -314,14 +432,15 @@ def test_imagination_options_are_refused_in_physics_by_name():
     from rwm_gym.cli import main
 
     with pytest.raises(SystemExit, match="--uncertainty-halt, --random-first-episode-length apply to --in imagination"):
-        main(["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length",
-              "--timesteps", "1"])
+        main(
+            ["ppo", "--in", "physics", "--uncertainty-halt", "0.1", "--random-first-episode-length", "--timesteps", "1"]
+        )
 
 
 def test_a_checkpoint_that_cannot_serve_the_options_is_one_line(tmp_path):
     from rwm_gym.cli import main
 
-    with pytest.raises(SystemExit, match="^rwm-gym ppo: .*missing.safetensors: no such checkpoint file$"):
+    with pytest.raises(SystemExit, match=r"^rwm-gym ppo: .*missing.safetensors: no such checkpoint file$"):
         main(["ppo", "--in", "imagination", "--checkpoint", str(tmp_path / "missing.safetensors"), "--timesteps", "1"])
 
 
@@ -333,8 +452,15 @@ def test_compact_policy_drops_run_state_and_keeps_the_policy(tmp_path):
 
     from rwm_gym.rl.policy_file import compact_policy, save_policy
 
-    model = PPO("MlpPolicy", make_vec_env(lambda: gym.make("Pendulum-v1"), n_envs=64, seed=0), n_steps=8,
-                batch_size=64, n_epochs=1, seed=0, device="cpu")
+    model = PPO(
+        "MlpPolicy",
+        make_vec_env(lambda: gym.make("Pendulum-v1"), n_envs=64, seed=0),
+        n_steps=8,
+        batch_size=64,
+        n_epochs=1,
+        seed=0,
+        device="cpu",
+    )
     model.learn(total_timesteps=512)
     full = save_policy(model, tmp_path / "full.zip")
     small = compact_policy(full, tmp_path / "small.zip")
@@ -372,9 +498,33 @@ def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_o
     from rwm_gym.rl.training_run import RunCheckpoint
 
     def ppo(run, *extra):
-        return main(["ppo", "--in", "imagination", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16",
-                     "--threads", "1", "--save-every", "1", "--run-dir", str(run), "--no-eval", "--out",
-                     str(run / "final.zip"), "--timesteps", "640", "--lr-anneal-fraction", "0.5", *extra])
+        return main(
+            [
+                "ppo",
+                "--in",
+                "imagination",
+                "--num-envs",
+                "8",
+                "--n-steps",
+                "8",
+                "--net-arch",
+                "16",
+                "--threads",
+                "1",
+                "--save-every",
+                "1",
+                "--run-dir",
+                str(run),
+                "--no-eval",
+                "--out",
+                str(run / "final.zip"),
+                "--timesteps",
+                "640",
+                "--lr-anneal-fraction",
+                "0.5",
+                *extra,
+            ]
+        )
 
     whole, stopped = tmp_path / "whole", tmp_path / "stopped"
     assert ppo(whole) == 0
@@ -398,17 +548,61 @@ def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_o
     resumed = _lr_column(stopped)
     assert resumed[:7] == lr[:7] and resumed[7:] == pytest.approx(lr[7:])  # the same line from the saved lr alone
     with pytest.raises(SystemExit, match="other PPO settings"):  # the anneal is part of the run's settings
-        main(["ppo", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--run-dir", str(stopped), "--no-eval",
-              "--out", str(stopped / "final.zip"), "--timesteps", "1280"])
+        main(
+            [
+                "ppo",
+                "--num-envs",
+                "8",
+                "--n-steps",
+                "8",
+                "--net-arch",
+                "16",
+                "--run-dir",
+                str(stopped),
+                "--no-eval",
+                "--out",
+                str(stopped / "final.zip"),
+                "--timesteps",
+                "1280",
+            ]
+        )
     with pytest.raises(SystemExit, match="--lr-anneal-fraction needs a --timesteps budget"):
-        main(["ppo", "--num-envs", "8", "--n-steps", "8", "--minutes", "0.1", "--lr-anneal-fraction", "0.5",
-              "--no-eval", "--out", str(tmp_path / "p.zip")])
+        main(
+            [
+                "ppo",
+                "--num-envs",
+                "8",
+                "--n-steps",
+                "8",
+                "--minutes",
+                "0.1",
+                "--lr-anneal-fraction",
+                "0.5",
+                "--no-eval",
+                "--out",
+                str(tmp_path / "p.zip"),
+            ]
+        )
 
 
 def test_a_run_dir_from_before_the_anneal_resumes_with_its_default(tmp_path):
     run = tmp_path / "run"
-    args = ["ppo", "--num-envs", "8", "--n-steps", "8", "--net-arch", "16", "--threads", "1", "--run-dir", str(run),
-            "--no-eval", "--out", str(run / "final.zip")]
+    args = [
+        "ppo",
+        "--num-envs",
+        "8",
+        "--n-steps",
+        "8",
+        "--net-arch",
+        "16",
+        "--threads",
+        "1",
+        "--run-dir",
+        str(run),
+        "--no-eval",
+        "--out",
+        str(run / "final.zip"),
+    ]
     assert main([*args, "--timesteps", "64"]) == 0
     state = json.loads((run / "state.json").read_text())
     del state["ppo"]["lr_anneal_fraction"]  # as written before the field existed

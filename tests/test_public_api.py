@@ -15,9 +15,17 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_import_loads_neither_torch_nor_mujoco() -> None:
-    code = "import rwm_gym, sys; heavy = {'torch', 'mujoco', 'stable_baselines3'} & set(sys.modules); assert not heavy, heavy"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False,
-                          env={"PYTHONPATH": str(ROOT), "PATH": ""})
+    code = (
+        "import rwm_gym, sys; heavy = {'torch', 'mujoco', 'stable_baselines3'} & set(sys.modules); "
+        "assert not heavy, heavy"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=False,
+        env={"PYTHONPATH": str(ROOT), "PATH": ""},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
 
 
@@ -25,7 +33,7 @@ def test_import_loads_neither_torch_nor_mujoco() -> None:
 def test_every_export_is_defined_where_the_map_says(name: str) -> None:
     module = rwm_gym.EXPORTS[name]
     if module == "rwm_gym.vector.rsl_rl_vec_env":
-        pytest.importorskip("rsl_rl", reason="needs the optional extra: pip install \".[rsl-rl]\"")
+        pytest.importorskip("rsl_rl", reason='needs the optional extra: pip install ".[rsl-rl]"')
     assert getattr(rwm_gym, name) is getattr(importlib.import_module(module), name)
     assert name in rwm_gym.__all__ and name in dir(rwm_gym)
 

@@ -18,9 +18,12 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 PAGES = [README, *sorted((ROOT / "docs").rglob("*.md"))]
-TINY_BUDGETS = {"learn(200_000)": "learn(6_144)",  # one rollout of the SB3 snippet's 256 envs
-                "num_envs=4096": "num_envs=16", "timesteps=40_000_000": "timesteps=384",  # the recipe's
-                "num_learning_iterations=50": "num_learning_iterations=1"}
+TINY_BUDGETS = {
+    "learn(200_000)": "learn(6_144)",  # one rollout of the SB3 snippet's 256 envs
+    "num_envs=4096": "num_envs=16",
+    "timesteps=40_000_000": "timesteps=384",  # the recipe's
+    "num_learning_iterations=50": "num_learning_iterations=1",
+}
 
 
 def snippets(page: Path) -> list[str]:
@@ -31,7 +34,7 @@ def cases():
     for page in PAGES:
         text = page.read_text()
         for code in snippets(page):
-            line = text[:text.index(code)].count("\n") + 1
+            line = text[: text.index(code)].count("\n") + 1
             trains = "learn(" in code
             marks = [pytest.mark.slow] if trains else []  # trains: a few CPU seconds more
             yield pytest.param(code, id=f"{page.relative_to(ROOT)}-line-{line}", marks=marks)
@@ -44,10 +47,11 @@ def test_the_readme_has_python_snippets():
 @pytest.mark.parametrize("code", list(cases()))
 def test_python_snippet_runs_when_pasted_alone(code: str, tmp_path: Path) -> None:
     if "from rsl_rl" in code:
-        pytest.importorskip("rsl_rl", reason="the rsl_rl snippet needs the optional extra: pip install \".[rsl-rl]\"")
+        pytest.importorskip("rsl_rl", reason='the rsl_rl snippet needs the optional extra: pip install ".[rsl-rl]"')
     for full, tiny in TINY_BUDGETS.items():
         code = code.replace(full, tiny)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}  # this checkout's package
-    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          check=False, timeout=600)
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, check=False, timeout=600
+    )
     assert done.returncode == 0, done.stderr[-3000:]

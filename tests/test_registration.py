@@ -33,11 +33,14 @@ def test_a_spec_path_makes_the_same_env_as_its_registered_id(tmp_path: Path) -> 
     assert vec.reset(seed=3)[0].shape == (2, *a.shape)
 
 
-@pytest.mark.parametrize("name, message", [
-    ("DMC-Swimmer-Swimmer6-v0", "unknown env 'DMC-Swimmer-Swimmer6-v0'"),
-    ("missing.toml", "spec file 'missing.toml' not found"),
-    ("RWM-Cheetah-v0", "not a physics env"),
-])
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("DMC-Swimmer-Swimmer6-v0", "unknown env 'DMC-Swimmer-Swimmer6-v0'"),
+        ("missing.toml", "spec file 'missing.toml' not found"),
+        ("RWM-Cheetah-v0", "not a physics env"),
+    ],
+)
 def test_unknown_ids_and_bad_spec_paths_fail_in_one_line(name: str, message: str, tmp_path: Path, capsys) -> None:
     with pytest.raises(ValueError, match=message):
         resolve_spec(name)

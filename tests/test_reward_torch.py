@@ -19,8 +19,12 @@ def _episodes(name: str) -> tuple[Dataset, dict[str, np.ndarray]]:
     data = Dataset.load(shipped_file(f"assets/checkpoints/{name}.h5"))
     rows = int(data.episode_lengths.max())
     episodes = [data.episode(i) for i in range(data.num_episodes)]
-    batch = {key: np.stack([np.concatenate([ep[key], np.repeat(ep[key][-1:], rows - len(ep[key]), axis=0)])
-                            for ep in episodes]) for key in ("state", "contact", "command", "action", "reward")}
+    batch = {
+        key: np.stack(
+            [np.concatenate([ep[key], np.repeat(ep[key][-1:], rows - len(ep[key]), axis=0)]) for ep in episodes]
+        )
+        for key in ("state", "contact", "command", "action", "reward")
+    }
     batch["length"] = data.episode_lengths - 1
     return data, batch
 
@@ -51,13 +55,19 @@ def test_torch_reward_equals_numpy_reward_step_by_step_over_recorded_episodes(re
         task.command = command[:, t]
         expected, expected_terms = task.reward(*args, None, action, last_action)
         got, got_terms = reward_torch.velocity_tracking_reward(
-            spec, timers, *(torch.as_tensor(a, dtype=torch.float64) for a in args[:2]), torch.as_tensor(args[2]),
-            torch.as_tensor(command[:, t], dtype=torch.float64), torch.as_tensor(action, dtype=torch.float64),
-            torch.as_tensor(last_action, dtype=torch.float64))
+            spec,
+            timers,
+            *(torch.as_tensor(a, dtype=torch.float64) for a in args[:2]),
+            torch.as_tensor(args[2]),
+            torch.as_tensor(command[:, t], dtype=torch.float64),
+            torch.as_tensor(action, dtype=torch.float64),
+            torch.as_tensor(last_action, dtype=torch.float64),
+        )
         assert set(got_terms) == set(expected_terms)
         for name, value in expected_terms.items():
-            np.testing.assert_allclose(got_terms[name].numpy()[active], value[active], rtol=1e-12, atol=1e-12,
-                                       err_msg=f"step {t}, term {name}")
+            np.testing.assert_allclose(
+                got_terms[name].numpy()[active], value[active], rtol=1e-12, atol=1e-12, err_msg=f"step {t}, term {name}"
+            )
         np.testing.assert_allclose(got.numpy()[active], expected[active], rtol=1e-12, atol=1e-12, err_msg=f"step {t}")
         np.testing.assert_array_equal(timers.air_time.numpy(), task.air_time.air_time)
         np.testing.assert_array_equal(timers.last_contact.numpy(), task.air_time.last_contact)
@@ -76,9 +86,17 @@ def _transitions(ep, rows: int, dtype: torch.dtype):
     last half with a zero command (standing)."""
     t = 10
     command = ep["command"][:rows, t].copy()
-    command[rows // 2:] = 0.0
-    return [torch.as_tensor(a, dtype=dtype) for a in (ep["state"][:rows, t + 1], ep["state"][:rows, t], command,
-                                                      ep["action"][:rows, t], ep["action"][:rows, t - 1])]
+    command[rows // 2 :] = 0.0
+    return [
+        torch.as_tensor(a, dtype=dtype)
+        for a in (
+            ep["state"][:rows, t + 1],
+            ep["state"][:rows, t],
+            command,
+            ep["action"][:rows, t],
+            ep["action"][:rows, t - 1],
+        )
+    ]
 
 
 def test_gradients_reach_the_predicted_state_and_the_action(recorded):
@@ -111,16 +129,29 @@ def test_float32_tensors_with_0_1_contacts(recorded):
     state, prev_state, command, action, prev_action = _transitions(ep, 6, torch.float32)
     contact = ep["contact"][:6, 11]
     timers = reward_torch.FeetAirTime(6, spec.foot_dim)
-    got, terms = reward_torch.velocity_tracking_reward(spec, timers, state, prev_state, torch.as_tensor(contact * 1.0,
-                                                       dtype=torch.float32), command, action, prev_action)
+    got, terms = reward_torch.velocity_tracking_reward(
+        spec,
+        timers,
+        state,
+        prev_state,
+        torch.as_tensor(contact * 1.0, dtype=torch.float32),
+        command,
+        action,
+        prev_action,
+    )
     assert got.dtype == torch.float32 and all(term.dtype == torch.float32 for term in terms.values())
     assert timers.air_time.dtype == torch.float32
 
     feet = np.isin(spec.privileged.contact_bodies, spec.privileged.feet)
     numpy_timers = reward.FeetAirTime(6, spec.foot_dim)
     air = numpy_timers.update(contact[:, feet], spec.policy_dt, spec.reward.feet_air_time_target)
-    expected_terms = reward.reward_terms(spec, *(x.double().numpy() for x in (state, prev_state)), contact,
-                                         *(x.double().numpy() for x in (command, action, prev_action)), air)
+    expected_terms = reward.reward_terms(
+        spec,
+        *(x.double().numpy() for x in (state, prev_state)),
+        contact,
+        *(x.double().numpy() for x in (command, action, prev_action)),
+        air,
+    )
     np.testing.assert_allclose(got.numpy(), reward.total_reward(spec, expected_terms), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(timers.air_time.numpy(), numpy_timers.air_time, rtol=1e-6)
 
@@ -133,10 +164,18 @@ def test_on_cuda_the_reward_and_timers_stay_on_the_device_and_match_the_cpu(reco
     for device in ("cpu", "cuda"):
         timers = reward_torch.FeetAirTime(len(ep["length"]), spec.foot_dim, device=device)
         for t in range(1, 40):
-            tensors = [torch.as_tensor(a, device=device) for a in (
-                ep["state"][:, t + 1], ep["state"][:, t], ep["contact"][:, t + 1], ep["command"][:, t],
-                ep["action"][:, t], ep["action"][:, t - 1])]
-            got, terms = reward_torch.velocity_tracking_reward(spec, timers, *tensors)
+            tensors = [
+                torch.as_tensor(a, device=device)
+                for a in (
+                    ep["state"][:, t + 1],
+                    ep["state"][:, t],
+                    ep["contact"][:, t + 1],
+                    ep["command"][:, t],
+                    ep["action"][:, t],
+                    ep["action"][:, t - 1],
+                )
+            ]
+            got, _terms = reward_torch.velocity_tracking_reward(spec, timers, *tensors)
         assert got.device.type == device and timers.air_time.device.type == device
         results[device] = got.cpu(), timers.air_time.cpu()
     for cpu, cuda in zip(results["cpu"], results["cuda"]):

@@ -47,8 +47,16 @@ def _recording_env(num_envs: int, seed: int):
 
         def step(self, actions):
             obs, rewards, dones, extras = super().step(actions)
-            self.steps_seen.append({"actions": actions.clone(), "obs": obs["policy"].clone(), "rewards": rewards,
-                                    "dones": dones, "time_outs": extras["time_outs"], "log": extras.get("log")})
+            self.steps_seen.append(
+                {
+                    "actions": actions.clone(),
+                    "obs": obs["policy"].clone(),
+                    "rewards": rewards,
+                    "dones": dones,
+                    "time_outs": extras["time_outs"],
+                    "log": extras.get("log"),
+                }
+            )
             return obs, rewards, dones, extras
 
     return Recording(None, num_envs, seed=seed, episode_steps=EPISODE_STEPS)
@@ -127,4 +135,3 @@ def test_physics_env_holds_a_command_and_matches_its_core(rsl_rl):
     obs = env.reset(seed=0, command=(1.0, 0.0, 0.0))
     command = slice(9, 12)  # base lin vel 3, ang vel 3, gravity 3, then the command
     np.testing.assert_array_equal(obs["policy"][:, command].numpy(), [[1.0, 0.0, 0.0]] * 2)
-

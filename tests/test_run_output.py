@@ -50,8 +50,9 @@ def test_ppo_bar_with_only_minutes_counts_seconds_of_the_budget(capsys):
 
 
 def test_train_bar_with_only_minutes_counts_seconds_of_the_budget(data, capsys):
-    config = TrainConfig(history=4, forecast=2, batch_size=4, iterations=0, minutes=0.5 / 60, val_every=5,
-                         val_fraction=0.25)
+    config = TrainConfig(
+        history=4, forecast=2, batch_size=4, iterations=0, minutes=0.5 / 60, val_every=5, val_fraction=0.25
+    )
     ticks = iter(range(10**6))
     clock = lambda: 0.05 * next(ticks)  # noqa: E731  (each reading 50 ms later: the same run on any machine)
     result = train(data, model_config_for("mlp", SPEC, **TINY_MODEL), config, progress=True, clock=clock)
@@ -69,8 +70,9 @@ def test_physics_samples_come_from_provenance_or_say_why_unknown(data, tmp_path)
     assert rows[0] == Dataset.load(data).num_steps and "provenance" in rows[1]
     model, meta = load_checkpoint(out)
     older = tmp_path / "older.safetensors"  # a checkpoint from before dataset_steps: the file is read instead
-    save_checkpoint(older, model, meta.spec, provenance={k: v for k, v in meta.provenance.items()
-                                                         if k != "dataset_steps"})
+    save_checkpoint(
+        older, model, meta.spec, provenance={k: v for k, v in meta.provenance.items() if k != "dataset_steps"}
+    )
     assert dataset_rows(older) == (rows[0], f"rows of {data}, the world model's dataset")
     elsewhere = tmp_path / "elsewhere.safetensors"
     save_checkpoint(elsewhere, model, meta.spec, provenance={"dataset": "runs/gone.h5", "sha256": "0" * 64})
@@ -81,8 +83,19 @@ def test_physics_samples_come_from_provenance_or_say_why_unknown(data, tmp_path)
     assert dataset_rows(nameless) == (None, f"unknown: {nameless} names no dataset in its provenance")
 
 
-OPTIONAL_INPUTS = {"--out", "--init", "--tensorboard", "--sim-kwargs", "--physics", "--xml-file", "--from-dmc", "--mjcf",
-                   "--checkpoint", "--bc-data", "--run-dir"}
+OPTIONAL_INPUTS = {
+    "--out",
+    "--init",
+    "--tensorboard",
+    "--sim-kwargs",
+    "--physics",
+    "--xml-file",
+    "--from-dmc",
+    "--mjcf",
+    "--checkpoint",
+    "--bc-data",
+    "--run-dir",
+}
 """Options whose absence is its own meaning (no such input): their help need not name a default."""
 
 
@@ -94,9 +107,9 @@ def test_every_subcommand_help_names_its_defaults(command):
         pytest.skip(f"{command} is not available in this build")
     for action in sub._actions:
         flag = max(action.option_strings, key=len, default="")
-        if not flag or action.nargs == 0 and action.default in (False, None) or flag == "--help":
+        if not flag or (action.nargs == 0 and action.default in (False, None)) or flag == "--help":
             continue  # positional arguments, switches and --help
-        if action.required or flag in OPTIONAL_INPUTS and action.default is None:
+        if action.required or (flag in OPTIONAL_INPUTS and action.default is None):
             continue
         text = sub.formatter_class(prog="x")._format_action(action)  # the option's lines as --help prints them
         assert "default" in text, f"rwm-gym {command} {flag}: help names no default ({text!r})"

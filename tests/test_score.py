@@ -13,7 +13,7 @@ SPEC = load_spec("anymal_d")
 def _state(v_xy, wz):
     state = np.zeros((1, SPEC.state_dim))
     s = SPEC.state_slices
-    state[0, s["base_lin_vel"].start:s["base_lin_vel"].start + 2] = v_xy
+    state[0, s["base_lin_vel"].start : s["base_lin_vel"].start + 2] = v_xy
     state[0, s["base_ang_vel"].start + 2] = wz
     return state
 
@@ -91,10 +91,8 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     from rwm_gym.rl.score import score
 
     shipped = str(default_checkpoint())
-    standing = collect("AnymalD-MuJoCo-v0", "zero", 4, tmp_path / "stand.h5", max_steps=60, num_envs=4,
-                       progress=False)
-    trotting = collect("AnymalD-MuJoCo-v0", "gait", 4, tmp_path / "trot.h5", max_steps=60, num_envs=4,
-                       progress=False)
+    standing = collect("AnymalD-MuJoCo-v0", "zero", 4, tmp_path / "stand.h5", max_steps=60, num_envs=4, progress=False)
+    trotting = collect("AnymalD-MuJoCo-v0", "gait", 4, tmp_path / "trot.h5", max_steps=60, num_envs=4, progress=False)
     options = dict(seeds=2, steps=60, num_random=4, checkpoint=shipped)
     moving, still = score("zero", reset_data=trotting, **options), score("zero", reset_data=standing, **options)
     assert np.hypot(*moving.commands[0].achieved[:2]) > 0.08 > 0.04 > np.hypot(*still.commands[0].achieved[:2])
@@ -104,13 +102,25 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
     assert "| disagreement" in format_table(still).splitlines()[0]
     with pytest.raises(SystemExit, match="--reset-data applies to --checkpoint"):
         main(["score", "--policy", "zero", "--reset-data", str(standing), "--out", str(tmp_path / "out")])
-    with pytest.raises(SystemExit, match="missing.h5: no such file"):
-        main(["score", "--policy", "zero", "--checkpoint", shipped, "--reset-data", str(tmp_path / "missing.h5"),
-              "--out", str(tmp_path / "out")])
+    with pytest.raises(SystemExit, match=r"missing.h5: no such file"):
+        main(
+            [
+                "score",
+                "--policy",
+                "zero",
+                "--checkpoint",
+                shipped,
+                "--reset-data",
+                str(tmp_path / "missing.h5"),
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
 
 
-@pytest.mark.parametrize("name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo", "anymal_d_mbpo_ppo_random_data",
-                                  "anymal_d_ppo_imagination"])
+@pytest.mark.parametrize(
+    "name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo", "anymal_d_mbpo_ppo_random_data", "anymal_d_ppo_imagination"]
+)
 def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
     """Each shipped policy is under 1 MiB, carries no training-env state, and walks forward at 1 m/s in physics on
     a short episode without falling; its JSON's score sits above the zero-action floor it states."""
@@ -166,8 +176,8 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
 
     from script_loader import EXAMPLES, load_script
 
+    from rwm_gym.commands.ppo import add_arguments
     from rwm_gym.resources import assets_dir
-    from rwm_gym.rl.ppo_command import add_arguments
 
     quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
     meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())

@@ -54,9 +54,29 @@ def test_options_shac_cannot_step_are_refused():
 
 def test_cli_trains_resumes_and_writes_a_policy_that_score_reads(tmp_path):
     run = tmp_path / "run"
-    command = ["shac", "--num-envs", "8", "--horizon", "4", "--critic-iterations", "1", "--episode-steps", "20",
-               "--fall-tilt", "30", "--run-dir", str(run), "--snapshot-every", "2", "--save-every", "2",
-               "--threads", "1", "--out", str(tmp_path / "policy.zip")]
+    command = [
+        "shac",
+        "--num-envs",
+        "8",
+        "--horizon",
+        "4",
+        "--critic-iterations",
+        "1",
+        "--episode-steps",
+        "20",
+        "--fall-tilt",
+        "30",
+        "--run-dir",
+        str(run),
+        "--snapshot-every",
+        "2",
+        "--save-every",
+        "2",
+        "--threads",
+        "1",
+        "--out",
+        str(tmp_path / "policy.zip"),
+    ]
     assert cli([*command, "--timesteps", "64"]) == 0
     assert json.loads((run / "state.json").read_text())["timesteps"] == 64
     assert cli([*command, "--timesteps", "128"]) == 0  # continues the same run to the larger budget
@@ -65,6 +85,20 @@ def test_cli_trains_resumes_and_writes_a_policy_that_score_reads(tmp_path):
     assert sorted(p.name for p in (run / "snapshots").glob("*.zip")) == ["step_0.zip", "step_64.zip"]
     with pytest.raises(SystemExit, match="other settings"):
         cli([*command[:4], "8", *command[5:], "--timesteps", "256"])  # another horizon
-    assert cli(["score", "--policy", str(tmp_path / "policy.zip"), "--out", str(tmp_path / "score"), "--seeds", "1",
-                "--steps", "20"]) == 0
+    assert (
+        cli(
+            [
+                "score",
+                "--policy",
+                str(tmp_path / "policy.zip"),
+                "--out",
+                str(tmp_path / "score"),
+                "--seeds",
+                "1",
+                "--steps",
+                "20",
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "score" / "score.json").read_text())["episodes"] == 18

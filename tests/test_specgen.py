@@ -48,8 +48,9 @@ def legged_spec(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("legged")
     (folder / "robot.xml").write_text(quadruped_xml())
     out = folder / "quad.toml"
-    assert main(["spec", "--mjcf", str(folder / "robot.xml"), "--out", str(out), "--episodes", "2",
-                 "--steps", "50"]) == 0
+    assert (
+        main(["spec", "--mjcf", str(folder / "robot.xml"), "--out", str(out), "--episodes", "2", "--steps", "50"]) == 0
+    )
     return out
 
 
@@ -75,7 +76,8 @@ def test_a_legged_mjcf_becomes_a_spec_and_a_physics_env_that_stands(legged_spec:
 
 
 def test_the_spec_of_a_legged_mjcf_is_refused_without_a_floating_base(tmp_path: Path, capsys) -> None:
-    (tmp_path / "arm.xml").write_text('<mujoco><worldbody><body name="a"><joint name="j"/><geom size="0.1"/>'
-                                      '</body></worldbody></mujoco>')
+    (tmp_path / "arm.xml").write_text(
+        '<mujoco><worldbody><body name="a"><joint name="j"/><geom size="0.1"/></body></worldbody></mujoco>'
+    )
     assert main(["spec", "--mjcf", str(tmp_path / "arm.xml"), "--out", str(tmp_path / "arm.toml")]) == 2
     assert "free-floating base" in capsys.readouterr().err

@@ -43,8 +43,9 @@ def test_reward_from_the_state_matches_the_suite_reward_in_physics(env_id: str) 
         assert abs(ours.mean() - theirs.mean()) < 0.03
 
 
-@pytest.mark.parametrize("env_id", ["DMC-Cheetah-Run-v0", "DMC-Walker-Walk-v0", "DMC-Hopper-Hop-v0",
-                                    "DMC-Humanoid-Walk-v0"])
+@pytest.mark.parametrize(
+    "env_id", ["DMC-Cheetah-Run-v0", "DMC-Walker-Walk-v0", "DMC-Hopper-Hop-v0", "DMC-Humanoid-Walk-v0"]
+)
 def test_derived_quantities_are_exact_kinematics(env_id: str) -> None:
     reward = SuiteReward(load_spec(DMC_SPECS[env_id]))
     for env, (record, action, _, data) in _rollout(env_id, steps=40):
@@ -52,8 +53,10 @@ def test_derived_quantities_are_exact_kinematics(env_id: str) -> None:
         torso = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         velocity = np.zeros(6)
         mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, torso, velocity, 0)  # world orientation
-        q = {k: v[0] for k, v in reward.quantities(record["state"][None], record["foot_height"][None],
-                                                    action[None]).items()}
+        q = {
+            k: v[0]
+            for k, v in reward.quantities(record["state"][None], record["foot_height"][None], action[None]).items()
+        }
         assert q["upright"] == pytest.approx(data.xmat[torso, 8], abs=1e-5)
         assert q["height"] == pytest.approx(data.xpos[torso, 2], abs=1e-5)
         assert q["vertical_velocity"] == pytest.approx(velocity[5], abs=1e-4)

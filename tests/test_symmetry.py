@@ -28,8 +28,12 @@ def test_mirror_is_an_involution_with_the_anymal_conventions():
         np.testing.assert_array_equal(mirror(mirror(x)), x)
     obs = np.arange(1, 49, dtype=np.float32)
     image, at = observation_mirror(SPEC)(obs), observation_slices(SPEC)
-    for group, signs in (("base_lin_vel", [1, -1, 1]), ("base_ang_vel", [-1, 1, -1]),
-                         ("projected_gravity", [1, -1, 1]), ("command", [1, -1, -1])):
+    for group, signs in (
+        ("base_lin_vel", [1, -1, 1]),
+        ("base_ang_vel", [-1, 1, -1]),
+        ("projected_gravity", [1, -1, 1]),
+        ("command", [1, -1, -1]),
+    ):
         np.testing.assert_array_equal(image[at[group]], obs[at[group]] * signs)
     for group in ("joint_pos", "joint_vel", "last_action"):  # LF <-> RF, LH <-> RH; HAA flips, HFE and KFE keep
         legs = obs[at[group]].reshape(4, 3)[[1, 0, 3, 2]] * [-1, 1, 1]
@@ -119,12 +123,26 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
         def evaluate_actions(obs, actions):
             return None, (obs[:, :12] * actions).sum(1) + obs[:, 20], None
 
-    buffer = MirroredRolloutBuffer(steps, obs_space, act_space, "cpu", n_envs=envs,
-                                   observation_mirror=obs_mirror, action_mirror=act_mirror, policy=Policy())
+    buffer = MirroredRolloutBuffer(
+        steps,
+        obs_space,
+        act_space,
+        "cpu",
+        n_envs=envs,
+        observation_mirror=obs_mirror,
+        action_mirror=act_mirror,
+        policy=Policy(),
+    )
     rng = np.random.default_rng(0)
     for _ in range(steps):
-        buffer.add(rng.normal(size=(envs, 48)).astype(np.float32), rng.normal(size=(envs, 12)).astype(np.float32),
-                   rng.normal(size=envs), np.zeros(envs, bool), torch.randn(envs), torch.randn(envs))
+        buffer.add(
+            rng.normal(size=(envs, 48)).astype(np.float32),
+            rng.normal(size=(envs, 12)).astype(np.float32),
+            rng.normal(size=envs),
+            np.zeros(envs, bool),
+            torch.randn(envs),
+            torch.randn(envs),
+        )
     buffer.compute_returns_and_advantage(torch.randn(envs), np.zeros(envs, bool))
     batches = list(buffer.get(batch))
     assert len(batches) == steps * envs // batch
@@ -176,9 +194,9 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
 
 
 def test_symmetry_is_refused_for_a_spec_without_a_mirror():
-    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv
+    from rwm_gym.commands.ppo import add_arguments
     from rwm_gym.rl.ppo import PPOConfig, make_ppo
-    from rwm_gym.rl.ppo_command import add_arguments
+    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv
 
     config = PPOConfig(num_envs=2, n_steps=8, net_arch=(8,), num_minibatches=2, symmetry=True)
     one_line = r"^task spec \S+ has no \[symmetry\] table \(the robot's left-right mirror\)$"

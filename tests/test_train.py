@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
@@ -19,12 +20,11 @@ from rwm_gym.model.heads import soft_bound
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.train import train
 from rwm_gym.model.windows import WindowData
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
-FAST = TrainConfig(history=6, forecast=3, batch_size=8, iterations=4, val_every=2, checkpoint_every=2,
-                   val_fraction=0.25)
-
+FAST = TrainConfig(
+    history=6, forecast=3, batch_size=8, iterations=4, val_every=2, checkpoint_every=2, val_fraction=0.25
+)
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +80,9 @@ def test_every_kind_trains(kind: str, data: Path) -> None:
 
 def test_same_seed_same_weights_and_resume_matches_uninterrupted_run(data: Path, tmp_path: Path) -> None:
     config = model_config_for("rwm", SPEC, **TINY, ensemble_size=2)
-    run = TrainConfig(history=6, forecast=3, batch_size=8, iterations=20, val_every=5, checkpoint_every=7,
-                      val_fraction=0.25)
+    run = TrainConfig(
+        history=6, forecast=3, batch_size=8, iterations=20, val_every=5, checkpoint_every=7, val_fraction=0.25
+    )
     full = weights(train(data, config, run, tmp_path / "full.safetensors", progress=False).model)
     again = weights(train(data, config, run, progress=False).model)
     assert all(torch.equal(full[k], again[k]) for k in full)
@@ -103,8 +104,7 @@ def test_same_seed_same_weights_and_resume_matches_uninterrupted_run(data: Path,
 
 
 def test_tiny_rwm_beats_no_change(data: Path) -> None:
-    run = TrainConfig(history=8, forecast=4, batch_size=16, iterations=300, lr=3e-3, val_every=300,
-                      val_fraction=0.25)
+    run = TrainConfig(history=8, forecast=4, batch_size=16, iterations=300, lr=3e-3, val_every=300, val_fraction=0.25)
     options = dict(hidden_size=64, num_layers=1, head_hidden=64)
     rwm = train(data, model_config_for("rwm", SPEC, **options), run, progress=False).stats["val_error"]
     still = train(data, model_config_for("no_change", SPEC), run, progress=False).stats["val_error"]
@@ -113,9 +113,33 @@ def test_tiny_rwm_beats_no_change(data: Path) -> None:
 
 def test_cli_teacher_forcing_and_bad_data(data: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "tf.safetensors"
-    code = main(["train", "--data", str(data), "--model", "mlp", "--out", str(out), "--teacher-forcing",
-                 "--iterations", "3", "--history", "4", "--hidden-size", "8", "--head-hidden", "8", "--quiet",
-                 "--branches", "2", "--batch-size", "8", "--unit-gravity", "--no-joint-limits"])
+    code = main(
+        [
+            "train",
+            "--data",
+            str(data),
+            "--model",
+            "mlp",
+            "--out",
+            str(out),
+            "--teacher-forcing",
+            "--iterations",
+            "3",
+            "--history",
+            "4",
+            "--hidden-size",
+            "8",
+            "--head-hidden",
+            "8",
+            "--quiet",
+            "--branches",
+            "2",
+            "--batch-size",
+            "8",
+            "--unit-gravity",
+            "--no-joint-limits",
+        ]
+    )
     assert code == 0
     summary = capsys.readouterr().out
     assert "3 iterations in" in summary and not re.search(r"\d\.\d{5,}", summary)  # no raw floats
@@ -144,14 +168,15 @@ def test_reset_std_band_frees_the_std_of_a_fine_tune(data: Path, tmp_path: Path)
     the first step, keeps the predicted means, and needs a checkpoint to start from."""
     config = model_config_for("rwm", SPEC, **{**TINY, "ensemble_size": 2})
     first = train(data, config, FAST, tmp_path / "a.safetensors", progress=False)
-    frozen = TrainConfig(**{**FAST.to_dict(), "iterations": 1, "lr": 1e-9, "loss": "nll", "reset_std_band": True,
-                            "reset_log_std": -1.5})
+    frozen = TrainConfig(
+        **{**FAST.to_dict(), "iterations": 1, "lr": 1e-9, "loss": "nll", "reset_std_band": True, "reset_log_std": -1.5}
+    )
     tuned = train(data, config, frozen, init=first.path, progress=False).model
     head = tuned.heads.state
     torch.testing.assert_close(head.min_log_std.detach(), torch.full_like(head.min_log_std, config.log_std_min_init))
     torch.testing.assert_close(head.max_log_std.detach(), torch.full_like(head.max_log_std, config.log_std_max_init))
     x = torch.randn(5, 7, SPEC.state_dim + SPEC.action_dim)
-    states, actions = x[..., :SPEC.state_dim], x[..., SPEC.state_dim:]
+    states, actions = x[..., : SPEC.state_dim], x[..., SPEC.state_dim :]
     with torch.no_grad():
         before = first.model.forecast(states, actions, 1, sample=False, member=torch.zeros(5, dtype=torch.long))[0]
         after = tuned.forecast(states, actions, 1, sample=False, member=torch.zeros(5, dtype=torch.long))[0]
@@ -166,8 +191,26 @@ def test_cli_init_takes_the_checkpoints_model_config(data: Path, tmp_path: Path,
     """Fine-tuning needs no model options: `--init`'s config is their default; a different family is refused."""
     config = model_config_for("rwm", SPEC, **{**TINY, "ensemble_size": 2})
     first = train(data, config, FAST, tmp_path / "a.safetensors", progress=False).path
-    common = ["train", "--data", str(data), "--init", str(first), "--history", "6", "--forecast", "3",
-              "--batch-size", "8", "--iterations", "1", "--val-every", "1", "--val-fraction", "0.25", "--quiet"]
+    common = [
+        "train",
+        "--data",
+        str(data),
+        "--init",
+        str(first),
+        "--history",
+        "6",
+        "--forecast",
+        "3",
+        "--batch-size",
+        "8",
+        "--iterations",
+        "1",
+        "--val-every",
+        "1",
+        "--val-fraction",
+        "0.25",
+        "--quiet",
+    ]
     assert main([*common, "--out", str(tmp_path / "b.safetensors")]) == 0
     assert read_meta(tmp_path / "b.safetensors").model_config == config
     assert main([*common, "--out", str(tmp_path / "c.safetensors"), "--model", "mlp"]) == 2

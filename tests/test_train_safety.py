@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC, write_linear_dataset
 
 import rwm_gym.model.train as train_module
 from rwm_gym.cli import main
@@ -15,7 +16,6 @@ from rwm_gym.model import model_config_for
 from rwm_gym.model.checkpoint import read_meta
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.train import train
-from synthetic_dynamics import SPEC, write_linear_dataset
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16)
 
@@ -27,8 +27,26 @@ def data(tmp_path_factory) -> Path:
 
 def test_train_refuses_an_existing_out_without_resume_or_overwrite(data: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "model.safetensors"
-    common = ["train", "--data", str(data), "--out", str(out), "--model", "mlp", "--hidden-size", "8",
-              "--history", "4", "--forecast", "2", "--batch-size", "4", "--val-every", "2", "--quiet"]
+    common = [
+        "train",
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--model",
+        "mlp",
+        "--hidden-size",
+        "8",
+        "--history",
+        "4",
+        "--forecast",
+        "2",
+        "--batch-size",
+        "4",
+        "--val-every",
+        "2",
+        "--quiet",
+    ]
     assert main([*common, "--iterations", "6"]) == 0
     before = out.read_bytes()
     assert main([*common, "--iterations", "2"]) == 2
@@ -38,11 +56,13 @@ def test_train_refuses_an_existing_out_without_resume_or_overwrite(data: Path, t
     assert read_meta(out).stats["iterations"] == 2
 
 
-def test_ctrl_c_inside_an_iteration_then_resume_matches_the_uninterrupted_run(data: Path, tmp_path: Path,
-                                                                              monkeypatch) -> None:
+def test_ctrl_c_inside_an_iteration_then_resume_matches_the_uninterrupted_run(
+    data: Path, tmp_path: Path, monkeypatch
+) -> None:
     config = model_config_for("rwm", SPEC, **TINY)
-    run = TrainConfig(history=6, forecast=3, batch_size=8, iterations=12, val_every=4, checkpoint_every=100,
-                      val_fraction=0.25)
+    run = TrainConfig(
+        history=6, forecast=3, batch_size=8, iterations=12, val_every=4, checkpoint_every=100, val_fraction=0.25
+    )
     full = train(data, config, run, progress=False).model.state_dict()
 
     calls, step = [0], train_module.train_step
@@ -77,10 +97,13 @@ def test_training_on_an_interrupted_collection_warns(data: Path, tmp_path: Path)
         train(cut, model_config_for("mlp", SPEC, hidden_size=8), run, progress=False)
 
 
-@pytest.mark.parametrize("command", [
-    ["train", "--model", "mlp", "--batch-size", "0", "--out", "{tmp}/m.safetensors"],
-    ["evaluate", "--checkpoint", "{tmp}/none.safetensors", "--horizons", "-3"],
-])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["train", "--model", "mlp", "--batch-size", "0", "--out", "{tmp}/m.safetensors"],
+        ["evaluate", "--checkpoint", "{tmp}/none.safetensors", "--horizons", "-3"],
+    ],
+)
 def test_bad_numbers_give_one_line_errors(data: Path, tmp_path: Path, capsys, command) -> None:
     assert main([c.format(tmp=tmp_path) for c in command] + ["--data", str(data), "--quiet"]) == 2
     err = capsys.readouterr().err

@@ -12,13 +12,41 @@ import numpy as np
 
 from rwm_gym.data.dataset import Dataset
 
-ARGS = ["--in", "physics", "--num-envs", "32", "--n-steps", "16", "--positive-reward-only", "--save-every", "1",
-        "--snapshot-every", "2", "--record-every", "4", "--threads", "1", "--seed", "3"]
+ARGS = [
+    "--in",
+    "physics",
+    "--num-envs",
+    "32",
+    "--n-steps",
+    "16",
+    "--positive-reward-only",
+    "--save-every",
+    "1",
+    "--snapshot-every",
+    "2",
+    "--record-every",
+    "4",
+    "--threads",
+    "1",
+    "--seed",
+    "3",
+]
 
 
 def _ppo(run_dir, timesteps, **kw):
-    cmd = [sys.executable, "-m", "rwm_gym.cli", "ppo", *ARGS, "--run-dir", str(run_dir), "--timesteps",
-           str(timesteps), "--out", str(run_dir / "final.zip")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rwm_gym.cli",
+        "ppo",
+        *ARGS,
+        "--run-dir",
+        str(run_dir),
+        "--timesteps",
+        str(timesteps),
+        "--out",
+        str(run_dir / "final.zip"),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kw)
 
@@ -56,9 +84,24 @@ def test_a_killed_run_keeps_its_episodes_and_resumes_to_the_budget(tmp_path):
     assert steps[-1] == budget and steps == sorted(steps)
     # the teacher-data example turns the run into world-model data: merged experience plus held-out episodes
     data = tmp_path / "teacher"
-    example = subprocess.run([sys.executable, "examples/make_teacher_data.py", "--run-dir", str(run), "--out",
-                              str(data), "--episodes", "1", "--num-envs", "1"], capture_output=True, text=True,
-                             timeout=240, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    example = subprocess.run(
+        [
+            sys.executable,
+            "examples/make_teacher_data.py",
+            "--run-dir",
+            str(run),
+            "--out",
+            str(data),
+            "--episodes",
+            "1",
+            "--num-envs",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     assert example.returncode == 0, example.stderr[-2000:]
     manifest = json.loads((data / "manifest.json").read_text())
     merged = Dataset.load(data / "experience.h5")
@@ -71,11 +114,21 @@ def test_a_run_folder_refuses_other_settings(tmp_path):
     run = tmp_path / "run"
     first = _ppo(run, 32 * 16)
     assert first.wait(timeout=240) == 0
-    cmd = [sys.executable, "-m", "rwm_gym.cli", "ppo", *ARGS, "--n-epochs", "3", "--run-dir", str(run),
-           "--timesteps", "2048"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rwm_gym.cli",
+        "ppo",
+        *ARGS,
+        "--n-epochs",
+        "3",
+        "--run-dir",
+        str(run),
+        "--timesteps",
+        "2048",
+    ]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert result.returncode != 0 and "other PPO settings" in result.stderr
-
 
 
 def test_ppo_curve_spaces_the_snapshots_it_scores(tmp_path):

@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from synthetic_dynamics import SPEC
 
 from rwm_gym.model import MODEL_KINDS, Prediction, WorldModel, build_model, model_config_for
 from rwm_gym.model import gru_step as gru_step_module
 from rwm_gym.model.config import ModelConfig, TrainConfig
 from rwm_gym.model.losses import window_loss
 from rwm_gym.model.windows import Window
-from synthetic_dynamics import SPEC
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
 S, A, C, F = SPEC.state_dim, SPEC.action_dim, SPEC.contact_dim, SPEC.foot_dim
-
 
 
 def tiny(kind: str, **options) -> WorldModel:
@@ -25,9 +24,13 @@ def tiny(kind: str, **options) -> WorldModel:
 
 def random_window(batch: int, rows: int) -> Window:
     g = torch.Generator().manual_seed(1)
-    return Window(torch.randn(batch, rows, S, generator=g), torch.rand(batch, rows, A, generator=g) * 2 - 1,
-                  (torch.rand(batch, rows, C, generator=g) > 0.5).float(), torch.randn(batch, rows, F, generator=g),
-                  torch.zeros(batch, rows))
+    return Window(
+        torch.randn(batch, rows, S, generator=g),
+        torch.rand(batch, rows, A, generator=g) * 2 - 1,
+        (torch.rand(batch, rows, C, generator=g) > 0.5).float(),
+        torch.randn(batch, rows, F, generator=g),
+        torch.zeros(batch, rows),
+    )
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)
@@ -173,8 +176,14 @@ class ShiftModel(WorldModel):
     def step(self, hidden, state, action, member=None, next_state=None):
         self.inputs.append(state.clone())
         zeros = state.new_zeros(state.shape[0])
-        return (), Prediction(state + 1, torch.zeros_like(state), state.new_zeros(len(state), C),
-                              state.new_zeros(len(state), F), zeros, zeros)
+        return (), Prediction(
+            state + 1,
+            torch.zeros_like(state),
+            state.new_zeros(len(state), C),
+            state.new_zeros(len(state), F),
+            zeros,
+            zeros,
+        )
 
 
 def test_forecast_feeds_back_its_own_predictions_not_the_truth() -> None:
@@ -226,8 +235,10 @@ def test_state_constraints_keep_gravity_unit_and_joints_in_their_ranges(tmp_path
     from rwm_gym.model.normalization import Normalizer
 
     normalizer, slices = Normalizer.from_spec(SPEC), SPEC.state_slices
-    low, high = (torch.as_tensor(r - torch.tensor(SPEC.actuator.default_pose).numpy(), dtype=torch.float32)
-                 for r in joint_ranges(SPEC))
+    low, high = (
+        torch.as_tensor(r - torch.tensor(SPEC.actuator.default_pose).numpy(), dtype=torch.float32)
+        for r in joint_ranges(SPEC)
+    )
     assert torch.isfinite(low).all() and (low < 0).all() and (high > 0).all()
     with pytest.raises(ValueError, match="spec"):
         build_model(model_config_for("rwm", SPEC, **TINY, unit_gravity=True))

@@ -73,8 +73,11 @@ class Geom:
         return f'type="{self.kind}" pos="{_fv(self.pos)}" size="{_fv(self.size, 6)}"'
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        ext = self.size if self.kind == "box" else np.full(3, self.size[0]) + (
-            np.abs(self.axis) if self.axis is not None else 0.0)
+        ext = (
+            self.size
+            if self.kind == "box"
+            else np.full(3, self.size[0]) + (np.abs(self.axis) if self.axis is not None else 0.0)
+        )
         return self.pos - ext, self.pos + ext
 
 
@@ -130,8 +133,13 @@ def parse(urdf: Path) -> dict[str, Body]:
                 visit(child, crot, cpos, body)
                 continue
             lim = j.find("limit")
-            bodies[child] = Body(child, cpos, body.name, crot @ _vec(j.find("axis").get("xyz")),
-                                 (float(lim.get("lower")), float(lim.get("upper"))))
+            bodies[child] = Body(
+                child,
+                cpos,
+                body.name,
+                crot @ _vec(j.find("axis").get("xyz")),
+                (float(lim.get("lower")), float(lim.get("upper"))),
+            )
             visit(child, crot, cpos, bodies[child])
 
     visit("base", np.eye(3), np.zeros(3), bodies["base"])
@@ -186,13 +194,17 @@ def _leg(bodies: dict[str, Body], leg: str) -> list[str]:
         ind = "  " * depth
         lo, hi = b.joint_range
         rng = f'range="{_fmt(lo, 6)} {_fmt(hi, 6)}"'
-        out += [f'{ind}<body name="{b.name}" pos="{_fv(b.origin - bodies[b.parent].origin)}">',
-                f'{ind}  <joint name="{leg}_{joint}" axis="{_fv(b.axis, 6)}" {rng}/>',
-                f"{ind}  {_inertial(b)}"]
+        out += [
+            f'{ind}<body name="{b.name}" pos="{_fv(b.origin - bodies[b.parent].origin)}">',
+            f'{ind}  <joint name="{leg}_{joint}" axis="{_fv(b.axis, 6)}" {rng}/>',
+            f"{ind}  {_inertial(b)}",
+        ]
         if b is hip:
             hfe = thigh.origin - hip.origin
-            out += [f"{ind}  <!-- The URDF has no collision primitive on the hip: visual only. -->",
-                    f'{ind}  <geom class="visual" type="capsule" fromto="0 0 0  {_fv(hfe)}" size="0.045"/>']
+            out += [
+                f"{ind}  <!-- The URDF has no collision primitive on the hip: visual only. -->",
+                f'{ind}  <geom class="visual" type="capsule" fromto="0 0 0  {_fv(hfe)}" size="0.045"/>',
+            ]
         elif b is thigh:
             out += [f"{ind}  <!-- HFE drive housing, thigh end caps and tube, KFE drive housing. -->"]
             out += [f'{ind}  <geom name="{b.name}_{n}" class="leg" {g.attrs()}/>' for n, g in enumerate(b.geoms)]
@@ -203,11 +215,15 @@ def _leg(bodies: dict[str, Body], leg: str) -> list[str]:
                 raise ValueError(f"{b.name}: expected one foot sphere, found {len(feet)}")
             foot = feet[0]
             out += [f"{ind}  <!-- Knee housing, shank and foot tube; the foot sphere of the welded URDF foot link. -->"]
-            out += [f'{ind}  <geom name="{b.name}_{n}" class="leg" {g.attrs()}/>'
-                    for n, g in enumerate(g for g in b.geoms if g is not foot)]
-            out += [f'{ind}  <geom name="{leg}_FOOT" class="foot" pos="{_fv(foot.pos)}" size="{_fv(foot.size, 6)}"/>',
-                    f'{ind}  <site name="{leg}_FOOT" class="touch" type="sphere" pos="{_fv(foot.pos)}" '
-                    f'size="{_fmt(foot.size[0] * 1.1)}"/>']
+            out += [
+                f'{ind}  <geom name="{b.name}_{n}" class="leg" {g.attrs()}/>'
+                for n, g in enumerate(g for g in b.geoms if g is not foot)
+            ]
+            out += [
+                f'{ind}  <geom name="{leg}_FOOT" class="foot" pos="{_fv(foot.pos)}" size="{_fv(foot.size, 6)}"/>',
+                f'{ind}  <site name="{leg}_FOOT" class="touch" type="sphere" pos="{_fv(foot.pos)}" '
+                f'size="{_fmt(foot.size[0] * 1.1)}"/>',
+            ]
     out += ["  " * d + "</body>" for d in (2, 1, 0)]
     return out
 
@@ -215,9 +231,12 @@ def _leg(bodies: dict[str, Body], leg: str) -> list[str]:
 def render(bodies: dict[str, Body], base_z: float) -> str:
     """The MJCF text of the robot (see TEMPLATE)."""
     base = bodies["base"]
-    lines = [_inertial(base), '<site name="imu" pos="0 0 0" size="0.01"/>',
-             _touch_box("contact_base", base.geoms, 0.02),
-             "<!-- Main body box, the four HAA drive housings, lidar, payload mount and payload head. -->"]
+    lines = [
+        _inertial(base),
+        '<site name="imu" pos="0 0 0" size="0.01"/>',
+        _touch_box("contact_base", base.geoms, 0.02),
+        "<!-- Main body box, the four HAA drive housings, lidar, payload mount and payload head. -->",
+    ]
     lines += [f'<geom name="base_{n}" class="body" {g.attrs()}/>' for n, g in enumerate(base.geoms)]
     for leg in LEGS:
         lines += ["", *_leg(bodies, leg)]
@@ -227,8 +246,15 @@ def render(bodies: dict[str, Body], base_z: float) -> str:
     actuators = "\n".join(f'    <position name="{j}" class="anymal" joint="{j}"/>' for j in JOINT_NAMES)
     thighs = "\n".join(f'    <touch name="contact_{leg}_THIGH" site="contact_{leg}_THIGH"/>' for leg in LEGS)
     feet = "\n".join(f'    <touch name="contact_{leg}_FOOT" site="{leg}_FOOT"/>' for leg in LEGS)
-    return TEMPLATE.format(bodies=body_text, base_z=_fmt(base_z, 4), pose=pose, urdf_mass=_fmt(mass, 4),
-                           actuators=actuators, thighs=thighs, feet=feet)
+    return TEMPLATE.format(
+        bodies=body_text,
+        base_z=_fmt(base_z, 4),
+        pose=pose,
+        urdf_mass=_fmt(mass, 4),
+        actuators=actuators,
+        thighs=thighs,
+        feet=feet,
+    )
 
 
 def standing_height(xml: str) -> float:

@@ -8,11 +8,9 @@ that finished before an earlier one are held back until it is written).
 
 from __future__ import annotations
 
-import argparse
 import functools
 import inspect
 import os
-import sys
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,10 +18,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-import rwm_gym
 from rwm_gym.batched_core import check_num_envs
 from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, DatasetWriter
-from rwm_gym.options import non_negative_float
 from rwm_gym.output_guard import check_output, claim
 from rwm_gym.policies.base import Policy
 from rwm_gym.policies.factory import make_policy
@@ -85,37 +81,36 @@ def collect(
     order, so the file is the same, byte for byte, whatever `workers` and `num_envs` (tested for the random and gait
     policies; an SB3 policy acts on a batch, whose float rounding may depend on its size).
     """
-    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
-        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
-    if max_steps is not None and max_steps < 1:
-        raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
-    if not (np.isfinite(action_noise) and action_noise >= 0):
-        raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
-    if Path(out).exists() and not overwrite:
-        raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
-    inputs = [policy if isinstance(policy, str) and policy.endswith(".zip") else None,
-              env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
-              *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file")]
-    check_output(out, inputs=inputs, overwrite=overwrite)
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    if workers > 1 and not isinstance(policy, str):
-        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
-    job = _Job(env_id, policy, seed, min(check_num_envs(num_envs), episodes), action_noise, max_steps,
-               dict(env_kwargs or {}), threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers))
+    _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers)
+    job = _Job(
+        env_id,
+        policy,
+        seed,
+        min(check_num_envs(num_envs), episodes),
+        action_noise,
+        max_steps,
+        dict(env_kwargs or {}),
+        threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers),
+    )
     runner = _Runner(job)
     spec, core, horizon = runner.core.spec, runner.core, runner.horizon
     info = DatasetInfo(
-        env_id=env_name(env_id), spec_text=spec.text, dt=spec.policy_dt, columns=dataset_columns(core),
+        env_id=env_name(env_id),
+        spec_text=spec.text,
+        dt=spec.policy_dt,
+        columns=dataset_columns(core),
         policy=runner.policy.name,
-        seed=seed, physics_params=core.params.to_dict(),
+        seed=seed,
+        physics_params=core.params.to_dict(),
         metadata={"action_noise": action_noise, "max_steps": horizon, "env_kwargs": _jsonable(env_kwargs or {})},
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with claim(out), DatasetWriter(out, info, overwrite=overwrite) as writer, tqdm(
-        total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress
-    ) as bar:
+    with (
+        claim(out),
+        DatasetWriter(out, info, overwrite=overwrite) as writer,
+        tqdm(total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress) as bar,
+    ):
         if workers == 1:
             finished = runner.run(range(episodes))
         else:
@@ -125,6 +120,29 @@ def collect(
             writer.append_episode(episode)
             bar.update(1)
     return out
+
+
+def _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers) -> None:
+    """`collect`'s arguments checked before anything runs: counts, noise, the output (not an input, not another
+    run's) and what the workers can carry; a ValueError or DatasetError of one line otherwise."""
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be a positive number of policy steps, got {max_steps}")
+    if not (np.isfinite(action_noise) and action_noise >= 0):
+        raise ValueError(f"action_noise must be a finite std >= 0, got {action_noise!r}")
+    if Path(out).exists() and not overwrite:
+        raise DatasetError(f"{out}: file exists (pass --overwrite, or overwrite=True, to replace it)")
+    inputs = [
+        policy if isinstance(policy, str) and policy.endswith(".zip") else None,
+        env_id if isinstance(env_id, (str, Path)) and Path(env_id).suffix == ".toml" else None,
+        *(str(v) for k, v in (env_kwargs or {}).items() if k == "xml_file"),
+    ]
+    check_output(out, inputs=inputs, overwrite=overwrite)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and not isinstance(policy, str):
+        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
 
 
 def finished_collection(path: str | Path, *, episodes: int, seed: int, what: str = "this collection") -> bool:
@@ -164,8 +182,11 @@ class _Runner:
             kwargs["nthread"] = job.threads
         self.job, self.core = job, make_physics_core(job.env_id, job.num_envs, **kwargs)
         spec = self.core.spec
-        self.policy = (make_policy(job.policy, spec, job.num_envs, action_noise=job.action_noise)
-                       if isinstance(job.policy, str) else job.policy)
+        self.policy = (
+            make_policy(job.policy, spec, job.num_envs, action_noise=job.action_noise)
+            if isinstance(job.policy, str)
+            else job.policy
+        )
         self.horizon = min(job.max_steps or spec.episode_steps, spec.episode_steps)
 
     def run(self, numbers: range) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
@@ -177,7 +198,7 @@ class _Runner:
 
         def start(ids: np.ndarray) -> np.ndarray:
             ks = [k for _, k in zip(ids, todo)]
-            ids = ids[:len(ks)]
+            ids = ids[: len(ks)]
             if len(ids) == 0:
                 return ids
             core.reset(ids, [seed + k for k in ks])
@@ -274,60 +295,3 @@ def _jsonable(value):
     if hasattr(value, "to_dict"):
         return value.to_dict()
     return value if isinstance(value, (int, float, str, bool, type(None))) else str(value)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)")
-    parser.add_argument("--policy", default="gait", help="'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip")
-    parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
-    parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
-    parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")
-    parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (default 8)")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="processes collecting side by side, each with --num-envs simulations (default 1); the "
-                             "file is the same whatever the number")
-    parser.add_argument("--action-noise", type=non_negative_float, default=0.0,
-                        help="Gaussian std added to the policy's actions")
-    parser.add_argument("--max-steps", type=int, default=None,
-                        help="cap on episode length in policy steps (default: the task's episode length)")
-    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument("--physics", default=None,
-                        help="JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-
-
-def _no_constant(name: str):
-    raise ValueError(f"--physics: {name} is not a physics value (give finite numbers)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """`rwm-gym collect`: 2 with a one-line error on bad input, 130 on Ctrl-C (finished episodes are kept)."""
-    import json
-
-    from rwm_gym.data.dataset import Dataset, DatasetError
-
-    env_kwargs: dict[str, object] = {}
-    replacing = args.out.exists()  # an interrupted --overwrite run leaves the old file as it was
-    if args.xml_file:
-        env_kwargs["xml_file"] = str(args.xml_file)
-    try:
-        if args.physics:
-            try:
-                env_kwargs["physics"] = json.loads(args.physics, parse_constant=_no_constant)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"--physics is not valid JSON ({err})") from None
-        path = collect(args.env, args.policy, args.episodes, args.out, seed=args.seed, num_envs=args.num_envs,
-                       action_noise=args.action_noise, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                       overwrite=args.overwrite, workers=args.workers)
-    except KeyboardInterrupt:
-        kept = (f"{args.out} is unchanged" if replacing else
-                f"the finished episodes are in {args.out} (complete=false)")
-        print(f"rwm-gym collect: interrupted; {kept}", file=sys.stderr)
-        return 130
-    except (ValueError, TypeError, OSError, DatasetError) as err:
-        print(f"rwm-gym collect: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
-    ds = Dataset.load(path)
-    falls = int(ds["terminated"].sum())
-    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated (rwm-gym {rwm_gym.__version__})")
-    return 0

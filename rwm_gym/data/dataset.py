@@ -49,9 +49,16 @@ from rwm_gym.spec import TaskSpec, parse_spec
 FORMAT_NAME = "rwm-gym-dataset"
 FORMAT_VERSION = 1
 _FIELDS: dict[str, tuple[type, int]] = {  # required field -> (dtype, ndim)
-    "state": (np.float32, 2), "action": (np.float32, 2), "contact": (np.bool_, 2), "foot_height": (np.float32, 2),
-    "terminated": (np.bool_, 1), "truncated": (np.bool_, 1), "command": (np.float32, 2), "reward": (np.float32, 1),
-    "qpos": (np.float64, 2), "qvel": (np.float64, 2),
+    "state": (np.float32, 2),
+    "action": (np.float32, 2),
+    "contact": (np.bool_, 2),
+    "foot_height": (np.float32, 2),
+    "terminated": (np.bool_, 1),
+    "truncated": (np.bool_, 1),
+    "command": (np.float32, 2),
+    "reward": (np.float32, 1),
+    "qpos": (np.float64, 2),
+    "qvel": (np.float64, 2),
 }
 REQUIRED_FIELDS: tuple[str, ...] = tuple(_FIELDS)
 _ATTRS = ("format", "format_version", "env_id", "spec", "dt", "columns", "policy", "seed", "physics_params", "complete")
@@ -92,8 +99,9 @@ MIN_FREE_BYTES = 1 << 20
 class DatasetWriter:
     """Append episodes to a new dataset file; use as a context manager (an exception leaves `complete` false)."""
 
-    def __init__(self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False,
-                 in_place: bool = False) -> None:
+    def __init__(
+        self, path: str | os.PathLike, info: DatasetInfo, *, overwrite: bool = False, in_place: bool = False
+    ) -> None:
         """in_place: write `path` itself instead of a partial file renamed onto it at the end, for a writer whose
         killed run must leave its episodes at `path` (a resumable run's parts); plain h5py then needs `h5clear -s`."""
         from rwm_gym import __version__
@@ -112,8 +120,9 @@ class DatasetWriter:
         self.info = info
         self.num_episodes = 0
         self._widths: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
-        self.partial_path = (self.path if in_place
-                             else self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}"))
+        self.partial_path = (
+            self.path if in_place else self.path.with_name(f"{self.path.name}.partial-{secrets.token_hex(4)}")
+        )
         """Where the episodes go until `close` renames the file onto `path`."""
         try:
             self._file = h5py.File(self.partial_path, "w" if in_place else "x", libver="latest")
@@ -121,9 +130,17 @@ class DatasetWriter:
             self._claim.__exit__(None, None, None)
             raise
         attrs = {
-            "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "env_id": info.env_id, "spec": info.spec_text,
-            "dt": float(info.dt), "columns": json.dumps(info.columns), "policy": info.policy, "seed": int(info.seed),
-            "physics_params": json.dumps(info.physics_params), "complete": False, "created_by": __version__,
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "env_id": info.env_id,
+            "spec": info.spec_text,
+            "dt": float(info.dt),
+            "columns": json.dumps(info.columns),
+            "policy": info.policy,
+            "seed": int(info.seed),
+            "physics_params": json.dumps(info.physics_params),
+            "complete": False,
+            "created_by": __version__,
             "metadata": json.dumps(info.metadata),
         }
         self._file.attrs.update(attrs)
@@ -189,23 +206,25 @@ class DatasetWriter:
         need = 2 * sum(value.nbytes for value in arrays.values()) + MIN_FREE_BYTES
         free = shutil.disk_usage(self.partial_path.parent).free
         if free < need:  # HDF5 that runs out of space mid-write can crash the process; stop while it is whole
-            raise OSError(errno.ENOSPC, f"No space left on device for episode {self.num_episodes} of {self.path} "
-                                        f"({free / 2**20:.1f} MiB free, {need / 2**20:.1f} MiB needed)")
+            raise OSError(
+                errno.ENOSPC,
+                f"No space left on device for episode {self.num_episodes} of {self.path} "
+                f"({free / 2**20:.1f} MiB free, {need / 2**20:.1f} MiB needed)",
+            )
         steps, rows = self._file["steps"], len(arrays["state"])
         first = not self._widths
         for name, value in arrays.items():
             if name not in steps:
                 tail = value.shape[1:]
                 chunks = (_CHUNK_ROWS, *tail) if all(tail) and np.prod(tail) <= 4096 else True
-                steps.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=value.dtype,
-                                     chunks=chunks)
+                steps.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=value.dtype, chunks=chunks)
                 self._widths[name] = (tail, value.dtype)
         if first:  # every dataset exists now: from here on, HDF5 orders its writes so a crash leaves a readable file
             self._file.swmr_mode = True
         for name, value in arrays.items():
             data = steps[name]
             data.resize(len(data) + rows, axis=0)
-            data[len(data) - rows:] = value
+            data[len(data) - rows :] = value
         self._file.flush()  # data rows reach the file before the episode is counted
         lengths = self._file["episode_lengths"]
         lengths.resize(len(lengths) + 1, axis=0)
@@ -270,15 +289,23 @@ class Dataset:
                         raise DatasetError(f"{path}: attribute '{name}': missing")
                 where = "attribute 'format_version'"
                 if int(f.attrs["format_version"]) > FORMAT_VERSION:
-                    raise DatasetError(f"{path}: {where}: version {int(f.attrs['format_version'])} is newer than "
-                                       f"this reader's {FORMAT_VERSION}; upgrade rwm-gym")
+                    raise DatasetError(
+                        f"{path}: {where}: version {int(f.attrs['format_version'])} is newer than "
+                        f"this reader's {FORMAT_VERSION}; upgrade rwm-gym"
+                    )
                 a = f.attrs
                 where = "attributes"
                 info = DatasetInfo(
-                    env_id=str(a["env_id"]), spec_text=str(a["spec"]), dt=float(a["dt"]),
-                    columns=json.loads(a["columns"]), policy=str(a["policy"]), seed=int(a["seed"]),
-                    physics_params=json.loads(a["physics_params"]), metadata=json.loads(a.get("metadata", "{}")),
-                    complete=bool(a["complete"]), format_version=int(a["format_version"]),
+                    env_id=str(a["env_id"]),
+                    spec_text=str(a["spec"]),
+                    dt=float(a["dt"]),
+                    columns=json.loads(a["columns"]),
+                    policy=str(a["policy"]),
+                    seed=int(a["seed"]),
+                    physics_params=json.loads(a["physics_params"]),
+                    metadata=json.loads(a.get("metadata", "{}")),
+                    complete=bool(a["complete"]),
+                    format_version=int(a["format_version"]),
                     created_by=str(a.get("created_by", "")),
                 )
                 where = "field 'episode_lengths'"
@@ -353,14 +380,17 @@ def _check(path: Path, info: DatasetInfo, data: dict[str, np.ndarray], lengths: 
     for name, value in data.items():
         dtype, ndim = _FIELDS.get(name, (value.dtype, value.ndim))
         if value.dtype != dtype or value.ndim != ndim:
-            raise DatasetError(f"{path}: field '{name}': expected {np.dtype(dtype)} with {ndim} dims, "
-                               f"got {value.dtype} {value.shape}")
+            raise DatasetError(
+                f"{path}: field '{name}': expected {np.dtype(dtype)} with {ndim} dims, got {value.dtype} {value.shape}"
+            )
         if len(value) < total or (len(value) > total and info.complete):
             raise DatasetError(f"{path}: field '{name}': {len(value)} rows but episode_lengths sum to {total}")
         data[name] = value = value[:total]  # rows past the sum belong to an episode cut off mid-write
         if name in info.columns and value.shape[1] != len(info.columns[name]):
-            raise DatasetError(f"{path}: field '{name}': {value.shape[1]} columns but the 'columns' attribute "
-                               f"names {len(info.columns[name])}")
+            raise DatasetError(
+                f"{path}: field '{name}': {value.shape[1]} columns but the 'columns' attribute "
+                f"names {len(info.columns[name])}"
+            )
         if value.dtype.kind in "fc" and not np.isfinite(value).all():
             raise DatasetError(f"{path}: field '{name}': contains NaN or inf")
     return data
@@ -368,6 +398,7 @@ def _check(path: Path, info: DatasetInfo, data: dict[str, np.ndarray], lengths: 
 
 def write_dataset(path: str | os.PathLike, info: DatasetInfo, episodes: Iterable[Mapping[str, np.ndarray]]) -> None:
     """Write a whole dataset atomically: into a temp file in the same folder, then os.replace onto `path`."""
+
     def write(tmp: str) -> None:
         with DatasetWriter(tmp, info, overwrite=True) as writer:
             for episode in episodes:
@@ -403,7 +434,8 @@ def is_merge_of(out: str | os.PathLike, paths: Sequence[str | os.PathLike]) -> b
 def merge_datasets(paths: Sequence[str | os.PathLike], out: str | os.PathLike) -> None:
     """Concatenate the episodes of datasets of the same task (spec, columns, dt) into `out` (atomic).
 
-    Specs must agree except for file pointers (`default_checkpoint`) and the `[symmetry]` table. Only the fields every file has are kept (a PPO
+    Specs must agree except for file pointers (`default_checkpoint`) and the `[symmetry]` table. Only the fields every
+    file has are kept (a PPO
     run's `ppo_iteration` is dropped when merged with collector data); metadata["dropped_fields"] names them. The
     merged file keeps the first file's env_id, dt and seed; policy and physics_params are kept when all files agree
     (else policies are joined and physics_params left empty); metadata["merged_from"] records each source.
@@ -423,9 +455,11 @@ def _check_same_task(sets: list[Dataset]) -> None:
     first = sets[0]
     first_spec = _spec_without_pointers(first.info.spec_text)
     for d in sets[1:]:
-        for what, a, b in (("attribute 'spec'", _spec_without_pointers(d.info.spec_text), first_spec),
-                           ("attribute 'columns'", d.info.columns, first.info.columns),
-                           ("attribute 'dt'", d.info.dt, first.info.dt)):
+        for what, a, b in (
+            ("attribute 'spec'", _spec_without_pointers(d.info.spec_text), first_spec),
+            ("attribute 'columns'", d.info.columns, first.info.columns),
+            ("attribute 'dt'", d.info.dt, first.info.dt),
+        ):
             if a != b:
                 raise DatasetError(f"{d.path}: {what}: differs from {first.path}, cannot merge")
 
@@ -449,10 +483,23 @@ def _merged_info(sets: list[Dataset], dropped: list[str]) -> DatasetInfo:
     first = sets[0]
     policies = list(dict.fromkeys(d.info.policy for d in sets))
     same_physics = all(d.info.physics_params == first.info.physics_params for d in sets)
-    sources = [{"path": str(d.path), "sha256": d.file_hash(), "policy": d.info.policy, "seed": d.info.seed,
-                "episodes": d.num_episodes, "physics_params": d.info.physics_params} for d in sets]
+    sources = [
+        {
+            "path": str(d.path),
+            "sha256": d.file_hash(),
+            "policy": d.info.policy,
+            "seed": d.info.seed,
+            "episodes": d.num_episodes,
+            "physics_params": d.info.physics_params,
+        }
+        for d in sets
+    ]
     metadata = {**first.info.metadata, "merged_from": sources}
     if dropped:
         metadata["dropped_fields"] = dropped
-    return replace(first.info, policy=" + ".join(policies),
-                   physics_params=first.info.physics_params if same_physics else {}, metadata=metadata)
+    return replace(
+        first.info,
+        policy=" + ".join(policies),
+        physics_params=first.info.physics_params if same_physics else {},
+        metadata=metadata,
+    )

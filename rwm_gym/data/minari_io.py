@@ -13,16 +13,14 @@ import rebuilds the file field for field (tested). Needs the optional extra `rwm
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.data.dataset import Dataset, DatasetError, DatasetInfo, write_dataset
+from rwm_gym.data.dataset import Dataset, DatasetInfo, write_dataset
 from rwm_gym.output_guard import check_output, claim
 from rwm_gym.task.observation import build_observation
 
@@ -43,8 +41,7 @@ def _observations(spec, episode: dict[str, np.ndarray]) -> np.ndarray:
     return build_observation(spec, episode["state"], episode["command"], previous).astype(np.float32)
 
 
-def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None = None,
-                  overwrite: bool = False) -> Path:
+def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None = None, overwrite: bool = False) -> Path:
     """Write dataset `data` as a Minari dataset in folder `out` (built beside it, then moved into place)."""
     minari = _minari()
     import gymnasium as gym
@@ -59,10 +56,20 @@ def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None =
     action_space = gym.spaces.Box(-1.0, 1.0, (spec.action_dim,), np.float32)
     name = dataset_id or f"rwm-gym/{spec.name.lower()}/{Path(data).stem.replace('_', '-')}-v0"
     info = ds.info
-    meta = {"env_id": info.env_id, "spec_text": info.spec_text, "dt": info.dt, "columns": info.columns,
-            "policy": info.policy, "seed": info.seed, "physics_params": info.physics_params,
-            "metadata": info.metadata, "complete": info.complete, "format_version": info.format_version,
-            "created_by": info.created_by, "fields": shapes}
+    meta = {
+        "env_id": info.env_id,
+        "spec_text": info.spec_text,
+        "dt": info.dt,
+        "columns": info.columns,
+        "policy": info.policy,
+        "seed": info.seed,
+        "physics_params": info.physics_params,
+        "metadata": info.metadata,
+        "complete": info.complete,
+        "format_version": info.format_version,
+        "created_by": info.created_by,
+        "fields": shapes,
+    }
     out.parent.mkdir(parents=True, exist_ok=True)
     with claim(out):
         for orphan in out.parent.glob(f".{out.name}-*"):  # left by a killed export
@@ -72,29 +79,53 @@ def export_minari(data: str | Path, out: str | Path, *, dataset_id: str | None =
     return out
 
 
-def _write_minari(tmp: Path, out: Path, ds: Dataset, spec, name: str, meta: dict, row_fields: list[str],
-                  observation_space, action_space, minari) -> None:
+def _write_minari(
+    tmp: Path,
+    out: Path,
+    ds: Dataset,
+    spec,
+    name: str,
+    meta: dict,
+    row_fields: list[str],
+    observation_space,
+    action_space,
+    minari,
+) -> None:
     """Build the Minari dataset in `tmp`, then swap it for `out` (the old `out` goes only once the new one is there)."""
     from minari.data_collector.episode_buffer import EpisodeBuffer
     from minari.dataset.minari_storage import MinariStorage
 
     info = ds.info
     try:
-        storage = MinariStorage.new(tmp, observation_space=observation_space, action_space=action_space,
-                                    data_format="hdf5", jpeg_encoding=False)
-        storage.update_metadata({"dataset_id": name, "minari_version": minari.__version__,
-                                 "algorithm_name": info.policy, "description": f"rwm-gym dataset of {spec.name}",
-                                 METADATA_KEY: json.dumps(meta)})
+        storage = MinariStorage.new(
+            tmp, observation_space=observation_space, action_space=action_space, data_format="hdf5", jpeg_encoding=False
+        )
+        storage.update_metadata(
+            {
+                "dataset_id": name,
+                "minari_version": minari.__version__,
+                "algorithm_name": info.policy,
+                "description": f"rwm-gym dataset of {spec.name}",
+                METADATA_KEY: json.dumps(meta),
+            }
+        )
         buffers = []
         for i in range(ds.num_episodes):
             ep = ds.episode(i)
             terminations = np.zeros(len(ep["state"]) - 1, dtype=bool)
             truncations = terminations.copy()
             terminations[-1:], truncations[-1:] = ep["terminated"][-1], ep["truncated"][-1]
-            buffers.append(EpisodeBuffer(
-                id=i, observations=_observations(spec, ep), actions=ep["action"][:-1], rewards=ep["reward"][:-1],
-                terminations=terminations, truncations=truncations,
-                infos={f: ep[f] for f in row_fields if ep[f].size}))  # h5py cannot chunk zero-width arrays
+            buffers.append(
+                EpisodeBuffer(
+                    id=i,
+                    observations=_observations(spec, ep),
+                    actions=ep["action"][:-1],
+                    rewards=ep["reward"][:-1],
+                    terminations=terminations,
+                    truncations=truncations,
+                    infos={f: ep[f] for f in row_fields if ep[f].size},
+                )
+            )  # h5py cannot chunk zero-width arrays
         storage.update_episodes(buffers)
         old = tmp.with_name(tmp.name + "-old")
         if out.exists():
@@ -119,13 +150,30 @@ def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = Fals
         raise ValueError(f"{folder}: not a readable Minari dataset ({type(err).__name__}: {err})") from None
     raw = dataset.storage.metadata.get(METADATA_KEY)
     if raw is None:
-        raise ValueError(f"{folder}: a Minari dataset not exported by rwm-gym (no '{METADATA_KEY}' metadata), "
-                         "so its task spec is unknown")
+        raise ValueError(
+            f"{folder}: a Minari dataset not exported by rwm-gym (no '{METADATA_KEY}' metadata), "
+            "so its task spec is unknown"
+        )
     meta = json.loads(raw)
     shapes = meta.pop("fields")
-    info = DatasetInfo(**{k: meta[k] for k in ("env_id", "dt", "columns", "policy", "seed", "physics_params",
-                                                  "metadata", "complete", "format_version", "created_by")},
-                       spec_text=meta["spec_text"])
+    info = DatasetInfo(
+        **{
+            k: meta[k]
+            for k in (
+                "env_id",
+                "dt",
+                "columns",
+                "policy",
+                "seed",
+                "physics_params",
+                "metadata",
+                "complete",
+                "format_version",
+                "created_by",
+            )
+        },
+        spec_text=meta["spec_text"],
+    )
 
     def episodes():
         for ep in dataset.iterate_episodes():
@@ -144,35 +192,3 @@ def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = Fals
 
     write_dataset(out, info, episodes())
     return out
-
-
-def add_export_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minari", required=True, type=Path, metavar="DATA.h5", help="rwm-gym dataset to export")
-    parser.add_argument("--out", required=True, type=Path, help="folder to write the Minari dataset into")
-    parser.add_argument("--dataset-id", help="Minari dataset id (default rwm-gym/TASK/FILE-v0)")
-    parser.add_argument("--overwrite", action="store_true")
-
-
-def add_import_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minari", required=True, type=Path, metavar="DIR", help="Minari dataset folder")
-    parser.add_argument("--out", required=True, type=Path, help="rwm-gym dataset (.h5) to write")
-    parser.add_argument("--overwrite", action="store_true")
-
-
-def _run(command: str, job) -> int:
-    try:
-        path = job()
-    except (ValueError, OSError, DatasetError) as err:
-        print(f"rwm-gym {command}: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
-    print(f"wrote {path}")
-    return 0
-
-
-def run_export(args: argparse.Namespace) -> int:
-    return _run("export", lambda: export_minari(args.minari, args.out, dataset_id=args.dataset_id,
-                                                overwrite=args.overwrite))
-
-
-def run_import(args: argparse.Namespace) -> int:
-    return _run("import", lambda: import_minari(args.minari, args.out, overwrite=args.overwrite))

@@ -20,8 +20,9 @@ from rwm_gym.physics.params import PhysicsParams, build_spec
 from rwm_gym.spec import TaskSpec
 
 
-def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: str | Path | None = None,
-                    env_kwargs: dict | None = None) -> dict[str, str]:
+def write_corrected(
+    spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: str | Path | None = None, env_kwargs: dict | None = None
+) -> dict[str, str]:
     """Write both files into `out`; returns {"physics": path, "mjcf": path}."""
     out.mkdir(parents=True, exist_ok=True)
     physics_path, mjcf_path = out / "corrected_physics.json", out / "corrected_model.xml"
@@ -29,8 +30,10 @@ def write_corrected(spec: TaskSpec, params: PhysicsParams, out: Path, xml_file: 
     write_text(physics_path, json.dumps({**kwargs, "physics": params.to_dict()}, indent=2))
     xml = build_spec(spec, xml_file, params).to_xml()
     if np.any(np.asarray(params.backlash) > 0):
-        note = (f"<!-- Not in this file: gear backlash {params.backlash} rad (dead band of the position error), "
-                f"an env option only; use {physics_path.name} with rwm-gym. -->\n")
+        note = (
+            f"<!-- Not in this file: gear backlash {params.backlash} rad (dead band of the position error), "
+            f"an env option only; use {physics_path.name} with rwm-gym. -->\n"
+        )
         xml = xml.replace("<mujoco", note + "<mujoco", 1)
     write_text(mjcf_path, xml)
     return {"physics": str(physics_path), "mjcf": str(mjcf_path)}

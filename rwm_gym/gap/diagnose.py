@@ -20,8 +20,7 @@ def channel_ranking(spec: TaskSpec, simulated: np.ndarray, windows: Windows, hor
     res = normalised_residual(spec, simulated[:, horizon - 1], windows.target[:, horizon - 1])
     mse = (res**2).mean(0)
     order = np.argsort(mse)[::-1]
-    return [{"channel": spec.state_columns[i], "mse": float(mse[i]), "share": float(mse[i] / mse.sum())}
-            for i in order]
+    return [{"channel": spec.state_columns[i], "mse": float(mse[i]), "share": float(mse[i] / mse.sum())} for i in order]
 
 
 def condition_ranking(spec: TaskSpec, simulated: np.ndarray, windows: Windows, horizon: int = 1) -> list[dict]:
@@ -34,11 +33,25 @@ def condition_ranking(spec: TaskSpec, simulated: np.ndarray, windows: Windows, h
     legs = len(spec.privileged.feet)
     stance = np.repeat(windows.contact0[:, feet], spec.action_dim // legs, axis=1)  # (W, A), joints leg-major
     high = np.abs(torque) >= np.quantile(np.abs(torque), 0.9)
-    conditions = {"stance": stance, "swing": ~stance, "joint velocity > 0": velocity > 0,
-                  "joint velocity < 0": velocity < 0, "torque in top 10%": high, "torque below top 10%": ~high}
+    conditions = {
+        "stance": stance,
+        "swing": ~stance,
+        "joint velocity > 0": velocity > 0,
+        "joint velocity < 0": velocity < 0,
+        "torque in top 10%": high,
+        "torque below top 10%": ~high,
+    }
     overall = joint_err.mean()
-    rows = [{"condition": name, "ratio": float(joint_err[mask].mean() / overall), "mse": float(joint_err[mask].mean()),
-             "fraction_of_samples": float(mask.mean())} for name, mask in conditions.items() if mask.any()]
+    rows = [
+        {
+            "condition": name,
+            "ratio": float(joint_err[mask].mean() / overall),
+            "mse": float(joint_err[mask].mean()),
+            "fraction_of_samples": float(mask.mean()),
+        }
+        for name, mask in conditions.items()
+        if mask.any()
+    ]
     return sorted(rows, key=lambda r: r["ratio"], reverse=True)
 
 
@@ -70,6 +83,8 @@ def locate_gap(spec: TaskSpec, simulated: np.ndarray, windows: Windows, top: int
         "channels_h1": channel_ranking(spec, simulated, windows, 1)[:top],
         "channels_h5": channel_ranking(spec, simulated, windows, min(5, windows.horizon))[:top],
         "conditions": condition_ranking(spec, simulated, windows),
-        "response_lag_s": {"measured": response_lag(spec, windows.target, windows),
-                           "simulated": response_lag(spec, simulated, windows)},
+        "response_lag_s": {
+            "measured": response_lag(spec, windows.target, windows),
+            "simulated": response_lag(spec, simulated, windows),
+        },
     }

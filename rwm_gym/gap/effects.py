@@ -88,44 +88,87 @@ def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, 
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     mu = float(model.geom_friction[floor, 0]) if floor >= 0 else 1.0
     effects = (
-        Effect("action_delay", "dead time between a position target and the actuator acting on it",
-               (Parameter("action_delay", "s", 0.0, 0.0, 8 * dt, 3 * dt, step=dt),),
-               lambda v: {"action_delay": round(float(v[0]) / dt) * dt}),
-        Effect("joint_friction", "Coulomb friction torque in every joint (gearbox, seals)",
-               (Parameter("joint_friction", "N·m", 0.0, 0.0, 8.0, 2.0),),
-               lambda v: {"joint_friction": float(v[0])}),
-        Effect("joint_damping", "viscous damping torque in every joint, proportional to joint velocity",
-               (Parameter("joint_damping", "N·m·s/rad", 0.0, 0.0, 5.0, 1.0),),
-               lambda v: {"joint_damping": float(v[0])}),
-        Effect("armature", "reflected rotor inertia of every drive (rotor inertia x gear ratio^2)",
-               (Parameter("armature", "kg·m²", 0.0, 0.0, 0.3, 0.05),),
-               lambda v: {"armature": float(v[0])}),
-        Effect("motor_strength", "torque gain of every drive: output torque = gain x commanded torque",
-               (Parameter("motor_strength", "1", 1.0, 0.4, 1.6, 0.8),),
-               lambda v: {"motor_strength": float(v[0])}, nested_in=("pd_gains",)),
-        Effect("torque_limit", "saturation torque of every drive, lower than the data sheet's",
-               (Parameter("torque_limit", "N·m", limit, 0.1 * limit, limit, 0.4 * limit),),
-               lambda v: {"torque_limit": float(v[0])}),
-        Effect("pd_gains", "PD gain mismatch of the joint controllers: kp and kd scaled separately",
-               (Parameter("kp_scale", "1", 1.0, 0.4, 1.6, 0.7), Parameter("kd_scale", "1", 1.0, 0.2, 3.0, 1.0)),
-               lambda v: {"kp_scale": float(v[0]), "kd_scale": float(v[1])}),
-        Effect("payload", "unmodelled point mass on the base at a horizontal offset from the base origin",
-               (Parameter("payload_mass", "kg", 0.0, 0.0, 30.0, 8.0),
+        Effect(
+            "action_delay",
+            "dead time between a position target and the actuator acting on it",
+            (Parameter("action_delay", "s", 0.0, 0.0, 8 * dt, 3 * dt, step=dt),),
+            lambda v: {"action_delay": round(float(v[0]) / dt) * dt},
+        ),
+        Effect(
+            "joint_friction",
+            "Coulomb friction torque in every joint (gearbox, seals)",
+            (Parameter("joint_friction", "N·m", 0.0, 0.0, 8.0, 2.0),),
+            lambda v: {"joint_friction": float(v[0])},
+        ),
+        Effect(
+            "joint_damping",
+            "viscous damping torque in every joint, proportional to joint velocity",
+            (Parameter("joint_damping", "N·m·s/rad", 0.0, 0.0, 5.0, 1.0),),
+            lambda v: {"joint_damping": float(v[0])},
+        ),
+        Effect(
+            "armature",
+            "reflected rotor inertia of every drive (rotor inertia x gear ratio^2)",
+            (Parameter("armature", "kg·m²", 0.0, 0.0, 0.3, 0.05),),
+            lambda v: {"armature": float(v[0])},
+        ),
+        Effect(
+            "motor_strength",
+            "torque gain of every drive: output torque = gain x commanded torque",
+            (Parameter("motor_strength", "1", 1.0, 0.4, 1.6, 0.8),),
+            lambda v: {"motor_strength": float(v[0])},
+            nested_in=("pd_gains",),
+        ),
+        Effect(
+            "torque_limit",
+            "saturation torque of every drive, lower than the data sheet's",
+            (Parameter("torque_limit", "N·m", limit, 0.1 * limit, limit, 0.4 * limit),),
+            lambda v: {"torque_limit": float(v[0])},
+        ),
+        Effect(
+            "pd_gains",
+            "PD gain mismatch of the joint controllers: kp and kd scaled separately",
+            (Parameter("kp_scale", "1", 1.0, 0.4, 1.6, 0.7), Parameter("kd_scale", "1", 1.0, 0.2, 3.0, 1.0)),
+            lambda v: {"kp_scale": float(v[0]), "kd_scale": float(v[1])},
+        ),
+        Effect(
+            "payload",
+            "unmodelled point mass on the base at a horizontal offset from the base origin",
+            (
+                Parameter("payload_mass", "kg", 0.0, 0.0, 30.0, 8.0),
                 Parameter("payload_com_x", "m", 0.0, -0.4, 0.4, 0.1),
-                Parameter("payload_com_y", "m", 0.0, -0.2, 0.2, 0.0)),
-               lambda v: {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}),
-        Effect("ground_friction", "sliding friction coefficient of the floor",
-               (Parameter("ground_friction", "1", mu, 0.05, max(mu, 1.0), 0.3 * mu),),
-               lambda v: {"ground_friction": float(v[0])}),
-        Effect("backlash", "gear dead band of total width b between motor and link in every drive",
-               (Parameter("backlash", "rad", 0.0, 0.0, 0.08, 0.03),),
-               lambda v: {"backlash": float(v[0])}),
+                Parameter("payload_com_y", "m", 0.0, -0.2, 0.2, 0.0),
+            ),
+            lambda v: {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)},
+        ),
+        Effect(
+            "ground_friction",
+            "sliding friction coefficient of the floor",
+            (Parameter("ground_friction", "1", mu, 0.05, max(mu, 1.0), 0.3 * mu),),
+            lambda v: {"ground_friction": float(v[0])},
+        ),
+        Effect(
+            "backlash",
+            "gear dead band of total width b between motor and link in every drive",
+            (Parameter("backlash", "rad", 0.0, 0.0, 0.08, 0.03),),
+            lambda v: {"backlash": float(v[0])},
+        ),
     )
     return {e.name: e for e in effects}
 
 
-EFFECT_NAMES: tuple[str, ...] = ("action_delay", "joint_friction", "joint_damping", "armature", "motor_strength",
-                                 "torque_limit", "pd_gains", "payload", "ground_friction", "backlash")
+EFFECT_NAMES: tuple[str, ...] = (
+    "action_delay",
+    "joint_friction",
+    "joint_damping",
+    "armature",
+    "motor_strength",
+    "torque_limit",
+    "pd_gains",
+    "payload",
+    "ground_friction",
+    "backlash",
+)
 """The vocabulary's names, in report order (`vocabulary(spec)` has the same keys)."""
 
 
@@ -147,8 +190,9 @@ def parse_effects(spec: TaskSpec, names: Sequence[str], magnitudes: Sequence[str
     return out
 
 
-def combined_physics(effects: Mapping[str, Sequence[float]], spec: TaskSpec,
-                     base: PhysicsParams | None = None) -> PhysicsParams:
+def combined_physics(
+    effects: Mapping[str, Sequence[float]], spec: TaskSpec, base: PhysicsParams | None = None
+) -> PhysicsParams:
     """`base` with every effect of `effects` ({name: values}) applied in turn."""
     params, known = base or PhysicsParams(), vocabulary(spec)
     for name, values in effects.items():

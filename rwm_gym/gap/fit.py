@@ -41,7 +41,7 @@ def gap_horizons(horizon: int) -> tuple[int, ...]:
     the episodes are too short for the last (a robot that falls within a second), with the horizon itself last."""
     if horizon >= GAP_HORIZONS[-1]:
         return GAP_HORIZONS
-    return tuple(h for h in GAP_HORIZONS if h < horizon) + (horizon,)
+    return (*tuple(h for h in GAP_HORIZONS if h < horizon), horizon)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,8 @@ class FitConfig:
     screened: a second effect can rank low on the coarse grid only because no grid point is near its value."""
     refit_single_effect: bool = True
     """Refit a lone named effect of several parameters (a scoped form, the payload) by least squares from its values,
-    kept if the held-out gap does not grow, as a set of named effects is: the coordinate-wise fit of a per-group form can
+    kept if the held-out gap does not grow, as a set of named effects is: the coordinate-wise fit of a per-group form
+    can
     leave part of the effect in the wrong groups."""
     joint_candidates: int = 2
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are
@@ -137,8 +138,9 @@ BLOW_UP_RESIDUAL = 1e3
 """Normalised residual given to every sample at parameters where the simulation blew up (cost 1e6 >> any real one)."""
 
 
-def _objective(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, horizon: int,
-               rejected: list[str]):
+def _objective(
+    effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, horizon: int, rejected: list[str]
+):
     """Residual vector of `effect` at values; at a blow-up, a huge constant and a line in `rejected`."""
     size = len(train) * horizon * resim.spec.state_dim
 
@@ -150,6 +152,7 @@ def _objective(effect: Effect, resim: Resimulator, train: Windows, base: Physics
             rejected.append(f"{point}: {err.reason}")
             return np.full(size, BLOW_UP_RESIDUAL)
         return normalised_residual(resim.spec, sim, train.target[:, :horizon]).ravel()
+
     return residual
 
 
@@ -163,9 +166,15 @@ def screen_grid(effect: Effect, fractions: tuple[float, ...]) -> np.ndarray:
     return np.unique(np.round(grid, 12))
 
 
-def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams,
-                  config: FitConfig, nominal_cost: float, rejected: list[str]
-                  ) -> tuple[np.ndarray, float, tuple[float, float]]:
+def screen_effect(
+    effect: Effect,
+    resim: Resimulator,
+    train: Windows,
+    base: PhysicsParams,
+    config: FitConfig,
+    nominal_cost: float,
+    rejected: list[str],
+) -> tuple[np.ndarray, float, tuple[float, float]]:
     """Coarse grid over the effect's first parameter (the others nominal, `nominal_cost` at the nominal point).
 
     Returns the best values, their training cost and the bracket (the best point's neighbours on the grid); blown-up
@@ -174,16 +183,30 @@ def screen_effect(effect: Effect, resim: Resimulator, train: Windows, base: Phys
     residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
     first = effect.parameters[0]
     grid = screen_grid(effect, config.grid_fractions)
-    costs = np.array([nominal_cost if np.isclose(g, first.nominal) else
-                      float(np.mean(residual(effect.values_from_magnitude(g)) ** 2)) for g in grid])
+    costs = np.array(
+        [
+            nominal_cost
+            if np.isclose(g, first.nominal)
+            else float(np.mean(residual(effect.values_from_magnitude(g)) ** 2))
+            for g in grid
+        ]
+    )
     best = int(np.argmin(costs))
     bracket = (float(grid[max(best - 1, 0)]), float(grid[min(best + 1, len(grid) - 1)]))
     return effect.values_from_magnitude(grid[best]), float(costs[best]), bracket
 
 
-def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
-               start: np.ndarray, bracket: tuple[float, float], rejected: list[str] | None = None,
-               max_evaluations: int | None = None) -> CandidateFit:
+def fit_effect(
+    effect: Effect,
+    resim: Resimulator,
+    train: Windows,
+    base: PhysicsParams,
+    config: FitConfig,
+    start: np.ndarray,
+    bracket: tuple[float, float],
+    rejected: list[str] | None = None,
+    max_evaluations: int | None = None,
+) -> CandidateFit:
     """Refine `effect`'s parameters (on top of `base`) from `start`, the first within `bracket`, on training windows."""
     rejected = [] if rejected is None else rejected
     residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
@@ -199,25 +222,49 @@ def fit_effect(effect: Effect, resim: Resimulator, train: Windows, base: Physics
         steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
     elif len(effect.parameters) == 1:
-        found = optimize.minimize_scalar(lambda x: cost(np.array([x])), bounds=(lo, hi), method="bounded",
-                                         options={"xatol": 5e-3 * min(hi - lo, 0.2 * (first.high - first.low)),
-                                                  "maxiter": budget})
+        found = optimize.minimize_scalar(
+            lambda x: cost(np.array([x])),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 5e-3 * min(hi - lo, 0.2 * (first.high - first.low)), "maxiter": budget},
+        )
         values = np.array([found.x])
     else:
         lows = np.array([p.low for p in effect.parameters])
         highs = np.array([p.high for p in effect.parameters])
-        found = optimize.least_squares(residual, np.clip(start, lows, highs), bounds=(lows, highs),
-                                       x_scale=highs - lows, diff_step=1e-2, max_nfev=max(budget // 2, 1))
+        found = optimize.least_squares(
+            residual,
+            np.clip(start, lows, highs),
+            bounds=(lows, highs),
+            x_scale=highs - lows,
+            diff_step=1e-2,
+            max_nfev=max(budget // 2, 1),
+        )
         values = found.x
     r_star = residual(values)
-    return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
-                        [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
-                        float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
+    return CandidateFit(
+        effect.name,
+        [p.name for p in effect.parameters],
+        [p.unit for p in effect.parameters],
+        [float(v) for v in values],
+        _uncertainty(effect, residual, values, r_star),
+        float(np.mean(r_star**2)),
+        scope=effect.scope,
+        rejected=rejected,
+    )
 
 
-def fit_coordinatewise(effect: Effect, resim: Resimulator, train: Windows, base: PhysicsParams, config: FitConfig,
-                       start: np.ndarray, brackets: list[tuple[float, float]], evaluations: int,
-                       sweeps: int = 2) -> CandidateFit:
+def fit_coordinatewise(
+    effect: Effect,
+    resim: Resimulator,
+    train: Windows,
+    base: PhysicsParams,
+    config: FitConfig,
+    start: np.ndarray,
+    brackets: list[tuple[float, float]],
+    evaluations: int,
+    sweeps: int = 2,
+) -> CandidateFit:
     """`sweeps` sweeps of bounded Brent searches, one parameter at a time (the others held), each within its bracket
     and `evaluations` re-simulations: robust where least squares stalls on a non-smooth cost (Coulomb friction, dead
     band) with one parameter per joint group."""
@@ -225,19 +272,28 @@ def fit_coordinatewise(effect: Effect, resim: Resimulator, train: Windows, base:
     residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
     values = np.asarray(start, float).copy()
     for i, (lo, hi) in [(i, b) for _ in range(sweeps) for i, b in enumerate(brackets)]:
+
         def cost(x: float, i: int = i) -> float:
             trial = values.copy()
             trial[i] = x
             return float(np.mean(residual(trial) ** 2))
 
         p = effect.parameters[i]
-        found = optimize.minimize_scalar(cost, bounds=(lo, hi), method="bounded",
-                                         options={"xatol": 5e-3 * (p.high - p.low), "maxiter": evaluations})
+        found = optimize.minimize_scalar(
+            cost, bounds=(lo, hi), method="bounded", options={"xatol": 5e-3 * (p.high - p.low), "maxiter": evaluations}
+        )
         values[i] = found.x
     r_star = residual(values)
-    return CandidateFit(effect.name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
-                        [float(v) for v in values], _uncertainty(effect, residual, values, r_star),
-                        float(np.mean(r_star**2)), scope=effect.scope, rejected=rejected)
+    return CandidateFit(
+        effect.name,
+        [p.name for p in effect.parameters],
+        [p.unit for p in effect.parameters],
+        [float(v) for v in values],
+        _uncertainty(effect, residual, values, r_star),
+        float(np.mean(r_star**2)),
+        scope=effect.scope,
+        rejected=rejected,
+    )
 
 
 def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarray) -> list[float]:
@@ -256,16 +312,28 @@ def _uncertainty(effect: Effect, residual, values: np.ndarray, r_star: np.ndarra
     return [float(p.step / 2) if p.step > 0 else float(s) for p, s in zip(effect.parameters, out)]
 
 
-def score_fit(fit: CandidateFit, effect: Effect, resim: Resimulator, heldout: Windows, base: PhysicsParams,
-              before: np.ndarray, config: FitConfig) -> np.ndarray:
+def score_fit(
+    fit: CandidateFit,
+    effect: Effect,
+    resim: Resimulator,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+) -> np.ndarray:
     """Fill the held-out gap, explained fraction (of the gap `before` (W, 3)), score and p-value of `fit`; return its
     per-window gap (W, 3), or `before` for a candidate rejected because its values blow up."""
     try:
         after = gap_per_window(resim.spec, resim.rollout(heldout, effect.physics(fit.values, base)), heldout)
     except SimulationDiverged as err:
         fit.status = f"rejected: the simulation blows up on held-out windows at the fitted values ({err.reason})"
-        fit.gap, fit.gap_mean, fit.explained_fraction, fit.score, fit.p_value = {}, float("nan"), float("nan"), \
-            -float("inf"), 1.0
+        fit.gap, fit.gap_mean, fit.explained_fraction, fit.score, fit.p_value = (
+            {},
+            float("nan"),
+            float("nan"),
+            -float("inf"),
+            1.0,
+        )
         return before
     fit.gap = {h: float(v) for h, v in zip(gap_horizons(heldout.horizon), after.mean(0))}
     fit.gap_mean = float(after.mean())
@@ -297,8 +365,9 @@ def block_means(values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     return np.array([values[blocks == b].mean() for b in np.unique(blocks)])
 
 
-def paired_p_value(larger: np.ndarray, smaller: np.ndarray, windows: Windows, block_rows: int,
-                   significance: float = 0.01) -> float:
+def paired_p_value(
+    larger: np.ndarray, smaller: np.ndarray, windows: Windows, block_rows: int, significance: float = 0.01
+) -> float:
     """One-sided p-value that per-window errors `larger` (W,) exceed `smaller` (W,) of the same windows, on block means
     (windows pooled into independent-ish blocks, `block_ids`). Wilcoxon signed-rank test on the differences: rank-based
     because a gap that lives in rare events, such as torque saturation, is heavy-tailed. On n blocks it cannot go below
@@ -319,7 +388,7 @@ def paired_p_value(larger: np.ndarray, smaller: np.ndarray, windows: Windows, bl
 
 def rank_test_can_reach(blocks: int, significance: float) -> bool:
     """Whether the exact one-sided Wilcoxon test on `blocks` blocks can give p below `significance` (2^-n < it)."""
-    return 2.0 ** -blocks < significance
+    return 2.0**-blocks < significance
 
 
 def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
@@ -327,13 +396,23 @@ def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
     n = len(np.unique(block_ids(windows, block_rows)))
     if rank_test_can_reach(n, significance):
         return f"one-sided Wilcoxon signed-rank on {n} block means"
-    return (f"one-sided t-test on the log ratios of {n} block means (too few blocks for the rank test to reach "
-            f"p < {significance})")
+    return (
+        f"one-sided t-test on the log ratios of {n} block means (too few blocks for the rank test to reach "
+        f"p < {significance})"
+    )
 
 
-def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams,
-            before: np.ndarray, config: FitConfig, progress: bool = True, refine_top: int | None = None
-            ) -> list[CandidateFit]:
+def fit_all(
+    effects: dict[str, Effect],
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+    progress: bool = True,
+    refine_top: int | None = None,
+) -> list[CandidateFit]:
     """Screen every effect (on top of `base`) on a coarse grid, refine the `refine_top` best (default: the config's),
     score all on held-out windows against the per-window gap `before` (W, len(gap_horizons(heldout.horizon))) of
     `base`.
@@ -343,8 +422,9 @@ def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, held
     refine_top = config.refine_top if refine_top is None else refine_top
     bar = tqdm(total=2 * len(effects) + refine_top, desc="fit effects", unit="step", disable=not progress)
     h = config.fit_horizon
-    nominal_cost = float(np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h),
-                                                     train.target[:, :h]) ** 2))
+    nominal_cost = float(
+        np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h), train.target[:, :h]) ** 2)
+    )
     screened, rejected = {}, {name: [] for name in effects}
     for name, effect in effects.items():
         screened[name] = screen_effect(effect, resim, train, base, config, nominal_cost, rejected[name])
@@ -356,8 +436,15 @@ def fit_all(effects: dict[str, Effect], resim: Resimulator, train: Windows, held
         if len(fits) < refine_top and cost < nominal_cost:
             fit = fit_effect(effect, resim, train, base, config, start, bracket, rejected[name])
         else:
-            fit = CandidateFit(name, [p.name for p in effect.parameters], [p.unit for p in effect.parameters],
-                               [float(v) for v in start], [float("nan")] * len(start), cost, rejected=rejected[name])
+            fit = CandidateFit(
+                name,
+                [p.name for p in effect.parameters],
+                [p.unit for p in effect.parameters],
+                [float(v) for v in start],
+                [float("nan")] * len(start),
+                cost,
+                rejected=rejected[name],
+            )
         score_fit(fit, effect, resim, heldout, base, before, config)
         fits.append(fit)
         bar.update(2 if len(fits) <= refine_top else 1)

@@ -23,8 +23,14 @@ SIGNAL_TO_FLOOR = 1.0
 """An effect at its default magnitude must open a gap of at least this multiple of the floor to be identifiable."""
 
 
-def identifiability(effects: dict[str, Effect], resim: Resimulator, windows: Windows, base: PhysicsParams,
-                    nominal: np.ndarray, floor: float) -> dict[str, dict]:
+def identifiability(
+    effects: dict[str, Effect],
+    resim: Resimulator,
+    windows: Windows,
+    base: PhysicsParams,
+    nominal: np.ndarray,
+    floor: float,
+) -> dict[str, dict]:
     """{effect: {magnitude, signal, signal_to_floor, identifiable}} on `windows`; `nominal` (W, H, S) is the base
     simulator's re-simulation of them and `floor` the mean noise floor."""
     reference = dataclasses.replace(windows, target=nominal)
@@ -32,13 +38,23 @@ def identifiability(effects: dict[str, Effect], resim: Resimulator, windows: Win
     for name, effect in effects.items():
         values = np.array([p.default for p in effect.parameters])
         try:
-            signal = float(gap_per_window(resim.spec, resim.rollout(windows, effect.physics(values, base)),
-                                          reference).mean())
+            signal = float(
+                gap_per_window(resim.spec, resim.rollout(windows, effect.physics(values, base)), reference).mean()
+            )
         except SimulationDiverged as err:
-            out[name] = {"magnitude": values.tolist(), "signal": float("nan"), "signal_to_floor": float("nan"),
-                         "identifiable": False, "reason": f"simulation blows up: {err.reason}"}
+            out[name] = {
+                "magnitude": values.tolist(),
+                "signal": float("nan"),
+                "signal_to_floor": float("nan"),
+                "identifiable": False,
+                "reason": f"simulation blows up: {err.reason}",
+            }
             continue
         ratio = signal / floor
-        out[name] = {"magnitude": values.tolist(), "signal": signal, "signal_to_floor": ratio,
-                     "identifiable": bool(ratio >= SIGNAL_TO_FLOOR)}
+        out[name] = {
+            "magnitude": values.tolist(),
+            "signal": signal,
+            "signal_to_floor": ratio,
+            "identifiable": bool(ratio >= SIGNAL_TO_FLOOR),
+        }
     return out

@@ -38,8 +38,12 @@ from rwm_gym.physics.params import PhysicsParams
 
 FORMAT = "rwm-gym-learned-correction"
 VERSION = 2
-FEATURES: tuple[tuple[str, str], ...] = (("deflection", "N·m/rad"), ("position_error", "N·m/rad"),
-                                         ("velocity", "N·m·s/rad"), ("offset", "N·m"))
+FEATURES: tuple[tuple[str, str], ...] = (
+    ("deflection", "N·m/rad"),
+    ("position_error", "N·m/rad"),
+    ("velocity", "N·m·s/rad"),
+    ("offset", "N·m"),
+)
 """The torque's terms, in the order of `joint_features`, with the unit of each weight."""
 
 
@@ -87,9 +91,12 @@ class LinearResidualTorque:
         return np.einsum("naf,af->na", features, self.membership @ self.weights)
 
 
-def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsParams,
-                           config: LearnedCorrectionConfig = LearnedCorrectionConfig()
-                           ) -> tuple[LinearResidualTorque, dict]:
+def fit_learned_correction(
+    resim: Resimulator,
+    train: Windows,
+    params: PhysicsParams,
+    config: LearnedCorrectionConfig = LearnedCorrectionConfig(),
+) -> tuple[LinearResidualTorque, dict]:
     """Fit the residual torque on top of `params` to the training windows (the named effects' fitting windows).
 
     Returns the correction and its training figures: the groups, the weights per group and term (with units), the
@@ -119,21 +126,35 @@ def fit_learned_correction(resim: Resimulator, train: Windows, params: PhysicsPa
         raise SimulationDiverged(f"the simulator blows up without a correction: {rejected[0]}", np.zeros(0, bool))
     found = optimize.least_squares(residual, start, diff_step=1e-2, max_nfev=config.max_evaluations)
     fitted = correction(found.x)
-    weights = {g: {f"{term} ({unit})": round(float(w), 4) for (term, unit), w in zip(FEATURES, row)}
-               for g, row in zip(names, fitted.weights)}
-    return fitted, {"groups": names, "weights": weights, "train_cost_before": before,
-                    "train_cost_after": float(np.mean(found.fun ** 2)), "evaluations": int(found.nfev) + 1,
-                    "rejected": rejected}
+    weights = {
+        g: {f"{term} ({unit})": round(float(w), 4) for (term, unit), w in zip(FEATURES, row)}
+        for g, row in zip(names, fitted.weights)
+    }
+    return fitted, {
+        "groups": names,
+        "weights": weights,
+        "train_cost_before": before,
+        "train_cost_after": float(np.mean(found.fun**2)),
+        "evaluations": int(found.nfev) + 1,
+        "rejected": rejected,
+    }
 
 
 def save_correction(correction: LinearResidualTorque, path: Path, config: LearnedCorrectionConfig, spec) -> None:
     """safetensors weights (G, 4) and the joints' group matrix, with the format, config, joint and group names and
     the terms in the JSON metadata."""
-    meta = {"format": FORMAT, "version": str(VERSION), "config": json.dumps(asdict(config)),
-            "joints": json.dumps(list(spec.actuator.joints)), "groups": json.dumps(correction.groups),
-            "features": json.dumps([f"{term} ({unit})" for term, unit in FEATURES])}
-    tensors = {"weights": torch.as_tensor(correction.weights, dtype=torch.float64).contiguous(),
-               "membership": torch.as_tensor(correction.membership, dtype=torch.float64).contiguous()}
+    meta = {
+        "format": FORMAT,
+        "version": str(VERSION),
+        "config": json.dumps(asdict(config)),
+        "joints": json.dumps(list(spec.actuator.joints)),
+        "groups": json.dumps(correction.groups),
+        "features": json.dumps([f"{term} ({unit})" for term, unit in FEATURES]),
+    }
+    tensors = {
+        "weights": torch.as_tensor(correction.weights, dtype=torch.float64).contiguous(),
+        "membership": torch.as_tensor(correction.membership, dtype=torch.float64).contiguous(),
+    }
     atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata=meta))
 
 
@@ -144,8 +165,10 @@ def load_correction(path: str | Path, spec) -> LinearResidualTorque:
     with safe_open(str(path), framework="pt") as f:
         meta = f.metadata() or {}
         if meta.get("format") != FORMAT or meta.get("version") != str(VERSION):
-            raise ValueError(f"{path}: not a learned correction of version {VERSION} (format {meta.get('format')!r}, "
-                             f"version {meta.get('version')!r})")
+            raise ValueError(
+                f"{path}: not a learned correction of version {VERSION} (format {meta.get('format')!r}, "
+                f"version {meta.get('version')!r})"
+            )
         if json.loads(meta["joints"]) != list(spec.actuator.joints):
             raise ValueError(f"{path}: its joints differ from the task spec's {spec.name!r}")
         weights, membership = f.get_tensor("weights").numpy(), f.get_tensor("membership").numpy()

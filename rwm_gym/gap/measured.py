@@ -10,9 +10,7 @@ Nothing in the file names the effect; the workflow has to find it.
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
@@ -23,7 +21,7 @@ import numpy as np
 
 from rwm_gym.data.collect import collect, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
-from rwm_gym.gap.effects import combined_physics, parse_effects
+from rwm_gym.gap.effects import combined_physics
 from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
 from rwm_gym.physics.robot import measure
 from rwm_gym.policies.excitation import ExcitationPolicy
@@ -55,11 +53,20 @@ def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, r
         return
     torque = episode["state"][:, core.spec.state_slices["joint_torque"]]
     episode["qpos"], episode["qvel"], episode["state"] = noisy_measurement(
-        core.layout, core.spec, core.model, episode["qpos"], episode["qvel"], torque, noise, rng)
+        core.layout, core.spec, core.model, episode["qpos"], episode["qvel"], torque, noise, rng
+    )
 
 
-def noisy_measurement(layout, spec, model, qpos: np.ndarray, qvel: np.ndarray, joint_torque: np.ndarray,
-                      noise: SensorNoise, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def noisy_measurement(
+    layout,
+    spec,
+    model,
+    qpos: np.ndarray,
+    qvel: np.ndarray,
+    joint_torque: np.ndarray,
+    noise: SensorNoise,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor readings of true rows: noisy copies of qpos (N, nq), qvel (N, nv) and the state (N, S) built from them
     and the noisy joint torque (N, A). The noise floor of the gap workflow draws its noise here too."""
     qpos, qvel = np.array(qpos, float), np.array(qvel, float)
@@ -113,14 +120,24 @@ def make_measured(
     os.close(fd)
     try:
         n = max(1, min(num_envs, episodes))
-        driver = (ExcitationPolicy(nominal.spec, n) if policy == "excitation" else
-                  make_policy(policy, nominal.spec, n))
+        driver = ExcitationPolicy(nominal.spec, n) if policy == "excitation" else make_policy(policy, nominal.spec, n)
         solved = {"solver": asdict(solver)} if solver is not None else {}
-        collect(env_id, driver, episodes, raw, seed=seed, num_envs=num_envs, max_steps=max_steps,
-                env_kwargs={**env_kwargs, "physics": hidden, **solved}, overwrite=True, progress=progress)
+        collect(
+            env_id,
+            driver,
+            episodes,
+            raw,
+            seed=seed,
+            num_envs=num_envs,
+            max_steps=max_steps,
+            env_kwargs={**env_kwargs, "physics": hidden, **solved},
+            overwrite=True,
+            progress=progress,
+        )
         source = Dataset.load(raw)
-        info = replace(source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={},
-                       complete=False)
+        info = replace(
+            source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={}, complete=False
+        )
         rng = np.random.default_rng([seed, 7])
 
         def noisy_episodes():
@@ -135,8 +152,9 @@ def make_measured(
     return out
 
 
-def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float, xml_file: str | Path | None = None
-                       ) -> Path:
+def write_spring_model(
+    spec, out: str | Path, joint_type: str, stiffness: float, xml_file: str | Path | None = None
+) -> Path:
     """An effect outside the vocabulary, for benchmarks and tests: the robot's MJCF with a torsion spring
     (`stiffness` N·m/rad, rest at the default pose) in every actuated joint whose name ends in `joint_type`, edited
     into the MuJoCo model directly (no `PhysicsParams` field can express it). Writes a standalone MJCF at `out`."""
@@ -155,55 +173,8 @@ def write_spring_model(spec, out: str | Path, joint_type: str, stiffness: float,
     return write_text(out, mj.to_xml())
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--effect", action="append", default=[],
-                        help="effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)")
-    parser.add_argument("--magnitude", action="append", default=[],
-                        help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)")
-    parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
-    parser.add_argument("--policy", default="excitation",
-                        help="what drives the robot: excitation (made for identification), gait, random, or the path "
-                             "of an SB3 .zip (an ordinary walking policy, as in a real robot's log)")
-    parser.add_argument("--episodes", type=int, default=16)
-    parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
-    parser.add_argument("--env", default="AnymalD-MuJoCo-v0", help="physics env id or spec path (the nominal simulator)")
-    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument("--noise-scale", type=float, default=1.0,
-                        help="multiplier on the default sensor noise (0: none)")
-    parser.add_argument("--solver-iterations", type=int, default=CONVERGED_SOLVER.iterations,
-                        help="MuJoCo solver iterations per physics step of the hidden robot (0: the MJCF's own)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--overwrite", action="store_true")
-
-
 def solver_option(iterations: int) -> SolverSettings | None:
     """--solver-iterations N: N iterations (line search as `CONVERGED_SOLVER`); 0: the MJCF's own settings."""
     if iterations < 0:
         raise ValueError(f"--solver-iterations must be >= 0, got {iterations}")
     return replace(CONVERGED_SOLVER, iterations=iterations) if iterations else None
-
-
-def run(args: argparse.Namespace) -> int:
-    import json
-
-    env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}
-    spec = make_physics_core(args.env, 1, **env_kwargs).spec
-    try:
-        from rwm_gym.output_guard import check_output
-
-        check_output(args.out, overwrite=args.overwrite,
-                     inputs=[args.policy if args.policy.endswith(".zip") else None, args.xml_file,
-                             args.env if args.env.endswith(".toml") else None])
-        effects = parse_effects(spec, args.effect, args.magnitude)
-        path = make_measured(effects, args.episodes, args.out, env_id=args.env, env_kwargs=env_kwargs,
-                             extra_physics=json.loads(args.physics) if args.physics else None, seed=args.seed,
-                             max_steps=args.max_steps, noise=SensorNoise(scale=args.noise_scale), policy=args.policy,
-                             solver=solver_option(args.solver_iterations), overwrite=args.overwrite)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        print(f"rwm-gym make-measured: {err}", file=sys.stderr)
-        return 2
-    ds = Dataset.load(path)
-    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (effects hidden: "
-          f"{', '.join(args.effect) or 'none'})")
-    return 0

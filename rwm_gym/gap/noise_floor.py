@@ -44,8 +44,9 @@ class FloorConfig:
     seed: int = 0
 
 
-def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noise: SensorNoise,
-                config: FloorConfig = FloorConfig()) -> np.ndarray:
+def noise_floor(
+    resim: Resimulator, windows: Windows, params: PhysicsParams, noise: SensorNoise, config: FloorConfig = FloorConfig()
+) -> np.ndarray:
     """(W, len(gap_horizons(windows.horizon))) gap of a simulator that is exactly right (`params`), through the
     sensor noise."""
     spec = resim.spec
@@ -57,14 +58,29 @@ def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noi
     rng = np.random.default_rng([config.seed, 11])
     gaps = []
     for _ in range(config.draws):
-        qpos, qvel, _ = noisy_measurement(layout, spec, model, windows.qpos.reshape(-1, nq),
-                                          windows.qvel.reshape(-1, nv), np.zeros((n * k1, spec.action_dim)), noise,
-                                          rng)
-        _, _, target = noisy_measurement(layout, spec, model, truth["qpos"].reshape(-1, nq),
-                                         truth["qvel"].reshape(-1, nv), truth["joint_torque"].reshape(n * h, -1),
-                                         noise, rng)
-        twin = dataclasses.replace(windows, qpos=qpos.reshape(n, k1, nq), qvel=qvel.reshape(n, k1, nv),
-                                   target=target.reshape(n, h, -1))
+        qpos, qvel, _ = noisy_measurement(
+            layout,
+            spec,
+            model,
+            windows.qpos.reshape(-1, nq),
+            windows.qvel.reshape(-1, nv),
+            np.zeros((n * k1, spec.action_dim)),
+            noise,
+            rng,
+        )
+        _, _, target = noisy_measurement(
+            layout,
+            spec,
+            model,
+            truth["qpos"].reshape(-1, nq),
+            truth["qvel"].reshape(-1, nv),
+            truth["joint_torque"].reshape(n * h, -1),
+            noise,
+            rng,
+        )
+        twin = dataclasses.replace(
+            windows, qpos=qpos.reshape(n, k1, nq), qvel=qvel.reshape(n, k1, nv), target=target.reshape(n, h, -1)
+        )
         # NaN where the noisy twin blows up (left out of the test)
         gap = np.full((n, len(gap_horizons(windows.horizon))), np.nan)
         try:
@@ -77,18 +93,24 @@ def noise_floor(resim: Resimulator, windows: Windows, params: PhysicsParams, noi
     return np.nanmean(gaps, axis=0)
 
 
-def compare_with_floor(gap: np.ndarray, floor: np.ndarray, windows: Windows, block_rows: int,
-                       config: FloorConfig = FloorConfig()) -> dict:
+def compare_with_floor(
+    gap: np.ndarray, floor: np.ndarray, windows: Windows, block_rows: int, config: FloorConfig = FloorConfig()
+) -> dict:
     """Is the per-window gap (W, 3) significantly above the floor (W, 3)? The report's `noise_floor` section.
     Windows where every noise draw of the floor blew up (NaN) are left out of both."""
     keep = np.isfinite(floor).all(1)
     gap, floor, windows = gap[keep], floor[keep], windows.subset(keep)
     ratio = float(gap.mean() / floor.mean())
     p_value = paired_p_value(gap.mean(1), floor.mean(1), windows, block_rows, config.significance)
-    return {"gap": float(gap.mean()), "floor": float(floor.mean()), "windows": int(keep.sum()),
-            "windows_left_out": int((~keep).sum()),
-            "floor_per_horizon": {str(h): float(v) for h, v in zip(gap_horizons(windows.horizon), floor.mean(0))},
-            "ratio": ratio, "p_value": p_value,
-            "above_floor": bool(p_value < config.significance and ratio >= config.min_ratio),
-            "test": f"{paired_test(windows, block_rows, config.significance)} of the gap against the floor, "
-                    f"p < {config.significance}, and gap >= {config.min_ratio} x floor"}
+    return {
+        "gap": float(gap.mean()),
+        "floor": float(floor.mean()),
+        "windows": int(keep.sum()),
+        "windows_left_out": int((~keep).sum()),
+        "floor_per_horizon": {str(h): float(v) for h, v in zip(gap_horizons(windows.horizon), floor.mean(0))},
+        "ratio": ratio,
+        "p_value": p_value,
+        "above_floor": bool(p_value < config.significance and ratio >= config.min_ratio),
+        "test": f"{paired_test(windows, block_rows, config.significance)} of the gap against the floor, "
+        f"p < {config.significance}, and gap >= {config.min_ratio} x floor",
+    }

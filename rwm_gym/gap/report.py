@@ -43,8 +43,9 @@ def plot_channels(spec: TaskSpec, before: np.ndarray, after: np.ndarray, path: P
     plt.close(fig)
 
 
-def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corrected: np.ndarray, channels: list[str],
-                 path: Path) -> None:
+def plot_rollout(
+    spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corrected: np.ndarray, channels: list[str], path: Path
+) -> None:
     """Overlay of one held-out window (H, S): measured vs nominal vs corrected re-simulation on a few channels."""
     import matplotlib
 
@@ -68,43 +69,68 @@ def plot_rollout(spec: TaskSpec, measured: np.ndarray, nominal: np.ndarray, corr
 
 def markdown(report: dict) -> str:
     """The human-readable report."""
-    sections = (_verdict, _named_effects, _gap_per_horizon, _learned_correction, _identifiability, _where_the_gap_lives,
-                _selection_candidates, _rejected, _world_model, _files)
+    sections = (
+        _verdict,
+        _named_effects,
+        _gap_per_horizon,
+        _learned_correction,
+        _identifiability,
+        _where_the_gap_lives,
+        _selection_candidates,
+        _rejected,
+        _world_model,
+        _files,
+    )
     lines = [line for section in sections for line in section(report)]
     return "\n".join(lines) + "\n"
 
 
 def _verdict(report: dict) -> list[str]:
     floor = report["noise_floor"]
-    return ["# Sim-to-real gap report\n", f"**Verdict: `{report['effect']}`** — {report['reason']}\n",
-            (f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
-             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n")]
+    return [
+        "# Sim-to-real gap report\n",
+        f"**Verdict: `{report['effect']}`** — {report['reason']}\n",
+        (
+            f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
+            f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n"
+        ),
+    ]
 
 
 def _named_effects(report: dict) -> list[str]:
     """One row per parameter of each named effect, in the order named."""
     if not report["effects"]:
         return []
-    lines = [("| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
-              "|---|---|---|---|---|---|---|---|")]
+    lines = [
+        (
+            "| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
+            "|---|---|---|---|---|---|---|---|"
+        )
+    ]
     for i, item in enumerate(report["effects"], 1):
         for name, value in item["parameters"].items():
-            lines.append(f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
-                         f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |")
+            lines.append(
+                f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
+                f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |"
+            )
     return [*lines, ""]
 
 
 def _gap_per_horizon(report: dict) -> list[str]:
     """The held-out gap before and after correction at each horizon, and what remains against the noise floor."""
-    lines = [f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n",
-             "| horizon (steps) | gap before | gap after |\n|---|---|---|"]
+    lines = [
+        f"Held-out episodes {report['held_out_episodes']}. Gap = normalised state MSE, mean over horizons.\n",
+        "| horizon (steps) | gap before | gap after |\n|---|---|---|",
+    ]
     for h, before in report["gap_before_per_horizon"].items():
         lines.append(f"| {h} | {before:.4g} | {report['gap_after_per_horizon'][h]:.4g} |")
     lines.append(f"| mean | {report['gap_before']:.4g} | {report['gap_after']:.4g} |\n")
-    lines.append(f"Explained fraction: {report['explained_fraction']:.1%}; what remains is "
-                 f"{report['residual']['ratio']:.2f} x the noise floor of "
-                 f"{report['residual'].get('floor_of', 'the nominal simulator')}"
-                 f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n")
+    lines.append(
+        f"Explained fraction: {report['explained_fraction']:.1%}; what remains is "
+        f"{report['residual']['ratio']:.2f} x the noise floor of "
+        f"{report['residual'].get('floor_of', 'the nominal simulator')}"
+        f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n"
+    )
     return lines
 
 
@@ -116,9 +142,12 @@ def _learned_correction(report: dict) -> list[str]:
     lines = ["## Learned correction (not a named effect)\n"]
     if learned["status"] != "ok":
         return [*lines, f"{learned['status']}\n"]
-    lines.append(f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
-                 f"({learned['explained_fraction']:.1%} of what the named effects left, "
-                 f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); weights `{Path(learned['path']).name}`. {learned['note']}.\n")
+    lines.append(
+        f"{learned['kind']}: held-out gap {learned['gap_before']:.4g} -> {learned['gap_after']:.4g} "
+        f"({learned['explained_fraction']:.1%} of what the named effects left, "
+        f"p={learned['p_value']:.2g}; {'kept' if learned['kept'] else 'not kept: no significant reduction'}); "
+        f"weights `{Path(learned['path']).name}`. {learned['note']}.\n"
+    )
     weights = learned["training"]["weights"]
     terms = list(next(iter(weights.values())))
     lines.append("| joints | " + " | ".join(terms) + " |\n|---|" + "---|" * len(terms))
@@ -127,26 +156,35 @@ def _learned_correction(report: dict) -> list[str]:
 
 
 def _identifiability(report: dict) -> list[str]:
-    lines = ["## Identifiability from these data\n",
-             "| effect | magnitude | signal / noise floor | identifiable |\n|---|---|---|---|"]
+    lines = [
+        "## Identifiability from these data\n",
+        "| effect | magnitude | signal / noise floor | identifiable |\n|---|---|---|---|",
+    ]
     for name, item in report["identifiability"].items():
         magnitude = ", ".join(f"{v:.3g}" for v in item["magnitude"])
-        lines.append(f"| {name} | {magnitude} | {item['signal_to_floor']:.2f} | "
-                     f"{'yes' if item['identifiable'] else 'no'} |")
+        lines.append(
+            f"| {name} | {magnitude} | {item['signal_to_floor']:.2f} | {'yes' if item['identifiable'] else 'no'} |"
+        )
     return [*lines, ""]
 
 
 def _where_the_gap_lives(report: dict) -> list[str]:
     """The nominal simulator's gap by channel and by condition, and the response lag."""
-    lines = ["## Where the gap lives (nominal simulator, held-out)\n",
-             "| channel | MSE at 5 steps | share |\n|---|---|---|"]
+    lines = [
+        "## Where the gap lives (nominal simulator, held-out)\n",
+        "| channel | MSE at 5 steps | share |\n|---|---|---|",
+    ]
     lines += [f"| {c['channel']} | {c['mse']:.3g} | {c['share']:.1%} |" for c in report["where"]["channels_h5"]]
     lines.append("\n| condition (joints, 1 step) | residual / overall | share of samples |\n|---|---|---|")
-    lines += [f"| {c['condition']} | {c['ratio']:.2f} | {c['fraction_of_samples']:.0%} |"
-              for c in report["where"]["conditions"]]
+    lines += [
+        f"| {c['condition']} | {c['ratio']:.2f} | {c['fraction_of_samples']:.0%} |"
+        for c in report["where"]["conditions"]
+    ]
     lag = report["where"]["response_lag_s"]
-    lines.append(f"\nResponse lag of joint velocity to target changes: measured {lag['measured'] * 1e3:.1f} ms, "
-                 f"nominal simulator {lag['simulated'] * 1e3:.1f} ms.\n")
+    lines.append(
+        f"\nResponse lag of joint velocity to target changes: measured {lag['measured'] * 1e3:.1f} ms, "
+        f"nominal simulator {lag['simulated'] * 1e3:.1f} ms.\n"
+    )
     return lines
 
 
@@ -160,24 +198,32 @@ def _selection_candidates(report: dict) -> list[str]:
         lines.append("| effect | scope | parameters | explained | score | p |\n|---|---|---|---|---|---|")
         for c in step["candidates"]:
             values = ", ".join(f"{n}={v:.4g}" for n, v in zip(c["names"], c["values"]))
-            lines.append(f"| {c['effect']} | {c['scope']} | {values} | {c['explained_fraction']:.1%} | "
-                         f"{c['score']:.3f} | {c['p_value']:.2g} |" if c["status"] == "ok" else
-                         f"| {c['effect']} | {c['scope']} | {values} | {c['status']} | | |")
+            lines.append(
+                f"| {c['effect']} | {c['scope']} | {values} | {c['explained_fraction']:.1%} | "
+                f"{c['score']:.3f} | {c['p_value']:.2g} |"
+                if c["status"] == "ok"
+                else f"| {c['effect']} | {c['scope']} | {values} | {c['status']} | | |"
+            )
     return lines
 
 
 def _rejected(report: dict) -> list[str]:
     if not report["rejected"]:
         return []
-    return ["\n## Parameters rejected because the simulation blew up\n",
-            *(f"- step {r['step']}, {r['effect']} ({r['scope']}): {r['point']}" for r in report["rejected"])]
+    return [
+        "\n## Parameters rejected because the simulation blew up\n",
+        *(f"- step {r['step']}, {r['effect']} ({r['scope']}): {r['point']}" for r in report["rejected"]),
+    ]
 
 
 def _world_model(report: dict) -> list[str]:
     if "world_model" not in report:
         return []
-    return ["\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n",
-            world_model_table(report["world_model"]) + "\n", f"Metric: {report['world_model']['metric']}.\n"]
+    return [
+        "\n## Predictors on held-out measured episodes (relative error, mean over the first N rows)\n",
+        world_model_table(report["world_model"]) + "\n",
+        f"Metric: {report['world_model']['metric']}.\n",
+    ]
 
 
 def _files(report: dict) -> list[str]:
@@ -190,9 +236,11 @@ def _files(report: dict) -> list[str]:
 def world_model_table(section: dict) -> str:
     """Markdown table of the four (or five) predictors' errors at each horizon N (open-loop rows)."""
     horizons = list(section["windows"])
-    lines = ["| predictor | " + " | ".join(f"N={n}" for n in horizons) + " |",
-             "|---|" + "---|" * len(horizons),
-             "| windows | " + " | ".join(str(section["windows"][n]) for n in horizons) + " |"]
+    lines = [
+        "| predictor | " + " | ".join(f"N={n}" for n in horizons) + " |",
+        "|---|" + "---|" * len(horizons),
+        "| windows | " + " | ".join(str(section["windows"][n]) for n in horizons) + " |",
+    ]
     for name, errors in section["error"].items():
         lines.append(f"| {name} | " + " | ".join(f"{errors[n]:.4f}" for n in horizons) + " |")
     return "\n".join(lines)

@@ -89,8 +89,10 @@ class Windows:
     def join(self, other: Windows) -> Windows:
         """These windows followed by `other`'s (same horizon and warm-up)."""
         if (other.horizon, other.warmup) != (self.horizon, self.warmup):
-            raise ValueError(f"cannot join windows of horizon/warm-up {self.horizon}/{self.warmup} and "
-                             f"{other.horizon}/{other.warmup}")
+            raise ValueError(
+                f"cannot join windows of horizon/warm-up {self.horizon}/{self.warmup} and "
+                f"{other.horizon}/{other.warmup}"
+            )
         take = {k: np.concatenate([getattr(self, k), getattr(other, k)]) for k in WINDOW_ARRAYS}
         return Windows(**take, horizon=self.horizon, warmup=self.warmup)
 
@@ -134,8 +136,13 @@ class Resimulator:
     a fit of a constraint-borne effect (joint friction, contacts) lands off the true value.
     """
 
-    def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, nthread: int = 0,
-                 solver: SolverSettings | None = CONVERGED_SOLVER):
+    def __init__(
+        self,
+        spec: TaskSpec,
+        xml_file: str | Path | None = None,
+        nthread: int = 0,
+        solver: SolverSettings | None = CONVERGED_SOLVER,
+    ):
         self.spec, self.xml_file, self.nthread, self.solver = spec, xml_file, nthread, solver
         self.models = ModelCache(spec, xml_file, solver)
 
@@ -143,13 +150,23 @@ class Resimulator:
         """`build_model(spec, xml_file, params, solver)`, from a once-compiled structure (`ModelCache`)."""
         return self.models(params)
 
-    def rollout(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
-                correction: TorqueCorrection | None = None) -> np.ndarray:
+    def rollout(
+        self,
+        windows: Windows,
+        params: PhysicsParams,
+        horizon: int | None = None,
+        correction: TorqueCorrection | None = None,
+    ) -> np.ndarray:
         """Simulated states (W, H, S) at rows start+1 .. start+H of every window (H = horizon, default all)."""
         return self.simulate(windows, params, horizon, correction)["state"]
 
-    def simulate(self, windows: Windows, params: PhysicsParams, horizon: int | None = None,
-                 correction: TorqueCorrection | None = None) -> dict[str, np.ndarray]:
+    def simulate(
+        self,
+        windows: Windows,
+        params: PhysicsParams,
+        horizon: int | None = None,
+        correction: TorqueCorrection | None = None,
+    ) -> dict[str, np.ndarray]:
         """`rollout` with the raw arrays too: {"state" (W, H, S), "qpos" (W, H, nq), "qvel" (W, H, nv),
         "joint_torque" (W, H, A)}; `correction` adds a learned joint torque at every policy step."""
         spec, horizon = self.spec, horizon or windows.horizon
@@ -169,15 +186,20 @@ class Resimulator:
         def step(action: np.ndarray) -> None:
             target = default + scale * np.clip(action, -1.0, 1.0)
             if correction is not None:
-                applied[:, layout.dof_adr] = correction.torque(np.asarray(qpos)[:, layout.qpos_adr],
-                                                               np.asarray(qvel)[:, layout.dof_adr], target)
+                applied[:, layout.dof_adr] = correction.torque(
+                    np.asarray(qpos)[:, layout.qpos_adr], np.asarray(qvel)[:, layout.dof_adr], target
+                )
             ctrl[:, layout.actuator_ids] = target
             sim.step(ctrl, spec.substeps)
 
         sim.reset(np.arange(n), keyframe, windows.qpos[:, 0], windows.qvel[:, 0])
         warnings_before = np.array(sim.batch.warning[:, :, 1])
-        out = {"state": np.empty((n, horizon, spec.state_dim)), "qpos": np.empty((n, horizon, model.nq)),
-               "qvel": np.empty((n, horizon, model.nv)), "joint_torque": np.empty((n, horizon, spec.action_dim))}
+        out = {
+            "state": np.empty((n, horizon, spec.state_dim)),
+            "qpos": np.empty((n, horizon, model.nq)),
+            "qvel": np.empty((n, horizon, model.nv)),
+            "joint_torque": np.empty((n, horizon, spec.action_dim)),
+        }
         with held_warnings():
             for i in range(k):
                 if i > 0:

@@ -32,8 +32,14 @@ from rwm_gym.gap.resim import Resimulator, Windows, normalised_residual
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
 
-JOINT_EFFECTS: tuple[str, ...] = ("joint_friction", "joint_damping", "armature", "motor_strength", "torque_limit",
-                                  "backlash")
+JOINT_EFFECTS: tuple[str, ...] = (
+    "joint_friction",
+    "joint_damping",
+    "armature",
+    "motor_strength",
+    "torque_limit",
+    "backlash",
+)
 """Effects of one number applied to every actuated joint (a per-joint `PhysicsParams` field)."""
 
 SCOPES: tuple[str, ...] = ("global", "leg", "joint_type", "joint")
@@ -106,10 +112,12 @@ def _grouped(effect: Effect, spec: TaskSpec, groups: dict[str, list[int]], scope
             per_joint[ids] = value
         return {field: tuple(float(v) for v in per_joint)}
 
-    parameters = tuple(Parameter(f"{p.name}_{group}", p.unit, p.nominal, p.low, p.high, p.default, p.step)
-                       for group in groups)
-    return Effect(effect.name, f"{effect.description} ({label})", parameters, apply, scope=scope,
-                  nested_in=effect.nested_in)
+    parameters = tuple(
+        Parameter(f"{p.name}_{group}", p.unit, p.nominal, p.low, p.high, p.default, p.step) for group in groups
+    )
+    return Effect(
+        effect.name, f"{effect.description} ({label})", parameters, apply, scope=scope, nested_in=effect.nested_in
+    )
 
 
 def joint_residuals(spec: TaskSpec, simulated: np.ndarray, windows: Windows, horizon: int) -> np.ndarray | None:
@@ -176,9 +184,17 @@ def _charge_scope(fit: CandidateFit, choices: int = 0) -> CandidateFit:
     return fit
 
 
-def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator,
-                     train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
-                     config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+def scope_candidates(
+    fits: list[CandidateFit],
+    effects: dict[str, Effect],
+    spec: TaskSpec,
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms (`config.scopes`) of the `config.scoped_effects` best-scoring global joint effects among
     `fits` whose global form reduces the held-out gap, each fitted from nominal and scored on the held-out windows;
     [] if none has a scoped form.
@@ -186,12 +202,17 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
     # Only effects whose global form helps are scoped: scoping every joint effect costs up to 40 % more fitting time
     # and changed no verdict on the benchmark grid. `every_scope` does it where nothing else explains the gap.
-    ranked = sorted((f for f in fits if f.scope == "global" and f.status == "ok" and f.effect in JOINT_EFFECTS
-                     and f.explained_fraction > 0),
-                    key=lambda f: -f.score)
+    ranked = sorted(
+        (
+            f
+            for f in fits
+            if f.scope == "global" and f.status == "ok" and f.effect in JOINT_EFFECTS and f.explained_fraction > 0
+        ),
+        key=lambda f: -f.score,
+    )
     out: list[tuple[Effect, CandidateFit]] = []
     top = max((f.score for f in fits if f.status == "ok"), default=-np.inf)
-    for best in ranked[:config.scoped_effects]:
+    for best in ranked[: config.scoped_effects]:
         out += _scoped_fits(best, effects[best.effect], spec, resim, train, heldout, base, before, config, top)
     joint = outlying_joint(spec, resim, train, base) if "joint" in config.scopes else None
     if joint is not None:
@@ -199,9 +220,18 @@ def scope_candidates(fits: list[CandidateFit], effects: dict[str, Effect], spec:
     return out
 
 
-def every_scope(fits: list[CandidateFit], scoped: set[str], effects: dict[str, Effect], spec: TaskSpec,
-                resim: Resimulator, train: Windows, heldout: Windows, base: PhysicsParams, before: np.ndarray,
-                config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+def every_scope(
+    fits: list[CandidateFit],
+    scoped: set[str],
+    effects: dict[str, Effect],
+    spec: TaskSpec,
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms of every global joint effect among `fits` not in `scoped`, whatever its global form explains.
 
     Armature in the hip flexion joints alone: every global form leaves the gap as it was (the fit puts armature into
@@ -215,9 +245,17 @@ def every_scope(fits: list[CandidateFit], scoped: set[str], effects: dict[str, E
     return out
 
 
-def _single_joint_fits(joint: int, effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows,
-                       heldout: Windows, base: PhysicsParams, before: np.ndarray,
-                       config: FitConfig) -> list[tuple[Effect, CandidateFit]]:
+def _single_joint_fits(
+    joint: int,
+    effects: dict[str, Effect],
+    spec: TaskSpec,
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+) -> list[tuple[Effect, CandidateFit]]:
     """Every joint effect fitted at `joint` alone (from nominal, one bounded search) and scored on held-out windows."""
     out: list[tuple[Effect, CandidateFit]] = []
     for name in JOINT_EFFECTS:
@@ -225,16 +263,26 @@ def _single_joint_fits(joint: int, effects: dict[str, Effect], spec: TaskSpec, r
         if form is None:
             continue
         p = form.parameters[0]
-        fit = fit_coordinatewise(form, resim, train, base, config, np.array([p.nominal]), [(p.low, p.high)],
-                                 config.max_evaluations, sweeps=1)
+        fit = fit_coordinatewise(
+            form, resim, train, base, config, np.array([p.nominal]), [(p.low, p.high)], config.max_evaluations, sweeps=1
+        )
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit, choices=1)))
     return out
 
 
-def _scoped_fits(best: CandidateFit, effect: Effect, spec: TaskSpec, resim: Resimulator, train: Windows,
-                 heldout: Windows, base: PhysicsParams, before: np.ndarray, config: FitConfig,
-                 to_beat: float = -np.inf) -> list[tuple[Effect, CandidateFit]]:
+def _scoped_fits(
+    best: CandidateFit,
+    effect: Effect,
+    spec: TaskSpec,
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+    to_beat: float = -np.inf,
+) -> list[tuple[Effect, CandidateFit]]:
     """`effect` (whose global fit is `best`) fitted per leg and per joint type, and per joint where a group form beat
     the global one and the data suffice. A form is not fitted where its best possible score (no gap left, less its
     charge) cannot beat `to_beat`, the step's best candidate so far: it could never be named."""
@@ -245,19 +293,31 @@ def _scoped_fits(best: CandidateFit, effect: Effect, spec: TaskSpec, resim: Resi
         if form is None or 1.0 - SCOPE_CHARGE * (len(form.parameters) - 1) <= to_beat:
             continue
         start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
-        fit = fit_coordinatewise(form, resim, train, base, config, start, [(p.low, p.high)] * len(start),
-                                 config.max_evaluations // 2 + 2, sweeps=config.group_sweeps)
+        fit = fit_coordinatewise(
+            form,
+            resim,
+            train,
+            base,
+            config,
+            start,
+            [(p.low, p.high)] * len(start),
+            config.max_evaluations // 2 + 2,
+            sweeps=config.group_sweeps,
+        )
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit)))
     grouped = [f for _, f in out if f.status == "ok"]
     form = scoped(effect, spec, "joint") if "joint" in config.scopes else None
-    if form is not None and grouped and max(f.score for f in grouped) > best.score \
-            and len(train) >= MIN_WINDOWS_PER_PARAMETER * len(form.parameters):
+    if (
+        form is not None
+        and grouped
+        and max(f.score for f in grouped) > best.score
+        and len(train) >= MIN_WINDOWS_PER_PARAMETER * len(form.parameters)
+    ):
         group_fit = max(grouped, key=lambda f: f.score)
         start = per_joint_start(spec, group_fit)
         brackets = per_joint_brackets(spec, group_fit, effect.parameters[0])
-        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations,
-                                 sweeps=1)
+        fit = fit_coordinatewise(form, resim, train, base, config, start, brackets, config.max_evaluations, sweeps=1)
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit)))
     return out

@@ -31,6 +31,7 @@ their final values.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -70,7 +71,7 @@ class Selection:
 def combine(named: list[Candidate]) -> Effect:
     """One effect whose parameters are all of `named`'s, in order (for the joint refit)."""
     sizes = [len(e.parameters) for e, _ in named]
-    cuts = np.cumsum([0] + sizes)
+    cuts = np.cumsum([0, *sizes])
 
     def apply(values: np.ndarray) -> dict[str, object]:
         out: dict[str, object] = {}
@@ -86,8 +87,9 @@ def _related(a: Effect, b: Effect) -> bool:
     return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
 
 
-def name_step(candidates: list[Candidate], config: FitConfig, significance: float, gap: float, floor: float
-              ) -> tuple[Candidate | None, str, Candidate | None]:
+def name_step(
+    candidates: list[Candidate], config: FitConfig, significance: float, gap: float, floor: float
+) -> tuple[Candidate | None, str, Candidate | None]:
     """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
     pick is None); `gap` and `floor` are the means of the step's gap and of its noise floor. Alike: the rival's
     penalised remaining gap above the floor is within `ambiguity_ratio` of the best's (measured from zero, an effect
@@ -100,22 +102,36 @@ def name_step(candidates: list[Candidate], config: FitConfig, significance: floa
     crossed = not np.isnan(best.cross_fitted_p_value)
     p_value, test = (best.cross_fitted_p_value, "cross-fitted p") if crossed else (best.p_value, "p")
     if p_value >= significance or not share >= needed:  # NaN share: the gap is not above the floor
-        return None, (f"best candidate {best.effect} ({best.scope}) explains {share:.0%} of the gap above the noise "
-                      f"floor ({test}={p_value:.2g}; needs {needed:.0%} and p<{significance:.2g})"), None
+        return (
+            None,
+            (
+                f"best candidate {best.effect} ({best.scope}) explains {share:.0%} of the gap above the noise "
+                f"floor ({test}={p_value:.2g}; needs {needed:.0%} and p<{significance:.2g})"
+            ),
+            None,
+        )
 
     def left_above_floor(fit: CandidateFit) -> float:
         return (1.0 - fit.score) * gap - floor
 
     for other_effect, other in ranked[1:]:
-        if not _related(effect, other_effect) and \
-                left_above_floor(other) < left_above_floor(best) * (1.0 + config.ambiguity_ratio):
-            return None, (f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
-                          f"({other.explained_fraction:.0%}) explain the gap alike"), (other_effect, other)
+        if not _related(effect, other_effect) and left_above_floor(other) < left_above_floor(best) * (
+            1.0 + config.ambiguity_ratio
+        ):
+            return (
+                None,
+                (
+                    f"ambiguous: {best.effect} ({best.explained_fraction:.0%}) and {other.effect} "
+                    f"({other.explained_fraction:.0%}) explain the gap alike"
+                ),
+                (other_effect, other),
+            )
     return ranked[0], f"explains {share:.0%} of the gap above the noise floor ({test}={p_value:.2g})", None
 
 
-def judge(candidates: list[Candidate], gap: float, floor: float, config: FitConfig, significance: float
-          ) -> tuple[Candidate | None, str, Candidate | None]:
+def judge(
+    candidates: list[Candidate], gap: float, floor: float, config: FitConfig, significance: float
+) -> tuple[Candidate | None, str, Candidate | None]:
     """`name_step` after setting each candidate's share of the gap above the floor (`gap`, `floor`: the means)."""
     excess = gap - floor
     for _, fit in candidates:
@@ -132,8 +148,16 @@ class CrossFit:
     score: Windows
 
 
-def cross_fitted_p_value(candidate: Candidate, resim: Resimulator, held: Windows, cross: CrossFit,
-                         params: PhysicsParams, before: np.ndarray, config: FitConfig, significance: float) -> float:
+def cross_fitted_p_value(
+    candidate: Candidate,
+    resim: Resimulator,
+    held: Windows,
+    cross: CrossFit,
+    params: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+    significance: float,
+) -> float:
     """One-sided p that `candidate` lowers the gap (`before` (W, 3): held-out, of `params`) on every measured episode:
     the held-out windows at its values, the fitting episodes' windows at its values fitted again on the held-out
     episodes. 2-fold cross-fitting: no window is scored by a fit that saw it, and the test has about three times the
@@ -144,18 +168,31 @@ def cross_fitted_p_value(candidate: Candidate, resim: Resimulator, held: Windows
     try:
         after = gap_per_window(resim.spec, resim.rollout(held, effect.physics(fit.values, params)), held)
         nominal = gap_per_window(resim.spec, resim.rollout(cross.score, params), cross.score)
-        swapped = gap_per_window(resim.spec, resim.rollout(cross.score, effect.physics(refit.values, params)),
-                                 cross.score)
+        swapped = gap_per_window(
+            resim.spec, resim.rollout(cross.score, effect.physics(refit.values, params)), cross.score
+        )
     except SimulationDiverged:
         return 1.0
-    return paired_p_value(np.concatenate([before.mean(1), nominal.mean(1)]),
-                          np.concatenate([after.mean(1), swapped.mean(1)]), held.join(cross.score),
-                          config.block_rows, significance)
+    return paired_p_value(
+        np.concatenate([before.mean(1), nominal.mean(1)]),
+        np.concatenate([after.mean(1), swapped.mean(1)]),
+        held.join(cross.score),
+        config.block_rows,
+        significance,
+    )
 
 
-def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train: Windows, held: Windows,
-                   params: PhysicsParams, current: np.ndarray, floor: np.ndarray, config: FitConfig
-                   ) -> tuple[Candidate, str] | None:
+def resolve_rivals(
+    best: Candidate,
+    rival: Candidate,
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    params: PhysicsParams,
+    current: np.ndarray,
+    floor: np.ndarray,
+    config: FitConfig,
+) -> tuple[Candidate, str] | None:
     """Two unrelated effects explain the gap alike: both present (a pair), or confusable? Fit the rival on top of the
     best; if it still explains `min_excess_explained` of the gap above the floor, significantly, the best is named
     (the rival is fitted again at the next step); else None (confusable: `unexplained`)."""
@@ -169,8 +206,10 @@ def resolve_rivals(best: Candidate, rival: Candidate, resim: Resimulator, train:
     excess = float(after_best.mean() - np.nanmean(floor))
     share = (float(after_best.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
     if refit.status == "ok" and refit.p_value < config.significance and share >= config.min_excess_explained:
-        return best, (f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
-                      f"{share:.0%} of the rest above the floor on top of {best[1].effect}: both are present")
+        return best, (
+            f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
+            f"{share:.0%} of the rest above the floor on top of {best[1].effect}: both are present"
+        )
     return None
 
 
@@ -205,10 +244,20 @@ class _Step:
     tested: int
 
 
-def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulator, train: Windows, held: Windows,
-                   base: PhysicsParams, before: np.ndarray, floor: np.ndarray, config: FitConfig,
-                   floor_config: FloorConfig = FloorConfig(), progress: bool = True,
-                   cross: Callable[[], CrossFit] | None = None) -> Selection:
+def select_effects(
+    effects: dict[str, Effect],
+    spec: TaskSpec,
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    floor: np.ndarray,
+    config: FitConfig,
+    floor_config: FloorConfig = FloorConfig(),
+    progress: bool = True,
+    cross: Callable[[], CrossFit] | None = None,
+) -> Selection:
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
     called once if step 1's best candidate needs them (None: the held-out test alone)."""
@@ -238,8 +287,10 @@ def select_effects(effects: dict[str, Effect], spec: TaskSpec, resim: Resimulato
 
 def _below_floor(test: dict) -> str:
     """Why a gap is not above the noise floor, from `compare_with_floor`'s test."""
-    return (f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
-            f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})")
+    return (
+        f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
+        f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})"
+    )
 
 
 def _ranked(candidates: list[Candidate]) -> list[Candidate]:
@@ -252,19 +303,28 @@ def _best(candidates: list[Candidate]) -> Candidate | None:
     return max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
 
 
-def _judge_step(search: _Search, k: int, below: bool, named: list[Candidate], earlier: list[Candidate],
-                params: PhysicsParams, current: np.ndarray) -> _Step:
+def _judge_step(
+    search: _Search,
+    k: int,
+    below: bool,
+    named: list[Candidate],
+    earlier: list[Candidate],
+    params: PhysicsParams,
+    current: np.ndarray,
+) -> _Step:
     """Fit every effect not yet named on top of `params` (and in its scopes, and jointly with the named ones), and
     judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
     config = search.config
     remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in named}}
     fits = fit_all(remaining, search.resim, search.train, search.held, params, current, config, search.progress)
     candidates = [(remaining[f.effect], f) for f in fits]
-    candidates += scope_candidates(fits, remaining, search.spec, search.resim, search.train, search.held, params,
-                                   current, config)
+    candidates += scope_candidates(
+        fits, remaining, search.spec, search.resim, search.train, search.held, params, current, config
+    )
     if named and config.joint_candidates:
-        candidates = joint_candidates(candidates, named, earlier, search.resim, search.train, search.held,
-                                      search.base, current, config)
+        candidates = joint_candidates(
+            candidates, named, earlier, search.resim, search.train, search.held, search.base, current, config
+        )
     tested = sum(f.status == "ok" for _, f in candidates)
     significance = config.significance / max(tested, 1) if below else config.significance
     step = _Step(candidates, fits, *_judge(search, candidates, current, significance), significance, tested)
@@ -276,8 +336,9 @@ def _judge_step(search: _Search, k: int, below: bool, named: list[Candidate], ea
     return step
 
 
-def _judge(search: _Search, candidates: list[Candidate], current: np.ndarray, significance: float
-           ) -> tuple[Candidate | None, str, Candidate | None]:
+def _judge(
+    search: _Search, candidates: list[Candidate], current: np.ndarray, significance: float
+) -> tuple[Candidate | None, str, Candidate | None]:
     """`judge` on the step's gap `current` and the mean noise floor."""
     return judge(candidates, float(current.mean()), float(np.nanmean(search.floor)), search.config, significance)
 
@@ -293,59 +354,92 @@ def _cross_fit_near_the_floor(search: _Search, step: _Step, params: PhysicsParam
         return
     best = _best(step.candidates)
     if best is not None and best[1].excess_explained >= search.config.min_excess_explained:
-        best[1].cross_fitted_p_value = cross_fitted_p_value(best, search.resim, search.held, search.cross(), params,
-                                                            current, search.config, step.significance)
+        best[1].cross_fitted_p_value = cross_fitted_p_value(
+            best, search.resim, search.held, search.cross(), params, current, search.config, step.significance
+        )
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
 
 
-def _refine_every_effect(search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams,
-                         current: np.ndarray) -> None:
+def _refine_every_effect(
+    search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams, current: np.ndarray
+) -> None:
     """Step 1, gap above the floor, nothing named: refine every effect (not only the best screened), and judge
     again."""
     config = search.config
     if not _undecided(step) or not config.refine_every_effect or len(remaining) <= config.refine_top:
         return
-    fits = fit_all(remaining, search.resim, search.train, search.held, params, current, config, search.progress,
-                   len(remaining))
+    fits = fit_all(
+        remaining, search.resim, search.train, search.held, params, current, config, search.progress, len(remaining)
+    )
     refined = {f.effect: f for f in fits}
     step.candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in step.candidates]
     step.fits = fits
     step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
 
 
-def _fit_every_scope(search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams,
-                     current: np.ndarray) -> None:
+def _fit_every_scope(
+    search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams, current: np.ndarray
+) -> None:
     """Step 1, gap above the floor, still nothing named: fit every joint effect in its scopes too (also those whose
     global form explained nothing), and judge again."""
     if not _undecided(step) or not search.config.every_scope:
         return
     scoped = {f.effect for _, f in step.candidates if f.scope != "global"}
-    more = every_scope(step.fits, scoped, remaining, search.spec, search.resim, search.train,
-                       search.held, params, current, search.config)
+    more = every_scope(
+        step.fits,
+        scoped,
+        remaining,
+        search.spec,
+        search.resim,
+        search.train,
+        search.held,
+        params,
+        current,
+        search.config,
+    )
     if more:
         step.candidates += more
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
 
 
-def _decide(search: _Search, step: _Step, below: bool, reason: str, named: list[Candidate], params: PhysicsParams,
-            current: np.ndarray) -> tuple[Candidate | None, str]:
+def _decide(
+    search: _Search,
+    step: _Step,
+    below: bool,
+    reason: str,
+    named: list[Candidate],
+    params: PhysicsParams,
+    current: np.ndarray,
+) -> tuple[Candidate | None, str]:
     """The step's pick (or None) and why; a rival is resolved (`resolve_rivals`) where the gap is above the floor;
     below it, `reason` says so and the decision tells the corrected significance."""
     pick, decision = step.pick, step.decision
     if below:
-        decision = (f"{reason}; each candidate's own reduction tested at p < {step.significance:.2g} "
-                    f"({search.config.significance} over {step.tested} candidates, Bonferroni): {decision}")
+        decision = (
+            f"{reason}; each candidate's own reduction tested at p < {step.significance:.2g} "
+            f"({search.config.significance} over {step.tested} candidates, Bonferroni): {decision}"
+        )
     if step.rival is not None and not below:
         best = _best(step.candidates)
-        resolved = resolve_rivals(best, step.rival, search.resim, search.train, search.held,
-                                  named_params(named, best, search.base, params), current, search.floor, search.config)
+        resolved = resolve_rivals(
+            best,
+            step.rival,
+            search.resim,
+            search.train,
+            search.held,
+            named_params(named, best, search.base, params),
+            current,
+            search.floor,
+            search.config,
+        )
         if resolved is not None:
             return resolved
     return pick, decision
 
 
-def _name(search: _Search, pick: Candidate, named: list[Candidate], params: PhysicsParams
-          ) -> tuple[PhysicsParams, np.ndarray]:
+def _name(
+    search: _Search, pick: Candidate, named: list[Candidate], params: PhysicsParams
+) -> tuple[PhysicsParams, np.ndarray]:
     """Append `pick` to `named` (a joint candidate sets the named effects to the values refitted with it); returns
     the simulator with every named effect and its held-out gap."""
     params = named_params(named, pick, search.base, params)
@@ -357,8 +451,15 @@ def _name(search: _Search, pick: Candidate, named: list[Candidate], params: Phys
     return params, gap_per_window(search.spec, search.resim.rollout(search.held, params), search.held)
 
 
-def _selection(search: _Search, named: list[Candidate], steps: list[dict], reason: str, before: np.ndarray,
-               params: PhysicsParams, current: np.ndarray) -> Selection:
+def _selection(
+    search: _Search,
+    named: list[Candidate],
+    steps: list[dict],
+    reason: str,
+    before: np.ndarray,
+    params: PhysicsParams,
+    current: np.ndarray,
+) -> Selection:
     """The verdict: `none` or `unexplained` if nothing was named; else the named effects, jointly refitted where
     there are several parameters (`joint_refit`), with their shares of the explained gap."""
     config, base = search.config, search.base
@@ -367,16 +468,26 @@ def _selection(search: _Search, named: list[Candidate], steps: list[dict], reaso
         return Selection(verdict, reason, [], base, before, steps=steps)
     refit = None
     if len(named) > 1 or (config.refit_single_effect and len(named[0][0].parameters) > 1):
-        named, params, current, refit = joint_refit(named, search.resim, search.train, search.held, base, current,
-                                                    config)
+        named, params, current, refit = joint_refit(
+            named, search.resim, search.train, search.held, base, current, config
+        )
     shares = effect_shares(named, search.resim, search.held, base, before)
     summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
-    return Selection(named[0][0].name, f"named in order: {summary}; {reason}" if len(named) > 1 else
-                     steps[0]["decision"], named, params, current, shares, steps, refit)
+    return Selection(
+        named[0][0].name,
+        f"named in order: {summary}; {reason}" if len(named) > 1 else steps[0]["decision"],
+        named,
+        params,
+        current,
+        shares,
+        steps,
+        refit,
+    )
 
 
-def named_params(named: list[Candidate], candidate: Candidate, base: PhysicsParams, params: PhysicsParams
-                 ) -> PhysicsParams:
+def named_params(
+    named: list[Candidate], candidate: Candidate, base: PhysicsParams, params: PhysicsParams
+) -> PhysicsParams:
     """The simulator `candidate` is added to: `params` (the named effects), or for a joint candidate the named
     effects at the values refitted with it."""
     if candidate[1].named_refit is None:
@@ -384,16 +495,24 @@ def named_params(named: list[Candidate], candidate: Candidate, base: PhysicsPara
     return combine(named).physics(np.concatenate(candidate[1].named_refit), base)
 
 
-def joint_candidates(candidates: list[Candidate], named: list[Candidate], earlier: list[Candidate],
-                     resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams, current: np.ndarray,
-                     config: FitConfig) -> list[Candidate]:
+def joint_candidates(
+    candidates: list[Candidate],
+    named: list[Candidate],
+    earlier: list[Candidate],
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    base: PhysicsParams,
+    current: np.ndarray,
+    config: FitConfig,
+) -> list[Candidate]:
     """Fit some candidates again together with the effects named so far, on top of `base`: the best
     `config.joint_candidates` of this step, then (up to twice that many in all) the best of the step before
     (`earlier`, ranked; started from their values there), which a named effect may have soaked up. Each is replaced
     where the joint fit scores better on held-out windows than its fit on top of the named effects: scored against
     the same gap `current`, charged for its own parameters only (the named effects' are already charged)."""
     ok = {(e.name, f.scope): (e, f) for e, f in candidates if f.status == "ok"}
-    ranked = sorted(ok, key=lambda key: ok[key][1].score, reverse=True)[:config.joint_candidates]
+    ranked = sorted(ok, key=lambda key: ok[key][1].score, reverse=True)[: config.joint_candidates]
     starts = {key: ok[key][1].values for key in ranked}
     for effect, fit in earlier:
         key = (effect.name, fit.scope)
@@ -404,8 +523,9 @@ def joint_candidates(candidates: list[Candidate], named: list[Candidate], earlie
         effect, fit = ok[key]
         combined = combine([*named, (effect, fit)])
         start = np.concatenate([*(f.values for _, f in named), values])
-        joint = fit_effect(combined, resim, train, base, config, start, (0.0, 0.0),
-                           max_evaluations=2 * config.max_evaluations)
+        joint = fit_effect(
+            combined, resim, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
+        )
         score_fit(joint, combined, resim, held, base, current, config)
         if joint.status != "ok":
             continue
@@ -415,39 +535,66 @@ def joint_candidates(candidates: list[Candidate], named: list[Candidate], earlie
             continue
         cuts = np.cumsum([0] + [len(f.values) for _, f in named])
         values = [float(v) for v in joint.values]
-        better[id(fit)] = (effect, CandidateFit(
-            fit.effect, fit.names, fit.units, values[-own:], list(joint.uncertainty[-own:]), joint.train_cost,
-            joint.gap, joint.gap_mean, joint.explained_fraction, score=score, p_value=joint.p_value, scope=fit.scope,
-            rejected=joint.rejected, named_refit=[values[a:b] for a, b in zip(cuts[:-1], cuts[1:])]))
+        better[id(fit)] = (
+            effect,
+            CandidateFit(
+                fit.effect,
+                fit.names,
+                fit.units,
+                values[-own:],
+                list(joint.uncertainty[-own:]),
+                joint.train_cost,
+                joint.gap,
+                joint.gap_mean,
+                joint.explained_fraction,
+                score=score,
+                p_value=joint.p_value,
+                scope=fit.scope,
+                rejected=joint.rejected,
+                named_refit=[values[a:b] for a, b in itertools.pairwise(cuts)],
+            ),
+        )
     return [better.get(id(fit), (effect, fit)) for effect, fit in candidates]
 
 
-def joint_refit(named: list[Candidate], resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams,
-                sequential_gap: np.ndarray, config: FitConfig
-                ) -> tuple[list[Candidate], PhysicsParams, np.ndarray, dict]:
+def joint_refit(
+    named: list[Candidate],
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    base: PhysicsParams,
+    sequential_gap: np.ndarray,
+    config: FitConfig,
+) -> tuple[list[Candidate], PhysicsParams, np.ndarray, dict]:
     """Refit every parameter of `named` together; keep the result if the held-out gap does not grow."""
     combined = combine(named)
     start = np.concatenate([fit.values for _, fit in named])
-    fit = fit_effect(combined, resim, train, base, config, start, (0.0, 0.0),
-                     max_evaluations=2 * config.max_evaluations)
+    fit = fit_effect(
+        combined, resim, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
+    )
     score_fit(fit, combined, resim, held, base, sequential_gap, config)
     kept = fit.status == "ok" and fit.gap_mean <= float(sequential_gap.mean())
-    info = {"kept": bool(kept), "gap_sequential": float(sequential_gap.mean()), "gap_joint": fit.gap_mean,
-            "rejected_points": fit.rejected}
+    info = {
+        "kept": bool(kept),
+        "gap_sequential": float(sequential_gap.mean()),
+        "gap_joint": fit.gap_mean,
+        "rejected_points": fit.rejected,
+    }
     if not kept:
         return named, combined.physics(start, base), sequential_gap, info
     out, i = [], 0
     for effect, old in named:
         n = len(effect.parameters)
-        old.values, old.uncertainty = fit.values[i:i + n], fit.uncertainty[i:i + n]
+        old.values, old.uncertainty = fit.values[i : i + n], fit.uncertainty[i : i + n]
         out.append((effect, old))
         i += n
     params = combined.physics(fit.values, base)
     return out, params, gap_per_window(resim.spec, resim.rollout(held, params), held), info
 
 
-def effect_shares(named: list[Candidate], resim: Resimulator, held: Windows, base: PhysicsParams,
-                  before: np.ndarray) -> list[float]:
+def effect_shares(
+    named: list[Candidate], resim: Resimulator, held: Windows, base: PhysicsParams, before: np.ndarray
+) -> list[float]:
     """Held-out gap reduction of each named effect, added in order at its final values, over the total reduction."""
     gaps, params = [float(before.mean())], base
     for effect, fit in named:

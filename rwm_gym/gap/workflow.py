@@ -11,10 +11,7 @@ fitting episodes and compare the predictors on the held-out episodes (`world_mod
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,11 +28,10 @@ from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_window, paired_p_value
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
-from rwm_gym.gap.measured import SensorNoise, solver_option
+from rwm_gym.gap.measured import SensorNoise
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
-from rwm_gym.gap.report import markdown, plot_channels, plot_rollout, world_model_table
+from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
-from rwm_gym.gap.scope import SCOPES
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
@@ -78,11 +74,21 @@ def held_out_windows(data: Dataset, config: GapConfig) -> tuple[np.ndarray, np.n
     return train_ids, held_ids, make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
 
 
-def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict | None = None,
-            config: GapConfig = GapConfig(), fit_config: FitConfig = FitConfig(),
-            floor_config: FloorConfig = FloorConfig(), sensor_noise: SensorNoise = SensorNoise(),
-            learned_config: LearnedCorrectionConfig = LearnedCorrectionConfig(), progress: bool = True,
-            world_model: str | Path | None = None, wm_config: WorldModelGapConfig = WorldModelGapConfig()) -> dict:
+def run_gap(
+    sim: str,
+    measured: str | Path,
+    out: str | Path,
+    *,
+    sim_kwargs: dict | None = None,
+    config: GapConfig = GapConfig(),
+    fit_config: FitConfig = FitConfig(),
+    floor_config: FloorConfig = FloorConfig(),
+    sensor_noise: SensorNoise = SensorNoise(),
+    learned_config: LearnedCorrectionConfig = LearnedCorrectionConfig(),
+    progress: bool = True,
+    world_model: str | Path | None = None,
+    wm_config: WorldModelGapConfig = WorldModelGapConfig(),
+) -> dict:
     """Run the workflow and write `out/report.json` (+ md, plots, corrected model); returns the report dict.
 
     sensor_noise: the measured data's sensor noise (data-sheet values for a real robot), for the noise floor.
@@ -113,24 +119,28 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
     cross = None
     if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
         cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
-    selection = select_effects(effects, spec, resim, train, held, base, before, floor, fit_config, floor_config,
-                               progress, cross)
+    selection = select_effects(
+        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
+    )
     corrected_params, after = selection.params, selection.gap_after
-    corrected_floor, residual = _residual(resim, held, selection, floor, after, sensor_noise, fit_config,
-                                          floor_config)
+    corrected_floor, residual = _residual(resim, held, selection, floor, after, sensor_noise, fit_config, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
-        learned = learned_section(resim, train, held, corrected_params, after, corrected_floor, out, learned_config,
-                                  fit_config, floor_config)
+        learned = learned_section(
+            resim, train, held, corrected_params, after, corrected_floor, out, learned_config, fit_config, floor_config
+        )
     corrected_sim = resim.rollout(held, corrected_params) if selection.named else nominal_sim
 
     plots, located = _plots(spec, held, horizon, nominal_sim, corrected_sim, before, out)
     report = {
         **named_section(selection),
         **_gap_numbers(before, after, gap_horizons(horizon)),
-        "noise_floor": {**floor_test, "sensor_noise": dataclasses.asdict(sensor_noise),
-                        "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
-                                  f"model and re-simulated again, mean of {floor_config.draws} draws"},
+        "noise_floor": {
+            **floor_test,
+            "sensor_noise": dataclasses.asdict(sensor_noise),
+            "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
+            f"model and re-simulated again, mean of {floor_config.draws} draws",
+        },
         "residual": residual,
         "dropped_windows": {"held_out": dropped_held, "fitting": dropped_train},
         "identifiability": identifiability(effects, resim, held, base, nominal_sim, floor_test["floor"]),
@@ -146,54 +156,97 @@ def run_gap(sim: str, measured: str | Path, out: str | Path, *, sim_kwargs: dict
         "plots": plots,
         "sim": sim,
         "measured": str(measured),
-        "config": {"gap": dataclasses.asdict(config), "fit": dataclasses.asdict(fit_config),
-                   "floor": dataclasses.asdict(floor_config)},
+        "config": {
+            "gap": dataclasses.asdict(config),
+            "fit": dataclasses.asdict(fit_config),
+            "floor": dataclasses.asdict(floor_config),
+        },
     }
     if world_model is not None:
-        report["world_model"] = world_model_rows(sim, sim_kwargs, data, train_ids, held_ids, resim, base,
-                                                 corrected_params, Path(world_model), out, wm_config, config.warmup,
-                                                 progress)
+        report["world_model"] = world_model_rows(
+            sim,
+            sim_kwargs,
+            data,
+            train_ids,
+            held_ids,
+            resim,
+            base,
+            corrected_params,
+            Path(world_model),
+            out,
+            wm_config,
+            config.warmup,
+            progress,
+        )
         report["plots"]["world_model"] = report["world_model"]["plot"]
     write_json(out / "report.json", report)
     atomic.write_text(out / "report.md", markdown(report))
     return report
 
 
-def _cross_fit_windows(resim: Resimulator, data: Dataset, train_ids: np.ndarray, held_ids: np.ndarray, horizon: int,
-                       base: PhysicsParams, measured: str | Path, config: GapConfig, fit_config: FitConfig
-                       ) -> Callable[[], CrossFit]:
+def _cross_fit_windows(
+    resim: Resimulator,
+    data: Dataset,
+    train_ids: np.ndarray,
+    held_ids: np.ndarray,
+    horizon: int,
+    base: PhysicsParams,
+    measured: str | Path,
+    config: GapConfig,
+    fit_config: FitConfig,
+) -> Callable[[], CrossFit]:
     """The swapped windows for 2-fold cross-fitting (fit on the held-out episodes, score on the fitting ones), built
     only if a candidate needs them (a nominal case's best explains nothing)."""
+
     def cross() -> CrossFit:
         return CrossFit(
-            drop_diverged(resim, make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride,
-                                              config.warmup), base, measured)[0],
-            drop_diverged(resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup),
-                          base, measured)[0])
+            drop_diverged(
+                resim,
+                make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride, config.warmup),
+                base,
+                measured,
+            )[0],
+            drop_diverged(
+                resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup), base, measured
+            )[0],
+        )
 
     return cross
 
 
-def _residual(resim: Resimulator, held, selection: Selection, floor: np.ndarray, after: np.ndarray,
-              sensor_noise: SensorNoise, fit_config: FitConfig, floor_config: FloorConfig) -> tuple[np.ndarray, dict]:
+def _residual(
+    resim: Resimulator,
+    held,
+    selection: Selection,
+    floor: np.ndarray,
+    after: np.ndarray,
+    sensor_noise: SensorNoise,
+    fit_config: FitConfig,
+    floor_config: FloorConfig,
+) -> tuple[np.ndarray, dict]:
     """The floor of the corrected simulator, and the test of what is left against it."""
     # what is left is judged against the corrected simulator's own floor: a slippery floor or a soft joint carries
     # the same sensor noise further than the nominal simulator does (ground friction 0.3 on walking data: 2.9x)
-    corrected_floor = noise_floor(resim, held, selection.params, sensor_noise, floor_config) if selection.named \
-        else floor
-    residual = {**compare_with_floor(after, corrected_floor, held, fit_config.block_rows, floor_config),
-                "floor_of": "the corrected simulator" if selection.named else "the nominal simulator"}
+    corrected_floor = (
+        noise_floor(resim, held, selection.params, sensor_noise, floor_config) if selection.named else floor
+    )
+    residual = {
+        **compare_with_floor(after, corrected_floor, held, fit_config.block_rows, floor_config),
+        "floor_of": "the corrected simulator" if selection.named else "the nominal simulator",
+    }
     return corrected_floor, residual
 
 
-def _plots(spec, held, horizon: int, nominal_sim: np.ndarray, corrected_sim: np.ndarray, before: np.ndarray,
-           out: Path) -> tuple[dict[str, str], dict]:
+def _plots(
+    spec, held, horizon: int, nominal_sim: np.ndarray, corrected_sim: np.ndarray, before: np.ndarray, out: Path
+) -> tuple[dict[str, str], dict]:
     """The residual per channel and the worst window's rollout, as PNGs in `out`; their paths and where the gap
     lives (`locate_gap`)."""
     plots = {"channels": str(out / "residual_channels.png"), "rollout": str(out / "rollout_overlay.png")}
     h5 = min(5, horizon) - 1
-    per_channel = [(normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0)
-                   for s in (nominal_sim, corrected_sim)]
+    per_channel = [
+        (normalised_residual(spec, s[:, h5], held.target[:, h5]) ** 2).mean(0) for s in (nominal_sim, corrected_sim)
+    ]
     plot_channels(spec, *per_channel, Path(plots["channels"]), 5)
     located = locate_gap(spec, nominal_sim, held)
     top = [c["channel"] for c in located["channels_h5"][:3]]
@@ -223,22 +276,37 @@ def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object
         return windows, None
     except SimulationDiverged as err:
         if err.windows.mean() > 0.5:
-            raise ValueError(f"{measured}: the nominal simulator blows up re-simulating the measured data "
-                             f"({err.reason})") from err
+            raise ValueError(
+                f"{measured}: the nominal simulator blows up re-simulating the measured data ({err.reason})"
+            ) from err
         return windows.subset(~err.windows), f"dropped: the nominal simulator blows up there ({err.reason})"
 
 
 def named_section(selection: Selection) -> dict:
     """The report's verdict: `effect` (the first named, `unexplained` or `none`), `effects` in order with their
     share of the explained gap, and every named parameter flat in `parameters` / `units` / `uncertainty`."""
-    named = [{"effect": e.name, "scope": f.scope, "parameters": dict(zip(f.names, f.values)),
-              "units": dict(zip(f.names, f.units)), "uncertainty": dict(zip(f.names, f.uncertainty)),
-              "share_of_explained_gap": share}
-             for (e, f), share in zip(selection.named, selection.shares)]
-    flat = {key: {k: v for item in named for k, v in item[key].items()} for key in ("parameters", "units",
-                                                                                 "uncertainty")}
-    return {"effect": selection.verdict, "reason": selection.reason, "scope": named[0]["scope"] if named else None,
-            "effects": named, **flat, "joint_refit": selection.joint_refit}
+    named = [
+        {
+            "effect": e.name,
+            "scope": f.scope,
+            "parameters": dict(zip(f.names, f.values)),
+            "units": dict(zip(f.names, f.units)),
+            "uncertainty": dict(zip(f.names, f.uncertainty)),
+            "share_of_explained_gap": share,
+        }
+        for (e, f), share in zip(selection.named, selection.shares)
+    ]
+    flat = {
+        key: {k: v for item in named for k, v in item[key].items()} for key in ("parameters", "units", "uncertainty")
+    }
+    return {
+        "effect": selection.verdict,
+        "reason": selection.reason,
+        "scope": named[0]["scope"] if named else None,
+        "effects": named,
+        **flat,
+        "joint_refit": selection.joint_refit,
+    }
 
 
 def rejections(selection: Selection) -> list[dict]:
@@ -252,9 +320,18 @@ def rejections(selection: Selection) -> list[dict]:
     return out
 
 
-def learned_section(resim: Resimulator, train: Windows, held: Windows, params, after: np.ndarray, floor: np.ndarray,
-                    out: Path, config: LearnedCorrectionConfig, fit_config: FitConfig, floor_config: FloorConfig
-                    ) -> dict:
+def learned_section(
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    params,
+    after: np.ndarray,
+    floor: np.ndarray,
+    out: Path,
+    config: LearnedCorrectionConfig,
+    fit_config: FitConfig,
+    floor_config: FloorConfig,
+) -> dict:
     """Fit the residual torque on the effects' fitting windows and judge it on the held-out windows."""
     try:
         correction, info = fit_learned_correction(resim, train, params, config)
@@ -265,75 +342,72 @@ def learned_section(resim: Resimulator, train: Windows, held: Windows, params, a
     try:
         corrected = gap_per_window(resim.spec, resim.rollout(held, params, correction=correction), held)
     except SimulationDiverged as err:
-        return {"kind": "learned", "status": f"rejected: the simulation blows up with it ({err.reason})",
-                "path": str(path), "training": info, "config": dataclasses.asdict(config)}
+        return {
+            "kind": "learned",
+            "status": f"rejected: the simulation blows up with it ({err.reason})",
+            "path": str(path),
+            "training": info,
+            "config": dataclasses.asdict(config),
+        }
     p_value = paired_p_value(after.mean(1), corrected.mean(1), held, fit_config.block_rows, fit_config.significance)
-    return {"kind": f"learned residual joint torque (linear in each joint's state, per {config.scope}), not a named "
-                    "effect",
-            "status": "ok", "gap_before": float(after.mean()), "gap_after": float(corrected.mean()),
-            "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
-            "p_value": p_value, "kept": bool(p_value < fit_config.significance and corrected.mean() < after.mean()),
-            "residual": compare_with_floor(corrected, floor, held, fit_config.block_rows, floor_config),
-            "path": str(path), "training": info, "config": dataclasses.asdict(config),
-            "note": "applied in re-simulation as qfrc_applied; corrected_model.xml and corrected_physics.json do not "
-                    "hold it"}
+    return {
+        "kind": f"learned residual joint torque (linear in each joint's state, per {config.scope}), not a named effect",
+        "status": "ok",
+        "gap_before": float(after.mean()),
+        "gap_after": float(corrected.mean()),
+        "explained_fraction": float(1.0 - corrected.mean() / after.mean()),
+        "p_value": p_value,
+        "kept": bool(p_value < fit_config.significance and corrected.mean() < after.mean()),
+        "residual": compare_with_floor(corrected, floor, held, fit_config.block_rows, floor_config),
+        "path": str(path),
+        "training": info,
+        "config": dataclasses.asdict(config),
+        "note": "applied in re-simulation as qfrc_applied; corrected_model.xml and corrected_physics.json do not "
+        "hold it",
+    }
 
 
-def world_model_rows(sim: str, sim_kwargs: dict, data: Dataset, train_ids: np.ndarray, held_ids: np.ndarray,
-                     resim: Resimulator, base, corrected, checkpoint: Path, out: Path, config: WorldModelGapConfig,
-                     warmup: int, progress: bool) -> dict:
+def world_model_rows(
+    sim: str,
+    sim_kwargs: dict,
+    data: Dataset,
+    train_ids: np.ndarray,
+    held_ids: np.ndarray,
+    resim: Resimulator,
+    base,
+    corrected,
+    checkpoint: Path,
+    out: Path,
+    config: WorldModelGapConfig,
+    warmup: int,
+    progress: bool,
+) -> dict:
     """Regenerate, fine-tune and compare (see `gap.world_model`); the report's `world_model` section."""
     checkpoints: dict[str, Path] = {"world_model_nominal": checkpoint}
     control = config.control and corrected != base  # with nothing corrected the control is the same run
     runs = [("world_model_corrected", corrected)] + ([("world_model_control", base)] if control else [])
     for name, params in runs:
         sim_data = regenerate(sim, sim_kwargs, params, config, out / f"{name}_sim_data.h5")
-        checkpoints[name] = fine_tune(checkpoint, sim_data, data, train_ids, out / f"{name}.safetensors", config,
-                                      progress)
+        checkpoints[name] = fine_tune(
+            checkpoint, sim_data, data, train_ids, out / f"{name}.safetensors", config, progress
+        )
         sim_data.unlink()
     result = compare_predictors(resim, data, held_ids, base, corrected, checkpoints, config, warmup)
     if not result["error"]:
-        raise ValueError(f"{data.path}: field 'episode_lengths': no held-out episode has {config.history} + "
-                         f"{min(config.horizons)} rows, needed for the world-model rows")
+        raise ValueError(
+            f"{data.path}: field 'episode_lengths': no held-out episode has {config.history} + "
+            f"{min(config.horizons)} rows, needed for the world-model rows"
+        )
     plot = out / "world_model_error.png"
     plot_curves(result.pop("curve"), plot, title="held-out measured episodes: relative error vs open-loop steps")
-    return {**result, "checkpoints": {k: str(v) for k, v in checkpoints.items()}, "plot": str(plot),
-            "metric": "relative error sum|pred - true| / sum|true| of the normalised state, mean over the first N "
-                      "rows (rwm_gym.model.evaluate); sims re-simulated open loop from the measured state",
-            "config": config_dict(config)}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sim", default="AnymalD-MuJoCo-v0", help="registered physics env id of the nominal simulator")
-    parser.add_argument("--sim-kwargs", default=None, help='JSON env kwargs, e.g. {"xml_file": "my_robot.xml"}')
-    parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
-    parser.add_argument("--out", type=Path, required=True, help="report folder")
-    parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
-    parser.add_argument("--scopes", default=",".join(FitConfig.scopes),
-                        help=f"joint-group scopes tried for the best joint effect, comma-separated from "
-                             f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)")
-    parser.add_argument("--max-effects", type=int, default=FitConfig.max_effects,
-                        help="forward selection names at most this many effects")
-    parser.add_argument("--joint-candidates", type=int, default=FitConfig.joint_candidates,
-                        help="at later selection steps, the best candidates also refitted together with the named "
-                             "effects (0: each fitted on top of them, frozen)")
-    parser.add_argument("--learned-correction", action=argparse.BooleanOptionalAction,
-                        default=GapConfig.learned_correction,
-                        help="learn a residual joint torque when a gap above the noise floor remains")
-    parser.add_argument("--sensor-noise", default=None,
-                        help="JSON SensorNoise of the measured data (SI units, e.g. {\"joint_vel\": 0.05}); "
-                             "default: make-measured's")
-    parser.add_argument("--solver-iterations", type=int, default=CONVERGED_SOLVER.iterations,
-                        help="MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)")
-    parser.add_argument("--world-model", default="auto",
-                        help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
-                             "one for AnymalD-MuJoCo-v0 (else none); none: skip them")
-    parser.add_argument("--finetune-iterations", type=int, default=WorldModelGapConfig.iterations,
-                        help="fine-tuning budget (gradient steps) of the world model after correction")
-    parser.add_argument("--regenerate-episodes", type=int, default=WorldModelGapConfig.episodes,
-                        help="episodes regenerated from the corrected simulator for the fine-tuning")
-    parser.add_argument("--device", default=WorldModelGapConfig.device,
-                        help="torch device of the world-model rows (fine-tuning and evaluation): cpu or cuda")
+    return {
+        **result,
+        "checkpoints": {k: str(v) for k, v in checkpoints.items()},
+        "plot": str(plot),
+        "metric": "relative error sum|pred - true| / sum|true| of the normalised state, mean over the first N "
+        "rows (rwm_gym.model.evaluate); sims re-simulated open loop from the measured state",
+        "config": config_dict(config),
+    }
 
 
 def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
@@ -345,48 +419,3 @@ def resolve_world_model(choice: str, sim: str, sim_kwargs: dict) -> Path | None:
         shipped = spec.default_checkpoint if spec else ""
         return assets_dir() / shipped if shipped and not sim_kwargs.get("xml_file") else None
     return Path(choice)
-
-
-def run(args: argparse.Namespace) -> int:
-    wm_config = WorldModelGapConfig(iterations=args.finetune_iterations, episodes=args.regenerate_episodes,
-                                    device=args.device)
-    try:
-        sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
-        noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
-        scopes = tuple(s for s in args.scopes.split(",") if s and s != "none")
-        unknown = sorted(set(scopes) - set(SCOPES[1:]))
-        if unknown:
-            raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
-        if args.joint_candidates < 0:
-            raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
-        from rwm_gym.output_guard import check_output
-
-        check_output(args.out, inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none")
-                                       else None], overwrite=True, folder=True)
-        report = run_gap(args.sim, args.measured, args.out, sim_kwargs=sim_kwargs,
-                         config=GapConfig(val_fraction=args.val_fraction,
-                                          learned_correction=args.learned_correction,
-                                          solver=solver_option(args.solver_iterations)),
-                         fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects,
-                                              joint_candidates=args.joint_candidates), sensor_noise=noise,
-                         world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs), wm_config=wm_config)
-    except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors
-        print(f"rwm-gym gap: {err}", file=sys.stderr)
-        return 2
-    floor = report["noise_floor"]
-    print(f"gap {floor['gap']:.4g} vs sensor-noise floor {floor['floor']:.4g} (ratio {floor['ratio']:.2f}, "
-          f"p={floor['p_value']:.2g})")
-    print(f"effect: {report['effect']} ({report['reason']})")
-    for item in report["effects"]:
-        print(f"  {item['effect']} ({item['scope']}), {item['share_of_explained_gap']:.0%} of the explained gap")
-        for name, value in item["parameters"].items():
-            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}")
-    print(f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
-          f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}")
-    learned = report["learned_correction"]
-    if learned and learned["status"] == "ok":
-        print(f"learned residual torque (not a named effect): gap {learned['gap_before']:.4g} -> "
-              f"{learned['gap_after']:.4g} (explained {learned['explained_fraction']:.1%})")
-    if "world_model" in report:
-        print(world_model_table(report["world_model"]))
-    return 0

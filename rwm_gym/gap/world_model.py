@@ -75,29 +75,53 @@ def regenerate(env_id: str, env_kwargs: dict, params: PhysicsParams, config: Wor
     """Collect `config.episodes` excitation episodes from the simulator with `params` into `out`."""
     num_envs = min(8, config.episodes)
     spec = make_physics_core(env_id, 1, **env_kwargs).spec
-    return collect(env_id, ExcitationPolicy(spec, num_envs), config.episodes, out, seed=config.seed,
-                   num_envs=num_envs, max_steps=config.max_steps, env_kwargs={**env_kwargs, "physics": params},
-                   overwrite=True, progress=False)
+    return collect(
+        env_id,
+        ExcitationPolicy(spec, num_envs),
+        config.episodes,
+        out,
+        seed=config.seed,
+        num_envs=num_envs,
+        max_steps=config.max_steps,
+        env_kwargs={**env_kwargs, "physics": params},
+        overwrite=True,
+        progress=False,
+    )
 
 
-def fine_tune(init: str | Path, sim_data: Path, measured: Dataset, fit_episodes: np.ndarray, out: Path,
-              config: WorldModelGapConfig, progress: bool = False) -> Path:
+def fine_tune(
+    init: str | Path,
+    sim_data: Path,
+    measured: Dataset,
+    fit_episodes: np.ndarray,
+    out: Path,
+    config: WorldModelGapConfig,
+    progress: bool = False,
+) -> Path:
     """Fine-tune the checkpoint `init` on `sim_data` plus the measured fitting episodes; write and return `out`."""
     meta = read_meta(init)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         fit_file, mixed = Path(tmp) / "measured_fit.h5", Path(tmp) / "mixed.h5"
         write_dataset(fit_file, measured.info, (measured.episode(int(e)) for e in fit_episodes))
         merge_datasets([sim_data, fit_file], mixed)
-        train_config = TrainConfig(history=config.history, forecast=config.forecast, batch_size=config.batch_size,
-                                   lr=config.lr, iterations=config.iterations, val_every=max(1, config.iterations),
-                                   checkpoint_every=max(1, config.iterations), seed=config.seed % 2**31,
-                                   device=config.device)
+        train_config = TrainConfig(
+            history=config.history,
+            forecast=config.forecast,
+            batch_size=config.batch_size,
+            lr=config.lr,
+            iterations=config.iterations,
+            val_every=max(1, config.iterations),
+            checkpoint_every=max(1, config.iterations),
+            seed=config.seed % 2**31,
+            device=config.device,
+        )
         train(mixed, meta.model_config, train_config, out, progress=progress, init=init)
     return out
 
 
-def held_out_windows(measured: Dataset, episodes: np.ndarray, history: int, horizon: int, stride: int,
-                     warmup: int) -> Windows | None:
+def held_out_windows(
+    measured: Dataset, episodes: np.ndarray, history: int, horizon: int, stride: int, warmup: int
+) -> Windows | None:
     """Windows of `horizon` rows whose start row leaves `history` measured rows before it (None if none fits)."""
     try:
         windows = make_windows(measured, episodes, horizon, stride, warmup)
@@ -115,22 +139,31 @@ def sim_errors(resim: Resimulator, windows: Windows, params: PhysicsParams, norm
 
 
 @torch.no_grad()
-def model_errors(checkpoint: str | Path, measured: Dataset, windows: Windows, history: int,
-                 device: str = "cpu") -> np.ndarray:
+def model_errors(
+    checkpoint: str | Path, measured: Dataset, windows: Windows, history: int, device: str = "cpu"
+) -> np.ndarray:
     """(W, N) relative error per window and row of the world model warmed up on `history` measured rows."""
     model, meta = load_checkpoint(checkpoint, device=device, expect_spec=measured.spec())
     model.eval()
     data = WindowData(measured, meta.normalizer, device)
     first = measured.episode_starts[windows.episode] + windows.start - (history - 1)
     batch = data.gather(torch.as_tensor(first, dtype=torch.long), history + windows.horizon)
-    prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, :history + windows.horizon - 1],
-                                   windows.horizon, sample=False)
+    prediction, _ = model.forecast(
+        batch.states[:, :history], batch.actions[:, : history + windows.horizon - 1], windows.horizon, sample=False
+    )
     return relative_error(prediction.state_mean, batch.states[:, history:]).cpu().numpy().astype(np.float64)
 
 
-def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.ndarray, nominal: PhysicsParams,
-                       corrected: PhysicsParams, checkpoints: dict[str, Path | str], config: WorldModelGapConfig,
-                       warmup: int) -> dict:
+def compare_predictors(
+    resim: Resimulator,
+    measured: Dataset,
+    held_episodes: np.ndarray,
+    nominal: PhysicsParams,
+    corrected: PhysicsParams,
+    checkpoints: dict[str, Path | str],
+    config: WorldModelGapConfig,
+    warmup: int,
+) -> dict:
     """Error of every predictor at every horizon on the held-out measured episodes.
 
     checkpoints: {predictor name: checkpoint} of the world-model rows. Returns {"error": {name: {N: error}},
@@ -138,13 +171,17 @@ def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.
     """
     normalizer = Normalizer.from_spec(resim.spec)
     result: dict = {"error": {}, "windows": {}, "curve": {}}
-    sets = {n: held_out_windows(measured, held_episodes, config.history, n, config.stride, warmup)
-            for n in sorted(config.horizons)}
+    sets = {
+        n: held_out_windows(measured, held_episodes, config.history, n, config.stride, warmup)
+        for n in sorted(config.horizons)
+    }
     fitting = [n for n, windows in sets.items() if windows is not None]
     for n in fitting:
         windows = sets[n]
-        rows = {"nominal_sim": sim_errors(resim, windows, nominal, normalizer),
-                "corrected_sim": sim_errors(resim, windows, corrected, normalizer)}
+        rows = {
+            "nominal_sim": sim_errors(resim, windows, nominal, normalizer),
+            "corrected_sim": sim_errors(resim, windows, corrected, normalizer),
+        }
         for name, path in checkpoints.items():
             rows[name] = model_errors(path, measured, windows, config.history, config.device)
         result["windows"][str(n)] = len(windows)
@@ -156,4 +193,5 @@ def compare_predictors(resim: Resimulator, measured: Dataset, held_episodes: np.
 
 
 def config_dict(config: WorldModelGapConfig) -> dict:
+    """The config as JSON-ready data (tuples as lists), as the report stores it."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}

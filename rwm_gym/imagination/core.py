@@ -2,7 +2,8 @@
 
 `ImaginedCore` has the same interface as the physics cores (`rwm_gym.physics.locomotion.LocomotionCore`,
 `rwm_gym.physics.dmc.DMCCore`): the same observation, and the task's commands, reward and termination
-(the task object of `rwm_gym.task.tasks`, chosen from the checkpoint's spec, the same the physics env uses), fed with the model's predicted state and privileged
+(the task object of `rwm_gym.task.tasks`, chosen from the checkpoint's spec, the same the physics env uses), fed with
+the model's predicted state and privileged
 signals instead of measured ones. Contacts are predicted logits > 0; a task that terminates (ANYmal D) ends an
 episode when the predicted termination probability is > 0.5.
 """
@@ -10,7 +11,6 @@ episode when the predicted termination probability is > 0.5.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -19,6 +19,7 @@ import torch
 
 from rwm_gym.batched_core import check_actions, check_num_envs
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.imagination.options import MATMUL_PRECISION_NAMES, ImaginationOptions
 from rwm_gym.imagination.reset_data import ResetWindows, WarmUpCache
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.resources import assets_dir
@@ -31,82 +32,17 @@ def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
     """The checkpoint shipped for an imagined env id (its spec's `task.default_checkpoint`)."""
     spec = shipped_spec(env_id)
     if spec is None or not spec.default_checkpoint:
-        raise ValueError(f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
-                         f"with `rwm-gym collect`, train one with `rwm-gym train`)")
+        raise ValueError(
+            f"{env_id} needs checkpoint=PATH: rwm-gym ships no trained world model for it (collect data "
+            f"with `rwm-gym collect`, train one with `rwm-gym train`)"
+        )
     path = assets_dir() / spec.default_checkpoint
     if not path.is_file():
         raise FileNotFoundError(f"the default {env_id} checkpoint {path} is not installed; pass checkpoint=PATH")
     return path
 
 
-@dataclass(frozen=True)
-class ImaginationOptions:
-    """How imagined episodes run."""
-
-    sample_predictions: bool = False
-    """Step with a sample of the predicted Gaussian instead of its mean."""
-    history: int | None = None
-    """Real rows replayed at every reset (None: the checkpoint's training history)."""
-    episode_steps: int | None = None
-    """Time limit in policy steps (None: the task spec's)."""
-    uncertainty_penalty: float = 0.0
-    """lambda of the RWM-U penalty -lambda * max(u - uncertainty_floor, 0) * dt, u the ensemble disagreement."""
-    uncertainty_floor: float = 0.0
-    """Disagreement the penalty leaves free: the model's own level on states like its data (the shipped ANYmal model:
-    about 0.02 while the teacher walks or the robot stands). A penalty on every step would make ending the episode
-    early pay; charging only the excess keeps surviving worth it."""
-    uncertainty_halt: float = 0.0
-    """End an episode (terminated, no bootstrap) where u exceeds this (0: never): MOReL's halt, so a policy cannot
-    collect reward in states the model does not know."""
-    fall_tilt: float = 0.0
-    """End an episode (terminated, no bootstrap) where the predicted base tilts more than this many degrees from
-    upright (0: never; needs a projected_gravity state group). The model's termination head fires on predicted base
-    contact, late or never, while its own predicted tilt already shows a fall; a walking robot stays far below a
-    tilt from which it rarely recovers (`benchmarks/exploitation.py --fall-tilt` measures both for a policy)."""
-    torque_halt: float = 0.0
-    """End an episode (terminated, no bootstrap) where a predicted joint torque reaches this fraction of the spec's
-    effort limit (0: never; needs a joint_torque state group and a finite limit). Saturated actuators are states a
-    model's data rarely covers, and policies trained in imagination that fell in physics often fell there: the halt
-    keeps a policy out of them, as MOReL's keeps it where the heads agree."""
-    random_first_episode_length: bool = False
-    """Start each env's first episode at a random elapsed step in [0, episode_steps), drawn from its own generator
-    (rsl_rl's `init_at_random_ep_len`): without it, N envs with an equal time limit all restart on the same step, and
-    every PPO rollout sees the same phase of its episodes."""
-    resample_commands: bool = True
-    """Resample commands on the spec's period (off: one command per episode)."""
-    push_interval_s: float = 0.0
-    """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
-    push_velocity: float = 0.5
-    """m/s, half-width of a push."""
-    report_uncertainty: bool = False
-    """Compute the ensemble disagreement every step and report it as info['uncertainty'] even without a penalty
-    (it runs all k heads per step; off and penalty 0, each env runs only its own head and info has no uncertainty)."""
-    divergence_bound: float = 50.0
-    """|normalised state| above which the model is taken to have diverged and the episode ends."""
-    trust_entry_points: bool = False
-    """Import the reward / termination functions the checkpoint's spec names (`[imagination]`): importing a module
-    runs its code, so only for a checkpoint you trust (off: naming one is an error; pass reward_fn= instead)."""
-    warm_up_cache_mb: float = 512.0
-    """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
-    reset); models whose warm-up reads the ensemble member always warm up."""
-
-    matmul_precision: str = "float32"
-    """dtype of the world model's matrix products in each imagined step: float32, or bfloat16 (RWM's GRUs; 2.5-4x
-    their fp32 rate on CPUs with AVX512-BF16 or AMX and on GPUs, forecast error within 0.5 % of fp32 on the shipped
-    ANYmal model: benchmarks/RESULTS.md). Gates, hidden state and heads stay float32."""
-
-    def __post_init__(self) -> None:
-        if self.matmul_precision not in MATMUL_PRECISIONS:
-            raise ValueError(f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "
-                             f"{', '.join(MATMUL_PRECISIONS)})")
-
-    @property
-    def acts_on_disagreement(self) -> bool:
-        """Whether the penalty or the halt reads the ensemble's disagreement (so the model needs several heads)."""
-        return self.uncertainty_penalty > 0 or self.uncertainty_halt > 0
-
-
-MATMUL_PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
+MATMUL_PRECISIONS = dict(zip(MATMUL_PRECISION_NAMES, (None, torch.bfloat16), strict=True))
 """`ImaginationOptions.matmul_precision` -> the dtype handed to the model (None: its weights' own)."""
 
 
@@ -120,54 +56,99 @@ def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
 class ImaginedCore:
     """N imagined rollouts; arrays are (N, ...) numpy, the model runs on `device`."""
 
-    def __init__(self, checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                 reset_data: str | Path | None = None, options: ImaginationOptions | None = None,
-                 env_id: str | None = None, reward_fn=None, termination_fn=None, **kwargs):
+    def __init__(
+        self,
+        checkpoint: str | Path | None = None,
+        num_envs: int = 1,
+        *,
+        device: str = "cpu",
+        reset_data: str | Path | None = None,
+        options: ImaginationOptions | None = None,
+        env_id: str | None = None,
+        reward_fn=None,
+        termination_fn=None,
+    ):
         """env_id: the imagined env id this core serves (registration passes it): picks the shipped checkpoint when
         `checkpoint` is None, and a checkpoint of another task is refused. None: the checkpoint decides.
+        reset_data: dataset of real histories episodes restart from (None: the checkpoint's).
         reward_fn, termination_fn: functions of the predicted `rwm_gym.task.entry_points.Transition` that replace the
         task's reward / termination (default: the spec's `[imagination]` entry points, else the task's own)."""
-        self.options = options or ImaginationOptions(**kwargs)
+        self.options = options or ImaginationOptions()
         self.checkpoint = Path(checkpoint) if checkpoint is not None else default_checkpoint(env_id or "RWM-AnymalD-v0")
-        self.model, self.meta = load_checkpoint(self.checkpoint, device=device)
+        self.device = torch.device(device)
+        self._load_model(env_id)
+        self.num_envs = num_envs = check_num_envs(num_envs)
+        self._load_reset_windows(reset_data)
+        self.episode_steps = self.options.episode_steps or self.spec.episode_steps
+        self.task: Task = make_task(
+            self.spec,
+            num_envs,
+            resample_commands=self.options.resample_commands,
+            reward_fn=reward_fn,
+            termination_fn=termination_fn,
+            trust_entry_points=self.options.trust_entry_points,
+            source=f"the spec in checkpoint {self.checkpoint}",
+        )
+        self._check_state_groups()
+        self._allocate(num_envs)
+
+    def _load_model(self, env_id: str | None) -> None:
+        """The checkpoint's model, set up for the options (disagreement, matmul dtype), and its spec."""
+        self.model, self.meta = load_checkpoint(self.checkpoint, device=self.device)
         if self.options.acts_on_disagreement and self.ensemble_size < 2:
-            raise ValueError(f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
-                             "and this model has one head (train it with --ensemble-size 5)")
+            raise ValueError(
+                f"{self.checkpoint}: the uncertainty penalty and halt act on the ensemble's disagreement, "
+                "and this model has one head (train it with --ensemble-size 5)"
+            )
         self.model.set_disagreement(self.needs_uncertainty)  # the model is this core's own; options are frozen
         if self.options.matmul_precision != "float32":
             if not hasattr(self.model, "set_step_matmul_dtype"):
-                raise ValueError(f"{self.checkpoint}: matmul_precision {self.options.matmul_precision} is implemented "
-                                 f"for RWM models, not {self.model.config.kind}")
+                raise ValueError(
+                    f"{self.checkpoint}: matmul_precision {self.options.matmul_precision} is implemented "
+                    f"for RWM models, not {self.model.config.kind}"
+                )
             self.model.set_step_matmul_dtype(MATMUL_PRECISIONS[self.options.matmul_precision])
         self.spec: TaskSpec = self.meta.spec
         if env_id is not None and self.spec.imagined_env_id != env_id:
-            raise ValueError(f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
-                             f"not of {env_id}")
+            raise ValueError(
+                f"{self.checkpoint}: a world model of {self.spec.name} (for {self.spec.imagined_env_id}), "
+                f"not of {env_id}"
+            )
         self.norm = self.meta.normalizer
-        self.device = torch.device(device)
-        self.num_envs = num_envs = check_num_envs(num_envs)
+
+    def _load_reset_windows(self, reset_data: str | Path | None) -> None:
+        """The real history windows resets draw from, `options.history` rows each (default the training history)."""
         history = self.options.history or (self.meta.train_config.history if self.meta.train_config else 32)
         reset_dataset = Dataset.load(self._reset_data_path(reset_data))
         if reset_dataset.spec().name != self.spec.name:
-            raise ValueError(f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
-                             f"{self.checkpoint} of {self.spec.name}")
+            raise ValueError(
+                f"reset data {reset_dataset.path} is of task {reset_dataset.spec().name}, the world model "
+                f"{self.checkpoint} of {self.spec.name}"
+            )
         self.reset_windows = ResetWindows(reset_dataset, history)
-        self.episode_steps = self.options.episode_steps or self.spec.episode_steps
-        self.task: Task = make_task(self.spec, num_envs, resample_commands=self.options.resample_commands,
-                                    reward_fn=reward_fn, termination_fn=termination_fn,
-                                    trust_entry_points=self.options.trust_entry_points,
-                                    source=f"the spec in checkpoint {self.checkpoint}")
-        if self.options.fall_tilt > 0 and "projected_gravity" not in self.spec.state_slices:
-            raise ValueError(f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which "
-                             f"{self.spec.name} has not")
-        if self.options.torque_halt > 0 and ("joint_torque" not in self.spec.state_slices
-                                             or not np.isfinite(self.spec.actuator.effort_limit)):
-            raise ValueError(f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
-                             f"limit, which {self.spec.name} has not")
-        if self.options.push_interval_s > 0 and "base_lin_vel" not in self.spec.state_slices:
-            raise ValueError(f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which "
-                             f"{self.spec.name} has not")
-        n, s, a = num_envs, self.spec.state_dim, self.spec.action_dim
+
+    def _check_state_groups(self) -> None:
+        """Refuse an option that reads a state group (or limit) the task's spec has not."""
+        slices, name = self.spec.state_slices, self.spec.name
+        if self.options.fall_tilt > 0 and "projected_gravity" not in slices:
+            raise ValueError(
+                f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which {name} has not"
+            )
+        if self.options.torque_halt > 0 and (
+            "joint_torque" not in slices or not np.isfinite(self.spec.actuator.effort_limit)
+        ):
+            raise ValueError(
+                f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
+                f"limit, which {name} has not"
+            )
+        if self.options.push_interval_s > 0 and "base_lin_vel" not in slices:
+            raise ValueError(
+                f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which {name} has not"
+            )
+
+    def _allocate(self, n: int) -> None:
+        """Per-env arrays, generators, hidden states, the warm-up cache and the spaces."""
+        s, a = self.spec.state_dim, self.spec.action_dim
         self.rngs = [np.random.default_rng() for _ in range(n)]
         self.state = np.zeros((n, s), dtype=np.float32)
         self.contact = np.zeros((n, self.spec.contact_dim), dtype=bool)
@@ -180,8 +161,10 @@ class ImaginedCore:
         self.hidden = self.model.initial_hidden(n, self.device)
         template = self.model.initial_hidden(1, self.device)
         self.warm_up_cache = None
-        if (not self.model.warm_hidden_reads_member
-                and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20):
+        if (
+            not self.model.warm_hidden_reads_member
+            and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20
+        ):
             self.warm_up_cache = WarmUpCache(self.reset_windows, template)
         self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
@@ -195,13 +178,17 @@ class ImaginedCore:
             for folder in (self.checkpoint.parent, assets_dir() / "checkpoints"):
                 if (folder / named).is_file():
                     return folder / named
-            raise FileNotFoundError(f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
-                                    f"copy it there or pass reset_data=PATH")
+            raise FileNotFoundError(
+                f"{self.checkpoint}: its reset data {named} is neither beside it nor shipped; "
+                f"copy it there or pass reset_data=PATH"
+            )
         dataset = self.meta.provenance.get("dataset")
         if dataset and Path(dataset).is_file():
             return Path(dataset)
-        raise ValueError(f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
-                         f"{dataset!r} is not here; pass reset_data=PATH")
+        raise ValueError(
+            f"{self.checkpoint}: names no reset data (extras['reset_data']) and its training data "
+            f"{dataset!r} is not here; pass reset_data=PATH"
+        )
 
     @property
     def command(self) -> np.ndarray:
@@ -221,8 +208,9 @@ class ImaginedCore:
         return self.options.acts_on_disagreement or self.options.report_uncertainty
 
     @torch.inference_mode()
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         """Start envs `ids` from real history windows, replaying the full warm-up through the model; hold `commands`
         (len(ids), K) for the episode if given."""
         ids = np.asarray(ids, dtype=int)
@@ -301,10 +289,15 @@ class ImaginedCore:
             halted = self.uncertainty > self.options.uncertainty_halt
             terminated |= halted
         reward = np.where(diverged, 0.0, reward)
-        info = {"command": self.command.copy(), "model_diverged": diverged, "uncertainty_halt": halted,
-                "fall_tilt": tipped, "torque_halt": saturated,
-                **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
-                **{f"reward/{k}": v for k, v in terms.items()}}
+        info = {
+            "command": self.command.copy(),
+            "model_diverged": diverged,
+            "uncertainty_halt": halted,
+            "fall_tilt": tipped,
+            "torque_halt": saturated,
+            **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
+            **{f"reward/{k}": v for k, v in terms.items()},
+        }
 
         self.state, self.contact, self.foot_height, self.last_action = next_state, contact, foot_height, actions
         self.steps += 1
@@ -326,8 +319,12 @@ class ImaginedCore:
             noise = np.stack([rng.standard_normal(self.spec.state_dim) for rng in self.rngs])
             mean = mean + p.state_std * torch.as_tensor(noise, dtype=mean.dtype, device=self.device)
         # The task runs in numpy (the Gymnasium contract): one device-to-host copy per step carries every output.
-        parts = [mean, (p.contact_logits > 0).to(mean.dtype), p.foot_height.to(mean.dtype),
-                 p.termination_logit.to(mean.dtype).unsqueeze(1)]
+        parts = [
+            mean,
+            (p.contact_logits > 0).to(mean.dtype),
+            p.foot_height.to(mean.dtype),
+            p.termination_logit.to(mean.dtype).unsqueeze(1),
+        ]
         if self.needs_uncertainty:
             parts.append(p.uncertainty.to(mean.dtype).unsqueeze(1))
         return torch.cat(parts, dim=1).cpu().numpy()
@@ -339,9 +336,13 @@ class ImaginedCore:
         lin = self.spec.state_slices["base_lin_vel"]
         for i in np.flatnonzero(self.steps % every == 0):
             v = self.options.push_velocity
-            self.state[i, lin.start:lin.start + 2] += self.rngs[i].uniform(-v, v, 2).astype(np.float32)
+            self.state[i, lin.start : lin.start + 2] += self.rngs[i].uniform(-v, v, 2).astype(np.float32)
 
     def record(self) -> dict[str, np.ndarray]:
         """The imagined rows, in the dataset's field names (no simulator state: qpos/qvel are absent)."""
-        return {"state": self.state.copy(), "contact": self.contact.copy(), "foot_height": self.foot_height.copy(),
-                "command": self.command.copy()}
+        return {
+            "state": self.state.copy(),
+            "contact": self.contact.copy(),
+            "foot_height": self.foot_height.copy(),
+            "command": self.command.copy(),
+        }

@@ -13,7 +13,8 @@ from rwm_gym.spec import TaskSpec
 
 class DreamRenderer:
     """Poses the robot from predicted states: attitude from projected gravity plus integrated yaw rate, joints from
-    predicted angles, horizontal position integrated from predicted body velocity, height from predicted foot heights."""
+    predicted angles, horizontal position integrated from predicted body velocity, height from predicted foot
+    heights."""
 
     def __init__(self, spec: TaskSpec, height: int = 480, width: int = 640, camera: str = "track"):
         self.spec = spec

@@ -1,7 +1,8 @@
 """`RWM-AnymalD-v0`, `RWM-Cheetah-v0`, ...: a `gymnasium.Env` whose step queries the world model instead of physics.
 
 Same observation and action spaces, commands, reward and termination as the task's physics env (`AnymalD-MuJoCo-v0`,
-`DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with their own MJCF
+`DMC-Cheetah-Run-v0`, ...; one task object of `rwm_gym.task.tasks` serves both). `render_mode="rgb_array"` (tasks with
+their own MJCF
 model, i.e. ANYmal D) draws the dream: predicted joint angles and base attitude set into the MuJoCo model, the base
 position integrated from the predicted velocity.
 
@@ -12,6 +13,7 @@ position integrated from the predicted velocity.
 from __future__ import annotations
 
 import atexit
+from dataclasses import fields, replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -21,17 +23,25 @@ from rwm_gym.batched_core import commands_from_options
 from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
 
-def make_imagined_core(checkpoint: str | Path | None = None, num_envs: int = 1, *, device: str = "cpu",
-                       reset_data: str | Path | None = None, env_id: str | None = None, reward_fn=None,
-                       termination_fn=None, **options) -> ImaginedCore:
-    """The imagined core of N rollouts; kwargs as `ImaginedEnv` (`options`: the fields of `ImaginationOptions`)."""
-    return ImaginedCore(checkpoint, num_envs, device=device, reset_data=reset_data,
-                        options=ImaginationOptions(**options), env_id=env_id, reward_fn=reward_fn,
-                        termination_fn=termination_fn)
+def imagination_options(options: ImaginationOptions | None = None, **fields) -> ImaginationOptions:
+    """`options` (default `ImaginationOptions()`) with the named fields replaced: the one place where keyword
+    conveniences (`gym.make("RWM-AnymalD-v0", fall_tilt=30)`) become the options object."""
+    return replace(options or ImaginationOptions(), **fields)
+
+
+def make_imagined_core(
+    checkpoint: str | Path | None = None, num_envs: int = 1, *, options: ImaginationOptions | None = None, **kwargs
+) -> ImaginedCore:
+    """The imagined core of N rollouts. kwargs: `ImaginedCore`'s (device, reset_data, env_id, reward_fn,
+    termination_fn), and fields of `ImaginationOptions` that replace those of `options`."""
+    names = {f.name for f in fields(ImaginationOptions)}
+    given = {k: kwargs.pop(k) for k in [k for k in kwargs if k in names]}
+    return ImaginedCore(checkpoint, num_envs, options=imagination_options(options, **given), **kwargs)
 
 
 class ImaginedEnv(gym.Env):
-    """One imagined rollout. kwargs: the fields of `ImaginationOptions` (sample_predictions, uncertainty_penalty,
+    """One imagined rollout. kwargs as `make_imagined_core`: device, reset_data, env_id, reward_fn, termination_fn,
+    `options` (an `ImaginationOptions`) and its fields one by one (sample_predictions, uncertainty_penalty,
     resample_commands, ...). `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode.
 
     reward_fn / termination_fn: functions of the predicted `rwm_gym.task.entry_points.Transition` returning (N,)
@@ -40,15 +50,22 @@ class ImaginedEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
-    def __init__(self, checkpoint: str | Path | None = None, *, device: str = "cpu", reset_data: str | Path | None = None,
-                 render_mode: str | None = None, width: int = 640, height: int = 480, env_id: str | None = None,
-                 reward_fn=None, termination_fn=None, **options):
-        self.core = make_imagined_core(checkpoint, 1, device=device, reset_data=reset_data, env_id=env_id,
-                                       reward_fn=reward_fn, termination_fn=termination_fn, **options)
+    def __init__(
+        self,
+        checkpoint: str | Path | None = None,
+        *,
+        render_mode: str | None = None,
+        width: int = 640,
+        height: int = 480,
+        **kwargs,
+    ):
+        self.core = make_imagined_core(checkpoint, 1, **kwargs)
         self.task_spec = self.core.spec
         if render_mode is not None and not self.task_spec.model:
-            raise ValueError(f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "
-                             "dream with; render its physics env instead")
+            raise ValueError(
+                f"{self.core.checkpoint}: {self.task_spec.name} has no MJCF model of its own to draw the "
+                "dream with; render its physics env instead"
+            )
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}

@@ -49,8 +49,9 @@ class ResetWindows:
     def sample(self, rng: np.random.Generator) -> ResetWindow:
         t = self.draw(rng)
         rows = slice(t - self.history + 1, t + 1)
-        return ResetWindow(self.states[rows], self.actions[t - self.history + 1 : t], self.contact[t],
-                           self.foot_height[t])
+        return ResetWindow(
+            self.states[rows], self.actions[t - self.history + 1 : t], self.contact[t], self.foot_height[t]
+        )
 
     def draw(self, rng: np.random.Generator) -> int:
         """The last row of a uniformly drawn window (one draw from `rng`, the same `sample` makes)."""
@@ -81,7 +82,9 @@ class WarmUpCache:
     def nbytes(windows: ResetWindows, template: tuple[torch.Tensor, ...]) -> int:
         return len(windows.ends) * sum(h[0].numel() * h.element_size() for h in template)
 
-    def get(self, ends: np.ndarray, compute: Callable[[np.ndarray], tuple[torch.Tensor, ...]]) -> tuple[torch.Tensor, ...]:
+    def get(
+        self, ends: np.ndarray, compute: Callable[[np.ndarray], tuple[torch.Tensor, ...]]
+    ) -> tuple[torch.Tensor, ...]:
         """The warm hidden states of the windows ending at rows `ends`; `compute(ends)` warms up the ones not cached
         yet (each once, in one batch)."""
         slots = torch.as_tensor(np.searchsorted(self.windows.ends, ends), device=self.filled.device)
@@ -93,8 +96,9 @@ class WarmUpCache:
         return tuple(cached[slots] for cached in self.hidden)
 
 
-def make_reset_data(source: Dataset | str | Path, out: str | Path, *, episodes: int = 32, rows: int = 200,
-                    seed: int = 0) -> Path:
+def make_reset_data(
+    source: Dataset | str | Path, out: str | Path, *, episodes: int = 32, rows: int = 200, seed: int = 0
+) -> Path:
     """Cut a small reset dataset (`episodes` episodes, at most `rows` rows each) out of a collected one."""
     ds = source if isinstance(source, Dataset) else Dataset.load(source)
     rng = np.random.default_rng(seed)
@@ -108,8 +112,12 @@ def make_reset_data(source: Dataset | str | Path, out: str | Path, *, episodes: 
             ep["terminated"][-1], ep["truncated"][-1] = False, True
         return ep
 
-    info = DatasetInfo(**{**_info_fields(ds.info), "metadata": {**ds.info.metadata, "reset_data_from": str(ds.path),
-                                                                "sha256": ds.file_hash()}})
+    info = DatasetInfo(
+        **{
+            **_info_fields(ds.info),
+            "metadata": {**ds.info.metadata, "reset_data_from": str(ds.path), "sha256": ds.file_hash()},
+        }
+    )
     write_dataset(out, info, (cut(i) for i in chosen))
     return Path(out)
 

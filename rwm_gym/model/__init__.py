@@ -11,5 +11,14 @@ from rwm_gym.model.factory import build_model, model_config_for
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.prediction import Prediction
 
-__all__ = ["MODEL_KINDS", "Hidden", "ModelConfig", "Normalizer", "Prediction", "TrainConfig", "WorldModel", "build_model",
-           "model_config_for"]
+__all__ = [
+    "MODEL_KINDS",
+    "Hidden",
+    "ModelConfig",
+    "Normalizer",
+    "Prediction",
+    "TrainConfig",
+    "WorldModel",
+    "build_model",
+    "model_config_for",
+]

@@ -52,8 +52,14 @@ class WorldModel(nn.Module):
         """The hidden state before any step (zeros / an empty history) for `batch_size` rollouts."""
         raise NotImplementedError
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """Advance one step. state (B, S) normalised, action (B, A) -> (new hidden, prediction of row t+1).
 
         member: (B,) long, the ensemble head used by each rollout; None averages the heads.
@@ -62,19 +68,31 @@ class WorldModel(nn.Module):
         """
         raise NotImplementedError
 
-    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
-                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def observe(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """Run known steps: states (B, T, S), actions (B, T, A) -> (hidden after T steps, predictions (B, T, ...))."""
         predictions = []
         for t in range(states.shape[1]):
-            hidden, p = self.step(hidden, states[:, t], actions[:, t], member,
-                                  None if next_states is None else next_states[:, t])
+            hidden, p = self.step(
+                hidden, states[:, t], actions[:, t], member, None if next_states is None else next_states[:, t]
+            )
             predictions.append(p)
         return hidden, Prediction.stack(predictions)
 
-    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
-                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
-                          ) -> tuple[Hidden, Prediction | None]:
+    def hidden_trajectory(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction | None]:
         """Run T known steps like `observe`, keeping the hidden state after every step: each tensor (B, T, ...).
 
         Also returns the predictions (B, T, ...) of the steps, or None where they would cost extra (the Transformer).
@@ -84,16 +102,18 @@ class WorldModel(nn.Module):
         """
         trajectory, predictions = [], []
         for t in range(states.shape[1]):
-            hidden, p = self.step(hidden, states[:, t], actions[:, t], member,
-                                  None if next_states is None else next_states[:, t])
+            hidden, p = self.step(
+                hidden, states[:, t], actions[:, t], member, None if next_states is None else next_states[:, t]
+            )
             trajectory.append(hidden)
             predictions.append(p)
         if not trajectory:  # no step: empty (B, 0, ...) trajectories
             return tuple(h.unsqueeze(1)[:, :0] for h in hidden), None
         return tuple(torch.stack(h, 1) for h in zip(*trajectory)), Prediction.stack(predictions)
 
-    def warm_up(self, states: torch.Tensor, actions: torch.Tensor,
-                member: torch.Tensor | None = None) -> tuple[Hidden, Prediction | None]:
+    def warm_up(
+        self, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None
+    ) -> tuple[Hidden, Prediction | None]:
         """Hidden state after a true history, ready to `step` from its last state.
 
         states (B, H, S): true rows s_0..s_{H-1}; actions (B, >= H-1, A): a_0..a_{H-2} are used. The model observes
@@ -104,10 +124,9 @@ class WorldModel(nn.Module):
         hidden = self.initial_hidden(batch, states.device)
         if history == 1:
             return hidden, None
-        return self.observe(hidden, states[:, :-1], actions[:, :history - 1], member, next_states=states[:, 1:])
+        return self.observe(hidden, states[:, :-1], actions[:, : history - 1], member, next_states=states[:, 1:])
 
-    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor,
-                    member: torch.Tensor | None = None) -> Hidden:
+    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None) -> Hidden:
         """`warm_up`'s hidden state alone, for callers that discard its predictions (an imagined env's reset).
         The default runs `warm_up`; models whose recurrence does not read the heads skip them."""
         return self.warm_up(states, actions, member)[0]
@@ -131,8 +150,15 @@ class WorldModel(nn.Module):
             if isinstance(module, StateHead):
                 module.disagreement = enabled
 
-    def forecast(self, states: torch.Tensor, actions: torch.Tensor, horizon: int, *, sample: bool,
-                 member: torch.Tensor | None = None) -> tuple[Prediction, Prediction | None]:
+    def forecast(
+        self,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        horizon: int,
+        *,
+        sample: bool,
+        member: torch.Tensor | None = None,
+    ) -> tuple[Prediction, Prediction | None]:
         """Warm up on a true history, then predict `horizon` rows open-loop, feeding back the own predictions.
 
         states (B, H, S) true history s_0..s_{H-1}; actions (B, H + horizon - 1, A) the true actions a_0.. .
@@ -183,4 +209,6 @@ class WorldModel(nn.Module):
         Prefer `warm_up` on a real history for restarted rollouts: a cold hidden state predicts poorly.
         """
         fresh = self.initial_hidden(mask.shape[0], mask.device)
-        return tuple(torch.where(mask.view(-1, *([1] * (h.dim() - 1))), f, h) for h, f in zip(hidden, fresh, strict=True))
+        return tuple(
+            torch.where(mask.view(-1, *([1] * (h.dim() - 1))), f, h) for h, f in zip(hidden, fresh, strict=True)
+        )

@@ -49,15 +49,26 @@ class MLPModel(WorldModel):
         shape = (batch_size, c.mlp_history, c.state_dim + c.action_dim)
         return (torch.zeros(shape, device=self.device if device is None else device),)
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         history = _push(hidden[0], torch.cat([state, action], dim=-1))
         features = self.trunk(history.flatten(1))
         return (history,), self.heads(features, features, state, member)
 
-    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
-                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
-                          ) -> tuple[Hidden, Prediction]:
+    def hidden_trajectory(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """The stacked histories of all T steps at once, and the trunk over all of them in one batch."""
         histories = _history_trajectory(hidden[0], torch.cat([states, actions], dim=-1))  # (B, T, K, S + A)
         features = self.trunk(histories.flatten(2))
@@ -81,10 +92,12 @@ class TransformerModel(WorldModel):
         self.distance_bias = nn.Parameter(torch.zeros(config.transformer_heads, config.transformer_context))
         # ELU as in the other models; unlike ReLU/GELU it also keeps PyTorch's inference fast path off, which turns
         # the per-head float mask (distance bias) into NaNs (torch 2.13).
-        layer = nn.TransformerEncoderLayer(d, config.transformer_heads, 4 * d, dropout=0.0, activation=F.elu,
-                                           batch_first=True, norm_first=True)
-        self.encoder = nn.TransformerEncoder(layer, config.transformer_layers, norm=nn.LayerNorm(d),
-                                             enable_nested_tensor=False)
+        layer = nn.TransformerEncoderLayer(
+            d, config.transformer_heads, 4 * d, dropout=0.0, activation=F.elu, batch_first=True, norm_first=True
+        )
+        self.encoder = nn.TransformerEncoder(
+            layer, config.transformer_layers, norm=nn.LayerNorm(d), enable_nested_tensor=False
+        )
         self.heads = Heads(d, d, config)
 
     def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
@@ -103,8 +116,14 @@ class TransformerModel(WorldModel):
         mask = torch.where(allowed[:, None], bias, float("-inf")).flatten(0, 1)  # (B * heads, L, L)
         return self.encoder(self.embed(tokens), mask=mask)
 
-    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
-                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def observe(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """The steps that fit into the context beside the valid tokens run as one causal pass; any further ones
         step by step (once old tokens leave the window, the bounded context is inherently per step)."""
         tokens, valid = hidden
@@ -114,28 +133,44 @@ class TransformerModel(WorldModel):
         if fit == 0:
             return super().observe(hidden, states, actions, member, next_states)
         new = torch.cat([states[:, :fit], actions[:, :fit]], dim=-1)
-        features = self._encode(torch.cat([tokens[:, context - kept:], new], dim=1),
-                                torch.cat([valid[:, context - kept:], valid.new_ones(valid.shape[0], fit)], dim=1))
+        features = self._encode(
+            torch.cat([tokens[:, context - kept :], new], dim=1),
+            torch.cat([valid[:, context - kept :], valid.new_ones(valid.shape[0], fit)], dim=1),
+        )
         features = features[:, kept:]
         prediction = self.heads(features, features, states[:, :fit], member)
-        hidden = (torch.cat([tokens, new], dim=1)[:, -context:],
-                  torch.cat([valid, valid.new_ones(valid.shape[0], fit)], dim=1)[:, -context:])
+        hidden = (
+            torch.cat([tokens, new], dim=1)[:, -context:],
+            torch.cat([valid, valid.new_ones(valid.shape[0], fit)], dim=1)[:, -context:],
+        )
         if fit == length:
             return hidden, prediction
-        hidden, rest = super().observe(hidden, states[:, fit:], actions[:, fit:], member,
-                                       None if next_states is None else next_states[:, fit:])
+        hidden, rest = super().observe(
+            hidden, states[:, fit:], actions[:, fit:], member, None if next_states is None else next_states[:, fit:]
+        )
         return hidden, Prediction.cat([prediction, rest])
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         tokens = _push(hidden[0], torch.cat([state, action], dim=-1))
         valid = _push(hidden[1], torch.ones_like(hidden[1][:, 0]))
         features = self._encode(tokens, valid)[:, -1]
         return (tokens, valid), self.heads(features, features, state, member)
 
-    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
-                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
-                          ) -> tuple[Hidden, None]:
+    def hidden_trajectory(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, None]:
         """The token windows after each of T steps, without encoding them (a forecast re-encodes its own window, so
         predictions on a long sequence would cost one encoding per step: None)."""
         tokens = _history_trajectory(hidden[0], torch.cat([states, actions], dim=-1))
@@ -149,12 +184,21 @@ class NoChangeModel(WorldModel):
     def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
         return ()
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         c, batch = self.config, state.shape[0]
         zeros = state.new_zeros(batch)
         return (), Prediction(
-            state_mean=state, state_std=torch.full_like(state, 1e-3),
-            contact_logits=state.new_zeros(batch, c.contact_dim), foot_height=state.new_zeros(batch, c.foot_dim),
-            termination_logit=torch.full_like(zeros, -10.0), uncertainty=zeros,
+            state_mean=state,
+            state_std=torch.full_like(state, 1e-3),
+            contact_logits=state.new_zeros(batch, c.contact_dim),
+            foot_height=state.new_zeros(batch, c.foot_dim),
+            termination_logit=torch.full_like(zeros, -10.0),
+            uncertainty=zeros,
         )

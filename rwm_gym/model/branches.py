@@ -42,8 +42,13 @@ def _at(tensor: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     return tensor[:, rows].flatten(0, 1)
 
 
-def branched_forecast(model: WorldModel, states: torch.Tensor, actions: torch.Tensor, config: TrainConfig,
-                      member: torch.Tensor | None = None) -> tuple[Prediction, Prediction | None]:
+def branched_forecast(
+    model: WorldModel,
+    states: torch.Tensor,
+    actions: torch.Tensor,
+    config: TrainConfig,
+    member: torch.Tensor | None = None,
+) -> tuple[Prediction, Prediction | None]:
     """Train-mode forecasts of all branches of a batch of segments.
 
     states (B, R, S), actions (B, R, A): normalised segment rows, R = config.segment_rows. member: (B,) ensemble head
@@ -52,8 +57,10 @@ def branched_forecast(model: WorldModel, states: torch.Tensor, actions: torch.Te
     of rows 1..T with their KL, for their own loss, else None).
     """
     if not config.warmup_gradients and model.filters_with_next_state:
-        raise ValueError(f"warmup_gradients off does not apply to {model.config.kind}: its teacher-forced pass carries "
-                         "a loss of its own")
+        raise ValueError(
+            f"warmup_gradients off does not apply to {model.config.kind}: its teacher-forced pass carries "
+            "a loss of its own"
+        )
     starts = branch_starts(config).to(states.device)
     last = int(starts[-1])
     initial = model.initial_hidden(states.shape[0], states.device)
@@ -62,8 +69,9 @@ def branched_forecast(model: WorldModel, states: torch.Tensor, actions: torch.Te
     observed = last if model.filters_with_next_state else last + 1
     reuse = not model.filters_with_next_state and config.warmup_gradients
     with torch.set_grad_enabled(torch.is_grad_enabled() and config.warmup_gradients):
-        trajectory, predictions = model.hidden_trajectory(initial, states[:, :observed], actions[:, :observed],
-                                                          member, next_states=states[:, 1:observed + 1])
+        trajectory, predictions = model.hidden_trajectory(
+            initial, states[:, :observed], actions[:, :observed], member, next_states=states[:, 1 : observed + 1]
+        )
     reuse = reuse and predictions is not None
     # hidden after rows 0..t sits at index t + 1 of `before` (index 0: the initial state)
     before = tuple(torch.cat([h0.unsqueeze(1), h], dim=1) for h0, h in zip(initial, trajectory, strict=True))

@@ -3,7 +3,8 @@
 Tensors: `model/<name>` (the state dict), `norm/state_mean`, `norm/state_std` (float64), and for resuming
 `optim/<param index>/<key>` (optimizer state) and `train/<name>` (RNG states). The safetensors header metadata holds
 `format` ("rwm-gym-checkpoint"), `format_version` and `meta`, a JSON object with: model_config, train_config, spec
-(the task spec's TOML text), foot_height_std, provenance (dataset path, sha256, train/val episode ids), stats (iterations,
+(the task spec's TOML text), foot_height_std, provenance (dataset path, sha256, train/val episode ids), stats
+(iterations,
 losses, wall time), extras (free, e.g. the imagined env's reset-data info), package_version, and the optimizer layout
 (param groups and non-tensor state). Saves are atomic: a temp file in the same folder, then os.replace.
 """
@@ -57,11 +58,19 @@ class CheckpointMeta:
     optimizer_layout: dict | None = field(default=None, repr=False)
 
 
-def save_checkpoint(path: str | os.PathLike, model: WorldModel, spec: TaskSpec, *,
-                    normalizer: Normalizer | None = None, train_config: TrainConfig | None = None,
-                    provenance: dict | None = None, stats: dict | None = None, extras: dict | None = None,
-                    optimizer: torch.optim.Optimizer | None = None,
-                    training_state: dict[str, torch.Tensor] | None = None) -> Path:
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: WorldModel,
+    spec: TaskSpec,
+    *,
+    normalizer: Normalizer | None = None,
+    train_config: TrainConfig | None = None,
+    provenance: dict | None = None,
+    stats: dict | None = None,
+    extras: dict | None = None,
+    optimizer: torch.optim.Optimizer | None = None,
+    training_state: dict[str, torch.Tensor] | None = None,
+) -> Path:
     """Write `model` (and optionally the optimizer and `training_state` tensors, for resuming) to `path` atomically."""
     from rwm_gym import __version__
 
@@ -83,9 +92,15 @@ def save_checkpoint(path: str | os.PathLike, model: WorldModel, spec: TaskSpec, 
     for name, value in (training_state or {}).items():
         tensors[f"train/{name}"] = value.detach().cpu().contiguous().clone()
     meta = {
-        "model_config": model.config.to_dict(), "train_config": train_config and train_config.to_dict(),
-        "spec": spec.text, "foot_height_std": normalizer.foot_height_std, "provenance": provenance or {},
-        "stats": stats or {}, "extras": extras or {}, "package_version": __version__, "optimizer": layout,
+        "model_config": model.config.to_dict(),
+        "train_config": train_config and train_config.to_dict(),
+        "spec": spec.text,
+        "foot_height_std": normalizer.foot_height_std,
+        "provenance": provenance or {},
+        "stats": stats or {},
+        "extras": extras or {},
+        "package_version": __version__,
+        "optimizer": layout,
     }
     header = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "meta": json.dumps(meta)}
     return atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata=header))
@@ -104,8 +119,10 @@ def _read(path: Path, device: str | torch.device) -> tuple[dict[str, str], dict[
         raise CheckpointError(f"{path}: format {header.get('format')!r} is not {FORMAT_NAME!r}")
     version = header.get("format_version", "")
     if not version.isdigit() or int(version) > FORMAT_VERSION:
-        raise CheckpointError(f"{path}: format_version {version!r} not supported (this reader knows up to "
-                              f"{FORMAT_VERSION}); upgrade rwm-gym")
+        raise CheckpointError(
+            f"{path}: format_version {version!r} not supported (this reader knows up to "
+            f"{FORMAT_VERSION}); upgrade rwm-gym"
+        )
     return header, tensors
 
 
@@ -131,8 +148,10 @@ def dataset_rows(path: str | os.PathLike) -> tuple[int | None, str]:
             dataset = Dataset.load(candidate)
             if provenance.get("sha256") in (None, dataset.file_hash()):
                 return int(dataset.num_steps), f"rows of {candidate}, the world model's dataset"
-    return None, (f"unknown: {path} predates the row count in its provenance (dataset_steps) and its dataset "
-                  f"{named} (with its sha256) is not here")
+    return None, (
+        f"unknown: {path} predates the row count in its provenance (dataset_steps) and its dataset "
+        f"{named} (with its sha256) is not here"
+    )
 
 
 def _meta(path: Path, header: dict[str, str], tensors: dict[str, torch.Tensor]) -> CheckpointMeta:
@@ -141,11 +160,24 @@ def _meta(path: Path, header: dict[str, str], tensors: dict[str, torch.Tensor]) 
         config = ModelConfig.from_dict(meta["model_config"])
         train = meta.get("train_config")
         spec = parse_spec(meta["spec"], where=f"{path}:spec")
-        normalizer = Normalizer(tensors["norm/state_mean"].cpu().numpy(), tensors["norm/state_std"].cpu().numpy(),
-                                float(meta["foot_height_std"]))
-        return CheckpointMeta(path, config, spec, normalizer, train and TrainConfig.from_dict(train),
-                              meta.get("provenance", {}), meta.get("stats", {}), meta.get("extras", {}),
-                              meta.get("package_version", ""), int(header["format_version"]), meta.get("optimizer"))
+        normalizer = Normalizer(
+            tensors["norm/state_mean"].cpu().numpy(),
+            tensors["norm/state_std"].cpu().numpy(),
+            float(meta["foot_height_std"]),
+        )
+        return CheckpointMeta(
+            path,
+            config,
+            spec,
+            normalizer,
+            train and TrainConfig.from_dict(train),
+            meta.get("provenance", {}),
+            meta.get("stats", {}),
+            meta.get("extras", {}),
+            meta.get("package_version", ""),
+            int(header["format_version"]),
+            meta.get("optimizer"),
+        )
     except KeyError as err:
         raise CheckpointError(f"{path}: metadata field {err.args[0]!r} missing") from None
     except (ValueError, TypeError) as err:
@@ -162,13 +194,17 @@ def spec_difference(found: TaskSpec, expected: TaskSpec) -> str | None:
             return f"state layout has {len(a)} columns, expected {len(b)}"
         i = next(i for i in range(len(a)) if a[i] != b[i])
         return f"state column {i} is {a[i]!r}, expected {b[i]!r}"
-    for what, a, b in (("actuator joints", found.actuator.joints, expected.actuator.joints),
-                       ("contact bodies", found.privileged.contact_bodies, expected.privileged.contact_bodies),
-                       ("feet", found.privileged.feet, expected.privileged.feet)):
+    for what, a, b in (
+        ("actuator joints", found.actuator.joints, expected.actuator.joints),
+        ("contact bodies", found.privileged.contact_bodies, expected.privileged.contact_bodies),
+        ("feet", found.privileged.feet, expected.privileged.feet),
+    ):
         if a != b:
             return f"{what} are {list(a)}, expected {list(b)}"
-    for what, a, b in (("state mean", found.state_mean, expected.state_mean),
-                       ("state std", found.state_std, expected.state_std)):
+    for what, a, b in (
+        ("state mean", found.state_mean, expected.state_mean),
+        ("state std", found.state_std, expected.state_std),
+    ):
         if not np.allclose(a, b):
             i = int(np.flatnonzero(~np.isclose(a, b))[0])
             return f"{what} of column {found.state_columns[i]!r} is {a[i]:g}, expected {b[i]:g}"
@@ -177,8 +213,9 @@ def spec_difference(found: TaskSpec, expected: TaskSpec) -> str | None:
     return None
 
 
-def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
-                    expect_spec: TaskSpec | None = None) -> tuple[WorldModel, CheckpointMeta]:
+def load_checkpoint(
+    path: str | os.PathLike, device: str | torch.device = "cpu", expect_spec: TaskSpec | None = None
+) -> tuple[WorldModel, CheckpointMeta]:
     """Rebuild the model (in eval mode, on `device`) and its metadata from the file alone.
 
     Raises CheckpointError (one line naming the file) for a file that is not a safetensors checkpoint or is truncated,
@@ -191,13 +228,15 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
         raise CheckpointError(f"{path}: checkpoint is for another task layout: {difference}")
     model = build_model(meta.model_config, meta.spec).to(device)
     expected = model.state_dict()
-    stored = {name[len("model/"):]: t for name, t in tensors.items() if name.startswith("model/")}
+    stored = {name[len("model/") :]: t for name, t in tensors.items() if name.startswith("model/")}
     for name, tensor in expected.items():
         if name not in stored:
             raise CheckpointError(f"{path}: tensor 'model/{name}' missing for a {meta.model_config.kind} model")
         if stored[name].shape != tensor.shape:
-            raise CheckpointError(f"{path}: tensor 'model/{name}' has shape {tuple(stored[name].shape)}, the model "
-                                  f"config expects {tuple(tensor.shape)}")
+            raise CheckpointError(
+                f"{path}: tensor 'model/{name}' has shape {tuple(stored[name].shape)}, the model "
+                f"config expects {tuple(tensor.shape)}"
+            )
     if extra := sorted(set(stored) - set(expected)):
         raise CheckpointError(f"{path}: tensor 'model/{extra[0]}' is not part of a {meta.model_config.kind} model")
     check_finite(path, stored, meta.normalizer)
@@ -213,19 +252,23 @@ def check_finite(path: Path, weights: dict[str, torch.Tensor], normalizer) -> No
             raise CheckpointError(f"{path}: tensor 'model/{name}' holds NaN or inf")
     std = np.asarray(normalizer.state_std, dtype=np.float64)
     if not (np.all(np.isfinite(std)) and np.all(std > 0)) or not np.all(np.isfinite(normalizer.state_mean)):
-        raise CheckpointError(f"{path}: normalisation statistics are not finite with std > 0 (tensor 'norm/state_std' "
-                              f"or 'norm/state_mean')")
+        raise CheckpointError(
+            f"{path}: normalisation statistics are not finite with std > 0 (tensor 'norm/state_std' "
+            f"or 'norm/state_mean')"
+        )
 
 
-def load_training_state(path: str | os.PathLike, model: WorldModel, optimizer: torch.optim.Optimizer | None
-                        ) -> tuple[CheckpointMeta, dict[str, torch.Tensor]]:
+def load_training_state(
+    path: str | os.PathLike, model: WorldModel, optimizer: torch.optim.Optimizer | None
+) -> tuple[CheckpointMeta, dict[str, torch.Tensor]]:
     """Load weights and optimizer state of a checkpoint into existing objects (for --resume); returns its metadata and
     the `train/` tensors (RNG states)."""
     path = Path(path)
     loaded, meta = load_checkpoint(path, device=model.device)
     if loaded.config != model.config:
-        raise CheckpointError(f"{path}: model config differs from this run's "
-                              f"({config_difference(loaded.config, model.config)})")
+        raise CheckpointError(
+            f"{path}: model config differs from this run's ({config_difference(loaded.config, model.config)})"
+        )
     model.load_state_dict(loaded.state_dict())
     _, tensors = _read(path, "cpu")
     if optimizer is not None:
@@ -240,5 +283,4 @@ def load_training_state(path: str | os.PathLike, model: WorldModel, optimizer: t
             index, key = name.split("/", 1)
             state.setdefault(int(index), {})[key] = value
         optimizer.load_state_dict({"state": state, "param_groups": meta.optimizer_layout["param_groups"]})
-    return meta, {name[len("train/"):]: t for name, t in tensors.items() if name.startswith("train/")}
-
+    return meta, {name[len("train/") :]: t for name, t in tensors.items() if name.startswith("train/")}

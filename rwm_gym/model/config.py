@@ -62,8 +62,10 @@ class ModelConfig:
         if self.kind not in MODEL_KINDS:
             raise ValueError(f"model kind {self.kind!r} unknown (choose from {', '.join(MODEL_KINDS)})")
         if min(self.state_dim, self.action_dim) < 1 or min(self.contact_dim, self.foot_dim) < 0:
-            raise ValueError(f"model sizes must be positive: state {self.state_dim}, action {self.action_dim}, "
-                             f"contact {self.contact_dim}, foot {self.foot_dim}")
+            raise ValueError(
+                f"model sizes must be positive: state {self.state_dim}, action {self.action_dim}, "
+                f"contact {self.contact_dim}, foot {self.foot_dim}"
+            )
         if self.ensemble_size < 1:
             raise ValueError(f"ensemble_size must be >= 1, got {self.ensemble_size}")
 
@@ -98,7 +100,8 @@ class TrainConfig:
     warmup_gradients: bool = True
     """Backpropagate through the teacher-forced warm-up, as the paper does. Off, the warm-up runs without autograd
     and gradients flow through the F forecast steps only (truncated at each forecast's start): several times the
-    windows per second with many branches per segment (the docs' Results, "World-model error"). Not for models whose warm-up
+    windows per second with many branches per segment (the docs' Results, "World-model error"). Not for models whose
+    warm-up
     carries a loss of its own (rssm's KL)."""
     lr: float = 1e-3
     """Adam learning rate at the start of the schedule."""
@@ -162,8 +165,10 @@ class TrainConfig:
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.branches < 1 or self.branch_stride < 1 or self.batch_size % self.branches:
-            raise ValueError(f"branches ({self.branches}) and branch_stride ({self.branch_stride}) must be >= 1 and "
-                             f"divide batch_size ({self.batch_size}) into whole segments")
+            raise ValueError(
+                f"branches ({self.branches}) and branch_stride ({self.branch_stride}) must be >= 1 and "
+                f"divide batch_size ({self.batch_size}) into whole segments"
+            )
 
     @property
     def segment_rows(self) -> int:
@@ -180,8 +185,13 @@ class TrainConfig:
         return cls(**{**_TRAIN_LEGACY, **_checked(cls, data)})
 
 
-_TRAIN_LEGACY = {"branches": 1, "branch_stride": 1, "warmup_gradients": True, "reset_std_band": False,
-                 "reset_log_std": -2.3}
+_TRAIN_LEGACY = {
+    "branches": 1,
+    "branch_stride": 1,
+    "warmup_gradients": True,
+    "reset_std_band": False,
+    "reset_log_std": -2.3,
+}
 """TrainConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 
 

@@ -47,16 +47,25 @@ class StateConstraints(nn.Module):
         super().__init__()
         mean, std = (torch.as_tensor(a, dtype=torch.float32) for a in (spec.state_mean, spec.state_std))
         slices = spec.state_slices
-        gravity = torch.arange(slices[GRAVITY].start, slices[GRAVITY].stop) \
-            if config.unit_gravity and GRAVITY in slices else torch.zeros(0, dtype=torch.long)
+        gravity = (
+            torch.arange(slices[GRAVITY].start, slices[GRAVITY].stop)
+            if config.unit_gravity and GRAVITY in slices
+            else torch.zeros(0, dtype=torch.long)
+        )
         self.register_buffer("gravity_index", gravity)
         self.register_buffer("gravity_mean", mean[gravity])
         self.register_buffer("gravity_std", std[gravity])
-        joints = torch.arange(slices[JOINTS].start, slices[JOINTS].stop) \
-            if config.joint_limits and JOINTS in slices else torch.zeros(0, dtype=torch.long)
+        joints = (
+            torch.arange(slices[JOINTS].start, slices[JOINTS].stop)
+            if config.joint_limits and JOINTS in slices
+            else torch.zeros(0, dtype=torch.long)
+        )
         low, high = joint_ranges(spec) if len(joints) else (np.zeros(0), np.zeros(0))
-        default = np.asarray(spec.actuator.default_pose, dtype=np.float64)[:len(joints)]
-        to_state = lambda limit: (torch.as_tensor(limit - default, dtype=torch.float32) - mean[joints]) / std[joints]
+        default = np.asarray(spec.actuator.default_pose, dtype=np.float64)[: len(joints)]
+
+        def to_state(limit: np.ndarray) -> torch.Tensor:  # a joint angle as the model's normalised state
+            return (torch.as_tensor(limit - default, dtype=torch.float32) - mean[joints]) / std[joints]
+
         self.register_buffer("joint_index", joints)
         self.register_buffer("joint_low", to_state(low))
         self.register_buffer("joint_high", to_state(high))

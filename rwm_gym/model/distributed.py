@@ -54,6 +54,7 @@ SINGLE = World()
 
 
 def launched_by_torchrun() -> bool:
+    """Whether this process is one of several started by torchrun (WORLD_SIZE > 1)."""
     return int(os.environ.get("WORLD_SIZE", "1")) > 1
 
 
@@ -116,14 +117,16 @@ def shard(batch: torch.Tensor, world: World) -> torch.Tensor:
     if not world.distributed:
         return batch
     per_rank = batch.shape[0] // world.size
-    return batch[world.rank * per_rank:(world.rank + 1) * per_rank]
+    return batch[world.rank * per_rank : (world.rank + 1) * per_rank]
 
 
 def check_batch(batch_size: int, world: World) -> None:
     """Refuse a global batch (in segments: batch size / branches) that does not split evenly over the ranks."""
     if batch_size % world.size:
-        raise ValueError(f"a batch of {batch_size} segments (batch size / branches) does not split over "
-                         f"{world.size} processes; choose a multiple of {world.size}")
+        raise ValueError(
+            f"a batch of {batch_size} segments (batch size / branches) does not split over "
+            f"{world.size} processes; choose a multiple of {world.size}"
+        )
 
 
 def data_parallel(loss: torch.nn.Module, world: World) -> torch.nn.Module:

@@ -13,9 +13,7 @@ largest |predicted| and |true| normalised value per horizon say whether rollouts
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,10 +22,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rwm_gym.atomic import save_png, write_json
-from rwm_gym.data.dataset import Dataset, DatasetError
+from rwm_gym.atomic import save_png
+from rwm_gym.data.dataset import Dataset
 from rwm_gym.model.base import WorldModel
-from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
+from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import WindowData
 from rwm_gym.spec import TaskSpec
@@ -35,6 +33,8 @@ from rwm_gym.spec import TaskSpec
 
 @dataclass(frozen=True)
 class EvalConfig:
+    """How a checkpoint's long-horizon error is measured: warm-up, horizons, noise levels, windows."""
+
     history: int = 32
     """H: true rows the model warms up on."""
     horizons: tuple[int, ...] = (8, 32, 100)
@@ -59,16 +59,31 @@ class EvalConfig:
 
 
 @torch.no_grad()
-def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, config: EvalConfig, horizon: int,
-             noise: float, generator: torch.Generator, data_mean: torch.Tensor) -> dict[str, torch.Tensor]:
+def _rollout(
+    model: WorldModel,
+    windows: WindowData,
+    starts: torch.Tensor,
+    config: EvalConfig,
+    horizon: int,
+    noise: float,
+    generator: torch.Generator,
+    data_mean: torch.Tensor,
+) -> dict[str, torch.Tensor]:
     """Per-window, per-step errors (W, N, S) of |pred - true|, |true|, and contact hits (W, N, C); without noise
     also the floors' |pred - true| and the largest |pred| and |true|."""
     h = config.history
-    out: dict[str, list] = {"abs_error": [], "abs_true": [], "contact_hit": [], "no_change": [], "mean": [],
-                            "max_prediction": [], "max_true": []}
+    out: dict[str, list] = {
+        "abs_error": [],
+        "abs_true": [],
+        "contact_hit": [],
+        "no_change": [],
+        "mean": [],
+        "max_prediction": [],
+        "max_true": [],
+    }
     for chunk in starts.split(config.batch_size):
         batch = windows.gather(chunk, h + horizon)
-        states, actions = batch.states[:, :h], batch.actions[:, :h + horizon - 1]
+        states, actions = batch.states[:, :h], batch.actions[:, : h + horizon - 1]
         if noise > 0:
             states = states + noise * torch.randn(states.shape, generator=generator).to(states.device)
             history_noise = noise * torch.randn(actions[:, :h].shape, generator=generator).to(states.device)
@@ -79,7 +94,7 @@ def _rollout(model: WorldModel, windows: WindowData, starts: torch.Tensor, confi
         out["abs_true"].append(true.abs().cpu())
         out["contact_hit"].append(((prediction.contact_logits > 0) == (batch.contacts[:, h:] > 0.5)).cpu())
         if noise == 0:
-            out["no_change"].append((batch.states[:, h - 1:h] - true).abs().cpu())
+            out["no_change"].append((batch.states[:, h - 1 : h] - true).abs().cpu())
             out["mean"].append((data_mean.to(true.device) - true).abs().cpu())
             out["max_prediction"].append(prediction.state_mean.abs().max().reshape(1).cpu())
             out["max_true"].append(true.abs().max().reshape(1).cpu())
@@ -91,8 +106,15 @@ def _ratio(abs_error: torch.Tensor, abs_true: torch.Tensor) -> torch.Tensor:
     return abs_error.sum(-1) / abs_true.sum(-1).clamp(min=1e-8)
 
 
-def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: TaskSpec,
-             config: EvalConfig = EvalConfig(), episodes: np.ndarray | None = None, progress: bool = True) -> dict:
+def evaluate(
+    model: WorldModel,
+    dataset: Dataset,
+    normalizer: Normalizer,
+    spec: TaskSpec,
+    config: EvalConfig = EvalConfig(),
+    episodes: np.ndarray | None = None,
+    progress: bool = True,
+) -> dict:
     """The metric on `episodes` of `dataset` (default all); returns a JSON-ready dict (see module docstring)."""
     episodes = np.arange(dataset.num_episodes) if episodes is None else np.asarray(episodes)
     model = model.to(config.device).eval()
@@ -103,16 +125,26 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
     horizons = sorted({n for n in config.horizons if n <= longest} | {longest})
     generator = torch.Generator().manual_seed(config.seed)
     data_mean = windows.states.mean(0)
-    result: dict = {"history": config.history, "horizons": horizons, "longest": longest,
-                    "episodes": len(episodes), "episode_ids": [int(e) for e in episodes],
-                    "windows": {}, "error": {}, "group_error": {}, "contact_accuracy": {},
-                    "floors": {"no change": {}, "predict the mean": {}}, "max_abs": {}, "running_mean_by_horizon": {},
-                    "noise": {str(s): {} for s in config.noise_levels}}
+    result: dict = {
+        "history": config.history,
+        "horizons": horizons,
+        "longest": longest,
+        "episodes": len(episodes),
+        "episode_ids": [int(e) for e in episodes],
+        "windows": {},
+        "error": {},
+        "group_error": {},
+        "contact_accuracy": {},
+        "floors": {"no change": {}, "predict the mean": {}},
+        "max_abs": {},
+        "running_mean_by_horizon": {},
+        "noise": {str(s): {} for s in config.noise_levels},
+    }
     jobs = [(n, s) for n in horizons for s in (0.0, *config.noise_levels)]
     for horizon, noise in tqdm(jobs, desc="evaluate", disable=not progress, dynamic_ncols=True):
         starts = windows.window_starts(episodes, config.history + horizon)
         pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(config.seed + horizon))
-        starts = starts[pick[:config.max_windows].to(starts.device)].sort().values
+        starts = starts[pick[: config.max_windows].to(starts.device)].sort().values
         run = _rollout(model, windows, starts, config, horizon, noise, generator, data_mean)
         error = float(_ratio(run["abs_error"], run["abs_true"]).mean())
         key = str(horizon)
@@ -120,11 +152,16 @@ def evaluate(model: WorldModel, dataset: Dataset, normalizer: Normalizer, spec: 
             result["noise"][str(noise)][key] = error
             continue
         result["windows"][key], result["error"][key] = len(starts), error
-        result["group_error"][key] = {name: float(_ratio(run["abs_error"][..., s], run["abs_true"][..., s]).mean())
-                                      for name, s in spec.state_slices.items()}
+        result["group_error"][key] = {
+            name: float(_ratio(run["abs_error"][..., s], run["abs_true"][..., s]).mean())
+            for name, s in spec.state_slices.items()
+        }
         result["floors"]["no change"][key] = float(_ratio(run["no_change"], run["abs_true"]).mean())
         result["floors"]["predict the mean"][key] = float(_ratio(run["mean"], run["abs_true"]).mean())
-        result["max_abs"][key] = {"prediction": float(run["max_prediction"].max()), "data": float(run["max_true"].max())}
+        result["max_abs"][key] = {
+            "prediction": float(run["max_prediction"].max()),
+            "data": float(run["max_true"].max()),
+        }
         per_step = _ratio(run["abs_error"], run["abs_true"]).mean(0)  # over this horizon's own windows
         result["running_mean_by_horizon"][key] = (per_step.cumsum(0) / torch.arange(1, horizon + 1)).tolist()
         hits = run["contact_hit"]
@@ -145,14 +182,25 @@ def format_table(result: dict) -> str:
     lines = [" | ".join(head), " | ".join("---" for _ in head)]
     for key in result["error"]:
         acc, span = result["contact_accuracy"][key], result.get("max_abs", {}).get(key)
-        lines.append(" | ".join([key, str(result["windows"][key]), f"{result['error'][key]:.4f}",
-                                 *(f"{result['floors'][f][key]:.4f}" for f in floors),
-                                 *(f"{result['group_error'][key][g]:.4f}" for g in groups),
-                                 "-" if acc is None else f"{acc:.3f}",
-                                 "-" if span is None else f"{span['prediction']:.1f} / {span['data']:.1f}"]))
+        lines.append(
+            " | ".join(
+                [
+                    key,
+                    str(result["windows"][key]),
+                    f"{result['error'][key]:.4f}",
+                    *(f"{result['floors'][f][key]:.4f}" for f in floors),
+                    *(f"{result['group_error'][key][g]:.4f}" for g in groups),
+                    "-" if acc is None else f"{acc:.3f}",
+                    "-" if span is None else f"{span['prediction']:.1f} / {span['data']:.1f}",
+                ]
+            )
+        )
     if result["noise"]:
-        lines += ["", " | ".join(["noise std", *(f"N={k}" for k in result["error"])]),
-                  " | ".join("---" for _ in range(len(result["error"]) + 1))]
+        lines += [
+            "",
+            " | ".join(["noise std", *(f"N={k}" for k in result["error"])]),
+            " | ".join("---" for _ in range(len(result["error"]) + 1)),
+        ]
         for level, errors in result["noise"].items():
             lines.append(" | ".join([level, *(f"{errors[k]:.4f}" for k in result["error"])]))
     return "\n".join(lines)
@@ -177,17 +225,31 @@ def plot_running_mean(results: dict[str, dict], path: str | os.PathLike, title: 
             if k not in by_horizon:
                 continue
             n = np.arange(previous + 1, int(k) + 1)
-            line, = ax.plot(n, np.asarray(by_horizon[k])[previous:], color=color,
-                            label=None if color else f"{name} (running mean of each horizon's windows)")
+            (line,) = ax.plot(
+                n,
+                np.asarray(by_horizon[k])[previous:],
+                color=color,
+                label=None if color else f"{name} (running mean of each horizon's windows)",
+            )
             color, previous = line.get_color(), int(k)
-        markers, = ax.plot([int(k) for k in keys], [result["error"][k] for k in keys], "o", color=color,
-                           label=None if color else name)
+        (markers,) = ax.plot(
+            [int(k) for k in keys], [result["error"][k] for k in keys], "o", color=color, label=None if color else name
+        )
         for k in keys:
-            ax.annotate(f"{result['windows'][k]}", (int(k), result["error"][k]), fontsize=7,
-                        textcoords="offset points", xytext=(3, 3), color=markers.get_color())
-    ax.set(xlabel="open-loop horizon N (steps after the true history)",
-           ylabel="relative error, mean over steps 1..N", yscale="log",
-           title=title or "markers: the table's values (number: windows)")
+            ax.annotate(
+                f"{result['windows'][k]}",
+                (int(k), result["error"][k]),
+                fontsize=7,
+                textcoords="offset points",
+                xytext=(3, 3),
+                color=markers.get_color(),
+            )
+    ax.set(
+        xlabel="open-loop horizon N (steps after the true history)",
+        ylabel="relative error, mean over steps 1..N",
+        yscale="log",
+        title=title or "markers: the table's values (number: windows)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -204,7 +266,12 @@ def plot_curves(curves: dict[str, list[float]], path: str | os.PathLike, title: 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for name, curve in curves.items():
         ax.plot(np.arange(1, len(curve) + 1), curve, label=name)
-    ax.set(xlabel="open-loop steps after the true history", ylabel="relative error  sum|pred-true| / sum|true|", yscale="log", title=title)
+    ax.set(
+        xlabel="open-loop steps after the true history",
+        ylabel="relative error  sum|pred-true| / sum|true|",
+        yscale="log",
+        title=title,
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -217,14 +284,16 @@ def _episode_key(dataset: Dataset, episode: int) -> bytes:
     return dataset["state"][rows].tobytes() + dataset["action"][rows].tobytes()
 
 
-def episodes_seen_in(dataset: Dataset, episodes: np.ndarray, training: Dataset,
-                     training_episodes: np.ndarray | None = None) -> np.ndarray:
+def episodes_seen_in(
+    dataset: Dataset, episodes: np.ndarray, training: Dataset, training_episodes: np.ndarray | None = None
+) -> np.ndarray:
     """Those of `episodes` that begin, bit for bit, like an episode of `training` (default: all of its episodes): a
     held-out file collected with a training file's policy and seed repeats its episodes."""
     ids = np.arange(training.num_episodes) if training_episodes is None else training_episodes
     seen = {_episode_key(training, int(i)) for i in ids if training.episode_lengths[int(i)] >= 2}
-    return np.asarray([i for i in episodes if dataset.episode_lengths[i] >= 2 and _episode_key(dataset, i) in seen],
-                      dtype=np.int64)
+    return np.asarray(
+        [i for i in episodes if dataset.episode_lengths[i] >= 2 and _episode_key(dataset, i) in seen], dtype=np.int64
+    )
 
 
 def _training_files(provenance: dict, others: Sequence[str | os.PathLike]) -> list[tuple[Dataset, np.ndarray | None]]:
@@ -239,9 +308,14 @@ def _training_files(provenance: dict, others: Sequence[str | os.PathLike]) -> li
     return files + [(Dataset.load(path), None) for path in others]
 
 
-def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike | Dataset,
-                        config: EvalConfig = EvalConfig(), all_episodes: bool = False, progress: bool = True,
-                        training_data: Sequence[str | os.PathLike] = ()) -> dict:
+def evaluate_checkpoint(
+    checkpoint: str | os.PathLike,
+    data: str | os.PathLike | Dataset,
+    config: EvalConfig = EvalConfig(),
+    all_episodes: bool = False,
+    progress: bool = True,
+    training_data: Sequence[str | os.PathLike] = (),
+) -> dict:
     """Load a checkpoint and evaluate it on a dataset of the same task. When the dataset is the checkpoint's own
     training file, only its held-out validation episodes are used; from another file, episodes that repeat a training
     episode of the checkpoint's recorded file or of `training_data` are left out. `all_episodes` keeps every one."""
@@ -258,73 +332,24 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, data: str | os.PathLike |
         for training, ids in _training_files(meta.provenance, training_data):
             seen = episodes_seen_in(dataset, episodes, training, ids)
             if len(seen) == len(episodes):
-                sources = ", ".join(repeated + [str(training.path)])
-                raise ValueError(f"{dataset.path}: every evaluated episode repeats a training episode of {sources}; "
-                                 "collect held-out data with another seed")
+                sources = ", ".join([*repeated, str(training.path)])
+                raise ValueError(
+                    f"{dataset.path}: every evaluated episode repeats a training episode of {sources}; "
+                    "collect held-out data with another seed"
+                )
             if len(seen):
-                episodes, repeated = np.setdiff1d(episodes, seen), repeated + [str(training.path)]
+                episodes, repeated = np.setdiff1d(episodes, seen), [*repeated, str(training.path)]
         if repeated:
-            held_out = (f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes of "
-                        f"{', '.join(repeated)} left out")
+            held_out = (
+                f"{len(episodes)} of {dataset.num_episodes} episodes; those repeating training episodes of "
+                f"{', '.join(repeated)} left out"
+            )
     result = evaluate(model, dataset, meta.normalizer, spec, config, episodes, progress)
-    return {"checkpoint": str(checkpoint), "model": meta.model_config.kind, "data": str(dataset.path),
-            "episode_set": held_out, "config": asdict(config), **result}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d = EvalConfig()
-    parser.add_argument("--checkpoint", required=True, help="world-model checkpoint (.safetensors)")
-    parser.add_argument("--data", required=True, nargs="+",
-                        help="HDF5 datasets of the same task (held-out episodes), each evaluated on its own")
-    parser.add_argument("--out", help="folder for evaluation.json and error_vs_horizon.png")
-    parser.add_argument("--history", type=int, default=d.history, help=f"warm-up rows (default {d.history})")
-    parser.add_argument("--horizons", type=int, nargs="+", default=list(d.horizons), help="horizons to report")
-    parser.add_argument("--max-horizon", type=int, default=d.max_horizon, help="cap of the longest horizon")
-    parser.add_argument("--noise", type=float, nargs="*", default=list(d.noise_levels),
-                        help="noise stds for the robustness test (none: skip)")
-    parser.add_argument("--max-windows", type=int, default=d.max_windows, help="windows per horizon")
-    parser.add_argument("--device", default=d.device, help="torch device")
-    parser.add_argument("--seed", type=int, default=d.seed, help="seed of window choice and noise")
-    parser.add_argument("--all-episodes", action="store_true",
-                        help="use every episode, even of the checkpoint's training file or repeating its episodes")
-    parser.add_argument("--training-data", nargs="+", default=[], metavar="FILE",
-                        help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
-                             "evaluated episodes that repeat one of theirs are left out (default: none)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT/evaluation.json")
-
-
-def run(args: argparse.Namespace) -> int:
-    from rwm_gym.output_guard import check_output
-
-    results = {}
-    try:
-        if max(args.horizons) > args.max_horizon:
-            raise ValueError(f"--horizons {max(args.horizons)} is above --max-horizon {args.max_horizon}")
-        if args.out:
-            inputs = [args.checkpoint, *args.data, *args.training_data]
-            check_output(Path(args.out) / "error_vs_horizon.png", inputs=inputs, overwrite=True)
-            check_output(Path(args.out) / "evaluation.json", inputs=inputs, overwrite=args.overwrite)
-        config = EvalConfig(history=args.history, horizons=tuple(args.horizons), max_horizon=args.max_horizon,
-                            noise_levels=tuple(args.noise), max_windows=args.max_windows, seed=args.seed,
-                            device=args.device)
-        for data in args.data:
-            results[Path(data).stem] = evaluate_checkpoint(args.checkpoint, data, config, args.all_episodes,
-                                                           not args.quiet, args.training_data)
-    except (ValueError, FileNotFoundError, DatasetError, CheckpointError) as err:
-        print(f"rwm-gym evaluate: {err}", file=sys.stderr)
-        return 2
-    for result in results.values():
-        if cut := [n for n in args.horizons if n not in result["horizons"]]:  # said, not done quietly
-            print(f"rwm-gym evaluate: {result['data']}: horizons {cut} are longer than its evaluated episodes allow; "
-                  f"reported up to {result['longest']} steps", file=sys.stderr)
-        print(f"{result['model']} on {result['data']} ({result['episode_set']}, {result['episodes']} episodes)")
-        print(format_table(result) + "\n")
-    if args.out:
-        out = Path(args.out)
-        first = next(iter(results.values()))
-        write_json(out / "evaluation.json", first if len(results) == 1 else {"sources": results})
-        plot_running_mean(results if len(results) > 1 else {first["model"]: first}, out / "error_vs_horizon.png",
-                    title=f"{first['model']}: error against the open-loop horizon")
-        print(f"wrote {out / 'evaluation.json'} and {out / 'error_vs_horizon.png'}")
-    return 0
+    return {
+        "checkpoint": str(checkpoint),
+        "model": meta.model_config.kind,
+        "data": str(dataset.path),
+        "episode_set": held_out,
+        "config": asdict(config),
+        **result,
+    }

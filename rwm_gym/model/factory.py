@@ -14,14 +14,24 @@ from rwm_gym.model.rwm import RWM
 from rwm_gym.spec import TaskSpec
 
 MODEL_CLASSES: dict[str, type[WorldModel]] = {
-    "rwm": RWM, "mlp": MLPModel, "rssm": RSSM, "transformer": TransformerModel, "no_change": NoChangeModel,
+    "rwm": RWM,
+    "mlp": MLPModel,
+    "rssm": RSSM,
+    "transformer": TransformerModel,
+    "no_change": NoChangeModel,
 }
 
 
 def model_config_for(kind: str, spec: TaskSpec, **options: Any) -> ModelConfig:
     """A ModelConfig whose sizes come from the task spec; `options` set the other fields (e.g. ensemble_size=5)."""
-    return ModelConfig(kind=kind, state_dim=spec.state_dim, action_dim=spec.action_dim,
-                       contact_dim=spec.contact_dim, foot_dim=spec.foot_dim, **options)
+    return ModelConfig(
+        kind=kind,
+        state_dim=spec.state_dim,
+        action_dim=spec.action_dim,
+        contact_dim=spec.contact_dim,
+        foot_dim=spec.foot_dim,
+        **options,
+    )
 
 
 def train_config_for(kind: str, config: TrainConfig) -> TrainConfig:

@@ -58,9 +58,9 @@ def _layer(x: torch.Tensor, h: torch.Tensor, w: _LayerWeights, out: torch.Tensor
     """The layer's new hidden state for a block of rows, written into `out` (rows, H)."""
     hidden = h.shape[1]
     gates = torch.addmm(w.input_bias, x, w.input_t)  # (rows, 3H): every input product
-    reset_update = gates[:, :2 * hidden].addmm_(h, w.hidden_rz_t).sigmoid_()  # BLAS accumulates: no extra pass
+    reset_update = gates[:, : 2 * hidden].addmm_(h, w.hidden_rz_t).sigmoid_()  # BLAS accumulates: no extra pass
     candidate = torch.addmm(w.hidden_n_bias, h, w.hidden_n_t)
-    candidate = torch.addcmul(gates[:, 2 * hidden:], reset_update[:, :hidden], candidate, out=candidate)
+    candidate = torch.addcmul(gates[:, 2 * hidden :], reset_update[:, :hidden], candidate, out=candidate)
     candidate = candidate.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(a) = 2 sigmoid(2a) - 1: 4x faster on CPU
     return torch.lerp(candidate, h, reset_update[:, hidden:], out=out)
 
@@ -70,9 +70,9 @@ def _layer_low_precision(x: torch.Tensor, h: torch.Tensor, w: _LayerWeights, out
     hidden, low = h.shape[1], w.input_t.dtype
     h_low = h.to(low)
     gates = torch.mm(x.to(low), w.input_t).to(h.dtype).add_(w.input_bias)
-    reset_update = gates[:, :2 * hidden].add_(torch.mm(h_low, w.hidden_rz_t)).sigmoid_()
+    reset_update = gates[:, : 2 * hidden].add_(torch.mm(h_low, w.hidden_rz_t)).sigmoid_()
     candidate = torch.mm(h_low, w.hidden_n_t).to(h.dtype).add_(w.hidden_n_bias)
-    candidate = torch.addcmul(gates[:, 2 * hidden:], reset_update[:, :hidden], candidate, out=candidate)
+    candidate = torch.addcmul(gates[:, 2 * hidden :], reset_update[:, :hidden], candidate, out=candidate)
     candidate = candidate.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)
     return torch.lerp(candidate, h, reset_update[:, hidden:], out=out)
 
@@ -84,8 +84,9 @@ def layer_weights(gru: nn.GRU, matmul_dtype: torch.dtype | None = None) -> list[
     return [_LayerWeights.of(gru, layer, matmul_dtype) for layer in range(gru.num_layers)]
 
 
-def gru_step(gru: nn.GRU, x: torch.Tensor, hidden: torch.Tensor,
-             weights: list[_LayerWeights] | None = None) -> torch.Tensor:
+def gru_step(
+    gru: nn.GRU, x: torch.Tensor, hidden: torch.Tensor, weights: list[_LayerWeights] | None = None
+) -> torch.Tensor:
     """x (B, in), hidden (B, L, H) batch first -> the hidden state after one step (B, L, H); its last layer is the
     GRU's output. Requires a unidirectional GRU with biases (what every model here builds). `weights`: the GRU's
     `layer_weights` (default: its own, built now, in its dtype)."""

@@ -22,7 +22,7 @@ class EnsembleLinear(nn.Module):
 
     def __init__(self, k: int, in_features: int, out_features: int) -> None:
         super().__init__()
-        bound = in_features ** -0.5
+        bound = in_features**-0.5
         self.weight = nn.Parameter(torch.empty(k, in_features, out_features).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(k, 1, out_features).uniform_(-bound, bound))
 
@@ -39,8 +39,9 @@ class StateHead(nn.Module):
     With member None the heads are combined as an equal mixture: mean of means, std from the mixture variance.
     """
 
-    def __init__(self, in_features: int, state_dim: int, hidden: int, ensemble_size: int,
-                 log_std_min: float, log_std_max: float) -> None:
+    def __init__(
+        self, in_features: int, state_dim: int, hidden: int, ensemble_size: int, log_std_min: float, log_std_max: float
+    ) -> None:
         super().__init__()
         self.k, self.state_dim = ensemble_size, state_dim
         self.hidden = EnsembleLinear(ensemble_size, in_features, hidden)
@@ -52,8 +53,9 @@ class StateHead(nn.Module):
     """Compute the members' disagreement (`uncertainty`); off, a rollout with a `member` runs only its own head and
     `uncertainty` is None (`WorldModel.computing_disagreement` switches it for callers that read none)."""
 
-    def forward(self, features: torch.Tensor, last_state: torch.Tensor,
-                member: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def forward(
+        self, features: torch.Tensor, last_state: torch.Tensor, member: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         if member is not None and self.k > 1 and not self.disagreement:
             return (*self._own_heads(features, last_state, member), None)
         x = features.unsqueeze(0).expand(self.k, -1, -1)
@@ -73,8 +75,9 @@ class StateHead(nn.Module):
         variance = stds.square().mean(dim=0) + means.var(dim=0, unbiased=False)
         return means.mean(dim=0), variance.sqrt(), uncertainty
 
-    def _own_heads(self, features: torch.Tensor, last_state: torch.Tensor,
-                   member: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _own_heads(
+        self, features: torch.Tensor, last_state: torch.Tensor, member: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Each rollout through its own head only: one matmul per member over that member's rows (k times fewer
         FLOPs than running every head). Same per-row arithmetic as the batched ensemble call."""
         rows = features.shape[0]
@@ -83,8 +86,9 @@ class StateHead(nn.Module):
             index = (member == k).nonzero().squeeze(1)
             if index.numel() == 0:
                 continue
-            hidden = F.elu(torch.addmm(self.hidden.bias[k], features.index_select(0, index), self.hidden.weight[k]),
-                           inplace=True)
+            hidden = F.elu(
+                torch.addmm(self.hidden.bias[k], features.index_select(0, index), self.hidden.weight[k]), inplace=True
+            )
             out.index_copy_(0, index, torch.addmm(self.out.bias[k], hidden, self.out.weight[k]))
         residual, raw_log_std = out.split(self.state_dim, dim=-1)
         return last_state + residual, soft_bound(raw_log_std, self.min_log_std, self.max_log_std).exp()
@@ -96,8 +100,8 @@ class StateHead(nn.Module):
         std of its own choosing instead of the old loss's."""
         self.min_log_std.fill_(log_std_min)
         self.max_log_std.fill_(log_std_max)
-        self.out.weight[..., self.state_dim:] = 0.0
-        self.out.bias[..., self.state_dim:] = log_std
+        self.out.weight[..., self.state_dim :] = 0.0
+        self.out.bias[..., self.state_dim :] = log_std
 
     def bound_loss(self) -> torch.Tensor:
         """The band's width, sum(max_log_std - min_log_std) over channels where max is above min: keeps it from
@@ -128,25 +132,39 @@ class Heads(nn.Module):
 
     def __init__(self, state_features: int, privileged_features: int, config: ModelConfig) -> None:
         super().__init__()
-        self.state = StateHead(state_features, config.state_dim, config.head_hidden, config.ensemble_size,
-                               config.log_std_min_init, config.log_std_max_init)
+        self.state = StateHead(
+            state_features,
+            config.state_dim,
+            config.head_hidden,
+            config.ensemble_size,
+            config.log_std_min_init,
+            config.log_std_max_init,
+        )
         self.privileged = PrivilegedHead(privileged_features, config.contact_dim, config.foot_dim, config.head_hidden)
         # physics of the predicted mean (`constraints.StateConstraints`), attached by `build_model` when switched on
         self.constraints: nn.Module | None = None
 
-    def forward(self, state_features: torch.Tensor, privileged_features: torch.Tensor, last_state: torch.Tensor,
-                member: torch.Tensor | None = None) -> Prediction:
+    def forward(
+        self,
+        state_features: torch.Tensor,
+        privileged_features: torch.Tensor,
+        last_state: torch.Tensor,
+        member: torch.Tensor | None = None,
+    ) -> Prediction:
         lead = last_state.shape[:-1]
         if member is not None and len(lead) == 2:
             member = member.repeat_interleave(lead[1])
-        mean, std, uncertainty = self.state(state_features.reshape(-1, state_features.shape[-1]),
-                                            last_state.reshape(-1, last_state.shape[-1]), member)
+        mean, std, uncertainty = self.state(
+            state_features.reshape(-1, state_features.shape[-1]), last_state.reshape(-1, last_state.shape[-1]), member
+        )
         if self.constraints is not None:
             mean = self.constraints(mean)
         contact, foot, termination = self.privileged(privileged_features.reshape(-1, privileged_features.shape[-1]))
         return Prediction(
-            state_mean=mean.reshape(*lead, -1), state_std=std.reshape(*lead, -1),
-            contact_logits=contact.reshape(*lead, -1), foot_height=foot.reshape(*lead, -1),
+            state_mean=mean.reshape(*lead, -1),
+            state_std=std.reshape(*lead, -1),
+            contact_logits=contact.reshape(*lead, -1),
+            foot_height=foot.reshape(*lead, -1),
             termination_logit=termination.reshape(lead),
             uncertainty=None if uncertainty is None else uncertainty.reshape(lead),
         )

@@ -17,6 +17,8 @@ from rwm_gym.spec import TaskSpec
 
 @dataclass(frozen=True)
 class Normalizer:
+    """The state and foot-height scaling a world model trains and predicts in, saved in its checkpoint."""
+
     state_mean: np.ndarray
     """(S,) float64, in the state's units."""
     state_std: np.ndarray
@@ -26,13 +28,18 @@ class Normalizer:
 
     @classmethod
     def from_spec(cls, spec: TaskSpec) -> Normalizer:
-        return cls(np.asarray(spec.state_mean, dtype=np.float64), np.asarray(spec.state_std, dtype=np.float64),
-                   float(spec.privileged.foot_height_std))
+        return cls(
+            np.asarray(spec.state_mean, dtype=np.float64),
+            np.asarray(spec.state_std, dtype=np.float64),
+            float(spec.privileged.foot_height_std),
+        )
 
     def _stats(self, like: np.ndarray | torch.Tensor) -> tuple:
         if isinstance(like, torch.Tensor):
-            return (torch.as_tensor(self.state_mean, dtype=like.dtype, device=like.device),
-                    torch.as_tensor(self.state_std, dtype=like.dtype, device=like.device))
+            return (
+                torch.as_tensor(self.state_mean, dtype=like.dtype, device=like.device),
+                torch.as_tensor(self.state_std, dtype=like.dtype, device=like.device),
+            )
         return self.state_mean.astype(like.dtype), self.state_std.astype(like.dtype)
 
     def normalize_state(self, state: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:

@@ -34,21 +34,32 @@ class Prediction:
 
     def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> Prediction:
         """A Prediction with `fn` applied to every tensor (e.g. indexing)."""
-        return Prediction(**{f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name))
-                             for f in fields(self)})
+        return Prediction(
+            **{f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)}
+        )
 
     @staticmethod
     def stack(predictions: Sequence[Prediction], dim: int = 1) -> Prediction:
         """Stack per-step predictions along a new time dim (default 1: (B, T, ...))."""
         first = predictions[0]
-        return Prediction(**{f.name: None if getattr(first, f.name) is None
-                             else torch.stack([getattr(p, f.name) for p in predictions], dim)
-                             for f in fields(first)})
+        return Prediction(
+            **{
+                f.name: None
+                if getattr(first, f.name) is None
+                else torch.stack([getattr(p, f.name) for p in predictions], dim)
+                for f in fields(first)
+            }
+        )
 
     @staticmethod
     def cat(predictions: Sequence[Prediction], dim: int = 1) -> Prediction:
         """Concatenate predictions of consecutive steps along their time dim (default 1: (B, T1 + T2 + ..., ...))."""
         first = predictions[0]
-        return Prediction(**{f.name: None if getattr(first, f.name) is None
-                             else torch.cat([getattr(p, f.name) for p in predictions], dim)
-                             for f in fields(first)})
+        return Prediction(
+            **{
+                f.name: None
+                if getattr(first, f.name) is None
+                else torch.cat([getattr(p, f.name) for p in predictions], dim)
+                for f in fields(first)
+            }
+        )

@@ -37,17 +37,26 @@ class RSSM(WorldModel):
         self.inputs = nn.Sequential(nn.Linear(s + config.action_dim + z, h), nn.ELU())
         self.cell = nn.GRUCell(h, h)
         self.prior = nn.Sequential(nn.Linear(h, config.head_hidden), nn.ELU(), nn.Linear(config.head_hidden, 2 * z))
-        self.posterior = nn.Sequential(nn.Linear(h + s, config.head_hidden), nn.ELU(),
-                                       nn.Linear(config.head_hidden, 2 * z))
+        self.posterior = nn.Sequential(
+            nn.Linear(h + s, config.head_hidden), nn.ELU(), nn.Linear(config.head_hidden, 2 * z)
+        )
         self.heads = Heads(h + z, h + z, config)
 
     def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
         device = self.device if device is None else device
-        return (torch.zeros(batch_size, self.config.hidden_size, device=device),
-                torch.zeros(batch_size, self.config.rssm_latent, device=device))
+        return (
+            torch.zeros(batch_size, self.config.hidden_size, device=device),
+            torch.zeros(batch_size, self.config.rssm_latent, device=device),
+        )
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         h, z = hidden
         h = self.cell(self.inputs(torch.cat([state, action, z], dim=-1)), h)
         prior = _gaussian(self.prior, h)

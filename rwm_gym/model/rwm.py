@@ -34,22 +34,31 @@ class RWM(WorldModel):
         self.heads = Heads(config.hidden_size, config.hidden_size, config)
         # Parameterless one-layer GRUs (meta device: no memory, no RNG draws) that run one layer of a stacked GRU
         # with its weights, so the hidden state of every layer at every step can be kept (a tuple: not submodules).
-        self._one_layer = tuple(nn.GRU(inputs if layer == 0 else config.hidden_size, config.hidden_size, 1,
-                                       batch_first=True, device="meta") for layer in range(config.num_layers))
+        self._one_layer = tuple(
+            nn.GRU(inputs if layer == 0 else config.hidden_size, config.hidden_size, 1, batch_first=True, device="meta")
+            for layer in range(config.num_layers)
+        )
 
     def initial_hidden(self, batch_size: int, device: torch.device | str | None = None) -> Hidden:
         shape = (batch_size, self.config.num_layers, self.config.hidden_size)
         device = self.device if device is None else device
         return torch.zeros(shape, device=device), torch.zeros(shape, device=device)
 
-    def observe(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None,
-                next_states: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def observe(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """Both GRUs over the whole sequence at once (cuDNN on GPU); `next_states` is not used."""
         (out_state, out_privileged), hidden = self._recur(hidden, states, actions)
         return hidden, self.heads(out_state, out_privileged, states, member)
 
-    def _recur(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor
-               ) -> tuple[tuple[torch.Tensor, torch.Tensor], Hidden]:
+    def _recur(
+        self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[tuple[torch.Tensor, torch.Tensor], Hidden]:
         """Both GRUs over (states, actions) (B, T, .): their outputs (B, T, H) and the hidden state after T steps."""
         x = torch.cat([states, actions], dim=-1)
         h_state, h_privileged = (h.transpose(0, 1).contiguous() for h in hidden)
@@ -57,17 +66,22 @@ class RWM(WorldModel):
         out_privileged, h_privileged = self.privileged_gru(x, h_privileged)
         return (out_state, out_privileged), (h_state.transpose(0, 1), h_privileged.transpose(0, 1))
 
-    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor,
-                    member: torch.Tensor | None = None) -> Hidden:
+    def warm_hidden(self, states: torch.Tensor, actions: torch.Tensor, member: torch.Tensor | None = None) -> Hidden:
         """The GRUs over the history without the heads (the hidden state does not read them)."""
         batch, history = states.shape[:2]
         hidden = self.initial_hidden(batch, states.device)
         if history == 1:
             return hidden
-        return self._recur(hidden, states[:, :-1], actions[:, :history - 1])[1]
+        return self._recur(hidden, states[:, :-1], actions[:, : history - 1])[1]
 
-    def step(self, hidden: Hidden, state: torch.Tensor, action: torch.Tensor, member: torch.Tensor | None = None,
-             next_state: torch.Tensor | None = None) -> tuple[Hidden, Prediction]:
+    def step(
+        self,
+        hidden: Hidden,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_state: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """Without autograd (imagination, forecasts under no_grad) the GRUs run `gru_step`'s fused cell; with it,
         `nn.GRU` (the same numbers to float rounding)."""
         if torch.is_grad_enabled() or not self.fused_step:
@@ -75,8 +89,10 @@ class RWM(WorldModel):
             return hidden, prediction.map(lambda t: t.squeeze(1))
         x = torch.cat([state, action], dim=-1)
         state_weights, privileged_weights = self._fused_weights()
-        hidden = (gru_step(self.state_gru, x, hidden[0], state_weights),
-                  gru_step(self.privileged_gru, x, hidden[1], privileged_weights))
+        hidden = (
+            gru_step(self.state_gru, x, hidden[0], state_weights),
+            gru_step(self.privileged_gru, x, hidden[1], privileged_weights),
+        )
         return hidden, self.heads(hidden[0][:, -1], hidden[1][:, -1], state, member)
 
     def set_step_matmul_dtype(self, dtype: torch.dtype | None) -> None:
@@ -99,15 +115,22 @@ class RWM(WorldModel):
         and numbers as the stacked call (which also runs layer after layer over the whole sequence)."""
         layers = []
         for layer, template in enumerate(self._one_layer):
-            weights = {f"{name}_l0": getattr(gru, f"{name}_l{layer}")
-                       for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")}
+            weights = {
+                f"{name}_l0": getattr(gru, f"{name}_l{layer}")
+                for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")
+            }
             x, _ = functional_call(template, weights, (x, hidden[:, layer].unsqueeze(0).contiguous()))
             layers.append(x)
         return torch.stack(layers, dim=2)
 
-    def hidden_trajectory(self, hidden: Hidden, states: torch.Tensor, actions: torch.Tensor,
-                          member: torch.Tensor | None = None, next_states: torch.Tensor | None = None
-                          ) -> tuple[Hidden, Prediction]:
+    def hidden_trajectory(
+        self,
+        hidden: Hidden,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        member: torch.Tensor | None = None,
+        next_states: torch.Tensor | None = None,
+    ) -> tuple[Hidden, Prediction]:
         """One sequence pass per layer of both GRUs; the predictions are forecasts (`next_states` is not used)."""
         x = torch.cat([states, actions], dim=-1)
         h_state = self._layer_by_layer(self.state_gru, x, hidden[0])

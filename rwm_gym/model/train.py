@@ -2,7 +2,8 @@
 
 Windows of H history + F forecast rows are drawn uniformly from the training episodes (validation is held out by
 whole episode); with `branches` > 1 each drawn window start begins a longer segment that carries that many forecasts
-(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a learning-rate schedule over the budget
+(`branches.py`). The loss is in `losses.py`; one optimiser step is `train_step`. Adam with gradient clipping and a
+learning-rate schedule over the budget
 (iterations and/or minutes). A run is deterministic in its seed (weights, window sampling and forecast noise all come
 from torch's seeded RNG); checkpoints saved every `checkpoint_every` iterations and on Ctrl-C hold the optimizer and
 RNG states, so `--resume` continues to the same result as an uninterrupted run.
@@ -45,6 +46,8 @@ RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint
 
 @dataclass
 class TrainResult:
+    """What `train` returns: the model, its statistics and the checkpoint written."""
+
     model: WorldModel
     """The trained model (train mode, on the training device)."""
     stats: dict
@@ -66,8 +69,12 @@ def learning_rate_factor(schedule: str, progress: float) -> float:
 @contextmanager
 def _deterministic(device: torch.device) -> Iterator[None]:
     """Deterministic kernels for the duration of a run; the previous global settings are restored afterwards."""
-    previous = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
-                torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark)
+    previous = (
+        torch.are_deterministic_algorithms_enabled(),
+        torch.is_deterministic_algorithms_warn_only_enabled(),
+        torch.backends.cudnn.deterministic,
+        torch.backends.cudnn.benchmark,
+    )
     if device.type == "cuda":
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     torch.use_deterministic_algorithms(True, warn_only=True)
@@ -89,7 +96,7 @@ def validation_error(model: WorldModel, windows: WindowData, starts: torch.Tenso
     total = 0.0
     for chunk in starts.split(1024):
         batch = windows.gather(chunk, h + f)
-        prediction, _ = model.forecast(batch.states[:, :h], batch.actions[:, :h + f - 1], f, sample=False)
+        prediction, _ = model.forecast(batch.states[:, :h], batch.actions[:, : h + f - 1], f, sample=False)
         total += float(relative_error(prediction.state_mean, batch.states[:, h:]).mean(1).sum())
     model.train(was_training)
     return total / len(starts)
@@ -108,9 +115,14 @@ class SegmentBatch:
     """(B,) long rows of each segment inside its episode."""
 
 
-def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig, ensemble_size: int,
-                 generator: torch.Generator | None = None,
-                 world: distributed.World = distributed.SINGLE) -> SegmentBatch:
+def sample_batch(
+    windows: WindowData,
+    starts: torch.Tensor,
+    config: TrainConfig,
+    ensemble_size: int,
+    generator: torch.Generator | None = None,
+    world: distributed.World = distributed.SINGLE,
+) -> SegmentBatch:
     """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
     head per segment, from `generator` (torch's global RNG if None; a seeded run draws the same batches). In a
     distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`)."""
@@ -118,8 +130,9 @@ def sample_batch(windows: WindowData, starts: torch.Tensor, config: TrainConfig,
     index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
     member = None
     if ensemble_size > 1:
-        member = _upload(distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world),
-                         starts.device)
+        member = _upload(
+            distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world), starts.device
+        )
     window, real_rows = windows.gather_clipped(starts[_upload(index, starts.device)], config.segment_rows)
     return SegmentBatch(window, member, real_rows)
 
@@ -131,8 +144,13 @@ def _upload(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
     return tensor.pin_memory().to(device, non_blocking=True)
 
 
-def train_step(loss_fn: torch.nn.Module, optimizer: torch.optim.Optimizer, params: list[torch.nn.Parameter],
-               batch: SegmentBatch, grad_clip: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def train_step(
+    loss_fn: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    params: list[torch.nn.Parameter],
+    batch: SegmentBatch,
+    grad_clip: float,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """One optimiser step on one batch: loss_fn(window, member, real_rows) -> (loss, parts) (a `SegmentLoss`, or a
     data-parallel wrapper of one), backward, global-norm clip, step. Returns the loss and its parts as detached
     0-dim tensors on the device (no host copy per step)."""
@@ -174,11 +192,20 @@ def _rng_state(device: torch.device, sampler: torch.Generator) -> dict[str, torc
     return state
 
 
-def train(data: Dataset | str | os.PathLike, model_config: ModelConfig, config: TrainConfig,
-          out: str | os.PathLike | None = None, *, resume: bool = False, progress: bool = True,
-          tensorboard: str | None = None, callback: Callable[[int, dict], None] | None = None,
-          init: str | os.PathLike | None = None, overwrite: bool = False,
-          clock: Callable[[], float] = time.monotonic) -> TrainResult:
+def train(
+    data: Dataset | str | os.PathLike,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    out: str | os.PathLike | None = None,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    tensorboard: str | None = None,
+    callback: Callable[[int, dict], None] | None = None,
+    init: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    clock: Callable[[], float] = time.monotonic,
+) -> TrainResult:
     """Train a model of `model_config` on `data`; write the checkpoint to `out` (if given).
 
     init: start from the weights of this checkpoint (same model config and task; e.g. to fine-tune on new data);
@@ -212,13 +239,19 @@ def _training_data(data: Dataset | str | os.PathLike, model_config: ModelConfig)
     """The dataset (loaded if a path), warned about if its collection was interrupted, whose sizes fit the model."""
     dataset = data if isinstance(data, Dataset) else Dataset.load(data)
     if not dataset.info.complete:
-        warnings.warn(f"{dataset.path}: complete=false (its collection was interrupted); training on its "
-                      f"{dataset.num_episodes} finished episodes", stacklevel=3)
+        warnings.warn(
+            f"{dataset.path}: complete=false (its collection was interrupted); training on its "
+            f"{dataset.num_episodes} finished episodes",
+            stacklevel=3,
+        )
     spec = dataset.spec()
     sizes = (spec.state_dim, spec.action_dim, spec.contact_dim, spec.foot_dim)
-    if (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim) != sizes:
-        raise ValueError(f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
-                         f"config's {(model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)}")
+    expected = (model_config.state_dim, model_config.action_dim, model_config.contact_dim, model_config.foot_dim)
+    if expected != sizes:
+        raise ValueError(
+            f"{dataset.path}: data sizes (state, action, contact, foot) {sizes} differ from the model "
+            f"config's {expected}"
+        )
     return dataset
 
 
@@ -226,10 +259,24 @@ class _Run:
     """One training run, as rsl_rl's runner separates it: set up (model, optimizer, windows, provenance), `learn` (the
     loop), `_log` (validation and the logged means), `save` (the checkpoint). Built inside `_deterministic`."""
 
-    def __init__(self, dataset: Dataset, model_config: ModelConfig, config: TrainConfig, out: Path | None,
-                 world: distributed.World, device: torch.device, clock: Callable[[], float]):
+    def __init__(
+        self,
+        dataset: Dataset,
+        model_config: ModelConfig,
+        config: TrainConfig,
+        out: Path | None,
+        world: distributed.World,
+        device: torch.device,
+        clock: Callable[[], float],
+    ):
         self.model_config, self.config, self.out, self.world, self.device, self.clock = (
-            model_config, config, out, world, device, clock)
+            model_config,
+            config,
+            out,
+            world,
+            device,
+            clock,
+        )
         self.spec = spec = dataset.spec()
         self.normalizer = Normalizer.from_spec(spec)
         train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
@@ -243,16 +290,23 @@ class _Run:
             raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
         val_starts = windows.window_starts(val_ids, rows)
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
-        self.val_starts = val_starts[pick[:config.val_windows].to(val_starts.device)]
+        self.val_starts = val_starts[pick[: config.val_windows].to(val_starts.device)]
         pos_weight = windows.termination_pos_weight(train_ids)
         self.loss_fn = SegmentLoss(model, config, pos_weight)
         self.params = [p for p in model.parameters() if p.requires_grad]
-        self.optimizer = (torch.optim.Adam(self.params, lr=config.lr, weight_decay=config.weight_decay)
-                          if self.params else None)
-        self.provenance = {"dataset": str(dataset.path), "sha256": dataset.file_hash(), "env_id": dataset.info.env_id,
-                           "dataset_steps": int(dataset.num_steps),
-                           "train_episodes": [int(i) for i in train_ids], "val_episodes": [int(i) for i in val_ids],
-                           "train_windows": len(self.train_starts), "termination_pos_weight": pos_weight}
+        self.optimizer = (
+            torch.optim.Adam(self.params, lr=config.lr, weight_decay=config.weight_decay) if self.params else None
+        )
+        self.provenance = {
+            "dataset": str(dataset.path),
+            "sha256": dataset.file_hash(),
+            "env_id": dataset.info.env_id,
+            "dataset_steps": int(dataset.num_steps),
+            "train_episodes": [int(i) for i in train_ids],
+            "val_episodes": [int(i) for i in val_ids],
+            "train_windows": len(self.train_starts),
+            "termination_pos_weight": pos_weight,
+        }
         self.stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
         self.started = 0.0
         self.iteration, self.running, self.parts_sum = 0, 0.0, {}
@@ -269,16 +323,27 @@ class _Run:
         if self.config.reset_std_band:
             for head in self.model.modules():
                 if isinstance(head, StateHead):
-                    head.reset_band(self.model_config.log_std_min_init, self.model_config.log_std_max_init,
-                                    self.config.reset_log_std)
+                    head.reset_band(
+                        self.model_config.log_std_min_init,
+                        self.model_config.log_std_max_init,
+                        self.config.reset_log_std,
+                    )
 
     def save(self) -> Path | None:
         """The checkpoint at `out` (rank 0 only), with what `--resume` needs: optimizer, RNG states, stats."""
         if self.out is None or not self.world.is_main:
             return None
-        return save_checkpoint(self.out, self.model, self.spec, normalizer=self.normalizer, train_config=self.config,
-                               provenance=self.provenance, stats=self.stats, optimizer=self.optimizer,
-                               training_state=_rng_state(self.device, self.sampler))
+        return save_checkpoint(
+            self.out,
+            self.model,
+            self.spec,
+            normalizer=self.normalizer,
+            train_config=self.config,
+            provenance=self.provenance,
+            stats=self.stats,
+            optimizer=self.optimizer,
+            training_state=_rng_state(self.device, self.sampler),
+        )
 
     def elapsed(self) -> float:
         """Seconds into the run. Ranks must share the learning rate and the stop: with several, the slowest rank's
@@ -298,8 +363,9 @@ class _Run:
         by_steps = config.iterations > 0 and self.iteration >= config.iterations
         return by_steps or (config.minutes > 0 and self.elapsed() >= 60 * config.minutes)
 
-    def learn(self, progress: bool, tensorboard: str | None, callback: Callable[[int, dict], None] | None
-              ) -> TrainResult:
+    def learn(
+        self, progress: bool, tensorboard: str | None, callback: Callable[[int, dict], None] | None
+    ) -> TrainResult:
         """Train until the budget is spent (or Ctrl-C, which saves a resumable checkpoint first); validate, log and
         save on the way."""
         config, stats, clock = self.config, self.stats, self.clock
@@ -307,9 +373,14 @@ class _Run:
         writer = _tensorboard(tensorboard) if self.world.is_main else None
         self.started = clock() - stats["wall_s"]
         self.iteration = stats["iterations"]
-        bar = BudgetBar(steps=config.iterations or None, minutes=config.minutes or None, initial=self.iteration,
-                        desc=f"train {self.model_config.kind}", unit="it",
-                        disable=not progress or not self.world.is_main)
+        bar = BudgetBar(
+            steps=config.iterations or None,
+            minutes=config.minutes or None,
+            initial=self.iteration,
+            desc=f"train {self.model_config.kind}",
+            unit="it",
+            disable=not progress or not self.world.is_main,
+        )
         interrupt = _DeferredInterrupt()
         try:
             while not self.finished():
@@ -346,8 +417,9 @@ class _Run:
         lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
         for group in self.optimizer.param_groups:
             group["lr"] = lr
-        batch = sample_batch(self.windows, self.train_starts, config, self.model_config.ensemble_size, self.sampler,
-                             self.world)
+        batch = sample_batch(
+            self.windows, self.train_starts, config, self.model_config.ensemble_size, self.sampler, self.world
+        )
         loss, parts = train_step(compute_loss, self.optimizer, self.params, batch, config.grad_clip)
         self.iteration += 1
         self.running += loss
@@ -361,14 +433,23 @@ class _Run:
         row's scalars to TensorBoard."""
         stats, iteration = self.stats, self.iteration
         count = iteration - (stats["log"][-1]["iteration"] if stats["log"] else 0)
-        running = float(distributed.mean_over_ranks(torch.as_tensor(self.running, device=self.device).double(),
-                                                    self.world))  # the logged loss: the ranks' mean
+        running = float(
+            distributed.mean_over_ranks(torch.as_tensor(self.running, device=self.device).double(), self.world)
+        )  # the logged loss: the ranks' mean
         stats["train_loss"] = running / max(count, 1)
         stats["train_parts"] = {k: float(v) / max(count, 1) for k, v in self.parts_sum.items()}
-        stats["val_error"] = (validation_error(self.model, self.windows, self.val_starts, self.config)
-                              if self.world.is_main else None)
-        stats["log"].append({"iteration": iteration, "lr": lr, "train_loss": stats["train_loss"],
-                             "val_error": stats["val_error"], "wall_s": stats["wall_s"]})
+        stats["val_error"] = (
+            validation_error(self.model, self.windows, self.val_starts, self.config) if self.world.is_main else None
+        )
+        stats["log"].append(
+            {
+                "iteration": iteration,
+                "lr": lr,
+                "train_loss": stats["train_loss"],
+                "val_error": stats["val_error"],
+                "wall_s": stats["wall_s"],
+            }
+        )
         self.running, self.parts_sum = 0.0, {}
         if writer is not None:
             for name, value in stats["log"][-1].items():
@@ -379,8 +460,7 @@ class _Run:
         """The progress bar, with the loss and validation error on iterations that logged them."""
         stats, postfix = self.stats, {}
         if stats["log"] and stats["log"][-1]["iteration"] == self.iteration:  # not per step: a host copy
-            postfix = {"loss": f"{stats['train_loss']:.4f}",
-                       "val": stats["val_error"] and f"{stats['val_error']:.4f}"}
+            postfix = {"loss": f"{stats['train_loss']:.4f}", "val": stats["val_error"] and f"{stats['val_error']:.4f}"}
         bar.show(self.iteration, stats["wall_s"], **postfix)
 
     def _interrupted(self) -> None:
@@ -389,14 +469,24 @@ class _Run:
         out, iteration = self.out, self.iteration
         if self.world.distributed:  # ranks may stop an iteration apart: the periodic checkpoint is the consistent one
             if self.world.is_main and out is not None:
-                print(f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
-                      f"({out}, every {self.config.checkpoint_every} iterations) with --resume", file=sys.stderr)
+                print(
+                    f"\ninterrupted at iteration {iteration}; continue from the last periodic checkpoint "
+                    f"({out}, every {self.config.checkpoint_every} iterations) with --resume",
+                    file=sys.stderr,
+                )
         elif self.save() is not None:
             print(f"\ninterrupted at iteration {iteration}; saved {out} (continue with --resume)", file=sys.stderr)
 
 
-def _resume(path: Path, model: WorldModel, optimizer: torch.optim.Optimizer | None, config: TrainConfig,
-            sha256: str, device: torch.device, sampler: torch.Generator) -> dict:
+def _resume(
+    path: Path,
+    model: WorldModel,
+    optimizer: torch.optim.Optimizer | None,
+    config: TrainConfig,
+    sha256: str,
+    device: torch.device,
+    sampler: torch.Generator,
+) -> dict:
     """Load the state of an interrupted run into model and optimizer; return its stats."""
     meta, state = load_training_state(path, model, optimizer)
     if meta.train_config is None:

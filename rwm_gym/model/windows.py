@@ -55,7 +55,7 @@ class WindowData:
         self.episode_rows = np.asarray(dataset.episode_lengths, dtype=np.int64)
         last_rows = np.zeros(len(self.states), dtype=np.int64)
         for start, count in zip(self.episode_starts, self.episode_rows):
-            last_rows[start:start + count] = start + count - 1
+            last_rows[start : start + count] = start + count - 1
         self.last_row = torch.as_tensor(last_rows, device=device)
         """(N,) long: the last row of the episode each row belongs to."""
 
@@ -68,8 +68,13 @@ class WindowData:
     def gather(self, starts: torch.Tensor, rows: int) -> Window:
         """The windows beginning at `starts` (B,) long, `rows` rows each."""
         index = starts.to(self.states.device).unsqueeze(1) + torch.arange(rows, device=self.states.device)
-        return Window(self.states[index], self.actions[index], self.contacts[index], self.foot_heights[index],
-                      self.terminated[index])
+        return Window(
+            self.states[index],
+            self.actions[index],
+            self.contacts[index],
+            self.foot_heights[index],
+            self.terminated[index],
+        )
 
     def gather_clipped(self, starts: torch.Tensor, rows: int) -> tuple[Window, torch.Tensor]:
         """Segments of `rows` rows beginning at `starts` (B,) long that may run past their episode's end: rows beyond
@@ -78,14 +83,23 @@ class WindowData:
         last = self.last_row[starts]
         index = torch.minimum(starts.unsqueeze(1) + torch.arange(rows, device=starts.device), last.unsqueeze(1))
         real = (last - starts + 1).clamp(max=rows)
-        return Window(self.states[index], self.actions[index], self.contacts[index], self.foot_heights[index],
-                      self.terminated[index]), real
+        return Window(
+            self.states[index],
+            self.actions[index],
+            self.contacts[index],
+            self.foot_heights[index],
+            self.terminated[index],
+        ), real
 
     def termination_pos_weight(self, episodes: Sequence[int] | np.ndarray) -> float:
         """Negatives per positive of the termination flag over the rows of `episodes` that can be predicted (all
         but each episode's first), clipped to [1, 1000]; 1 when no episode terminates."""
-        flags = np.concatenate([self.terminated[s + 1:s + r].cpu().numpy()
-                                for s, r in zip(self.episode_starts[episodes], self.episode_rows[episodes])])
+        flags = np.concatenate(
+            [
+                self.terminated[s + 1 : s + r].cpu().numpy()
+                for s, r in zip(self.episode_starts[episodes], self.episode_rows[episodes])
+            ]
+        )
         positives = float(flags.sum())
         if positives == 0:
             return 1.0

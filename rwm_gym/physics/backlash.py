@@ -40,8 +40,9 @@ class DeadBand:
     """(A,) rad, b/2 per actuator."""
 
     @classmethod
-    def from_model(cls, model: mujoco.MjModel, joints: list[str] | tuple[str, ...],
-                   width: np.ndarray) -> DeadBand | None:
+    def from_model(
+        cls, model: mujoco.MjModel, joints: list[str] | tuple[str, ...], width: np.ndarray
+    ) -> DeadBand | None:
         """The dead band of total `width` (A,) rad at the position actuators named as `joints`; None if all are 0."""
         width = np.asarray(width, float)
         if np.any(width < 0):

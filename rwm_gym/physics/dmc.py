@@ -42,11 +42,15 @@ class DMCCore:
         self.envs = [_load(self.params) for _ in range(num_envs)]
         physics = self.envs[0].physics
         self.model: mujoco.MjModel = physics.model.ptr
-        for field, ours, theirs in (("task.physics_dt", spec.physics_dt, physics.timestep()),
-                                    ("task.policy_dt", spec.policy_dt, self.envs[0].control_timestep())):
+        for field, ours, theirs in (
+            ("task.physics_dt", spec.physics_dt, physics.timestep()),
+            ("task.policy_dt", spec.policy_dt, self.envs[0].control_timestep()),
+        ):
             if not np.isclose(ours, theirs):
-                raise ValueError(f"task spec {spec.name}: {field} is {ours} s but dm_control's "
-                                 f"{self.params.domain}-{self.params.task} uses {theirs} s")
+                raise ValueError(
+                    f"task spec {spec.name}: {field} is {ours} s but dm_control's "
+                    f"{self.params.domain}-{self.params.task} uses {theirs} s"
+                )
         self.layout = DMCLayout(self.model, spec, self.params.contact_partner)
         low, high = self.model.actuator_ctrlrange.T
         self._ctrl_mid, self._ctrl_half = (high + low) / 2, (high - low) / 2
@@ -64,8 +68,9 @@ class DMCCore:
         """Policy observations of envs `ids`, (len(ids), O) float32."""
         return build_observation(self.spec, self.state[ids], self.command[ids], self.last_action[ids])
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         """Start new episodes in envs `ids` (re-seeding the suite task's generator where a seed is given)."""
         if commands is not None and np.shape(commands)[-1]:
             raise ValueError(f"{self.spec.name} has no commands")
@@ -129,8 +134,15 @@ class DMCEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
 
-    def __init__(self, spec: str | TaskSpec, *, render_mode: str | None = None, width: int = 320, height: int = 240,
-                 camera: int = 0):
+    def __init__(
+        self,
+        spec: str | TaskSpec,
+        *,
+        render_mode: str | None = None,
+        width: int = 320,
+        height: int = 240,
+        camera: int = 0,
+    ):
         self.core = make_core(spec, 1)
         self.task_spec = self.core.spec
         self.observation_space = self.core.single_observation_space
@@ -161,4 +173,3 @@ class DMCEnv(gym.Env):
             return None
         height, width = self._render_size
         return self.physics.render(height=height, width=width, camera_id=self._camera)
-

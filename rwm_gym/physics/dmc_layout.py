@@ -54,8 +54,9 @@ class DMCLayout:
         self.feet = _ids(model, mujoco.mjtObj.mjOBJ_BODY, spec.privileged.feet, spec, "foot body")
         actuators = _ids(model, mujoco.mjtObj.mjOBJ_ACTUATOR, spec.actuator.joints, spec, "actuator")
         if len(actuators) != model.nu or (actuators != np.arange(model.nu)).any():
-            raise ValueError(f"task spec {spec.name}: actuator.joints must list the model's {model.nu} actuators "
-                             f"in model order")
+            raise ValueError(
+                f"task spec {spec.name}: actuator.joints must list the model's {model.nu} actuators in model order"
+            )
 
     def _reader(self, name: str, columns: tuple[str, ...]) -> Reader:
         m, spec = self.model, self.spec
@@ -74,7 +75,7 @@ class DMCLayout:
             def velocity(d: mujoco.MjData) -> np.ndarray:
                 out = np.zeros(6)
                 mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, base, out, 1)  # body frame, not inertial
-                return out[offset:offset + 3][axes]
+                return out[offset : offset + 3][axes]
 
             return velocity
         if name == "actuator_force":
@@ -83,7 +84,8 @@ class DMCLayout:
         if name in ("joint_pos", "joint_cos", "joint_sin", "joint_vel"):
             joints = _ids(m, mujoco.mjtObj.mjOBJ_JOINT, columns, spec, f"state group {name!r} joint")
             if (m.jnt_type[joints] == mujoco.mjtJoint.mjJNT_FREE).any() or (
-                    m.jnt_type[joints] == mujoco.mjtJoint.mjJNT_BALL).any():
+                m.jnt_type[joints] == mujoco.mjtJoint.mjJNT_BALL
+            ).any():
                 raise ValueError(f"task spec {spec.name}: state group {name!r} takes only hinge or slide joints")
             if name == "joint_vel":
                 dofs = m.jnt_dofadr[joints]

@@ -1,7 +1,8 @@
 """Velocity-tracking locomotion in MuJoCo: the vectorised task core and the single `gymnasium.Env`.
 
 `LocomotionCore` runs N simulations at once on either simulator backend and hands the measured states to the task
-object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is the core with N = 1 behind the standard Gymnasium API, and the vector
+object (`rwm_gym.task.tasks.VelocityTrackingTask`: commands, reward) that the imagined env shares; `LocomotionEnv` is
+the core with N = 1 behind the standard Gymnasium API, and the vector
 envs in `rwm_gym.vector` are the same core with N > 1 (`make_core`). So the three give identical transitions per seed.
 """
 
@@ -45,12 +46,15 @@ class LocomotionCore:
         self.solver = SolverSettings.from_dict(solver)
         self.model = build_model(spec, xml_file, self.params, self.solver)
         if not np.isclose(self.model.opt.timestep, spec.physics_dt):
-            raise ValueError(f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
-                             f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s")
+            raise ValueError(
+                f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
+                f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s"
+            )
         self.layout = RobotLayout.from_model(self.model, spec)
         band = dead_band(spec, self.model, self.params)
-        self.sim = (SingleSimulator(self.model, band) if num_envs == 1
-                    else BatchSimulator(self.model, num_envs, nthread, band))
+        self.sim = (
+            SingleSimulator(self.model, band) if num_envs == 1 else BatchSimulator(self.model, num_envs, nthread, band)
+        )
         self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         if self.keyframe < 0:
             raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")
@@ -78,8 +82,9 @@ class LocomotionCore:
         rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
         return build_observation(self.spec, self.current.state[ids], self.command[ids], self.last_action[ids], rngs)
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         """Start new episodes in envs `ids` (re-seeding those with a seed; holding `commands` (len(ids), K) if given);
         return their observations."""
         ids = np.asarray(ids, dtype=int)
@@ -139,21 +144,10 @@ class LocomotionCore:
         }
 
 
-def make_core(
-    spec: str | TaskSpec = "anymal_d",
-    num_envs: int = 1,
-    *,
-    xml_file: str | Path | None = None,
-    physics: PhysicsParams | Mapping[str, object] | None = None,
-    observation_noise: bool = False,
-    nthread: int = 0,
-    resample_commands: bool = True,
-    solver: SolverSettings | Mapping[str, int] | None = None,
-) -> LocomotionCore:
-    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; `nthread` 0: all CPUs."""
-    task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
-    return LocomotionCore(task, num_envs, xml_file=xml_file, physics=physics, observation_noise=observation_noise,
-                          nthread=nthread, resample_commands=resample_commands, solver=solver)
+def make_core(spec: str | TaskSpec = "anymal_d", num_envs: int = 1, **kwargs) -> LocomotionCore:
+    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; kwargs as
+    `LocomotionCore` (xml_file, physics, observation_noise, nthread (0: all CPUs), resample_commands, solver)."""
+    return LocomotionCore(spec if isinstance(spec, TaskSpec) else load_spec(spec), num_envs, **kwargs)
 
 
 class LocomotionEnv(gym.Env):
@@ -164,7 +158,7 @@ class LocomotionEnv(gym.Env):
     `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot;
     `solver` (see `SolverSettings`, e.g. `{"iterations": 100}`) how exactly MuJoCo solves each step, not the robot.
     `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode; `resample_commands=False` keeps
-    each episode's sampled command.
+    each episode's sampled command. The keyword arguments are `LocomotionCore`'s, listed there once.
     """
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
@@ -173,20 +167,15 @@ class LocomotionEnv(gym.Env):
         self,
         spec: str | TaskSpec = "anymal_d",
         *,
-        xml_file: str | Path | None = None,
-        physics: PhysicsParams | Mapping[str, object] | None = None,
-        observation_noise: bool = False,
-        resample_commands: bool = True,
-        solver: SolverSettings | Mapping[str, int] | None = None,
         render_mode: str | None = None,
         width: int = 640,
         height: int = 480,
         camera: str = "track",
+        **kwargs,
     ):
-        self.task_spec = spec if isinstance(spec, TaskSpec) else load_spec(spec)
-        self.core = LocomotionCore(self.task_spec, 1, xml_file=xml_file, physics=physics,
-                                   observation_noise=observation_noise, resample_commands=resample_commands,
-                                   solver=solver)
+        """kwargs as `LocomotionCore`: xml_file, physics, observation_noise, resample_commands, solver."""
+        self.core = make_core(spec, 1, **kwargs)
+        self.task_spec = self.core.spec
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task_spec.policy_dt))}

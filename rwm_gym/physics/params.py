@@ -82,7 +82,9 @@ class PhysicsParams:
 
 def per_joint(value: PerJoint, n: int, name: str) -> np.ndarray:
     """Broadcast a scalar or per-joint value to shape (n,)."""
-    out = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)) if np.ndim(value) == 0 else np.asarray(value, float)
+    out = (
+        np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)) if np.ndim(value) == 0 else np.asarray(value, float)
+    )
     if out.shape != (n,):
         raise ValueError(f"physics parameter {name!r} has {out.size} values for {n} joints")
     return out
@@ -161,16 +163,27 @@ class JointFigures:
         limit = per_joint(act.effort_limit if params.torque_limit is None else params.torque_limit, n, "torque_limit")
         delay_steps = params.action_delay / spec.physics_dt
         if params.action_delay < 0 or abs(delay_steps - round(delay_steps)) > 1e-6:
-            raise ValueError(f"action_delay {params.action_delay} s is not a non-negative multiple of "
-                             f"{spec.physics_dt} s")
+            raise ValueError(
+                f"action_delay {params.action_delay} s is not a non-negative multiple of {spec.physics_dt} s"
+            )
         bias = np.stack([np.zeros(n), -strength * kp, -strength * kd], axis=1)
-        return cls(strength * kp, bias, limit, per_joint(params.joint_friction, n, "joint_friction"),
-                   per_joint(params.joint_damping, n, "joint_damping"), per_joint(params.armature, n, "armature"),
-                   int(round(delay_steps)))
+        return cls(
+            strength * kp,
+            bias,
+            limit,
+            per_joint(params.joint_friction, n, "joint_friction"),
+            per_joint(params.joint_damping, n, "joint_damping"),
+            per_joint(params.armature, n, "armature"),
+            int(round(delay_steps)),
+        )
 
 
-def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None,
-                solver: SolverSettings | None = None) -> mujoco.MjModel:
+def build_model(
+    spec: TaskSpec,
+    xml_file: str | Path | None = None,
+    params: PhysicsParams | None = None,
+    solver: SolverSettings | None = None,
+) -> mujoco.MjModel:
     """Compile the robot of `spec` (or `xml_file`) with the spec's actuator figures and `params` applied.
 
     The MJCF must name its actuated hinge joints and their position actuators as the spec's `actuator.joints`.
@@ -178,8 +191,12 @@ def build_model(spec: TaskSpec, xml_file: str | Path | None = None, params: Phys
     return build_spec(spec, xml_file, params, solver).compile()
 
 
-def build_spec(spec: TaskSpec, xml_file: str | Path | None = None, params: PhysicsParams | None = None,
-               solver: SolverSettings | None = None) -> mujoco.MjSpec:
+def build_spec(
+    spec: TaskSpec,
+    xml_file: str | Path | None = None,
+    params: PhysicsParams | None = None,
+    solver: SolverSettings | None = None,
+) -> mujoco.MjSpec:
     """The uncompiled `MjSpec` of `build_model` (e.g. to write the modified robot as MJCF with `to_xml()`)."""
     params = params or PhysicsParams()
     path = Path(xml_file) if xml_file is not None else spec.model_path
@@ -238,8 +255,11 @@ class ModelCache:
         figures = JointFigures.of(self.spec, params)
         key = (params.payload_mass > 0, figures.delay_steps, params.ground_friction is not None)
         if key not in self._templates:
-            structure = PhysicsParams(action_delay=params.action_delay, payload_mass=1.0 if key[0] else 0.0,
-                                      ground_friction=1.0 if key[2] else None)
+            structure = PhysicsParams(
+                action_delay=params.action_delay,
+                payload_mass=1.0 if key[0] else 0.0,
+                ground_friction=1.0 if key[2] else None,
+            )
             self._templates[key] = build_model(self.spec, self.xml_file, structure, self.solver)
         template = self._templates[key]
         model = copy.copy(template)

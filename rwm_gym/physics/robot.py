@@ -17,6 +17,8 @@ from rwm_gym.spec import TaskSpec
 
 @dataclass(frozen=True)
 class RobotLayout:
+    """Where the spec's joints, actuators and sensors sit in the MuJoCo model's arrays."""
+
     qpos_adr: np.ndarray
     """(A,) qpos index of each actuated joint, spec order."""
     dof_adr: np.ndarray

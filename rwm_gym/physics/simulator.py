@@ -65,8 +65,10 @@ class BatchSimulator:
         self.dead_band = dead_band
         self.num_envs = num_envs
         self.batch = mjbatch.Batch(model, nsim=num_envs, nthread=nthread)
-        self._bound = {name: self.batch.bind(name) for name in
-                       ("qpos", "qvel", "ctrl", "actuator_force", "sensordata", "site_xpos", "time")}
+        self._bound = {
+            name: self.batch.bind(name)
+            for name in ("qpos", "qvel", "ctrl", "actuator_force", "sensordata", "site_xpos", "time")
+        }
 
     def reset(self, ids: np.ndarray, keyframe: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         self.batch.reset(ids, keyframe=np.full(len(ids), keyframe), stage=mujoco.mjtStage.mjSTAGE_NONE)

@@ -17,6 +17,8 @@ from rwm_gym.spec import TaskSpec
 
 
 class Policy(Protocol):
+    """A batched scripted policy: `reset` envs `ids` with their generators, `act` on (N, O) observations."""
+
     name: str
 
     def reset(self, ids: np.ndarray, rngs: list[np.random.Generator]) -> None: ...

@@ -67,8 +67,11 @@ class ExcitationPolicy:
         self.phase += 2 * np.pi * self.freq * self.dt
         phi = self.phase[:, None] + self.leg_phase[None]
         swing = np.maximum(np.sin(phi), 0.0)
-        gait = np.where(self.joint_kind == 2, self.knee_sign * c.gait_amplitude * swing,
-                        np.where(self.joint_kind == 1, 0.5 * c.gait_amplitude * np.cos(phi), 0.0))
+        gait = np.where(
+            self.joint_kind == 2,
+            self.knee_sign * c.gait_amplitude * swing,
+            np.where(self.joint_kind == 1, 0.5 * c.gait_amplitude * np.cos(phi), 0.0),
+        )
         for i, rng in enumerate(self.rngs):
             fresh = rng.normal(0.0, c.noise_scale, self.noise.shape[1])
             jumps = rng.random(self.noise.shape[1]) < c.jump_probability

@@ -129,11 +129,14 @@ class GaitPolicy:
         # Diagonal pairs in anti-phase: LF and RH at phase 0, RF and LH half a cycle later (leg order LF, RF, LH, RH).
         self.leg_offset = np.array([0.0, 0.5, 0.5, 0.0])
         out = np.sign(self.kin.hip)
-        self.nominal = np.stack([
-            self.kin.hip[:, 0] + self.kin.thigh[:, 0] + out[:, 0] * p.foot_x_offset,
-            self.kin.hip[:, 1] + out[:, 1] * p.foot_y_offset,
-            np.full(4, -p.stance_height),
-        ], axis=-1)  # (4, 3) m, base frame
+        self.nominal = np.stack(
+            [
+                self.kin.hip[:, 0] + self.kin.thigh[:, 0] + out[:, 0] * p.foot_x_offset,
+                self.kin.hip[:, 1] + out[:, 1] * p.foot_y_offset,
+                np.full(4, -p.stance_height),
+            ],
+            axis=-1,
+        )  # (4, 3) m, base frame
         self.stance_time = p.duty / p.frequency_hz  # s
 
         n = num_envs
@@ -168,7 +171,8 @@ class GaitPolicy:
 
         # Clock: advance, except to hold a standing robot in the four-foot support between two swings.
         moving = (np.linalg.norm(command, axis=1) > self.spec.command.standing_threshold) | (
-            np.linalg.norm(lin_vel[:, :2], axis=1) > p.restart_speed)
+            np.linalg.norm(lin_vel[:, :2], axis=1) > p.restart_speed
+        )
         advanced = (self.phase + p.frequency_hz * self.dt) % 1.0
         hold = ~moving & ~self.in_swing.any(axis=1) & (self._leg_phase(advanced) >= p.duty).any(axis=1)
         self.phase = np.where(hold, self.phase, advanced)
@@ -178,8 +182,9 @@ class GaitPolicy:
         # Scale the twist down where it would sweep a foot faster than the legs can follow, or step sideways faster
         # than the hip abduction (within 0.5 rad of its default) can carry the load.
         speed = np.linalg.norm(self._foot_velocity(desired), axis=-1).max(axis=1)
-        scale = np.minimum(p.max_foot_speed / np.maximum(speed, 1e-9), p.max_lateral_speed / np.maximum(
-            np.abs(desired[:, 1]), 1e-9))
+        scale = np.minimum(
+            p.max_foot_speed / np.maximum(speed, 1e-9), p.max_lateral_speed / np.maximum(np.abs(desired[:, 1]), 1e-9)
+        )
         desired = desired * np.minimum(1.0, scale)[:, None]
 
         targets = self._swing_targets(feet, swing, leg_phase, desired, lin_vel, ang_vel)
@@ -197,27 +202,49 @@ class GaitPolicy:
         x, y = self.nominal[:, 0], self.nominal[:, 1]
         return np.stack([twist[:, :1] - twist[:, 2:] * y, twist[:, 1:2] + twist[:, 2:] * x], axis=-1)
 
-    def _swing_targets(self, feet: np.ndarray, swing: np.ndarray, leg_phase: np.ndarray, desired: np.ndarray,
-                       lin_vel: np.ndarray, ang_vel: np.ndarray) -> np.ndarray:
+    def _swing_targets(
+        self,
+        feet: np.ndarray,
+        swing: np.ndarray,
+        leg_phase: np.ndarray,
+        desired: np.ndarray,
+        lin_vel: np.ndarray,
+        ang_vel: np.ndarray,
+    ) -> np.ndarray:
         """Foot targets (N, 4, 3) of the swing legs: lift-off point -> Raibert touchdown point, on an arc."""
         p = self.params
         self.liftoff = np.where((swing & ~self.in_swing)[..., None], feet, self.liftoff)
         self.in_swing = swing
         measured = np.concatenate([lin_vel[:, :2], ang_vel[:, 2:]], axis=1)
-        shift = np.clip(p.raibert_gain * (self._foot_velocity(measured) - self._foot_velocity(desired)),
-                        -p.max_foot_shift, p.max_foot_shift)
+        shift = np.clip(
+            p.raibert_gain * (self._foot_velocity(measured) - self._foot_velocity(desired)),
+            -p.max_foot_shift,
+            p.max_foot_shift,
+        )
         touchdown = self.nominal[:, :2] + 0.5 * self.stance_time * self._foot_velocity(desired) + shift
         progress = np.clip((leg_phase - p.duty + p.swing_lead * p.frequency_hz) / (1.0 - p.duty), 0.0, 1.0)
         travel = np.clip((progress - p.lift_first) / (1.0 - p.lift_first), 0.0, 1.0)
         blend = 0.5 - 0.5 * np.cos(np.pi * travel)
         xy = self.liftoff[..., :2] + (touchdown - self.liftoff[..., :2]) * blend[..., None]
-        z = self.liftoff[..., 2] + (-p.stance_height - self.liftoff[..., 2]) * blend + p.swing_height * np.sin(
-            np.pi * progress)
+        z = (
+            self.liftoff[..., 2]
+            + (-p.stance_height - self.liftoff[..., 2]) * blend
+            + p.swing_height * np.sin(np.pi * progress)
+        )
         return np.concatenate([xy, z[..., None]], axis=-1)
 
-    def _stance_torques(self, q: np.ndarray, feet: np.ndarray, swing: np.ndarray, leg_phase: np.ndarray,
-                        hold: np.ndarray, desired: np.ndarray, lin_vel: np.ndarray, ang_vel: np.ndarray,
-                        gravity: np.ndarray) -> np.ndarray:
+    def _stance_torques(
+        self,
+        q: np.ndarray,
+        feet: np.ndarray,
+        swing: np.ndarray,
+        leg_phase: np.ndarray,
+        hold: np.ndarray,
+        desired: np.ndarray,
+        lin_vel: np.ndarray,
+        ang_vel: np.ndarray,
+        gravity: np.ndarray,
+    ) -> np.ndarray:
         """Joint torques (N, 4, 3) that make the stance feet push the virtual-model wrench onto the base."""
         p = self.params
         up = -gravity  # world up in the base frame
@@ -238,7 +265,7 @@ class GaitPolicy:
         wrench = np.concatenate([force, moment], axis=1)  # (N, 6)
 
         # Foot forces f (N, 12) with sum f_i = force, sum r_i x f_i = moment, least sum |f_i|^2 / w_i.
-        blocks = np.concatenate([np.broadcast_to(np.eye(3), feet.shape[:2] + (3, 3)), _skew(feet)], axis=-2)
+        blocks = np.concatenate([np.broadcast_to(np.eye(3), (*feet.shape[:2], 3, 3)), _skew(feet)], axis=-2)
         a = blocks.transpose(0, 2, 1, 3).reshape(-1, 6, 12)  # (N, 6, 12)
         w = np.repeat(weight, 3, axis=1)[:, None, :]
         gram = (a * w) @ a.transpose(0, 2, 1) + 1e-3 * np.eye(6)

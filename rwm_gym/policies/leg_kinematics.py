@@ -56,8 +56,12 @@ class LegKinematics:
         joints = joints.reshape(legs, 3)
         bodies = model.jnt_bodyid[joints]
         axes = model.jnt_axis[joints]
-        chain = (np.allclose(model.jnt_pos[joints], 0.0) and np.allclose(axes[:, 0], [1, 0, 0])
-                 and np.allclose(axes[:, 1:], [0, 1, 0]) and np.array_equal(model.site_bodyid[feet], bodies[:, 2]))
+        chain = (
+            np.allclose(model.jnt_pos[joints], 0.0)
+            and np.allclose(axes[:, 0], [1, 0, 0])
+            and np.allclose(axes[:, 1:], [0, 1, 0])
+            and np.array_equal(model.site_bodyid[feet], bodies[:, 2])
+        )
         if not chain:
             raise ValueError(f"robot model of task spec {spec.name}: legs are not HAA(x)-HFE(y)-KFE(y) chains")
         return cls(

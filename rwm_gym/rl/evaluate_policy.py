@@ -30,8 +30,9 @@ SCORING_SEED = 20261123
 """Seed of the random half of the scoring command set: fixed, so every score is measured on the same commands."""
 
 
-def scoring_commands(spec: str | TaskSpec = "anymal_d", num_random: int = 16,
-                     seed: int = SCORING_SEED) -> tuple[tuple[float, ...], ...]:
+def scoring_commands(
+    spec: str | TaskSpec = "anymal_d", num_random: int = 16, seed: int = SCORING_SEED
+) -> tuple[tuple[float, ...], ...]:
     """The scoring command set: standing, 1 m/s forward, then `num_random` commands drawn uniformly from the spec's
     ranges with a fixed seed. (vx m/s, vy m/s, yaw rate rad/s) in the body frame for ANYmal D."""
     from rwm_gym.spec import load_spec
@@ -153,11 +154,15 @@ def evaluate_policy(
         tally.add(reward, terminated, info, state, settled=t >= settle_steps)
     rows = [tally.result(c, np.array([pc == c for pc, _ in pairs]), steps) for c in commands]
     return Evaluation(
-        commands=rows, tracking=float(tally.tracking.mean() / steps),
+        commands=rows,
+        tracking=float(tally.tracking.mean() / steps),
         episode_return=float(np.mean([r.episode_return for r in rows])),
         lin_vel_error=float(np.mean([r.lin_vel_error for r in rows])),
-        yaw_rate_error=float(np.mean([r.yaw_rate_error for r in rows])), falls=int(sum(r.falls for r in rows)),
-        episodes=n, steps=steps, wall_s=time.monotonic() - started,
+        yaw_rate_error=float(np.mean([r.yaw_rate_error for r in rows])),
+        falls=int(sum(r.falls for r in rows)),
+        episodes=n,
+        steps=steps,
+        wall_s=time.monotonic() - started,
     )
 
 
@@ -197,8 +202,17 @@ class _Tally:
         n = len(cmd)
         cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
         direction = np.divide(cmd[:, :2], cmd_norm[:, None], out=np.zeros((n, 2)), where=cmd_norm[:, None] > 0)
-        return cls(task, cmd, direction, np.ones(n, dtype=bool), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
-                   {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")})
+        return cls(
+            task,
+            cmd,
+            direction,
+            np.ones(n, dtype=bool),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n),
+            {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")},
+        )
 
     def add(self, reward: np.ndarray, terminated: np.ndarray, info: dict, state: np.ndarray, settled: bool) -> None:
         """One step: the reward and disagreement before a fall, then tracking, distance and (once `settled`) the
@@ -230,10 +244,14 @@ class _Tally:
         achieved = np.stack([means["vx"][m], means["vy"][m], means["wz"][m]], axis=1)
         disagreement = self.disagreement
         return CommandResult(
-            command=command, tracking=float(self.tracking[m].mean() / steps),
-            episode_return=float(self.returns[m].mean()), lin_vel_error=float(means["lin_err"][m].mean()),
-            yaw_rate_error=float(means["yaw_err"][m].mean()), falls=int((~self.alive[m]).sum()),
-            distance=float(self.sums["dist"][m].mean()), achieved=tuple(float(x) for x in achieved.mean(0)),
+            command=command,
+            tracking=float(self.tracking[m].mean() / steps),
+            episode_return=float(self.returns[m].mean()),
+            lin_vel_error=float(means["lin_err"][m].mean()),
+            yaw_rate_error=float(means["yaw_err"][m].mean()),
+            falls=int((~self.alive[m]).sum()),
+            distance=float(self.sums["dist"][m].mean()),
+            achieved=tuple(float(x) for x in achieved.mean(0)),
             achieved_std=tuple(float(x) for x in achieved.std(0)),
             disagreement=None if disagreement is None else float(disagreement[m].sum() / self.alive_steps[m].sum()),
         )
@@ -243,20 +261,26 @@ def format_table(evaluation: Evaluation) -> str:
     """A plain-text table: one row per command and a mean row; in a world model that reports it, each command's mean
     ensemble disagreement too."""
     in_model = any(r.disagreement is not None for r in evaluation.commands)
-    head = f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | " \
-           f"{'|dwz| rad/s':>11} | {'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}" + \
-           (" | disagreement" if in_model else "")
+    head = (
+        f"{'command (vx, vy, wz)':>22} | {'track':>5} | {'return':>7} | {'|dv_xy| m/s':>11} | "
+        f"{'|dwz| rad/s':>11} | {'falls':>5} | {'dist m':>7} | {'achieved (vx, vy, wz)':>22}"
+        + (" | disagreement" if in_model else "")
+    )
     lines = [head, "-" * len(head)]
     for r in evaluation.commands:
         cmd = "(" + ", ".join(f"{x:+.1f}" for x in r.command) + ")"
         got = "(" + ", ".join(f"{x:+.2f}" for x in r.achieved) + ")"
-        lines.append(f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | "
-                     f"{r.yaw_rate_error:11.3f} | {r.falls:5d} | {r.distance:7.2f} | {got:>22}"
-                     + (f" | {r.disagreement:12.4f}" if in_model else ""))
+        lines.append(
+            f"{cmd:>22} | {r.tracking:5.3f} | {r.episode_return:7.2f} | {r.lin_vel_error:11.3f} | "
+            f"{r.yaw_rate_error:11.3f} | {r.falls:5d} | {r.distance:7.2f} | {got:>22}"
+            + (f" | {r.disagreement:12.4f}" if in_model else "")
+        )
     e = evaluation
     lines.append("-" * len(head))
-    lines.append(f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | "
-                 f"{e.yaw_rate_error:11.3f} | {e.falls:5d} | {'':>7} | {e.episodes} episodes x {e.steps} steps")
+    lines.append(
+        f"{'mean':>22} | {e.tracking:5.3f} | {e.episode_return:7.2f} | {e.lin_vel_error:11.3f} | "
+        f"{e.yaw_rate_error:11.3f} | {e.falls:5d} | {'':>7} | {e.episodes} episodes x {e.steps} steps"
+    )
     return "\n".join(lines)
 
 
@@ -273,16 +297,24 @@ def plot(evaluation: Evaluation, path: str | os.PathLike, title: str = "") -> Pa
     fig, axes = plt.subplots(1, 3, figsize=(14, 4), sharex=True)
     for k, (ax, name) in enumerate(zip(axes, ("vx (m/s)", "vy (m/s)", "yaw rate (rad/s)"))):
         ax.bar(x - 0.2, [r.command[k] for r in rows], 0.4, label="commanded", color="0.7")
-        ax.bar(x + 0.2, [r.achieved[k] for r in rows], 0.4, yerr=[r.achieved_std[k] for r in rows],
-               label="achieved", color="tab:blue", capsize=3)
+        ax.bar(
+            x + 0.2,
+            [r.achieved[k] for r in rows],
+            0.4,
+            yerr=[r.achieved_std[k] for r in rows],
+            label="achieved",
+            color="tab:blue",
+            capsize=3,
+        )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_title(name)
         ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
     axes[0].legend()
-    fig.suptitle(title or f"physics evaluation: tracking {evaluation.tracking:.3f}, "
-                          f"return {evaluation.episode_return:.2f}, "
-                          f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}")
+    fig.suptitle(
+        title
+        or f"physics evaluation: tracking {evaluation.tracking:.3f}, "
+        f"return {evaluation.episode_return:.2f}, "
+        f"|dv_xy| {evaluation.lin_vel_error:.3f} m/s, falls {evaluation.falls}/{evaluation.episodes}"
+    )
     fig.tight_layout()
     return save_png(fig, path, dpi=100)
-
-

@@ -25,17 +25,24 @@ class RecordingCore:
     file complete; a killed run leaves every finished episode readable (the writer flushes per episode).
     """
 
-    def __init__(self, core, path: str | Path, *, every: int = 8, policy: str = "ppo", seed: int = 0,
-                 overwrite: bool = False):
+    def __init__(
+        self, core, path: str | Path, *, every: int = 8, policy: str = "ppo", seed: int = 0, overwrite: bool = False
+    ):
         if every < 1:
             raise ValueError(f"record every {every}-th env: must be >= 1")
         self.core = core
         self.recorded = np.arange(0, core.num_envs, every)
         spec = core.spec
-        info = DatasetInfo(env_id=spec.physics_env_id, spec_text=spec.text, dt=spec.policy_dt,
-                           columns=dataset_columns(core), policy=policy, seed=seed,
-                           physics_params=core.params.to_dict(),
-                           metadata={"source": "PPO training experience", "record_every_env": every})
+        info = DatasetInfo(
+            env_id=spec.physics_env_id,
+            spec_text=spec.text,
+            dt=spec.policy_dt,
+            columns=dataset_columns(core),
+            policy=policy,
+            seed=seed,
+            physics_params=core.params.to_dict(),
+            metadata={"source": "PPO training experience", "record_every_env": every},
+        )
         self.writer = DatasetWriter(path, info, overwrite=overwrite, in_place=True)  # a killed run resumes from it
         self.iteration = 0
         self._rows: dict[int, list[dict]] = {}
@@ -52,8 +59,9 @@ class RecordingCore:
         for i in np.intersect1d(ids, self.recorded):
             self._rows[int(i)] = [{f: record[f][i] for f in ROW_FIELDS}]
 
-    def reset(self, ids: np.ndarray, seeds: Sequence[int | None] | None = None,
-              commands: np.ndarray | None = None) -> np.ndarray:
+    def reset(
+        self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
+    ) -> np.ndarray:
         obs = self.core.reset(ids, seeds, commands)
         self._start(np.asarray(ids))
         return obs

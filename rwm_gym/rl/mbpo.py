@@ -3,7 +3,8 @@
 Iteration k: (1) PPO continues in imagination on model k-1, its episodes restarting from real histories of the
 buffer; (2) the policy's tracking score is measured in physics; (3) physics episodes are collected with it, acting
 with no noise, half and all of its own current std (the deterministic policy that is judged, and the exploration PPO
-used in imagination); (4) the model's error on that fresh data is measured (the states the policy now visits); (5) the model is fine-tuned (or retrained) on the buffer:
+used in imagination); (4) the model's error on that fresh data is measured (the states the policy now visits); (5) the
+model is fine-tuned (or retrained) on the buffer:
 `base_episodes` episodes of the starting data plus every fresh episode so far, so the states an imagined policy
 exploits get real data (the cause of exploitation is missing coverage, and this is its fix).
 
@@ -15,18 +16,15 @@ numbers of one never stopped.
 
 from __future__ import annotations
 
-import argparse
 import json
-import re
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 from rwm_gym.atomic import save_png
-from rwm_gym.options import add_dataclass_options, non_negative_float, non_negative_int, positive_int
-from rwm_gym.output_guard import OutputError, check_output, claim, resolved
+from rwm_gym.imagination.options import ImaginationOptions
 
 TRACKING_TARGET = 0.80
 """The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
@@ -45,25 +43,6 @@ class MBPOConfig:
     """Imagined steps of PPO per iteration."""
     num_envs: int = 512
     """Imagined envs."""
-    imagined_episode_steps: int = 250
-    """Time limit of an imagined episode (policy steps); PPO bootstraps at the limit."""
-    uncertainty_penalty: float = 0.0
-    """lambda of RWM-U's penalty on the ensemble disagreement in imagination (0: none)."""
-    uncertainty_floor: float = 0.0
-    """Disagreement the penalty leaves free (`ImaginationOptions.uncertainty_floor`)."""
-    uncertainty_halt: float = 0.0
-    """End an imagined episode where the disagreement exceeds this (0: never; `ImaginationOptions.uncertainty_halt`)."""
-    fall_tilt: float = 0.0
-    """End an imagined episode where the predicted base tilts past this many degrees (0: never;
-    `ImaginationOptions.fall_tilt`)."""
-    torque_halt: float = 0.0
-    """End an imagined episode where a predicted joint torque reaches this fraction of the effort limit (0: never;
-    `ImaginationOptions.torque_halt`)."""
-    random_first_episode_length: bool = False
-    """Spread the imagined envs' restarts over time (`ImaginationOptions.random_first_episode_length`)."""
-    trust_entry_points: bool = False
-    """Import the reward / termination functions the checkpoint's spec names (`ImaginationOptions.trust_entry_points`:
-    importing runs the module's code)."""
     positive_reward_only: bool = False
     """PPO sees each imagined step's reward clipped at 0 from below (`PPOConfig.positive_reward_only`); also for an
     `init_policy`, whose zip does not carry it."""
@@ -93,14 +72,39 @@ class MBPOConfig:
     """Policy steps per physics evaluation episode (None: the task's episode)."""
     seed: int = 0
     """Seeds PPO, collection and model training (each iteration offsets it)."""
+    imagination: ImaginationOptions = field(default_factory=lambda: ImaginationOptions(episode_steps=250))
+    """How PPO's imagined episodes run (their time limit: 250 policy steps; PPO bootstraps at the limit)."""
 
     def to_dict(self) -> dict:
+        """The config as JSON-ready data (`imagination` a nested dict), as `mbpo.json` stores it."""
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, data: dict) -> MBPOConfig:
+        """The config of a `to_dict`, also of a run folder from before `imagination` was nested (its fields flat
+        beside the loop's, the time limit named `imagined_episode_steps`); a field added since gets its default."""
+        data = dict(data)
+        nested = data.pop("imagination", None)
+        if nested is None:  # the flat layout of 0.1
+            names = {f.name for f in fields(ImaginationOptions)}
+            nested = {k: data.pop(k) for k in [k for k in data if k in names]}
+            nested["episode_steps"] = data.pop("imagined_episode_steps", cls().imagination.episode_steps)
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known}, imagination=replace(cls().imagination, **nested))
 
-def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *, checkpoint: str | Path | None = None,
-         init_policy: str | Path | None = None, model_kind: str = "rwm", device: str = "cpu",
-         model_free_curve: str | Path | None = None, progress: bool = True) -> dict:
+
+def mbpo(
+    data: str | Path,
+    out: str | Path,
+    config: MBPOConfig = MBPOConfig(),
+    *,
+    checkpoint: str | Path | None = None,
+    init_policy: str | Path | None = None,
+    model_kind: str = "rwm",
+    device: str = "cpu",
+    model_free_curve: str | Path | None = None,
+    progress: bool = True,
+) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps;
@@ -109,19 +113,9 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
     """
-    from rwm_gym.rl.safe_zip import load_policy
-
-    from rwm_gym.atomic import write_json
-    from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
+    from rwm_gym.data.dataset import Dataset
     from rwm_gym.imagination.reset_data import make_reset_data
     from rwm_gym.model.checkpoint import read_meta
-    from rwm_gym.model.config import TrainConfig
-    from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
-    from rwm_gym.model.factory import model_config_for
-    from rwm_gym.model.train import train
-    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
-    from rwm_gym.rl.ppo import (PositiveReward, PPOConfig, learn, load_ppo, make_env, make_ppo, save_policy,
-                                warm_up_critic)
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,150 +125,259 @@ def mbpo(data: str | Path, out: str | Path, config: MBPOConfig = MBPOConfig(), *
     if report is not None:
         _check_resume(report, config, report_path)
     starting = Dataset.load(data)
-    spec = starting.spec()
-    ppo_config = PPOConfig(num_envs=config.num_envs, log_std_init=config.log_std_init,
-                           positive_reward_only=config.positive_reward_only)
-    env_kwargs = imagination_kwargs(config)
-
-    def trained_on(env):  # what a loaded policy learns from: the zip keeps PPO's settings, not the reward clip
-        return PositiveReward(env) if config.positive_reward_only else env
-
-    def model_path(k: int) -> Path:
-        return out / f"model_{k}.safetensors"
-
-    def retrain(buffer: Path, k: int, previous: Path | None) -> Path:
-        previous_config = read_meta(previous).train_config if previous is not None else TrainConfig()
-        train_config = replace(previous_config, iterations=config.model_iterations, minutes=0.0, seed=config.seed + k,
-                               device=device, lr=config.model_lr, val_every=max(1, config.model_iterations // 4),
-                               checkpoint_every=config.model_iterations)
-        init = previous if config.model_finetune else None
-        return train(buffer, model_config, train_config, model_path(k), progress=progress, init=init,
-                     overwrite=True).path
-
+    loop = _Loop(out, config, device, progress, model_free)
     started = time.monotonic()
-    base = out / "buffer_base.h5"
-    if not base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
+    if not loop.base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
         keep = config.base_episodes or starting.num_episodes
-        make_reset_data(starting, base, episodes=keep, rows=spec.episode_steps + 1, seed=config.seed)
+        make_reset_data(starting, loop.base, episodes=keep, rows=starting.spec().episode_steps + 1, seed=config.seed)
     if report is None:  # iteration 0: the starting model and policy, scored
-        if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
-            from rwm_gym.imagination.core import ImaginationOptions
-
-            uncertain = ImaginationOptions(**env_kwargs).acts_on_disagreement
-            model_config = model_config_for(model_kind, spec, ensemble_size=5 if uncertain else 1)
-            retrain(base if config.base_episodes else Path(data), 0, None)
-        else:
-            model_config = read_meta(checkpoint).model_config
-            model_path(0).write_bytes(Path(checkpoint).read_bytes())
-        env = make_env("imagination", config.num_envs, checkpoint=model_path(0), device=device, seed=config.seed,
-                       env_kwargs={**env_kwargs, "reset_data": base})
-        if init_policy is not None:
-            policy = load_policy(init_policy, env=trained_on(env), device=device)
-            if config.critic_warmup_steps:
-                warm_up_critic(policy, config.critic_warmup_steps, progress=progress)
-        else:
-            policy = make_ppo(env, ppo_config, seed=config.seed, device=device)
-        save_policy(policy, out / "policy_0.zip")
-        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
-        report = {"config": config.to_dict(), "data": str(data), "start_checkpoint": None if checkpoint is None else str(checkpoint),
-                  "ppo": ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
-                  "log": [{"iteration": 0, "imagined_steps": 0, "imagined_step_reward": None,
-                           **_physics(evaluation), "model_error_fresh": None,
-                           "physics_samples": int(starting.num_steps), "learning_rate": policy.learning_rate,
-                           "wall_s": time.monotonic() - started}]}
-        _write_report(report, out, write_json, model_free)
-        tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
-    model_config = read_meta(model_path(0)).model_config
-    prior_wall = report["log"][-1]["wall_s"]
-    started = time.monotonic() - prior_wall
+        report = loop.start(data, starting, checkpoint, init_policy, model_kind, started)
+    loop.model_config = read_meta(loop.model_path(0)).model_config
+    started = time.monotonic() - report["log"][-1]["wall_s"]
     done = report["log"][-1]["iteration"]
-    bar = tqdm(range(done + 1, config.iterations + 1), desc="mbpo", disable=not progress, initial=done,
-               total=config.iterations)
-    for k in bar:
-        previous = report["log"][-1]
+    for k in tqdm(
+        range(done + 1, config.iterations + 1), desc="mbpo", disable=not progress, initial=done, total=config.iterations
+    ):
+        loop.iteration(k, report, started, starting.spec().physics_env_id)
+    plot_curve(report["log"], out / "mbpo.png", model_free)  # also when resumed with nothing left to run
+    return report
+
+
+class _Loop:
+    """The steps of one run folder's loop: its files, the imagined env, (re)training and one iteration."""
+
+    def __init__(self, out: Path, config: MBPOConfig, device: str, progress: bool, model_free) -> None:
+        from rwm_gym.rl.ppo import PPOConfig
+
+        self.out, self.config, self.device, self.progress, self.model_free = out, config, device, progress, model_free
+        self.base = out / "buffer_base.h5"
+        self.model_config = None
+        self.ppo_config = PPOConfig(
+            num_envs=config.num_envs, log_std_init=config.log_std_init, positive_reward_only=config.positive_reward_only
+        )
+
+    def model_path(self, k: int) -> Path:
+        return self.out / f"model_{k}.safetensors"
+
+    def env(self, k: int, reset_data: Path):
+        """The imagined env of iteration k: model k-1 (k=0: the starting one), episodes restarting from `reset_data`."""
+        from rwm_gym.rl.ppo import make_env
+
+        return make_env(
+            "imagination",
+            self.config.num_envs,
+            checkpoint=self.model_path(max(k - 1, 0)),
+            device=self.device,
+            seed=self.config.seed + k,
+            env_kwargs={"options": self.config.imagination, "reset_data": reset_data},
+        )
+
+    def trained_on(self, env):
+        """What a loaded policy learns from: the zip keeps PPO's settings, not the reward clip."""
+        from rwm_gym.rl.ppo import PositiveReward
+
+        return PositiveReward(env) if self.config.positive_reward_only else env
+
+    def retrain(self, buffer: Path, k: int, previous: Path | None) -> Path:
+        """Model k trained on `buffer` (fine-tuned from `previous` with `model_finetune`)."""
+        from rwm_gym.model.checkpoint import read_meta
+        from rwm_gym.model.config import TrainConfig
+        from rwm_gym.model.train import train
+
+        config = self.config
+        previous_config = read_meta(previous).train_config if previous is not None else TrainConfig()
+        train_config = replace(
+            previous_config,
+            iterations=config.model_iterations,
+            minutes=0.0,
+            seed=config.seed + k,
+            device=self.device,
+            lr=config.model_lr,
+            val_every=max(1, config.model_iterations // 4),
+            checkpoint_every=config.model_iterations,
+        )
+        init = previous if config.model_finetune else None
+        return train(
+            buffer,
+            self.model_config,
+            train_config,
+            self.model_path(k),
+            progress=self.progress,
+            init=init,
+            overwrite=True,
+        ).path
+
+    def start(self, data, starting, checkpoint, init_policy, model_kind: str, started: float) -> dict:
+        """Iteration 0: the starting model (trained on `data`, or a copy of `checkpoint`) and policy, scored."""
+        from rwm_gym.model.checkpoint import read_meta
+        from rwm_gym.model.factory import model_config_for
+        from rwm_gym.rl.evaluate_policy import evaluate_policy
+        from rwm_gym.rl.ppo import make_ppo, save_policy, warm_up_critic
+        from rwm_gym.rl.safe_zip import load_policy
+
+        config = self.config
+        if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
+            uncertain = config.imagination.acts_on_disagreement
+            self.model_config = model_config_for(model_kind, starting.spec(), ensemble_size=5 if uncertain else 1)
+            self.retrain(self.base if config.base_episodes else Path(data), 0, None)
+        else:
+            self.model_config = read_meta(checkpoint).model_config
+            self.model_path(0).write_bytes(Path(checkpoint).read_bytes())
+        env = self.env(0, self.base)
+        if init_policy is not None:
+            policy = load_policy(init_policy, env=self.trained_on(env), device=self.device)
+            if config.critic_warmup_steps:
+                warm_up_critic(policy, config.critic_warmup_steps, progress=self.progress)
+        else:
+            policy = make_ppo(env, self.ppo_config, seed=config.seed, device=self.device)
+        save_policy(policy, self.out / "policy_0.zip")
+        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
+        report = {
+            "config": config.to_dict(),
+            "data": str(data),
+            "start_checkpoint": None if checkpoint is None else str(checkpoint),
+            "ppo": self.ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
+            "log": [
+                {
+                    "iteration": 0,
+                    "imagined_steps": 0,
+                    "imagined_step_reward": None,
+                    **_physics(evaluation),
+                    "model_error_fresh": None,
+                    "physics_samples": int(starting.num_steps),
+                    "learning_rate": policy.learning_rate,
+                    "wall_s": time.monotonic() - started,
+                }
+            ],
+        }
+        self.write_report(report)
+        tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
+        return report
+
+    def iteration(self, k: int, report: dict, started: float, physics_env_id: str) -> None:
+        """Iteration k (PPO in imagination, physics score, collection, model error, retraining), logged in `report`."""
+        from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
+        from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
+        from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
+        from rwm_gym.rl.ppo import learn, load_ppo, save_policy
+
+        config, out, previous = self.config, self.out, report["log"][-1]
         fresh_files = [out / f"data_{j}.h5" for j in range(1, k)]
-        buffer = out / "buffer.h5" if fresh_files else base
-        if fresh_files and not is_merge_of(buffer, [base, *fresh_files]):  # written by the iteration before
-            merge_datasets([base, *fresh_files], buffer)
-        env = make_env("imagination", config.num_envs, checkpoint=model_path(k - 1), device=device,
-                       seed=config.seed + k, env_kwargs={**env_kwargs, "reset_data": buffer})
+        buffer = out / "buffer.h5" if fresh_files else self.base
+        if fresh_files and not is_merge_of(buffer, [self.base, *fresh_files]):  # written by the iteration before
+            merge_datasets([self.base, *fresh_files], buffer)
         # the same path whether resumed or not
-        policy = load_ppo(out / f"policy_{k - 1}.zip", trained_on(env), ppo_config, device=device)
+        policy = load_ppo(
+            out / f"policy_{k - 1}.zip", self.trained_on(self.env(k, buffer)), self.ppo_config, device=self.device
+        )
         policy.learning_rate = previous["learning_rate"]
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)
-        stats = learn(policy, timesteps=config.ppo_timesteps, target_kl=ppo_config.target_kl, progress=progress)
+        stats = learn(
+            policy, timesteps=config.ppo_timesteps, target_kl=self.ppo_config.target_kl, progress=self.progress
+        )
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
         noise = config.action_noise
         if noise is None:  # the deterministic policy the score judges, and the exploring one PPO runs in imagination
             std = float(policy.policy.log_std.detach().exp().mean())
             noise = [0.0, std / 2, std]
-        fresh = _collect(spec.physics_env_id, zip_path, config, k, noise if isinstance(noise, list) else [noise],
-                         out / f"data_{k}.h5", progress)
-        model_error = evaluate_checkpoint(model_path(k - 1), fresh,
-                                          EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(),
-                                                     device=device), all_episodes=True, progress=False)["error"]
-        merge_datasets([base, *fresh_files, fresh], out / "buffer.h5")
-        retrain(out / "buffer.h5", k, model_path(k - 1))
-        row = {"iteration": k, "imagined_steps": previous["imagined_steps"] + stats.timesteps,
-               "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
-               **_physics(evaluation), "model_error_fresh": model_error,
-               "physics_samples": previous["physics_samples"] + int(Dataset.load(fresh).num_steps),
-               "action_noise": noise, "learning_rate": float(policy.learning_rate),
-               "wall_s": time.monotonic() - started}
+        fresh = _collect(
+            physics_env_id,
+            zip_path,
+            config,
+            k,
+            noise if isinstance(noise, list) else [noise],
+            out / f"data_{k}.h5",
+            self.progress,
+        )
+        model_error = evaluate_checkpoint(
+            self.model_path(k - 1),
+            fresh,
+            EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(), device=self.device),
+            all_episodes=True,
+            progress=False,
+        )["error"]
+        merge_datasets([self.base, *fresh_files, fresh], out / "buffer.h5")
+        self.retrain(out / "buffer.h5", k, self.model_path(k - 1))
+        row = {
+            "iteration": k,
+            "imagined_steps": previous["imagined_steps"] + stats.timesteps,
+            "imagined_step_reward": stats.log[-1]["mean_step_reward"] if stats.log else None,
+            **_physics(evaluation),
+            "model_error_fresh": model_error,
+            "physics_samples": previous["physics_samples"] + int(Dataset.load(fresh).num_steps),
+            "action_noise": noise,
+            "learning_rate": float(policy.learning_rate),
+            "wall_s": time.monotonic() - started,
+        }
         report["log"].append(row)
-        _write_report(report, out, write_json, model_free)
-        tqdm.write(f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
-                   f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
-                   f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}")
+        self.write_report(report)
+        tqdm.write(
+            f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
+            f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
+            f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}"
+        )
         tqdm.write(format_table(evaluation))
-    plot_curve(report["log"], out / "mbpo.png", model_free)  # also when resumed with nothing left to run
-    return report
+
+    def write_report(self, report: dict) -> None:
+        """`mbpo.json` with the best iteration so far, and `mbpo.png`."""
+        from rwm_gym.atomic import write_json
+
+        log = report["log"]
+        best = max(log, key=lambda row: row["tracking"])
+        report["best_iteration"], report["best_tracking"] = best["iteration"], best["tracking"]
+        write_json(self.out / "mbpo.json", report)
+        plot_curve(log, self.out / "mbpo.png", self.model_free)
 
 
-def _collect(env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels: list[float], out: Path,
-             progress: bool) -> Path:
+def _collect(
+    env_id: str, policy: Path, config: MBPOConfig, k: int, noise_levels: list[float], out: Path, progress: bool
+) -> Path:
     """Iteration k's physics episodes, split evenly over the action-noise levels, in one file."""
     from rwm_gym.data.collect import collect
     from rwm_gym.data.dataset import merge_datasets
 
-    counts = [config.collect_episodes // len(noise_levels) + (i < config.collect_episodes % len(noise_levels))
-              for i in range(len(noise_levels))]
-    parts = [collect(env_id, str(policy), n, out.with_name(f".{out.stem}_{i}.h5"), seed=config.seed + 1000 * k + 100 * i,
-                     num_envs=min(n, 64), action_noise=level, max_steps=config.collect_steps, overwrite=True,
-                     progress=progress)
-             for i, (n, level) in enumerate(zip(counts, noise_levels)) if n]
+    counts = [
+        config.collect_episodes // len(noise_levels) + (i < config.collect_episodes % len(noise_levels))
+        for i in range(len(noise_levels))
+    ]
+    parts = [
+        collect(
+            env_id,
+            str(policy),
+            n,
+            out.with_name(f".{out.stem}_{i}.h5"),
+            seed=config.seed + 1000 * k + 100 * i,
+            num_envs=min(n, 64),
+            action_noise=level,
+            max_steps=config.collect_steps,
+            overwrite=True,
+            progress=progress,
+        )
+        for i, (n, level) in enumerate(zip(counts, noise_levels))
+        if n
+    ]
     merge_datasets(parts, out)
     for part in parts:
         part.unlink()
     return out
 
 
-def imagination_kwargs(config: MBPOConfig) -> dict:
-    """The imagined env's options from the loop's config: every `ImaginationOptions` field that `MBPOConfig` shares."""
-    from rwm_gym.imagination.core import ImaginationOptions
-
-    shared = {f.name for f in fields(ImaginationOptions)} & {f.name for f in fields(MBPOConfig)}
-    return {"episode_steps": config.imagined_episode_steps, **{name: getattr(config, name) for name in sorted(shared)}}
-
-
 def _check_resume(report: dict, config: MBPOConfig, path: Path) -> None:
-    """Refuse to resume a folder started with other settings (only `RESUME_MAY_CHANGE` may differ)."""
-    defaults = json.loads(json.dumps(MBPOConfig().to_dict()))  # a field added since the run started: its default
-    saved = {k: v for k, v in {**defaults, **report["config"]}.items() if k not in RESUME_MAY_CHANGE}
-    given = {k: v for k, v in json.loads(json.dumps(config.to_dict())).items() if k not in RESUME_MAY_CHANGE}
-    if saved != given:
-        differ = sorted(k for k in given if saved.get(k) != given[k])
+    """Refuse to resume a folder started with other settings (only `RESUME_MAY_CHANGE` may differ); a folder from
+    before a field was added (or `imagination` nested) reads as `MBPOConfig.from_dict` does."""
+    saved = _flat(MBPOConfig.from_dict(report["config"]).to_dict())
+    given = _flat(config.to_dict())
+    differ = sorted(k for k in given if k not in RESUME_MAY_CHANGE and saved.get(k) != given[k])
+    if differ:
         raise ValueError(f"{path}: this folder's run has other settings ({', '.join(differ)}); use another --out")
 
 
-def _write_report(report: dict, out: Path, write_json, model_free) -> None:
-    log = report["log"]
-    best = max(log, key=lambda row: row["tracking"])
-    report["best_iteration"], report["best_tracking"] = best["iteration"], best["tracking"]
-    write_json(out / "mbpo.json", report)
-    plot_curve(log, out / "mbpo.png", model_free)
+def _flat(config: dict) -> dict:
+    """A config dict with its nested `imagination` fields beside the others, as JSON would give them back."""
+    config = json.loads(json.dumps(config))
+    return {**{k: v for k, v in config.items() if k != "imagination"}, **config.get("imagination", {})}
 
 
 def read_curve(path: str | Path) -> list[tuple[int, float]]:
@@ -290,9 +393,13 @@ def read_curve(path: str | Path) -> list[tuple[int, float]]:
 
 def _physics(evaluation) -> dict:
     """The log fields of a physics evaluation (`rwm_gym.rl.evaluate_policy.Evaluation`)."""
-    return {"tracking": evaluation.tracking, "physics_return": evaluation.episode_return,
-            "lin_vel_error": evaluation.lin_vel_error,
-            "yaw_rate_error": evaluation.yaw_rate_error, "falls": evaluation.falls}
+    return {
+        "tracking": evaluation.tracking,
+        "physics_return": evaluation.episode_return,
+        "lin_vel_error": evaluation.lin_vel_error,
+        "yaw_rate_error": evaluation.yaw_rate_error,
+        "falls": evaluation.falls,
+    }
 
 
 def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] | None = None) -> None:
@@ -314,74 +421,25 @@ def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] 
     axes[0].legend()
     imagined = [r["imagined_steps"] / 1e6 for r in log]
     axes[1].plot(imagined, tracking, "o-")
-    for r, x, y in list(zip(log, imagined, tracking))[::max(1, len(log) // 6)]:
-        axes[1].annotate(f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6),
-                         fontsize=7, ha="center")
+    for r, x, y in list(zip(log, imagined, tracking))[:: max(1, len(log) // 6)]:
+        axes[1].annotate(
+            f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6), fontsize=7, ha="center"
+        )
     for ax in axes[:2]:
         ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
     axes[1].set_xlabel("imagined steps (M)")
     axes[1].set_title("physics tracking against imagined steps (wall time)")
     measured = [r for r in log if r["model_error_fresh"]]
-    for horizon in (measured[0]["model_error_fresh"] if measured else []):
-        axes[2].plot([r["iteration"] for r in measured], [r["model_error_fresh"][horizon] for r in measured], "o-",
-                     label=f"{horizon} steps")
+    for horizon in measured[0]["model_error_fresh"] if measured else []:
+        axes[2].plot(
+            [r["iteration"] for r in measured],
+            [r["model_error_fresh"][horizon] for r in measured],
+            "o-",
+            label=f"{horizon} steps",
+        )
     axes[2].set_xlabel("iteration")
     axes[2].set_title("model error on the policy's fresh physics data")
     if measured:
         axes[2].legend()
     fig.tight_layout()
     save_png(fig, path, dpi=100)
-
-
-RUN_FILES = re.compile(r"(data_\d+\.h5|buffer\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
-"""The files the loop writes in its folder (`--out`)."""
-
-
-def check_run_folder(out: Path, inputs) -> None:
-    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself."""
-    folder = resolved(out)
-    for source in (s for s in inputs if s is not None):
-        path = resolved(source)
-        if path == folder or (path.parent == folder and RUN_FILES.fullmatch(path.name)):
-            raise OutputError(f"--out {out}: the run writes {path.name if path != folder else 'into it'}, which is "
-                              f"the input {source}; copy the input elsewhere first")
-    check_output(folder, overwrite=True, folder=True)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
-    parser.add_argument("--out", required=True, type=Path,
-                        help="run folder: models, data, policies and the report; the same command resumes it")
-    parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
-    parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
-    parser.add_argument("--init-policy", default=None, type=Path,
-                        help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)")
-    parser.add_argument("--model-free-curve", default=None, type=Path,
-                        help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
-                             "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    counts = ("iterations", "ppo_timesteps", "num_envs", "imagined_episode_steps", "collect_episodes",
-              "collect_steps", "model_iterations", "eval_seeds")
-    add_dataclass_options(parser, MBPOConfig, types={"action_noise": non_negative_float, "eval_steps": positive_int,
-                                                     "base_episodes": non_negative_int,
-                                                     "critic_warmup_steps": non_negative_int,
-                                                     **dict.fromkeys(counts, positive_int)})
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    config = MBPOConfig(**{f.name: getattr(args, f.name) for f in fields(MBPOConfig)})
-    try:
-        check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
-        with claim(args.out):
-            report = mbpo(args.data, args.out, config, checkpoint=args.checkpoint, init_policy=args.init_policy,
-                          model_kind=args.model, device=args.device, model_free_curve=args.model_free_curve)
-    except ValueError as error:
-        raise SystemExit(f"rwm-gym mbpo: {error}") from None
-    print(f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
-          f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}")
-    return 0

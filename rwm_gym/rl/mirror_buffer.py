@@ -36,17 +36,34 @@ class MirroredRolloutBuffer(RolloutBuffer):
     `observation_mirror` and `action_mirror` map an observation (O,) and an action (A,) to their mirror images.
     """
 
-    def __init__(self, buffer_size: int, observation_space: spaces.Space, action_space: spaces.Space,
-                 device: torch.device | str = "auto", gae_lambda: float = 1, gamma: float = 0.99, n_envs: int = 1, *,
-                 observation_mirror: Mirror, action_mirror: Mirror, policy: torch.nn.Module):
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: torch.device | str = "auto",
+        gae_lambda: float = 1,
+        gamma: float = 0.99,
+        n_envs: int = 1,
+        *,
+        observation_mirror: Mirror,
+        action_mirror: Mirror,
+        policy: torch.nn.Module,
+    ):
         super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
         self.policy = policy
         if observation_mirror.index.shape != observation_space.shape or action_mirror.index.shape != action_space.shape:
-            raise ValueError(f"mirror of {observation_mirror.index.shape} observations and {action_mirror.index.shape} "
-                             f"actions for spaces of shape {observation_space.shape} and {action_space.shape}")
-        self.mirrors = tuple((torch.as_tensor(m.index, device=self.device),
-                              torch.as_tensor(m.sign, dtype=torch.float32, device=self.device))
-                             for m in (observation_mirror, action_mirror))
+            raise ValueError(
+                f"mirror of {observation_mirror.index.shape} observations and {action_mirror.index.shape} "
+                f"actions for spaces of shape {observation_space.shape} and {action_space.shape}"
+            )
+        self.mirrors = tuple(
+            (
+                torch.as_tensor(m.index, device=self.device),
+                torch.as_tensor(m.sign, dtype=torch.float32, device=self.device),
+            )
+            for m in (observation_mirror, action_mirror)
+        )
 
     def get(self, batch_size: int | None = None):
         if not self.generator_ready:  # once per rollout, before SB3 flattens the arrays
@@ -69,7 +86,9 @@ class MirroredRolloutBuffer(RolloutBuffer):
             observations=torch.cat([samples.observations, samples.observations[:, obs_index] * obs_sign]),
             actions=torch.cat([samples.actions, samples.actions[:, act_index] * act_sign]),
             old_values=samples.old_values.repeat(2),
-            old_log_prob=torch.cat([samples.old_log_prob, self.to_torch(self.mirrored_log_probs[batch_inds].flatten())]),
+            old_log_prob=torch.cat(
+                [samples.old_log_prob, self.to_torch(self.mirrored_log_probs[batch_inds].flatten())]
+            ),
             advantages=samples.advantages.repeat(2),
             returns=samples.returns.repeat(2),
         )
@@ -82,5 +101,14 @@ def use_mirrored_buffer(model, spec: TaskSpec) -> None:
     """
     old = model.rollout_buffer
     model.rollout_buffer = MirroredRolloutBuffer(
-        old.buffer_size, old.observation_space, old.action_space, old.device, old.gae_lambda, old.gamma, old.n_envs,
-        observation_mirror=observation_mirror(spec), action_mirror=action_mirror(spec), policy=model.policy)
+        old.buffer_size,
+        old.observation_space,
+        old.action_space,
+        old.device,
+        old.gae_lambda,
+        old.gamma,
+        old.n_envs,
+        observation_mirror=observation_mirror(spec),
+        action_mirror=action_mirror(spec),
+        policy=model.policy,
+    )

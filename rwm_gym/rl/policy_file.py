@@ -12,6 +12,7 @@ from rwm_gym.atomic import atomic_write
 
 def save_policy(model, path: str | os.PathLike) -> Path:
     """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
+
     def write(tmp: str) -> None:
         model.save(tmp + ".zip")  # SB3 adds ".zip" to a name without it
         os.replace(tmp + ".zip", tmp)

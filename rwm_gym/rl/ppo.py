@@ -1,5 +1,5 @@
 """PPO in imagination (or in physics, the model-free baseline): settings, env and learner (`rwm-gym ppo` is
-`rwm_gym.rl.ppo_command`).
+`rwm_gym.commands.ppo`).
 
 Stable-Baselines3's PPO with RWM's settings (`PPOConfig`): actor and critic 128-128-128 ELU, initial action std 1,
 clip 0.2, 5 epochs of 4 minibatches, lr 1e-3 adapted to a KL target of 0.01 (rsl_rl's rule), gamma 0.99, lambda 0.95,
@@ -79,8 +79,10 @@ class PPOConfig:
         if not 0.0 <= self.lr_anneal_fraction <= 1.0:
             raise ValueError(f"PPOConfig.lr_anneal_fraction {self.lr_anneal_fraction} is not in [0, 1]")
         if (self.num_envs * self.n_steps) % self.num_minibatches:
-            raise ValueError(f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "
-                             f"num_minibatches ({self.num_minibatches})")
+            raise ValueError(
+                f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "
+                f"num_minibatches ({self.num_minibatches})"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -149,13 +151,28 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
     activation = {"elu": torch.nn.ELU, "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
     arch = list(config.net_arch)
     model = PPO(
-        "MlpPolicy", env, learning_rate=config.learning_rate, n_steps=config.n_steps,
-        batch_size=env.num_envs * config.n_steps // config.num_minibatches, n_epochs=config.n_epochs,
-        gamma=config.gamma, gae_lambda=config.gae_lambda, clip_range=config.clip_range, ent_coef=config.ent_coef,
-        vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, seed=seed, device=device, verbose=0,
-        policy_kwargs={"net_arch": {"pi": arch, "vf": arch}, "activation_fn": activation,
-                       "log_std_init": config.log_std_init, "features_extractor_class": ScaledObservation,
-                       "features_extractor_kwargs": {"mean": mean, "std": std}},
+        "MlpPolicy",
+        env,
+        learning_rate=config.learning_rate,
+        n_steps=config.n_steps,
+        batch_size=env.num_envs * config.n_steps // config.num_minibatches,
+        n_epochs=config.n_epochs,
+        gamma=config.gamma,
+        gae_lambda=config.gae_lambda,
+        clip_range=config.clip_range,
+        ent_coef=config.ent_coef,
+        vf_coef=config.vf_coef,
+        max_grad_norm=config.max_grad_norm,
+        seed=seed,
+        device=device,
+        verbose=0,
+        policy_kwargs={
+            "net_arch": {"pi": arch, "vf": arch},
+            "activation_fn": activation,
+            "log_std_init": config.log_std_init,
+            "features_extractor_class": ScaledObservation,
+            "features_extractor_kwargs": {"mean": mean, "std": std},
+        },
     )
     if config.symmetry:
         from rwm_gym.rl.mirror_buffer import use_mirrored_buffer
@@ -188,8 +205,15 @@ def annealed_fraction(timesteps: int, end: int, anneal_steps: float, rollout: in
 class _Progress(BaseCallback):
     """tqdm bar, wall-clock budget, rsl_rl's adaptive learning rate and its final anneal, one log row per rollout."""
 
-    def __init__(self, total: int | None, minutes: float | None, target_kl: float, bar: bool, on_rollout=None,
-                 anneal_steps: float = 0.0):
+    def __init__(
+        self,
+        total: int | None,
+        minutes: float | None,
+        target_kl: float,
+        bar: bool,
+        on_rollout=None,
+        anneal_steps: float = 0.0,
+    ):
         super().__init__()
         self.total, self.minutes, self.target_kl, self.show = total, minutes, target_kl, bar
         self.on_rollout, self.anneal_steps = on_rollout, anneal_steps
@@ -223,8 +247,9 @@ class _Progress(BaseCallback):
         lr = previous = self.model.lr_schedule(1.0)
         share = annealed_fraction(self.num_timesteps, self.end, self.anneal_steps, self.rollout)
         if share < 1.0:  # scale the previous update's lr by the ratio of shares: resumes from the saved lr alone
-            lr *= share / annealed_fraction(self.num_timesteps - self.rollout, self.end, self.anneal_steps,
-                                            self.rollout)
+            lr *= share / annealed_fraction(
+                self.num_timesteps - self.rollout, self.end, self.anneal_steps, self.rollout
+            )
         elif self.target_kl > 0 and kl is not None:
             if kl > 2.0 * self.target_kl:
                 lr = max(1e-5, lr / 1.5)
@@ -235,15 +260,27 @@ class _Progress(BaseCallback):
             self.model._setup_lr_schedule()
         reward = self.reward_sum / max(self.reward_count, 1)
         returns = float(np.mean(self.finished)) if self.finished else None
-        self.log.append({"timesteps": int(self.num_timesteps), "wall_s": time.monotonic() - self.started,
-                         "mean_step_reward": reward, "episodes": len(self.finished), "mean_episode_return": returns,
-                         "lr": lr, "approx_kl": None if kl is None else float(kl),
-                         "std": float(self.model.policy.log_std.detach().exp().mean())})
+        self.log.append(
+            {
+                "timesteps": int(self.num_timesteps),
+                "wall_s": time.monotonic() - self.started,
+                "mean_step_reward": reward,
+                "episodes": len(self.finished),
+                "mean_episode_return": returns,
+                "lr": lr,
+                "approx_kl": None if kl is None else float(kl),
+                "std": float(self.model.policy.log_std.detach().exp().mean()),
+            }
+        )
         if self.on_rollout is not None:
             self.on_rollout(self.log[-1])
         self.reward_sum, self.reward_count, self.finished = 0.0, 0, []
-        self.bar.show(self.num_timesteps - self.start_steps, time.monotonic() - self.started,
-                      reward=f"{reward:.4f}", lr=f"{lr:.1e}")
+        self.bar.show(
+            self.num_timesteps - self.start_steps,
+            time.monotonic() - self.started,
+            reward=f"{reward:.4f}",
+            lr=f"{lr:.1e}",
+        )
 
     def _on_training_end(self) -> None:
         self.bar.close()
@@ -262,9 +299,17 @@ class TrainStats:
     approx_kl (of the update before the rollout), std (mean action std)."""
 
 
-def learn(model: PPO, *, timesteps: int | None = None, minutes: float | None = None, target_kl: float = 0.01,
-          progress: bool = True, callbacks: tuple[BaseCallback, ...] = (), on_rollout=None,
-          anneal_steps: float = 0.0) -> TrainStats:
+def learn(
+    model: PPO,
+    *,
+    timesteps: int | None = None,
+    minutes: float | None = None,
+    target_kl: float = 0.01,
+    progress: bool = True,
+    callbacks: tuple[BaseCallback, ...] = (),
+    on_rollout=None,
+    anneal_steps: float = 0.0,
+) -> TrainStats:
     """Continue training `model` on its env for `timesteps` more steps and/or `minutes` (whichever ends first).
 
     `callbacks` run after the progress bar's; `on_rollout(row)` receives each rollout's log row. Over the last
@@ -302,8 +347,15 @@ def warm_up_critic(model: PPO, timesteps: int, *, progress: bool = True) -> Trai
             p.requires_grad_(flag)
 
 
-def make_env(where: str, num_envs: int, *, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
-             seed: int = 0, env_kwargs: dict | None = None) -> VecEnv:
+def make_env(
+    where: str,
+    num_envs: int,
+    *,
+    checkpoint: str | os.PathLike | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    env_kwargs: dict | None = None,
+) -> VecEnv:
     """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
     if where == "imagination":
         from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv

@@ -12,8 +12,9 @@ import math
 from rwm_gym.rl.ppo import PPOConfig
 
 
-def rsl_rl_train_cfg(config: PPOConfig | None = None, *, obs_normalization: bool = True, save_interval: int = 50,
-                     run_name: str = "") -> dict:
+def rsl_rl_train_cfg(
+    config: PPOConfig | None = None, *, obs_normalization: bool = True, save_interval: int = 50, run_name: str = ""
+) -> dict:
     """The runner's `train_cfg` for `config` (default `PPOConfig()`; its `num_envs` belongs to the env, not here).
 
     obs_normalization: rsl_rl's running mean/std normaliser on the actor's and critic's inputs. The raw observation
@@ -22,24 +23,38 @@ def rsl_rl_train_cfg(config: PPOConfig | None = None, *, obs_normalization: bool
     save_interval: iterations between the runner's checkpoints in its log_dir.
     """
     config = config if config is not None else PPOConfig()
-    unsupported = {"critic_warmup_steps": config.critic_warmup_steps != 0,
-                   "positive_reward_only": config.positive_reward_only,
-                   "lr_anneal_fraction": config.lr_anneal_fraction != 0}
+    unsupported = {
+        "critic_warmup_steps": config.critic_warmup_steps != 0,
+        "positive_reward_only": config.positive_reward_only,
+        "lr_anneal_fraction": config.lr_anneal_fraction != 0,
+    }
     for name, used in unsupported.items():
         if used:
             raise ValueError(f"PPOConfig.{name} has no counterpart in rsl_rl's PPO; leave it at its default")
     if config.symmetry:
-        raise ValueError("PPOConfig.symmetry is not passed on to rsl_rl (its symmetry_cfg, which needs an augmentation "
-                         "function, is not built here); leave it at its default")
-    model = {"class_name": "MLPModel", "hidden_dims": list(config.net_arch), "activation": config.activation,
-             "obs_normalization": obs_normalization}
+        raise ValueError(
+            "PPOConfig.symmetry is not passed on to rsl_rl (its symmetry_cfg, which needs an augmentation "
+            "function, is not built here); leave it at its default"
+        )
+    model = {
+        "class_name": "MLPModel",
+        "hidden_dims": list(config.net_arch),
+        "activation": config.activation,
+        "obs_normalization": obs_normalization,
+    }
     return {
         "num_steps_per_env": config.n_steps,
         "save_interval": save_interval,
         "run_name": run_name,
         "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
-        "actor": {**model, "distribution_cfg": {"class_name": "GaussianDistribution",
-                                                "init_std": math.exp(config.log_std_init), "std_type": "scalar"}},
+        "actor": {
+            **model,
+            "distribution_cfg": {
+                "class_name": "GaussianDistribution",
+                "init_std": math.exp(config.log_std_init),
+                "std_type": "scalar",
+            },
+        },
         "critic": dict(model),
         "algorithm": {
             "class_name": "PPO",

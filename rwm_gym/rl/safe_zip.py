@@ -25,48 +25,50 @@ class PolicyFileError(ValueError):
 
 # (module, name) that an entry may name. Classes here are only instantiated or referenced by the pickle, never given
 # attributes (`_SafeUnpickler.load_build` refuses state on classes).
-ALLOWED = frozenset({
-    ("stable_baselines3.common.policies", "ActorCriticPolicy"),
-    ("stable_baselines3.common.policies", "ActorCriticCnnPolicy"),
-    ("stable_baselines3.common.policies", "MultiInputActorCriticPolicy"),
-    ("stable_baselines3.common.buffers", "RolloutBuffer"),
-    ("stable_baselines3.common.buffers", "DictRolloutBuffer"),
-    ("stable_baselines3.common.utils", "FloatSchedule"),
-    ("stable_baselines3.common.utils", "ConstantSchedule"),
-    ("stable_baselines3.common.utils", "LinearSchedule"),
-    ("stable_baselines3.common.torch_layers", "FlattenExtractor"),
-    ("rwm_gym.rl.ppo", "ScaledObservation"),
-    ("gymnasium.spaces.box", "Box"),
-    ("gymnasium.spaces.discrete", "Discrete"),
-    ("gymnasium.spaces.multi_discrete", "MultiDiscrete"),
-    ("gymnasium.spaces.multi_binary", "MultiBinary"),
-    ("gymnasium.spaces.dict", "Dict"),
-    ("gymnasium.spaces.tuple", "Tuple"),
-    ("torch.optim.adam", "Adam"),
-    ("torch.optim.adamw", "AdamW"),
-    ("torch.optim.sgd", "SGD"),
-    ("numpy", "dtype"),
-    ("numpy", "ndarray"),
-    ("numpy.core.multiarray", "_reconstruct"),
-    ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"),
-    ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"),
-    ("numpy._core.numeric", "_frombuffer"),
-    ("numpy.random._pickle", "__generator_ctor"),
-    ("numpy.random._pickle", "__bit_generator_ctor"),
-    ("numpy.random._pickle", "__randomstate_ctor"),
-    ("numpy.random._pcg64", "PCG64"),
-    ("numpy.random._generator", "Generator"),
-    ("numpy.random.bit_generator", "__pyx_unpickle_SeedSequence"),
-    ("numpy.random.bit_generator", "SeedSequence"),
-    ("collections", "OrderedDict"),
-    ("collections", "deque"),
-    ("builtins", "set"),
-    ("builtins", "frozenset"),
-    ("builtins", "slice"),
-    ("builtins", "complex"),
-})
+ALLOWED = frozenset(
+    {
+        ("stable_baselines3.common.policies", "ActorCriticPolicy"),
+        ("stable_baselines3.common.policies", "ActorCriticCnnPolicy"),
+        ("stable_baselines3.common.policies", "MultiInputActorCriticPolicy"),
+        ("stable_baselines3.common.buffers", "RolloutBuffer"),
+        ("stable_baselines3.common.buffers", "DictRolloutBuffer"),
+        ("stable_baselines3.common.utils", "FloatSchedule"),
+        ("stable_baselines3.common.utils", "ConstantSchedule"),
+        ("stable_baselines3.common.utils", "LinearSchedule"),
+        ("stable_baselines3.common.torch_layers", "FlattenExtractor"),
+        ("rwm_gym.rl.ppo", "ScaledObservation"),
+        ("gymnasium.spaces.box", "Box"),
+        ("gymnasium.spaces.discrete", "Discrete"),
+        ("gymnasium.spaces.multi_discrete", "MultiDiscrete"),
+        ("gymnasium.spaces.multi_binary", "MultiBinary"),
+        ("gymnasium.spaces.dict", "Dict"),
+        ("gymnasium.spaces.tuple", "Tuple"),
+        ("torch.optim.adam", "Adam"),
+        ("torch.optim.adamw", "AdamW"),
+        ("torch.optim.sgd", "SGD"),
+        ("numpy", "dtype"),
+        ("numpy", "ndarray"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.core.numeric", "_frombuffer"),
+        ("numpy._core.numeric", "_frombuffer"),
+        ("numpy.random._pickle", "__generator_ctor"),
+        ("numpy.random._pickle", "__bit_generator_ctor"),
+        ("numpy.random._pickle", "__randomstate_ctor"),
+        ("numpy.random._pcg64", "PCG64"),
+        ("numpy.random._generator", "Generator"),
+        ("numpy.random.bit_generator", "__pyx_unpickle_SeedSequence"),
+        ("numpy.random.bit_generator", "SeedSequence"),
+        ("collections", "OrderedDict"),
+        ("collections", "deque"),
+        ("builtins", "set"),
+        ("builtins", "frozenset"),
+        ("builtins", "slice"),
+        ("builtins", "complex"),
+    }
+)
 ACTIVATIONS = "torch.nn.modules.activation"
 """Every class of this module (ELU, ReLU, Tanh, ...) may be named: a policy's `activation_fn`."""
 
@@ -118,9 +120,11 @@ def safe_custom_objects(path: str | os.PathLike) -> dict[str, object]:
         try:
             objects[key] = decode_entry(value[":serialized:"])
         except PolicyFileError as err:
-            raise PolicyFileError(f"policy {path}: entry {key!r} {err}, which loading refuses to run (only SB3 "
-                                  f"policies, schedules, spaces and torch activations load)") from None
-        except Exception as err:  # noqa: BLE001 (a corrupt pickle raises anything)
+            raise PolicyFileError(
+                f"policy {path}: entry {key!r} {err}, which loading refuses to run (only SB3 "
+                f"policies, schedules, spaces and torch activations load)"
+            ) from None
+        except Exception as err:
             raise PolicyFileError(f"policy {path}: entry {key!r} cannot be read ({type(err).__name__})") from None
     return objects
 
@@ -132,8 +136,9 @@ def load_sb3(path: str | os.PathLike, *, env=None, device: str = "cpu", algorith
     path = Path(path)
     objects = safe_custom_objects(path)
     try:
-        return getattr(stable_baselines3, algorithm).load(path, env=env, device=device, custom_objects=objects,
-                                                          **kwargs)
+        return getattr(stable_baselines3, algorithm).load(
+            path, env=env, device=device, custom_objects=objects, **kwargs
+        )
     except (RuntimeError, KeyError, ValueError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise PolicyFileError(f"policy {path}: cannot be loaded ({first})") from None
@@ -146,6 +151,8 @@ def load_policy(path: str | os.PathLike, *, env=None, device: str = "cpu", spec=
     if spec is not None:
         obs, act = model.observation_space.shape, model.action_space.shape
         if obs != (spec.observation_dim,) or act != (spec.action_dim,):
-            raise PolicyFileError(f"policy {path} acts on observations {obs} with actions {act}; {spec.name} has "
-                                  f"({spec.observation_dim},) and ({spec.action_dim},)")
+            raise PolicyFileError(
+                f"policy {path} acts on observations {obs} with actions {act}; {spec.name} has "
+                f"({spec.observation_dim},) and ({spec.action_dim},)"
+            )
     return model

@@ -12,19 +12,19 @@ turn and stop commands.
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.atomic import atomic_write, write_json, write_text
-from rwm_gym.output_guard import OutputError, check_output, claim
-from rwm_gym.rl.evaluate_policy import Evaluation, as_policy, evaluate_policy, format_table, plot, scoring_commands
+from rwm_gym.atomic import atomic_write
+from rwm_gym.rl.evaluate_policy import Evaluation, as_policy, evaluate_policy, scoring_commands
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
-    ("forward 1.0 m/s", (1.0, 0.0, 0.0)), ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
-    ("turn 1.0 rad/s", (0.0, 0.0, 1.0)), ("stop", (0.0, 0.0, 0.0)),
+    ("forward 1.0 m/s", (1.0, 0.0, 0.0)),
+    ("lateral 0.5 m/s", (0.0, 0.5, 0.0)),
+    ("turn 1.0 rad/s", (0.0, 0.0, 1.0)),
+    ("stop", (0.0, 0.0, 0.0)),
 )
 
 
@@ -53,8 +53,16 @@ def resolve_policy(policy, num_envs: int, spec: str = "anymal_d"):
     return as_policy(policy)
 
 
-def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int = 16, checkpoint: str | None = None,
-          reset_data: str | os.PathLike | None = None, spec: str = "anymal_d") -> Evaluation:
+def score(
+    policy,
+    *,
+    seeds: int = 3,
+    steps: int | None = None,
+    num_random: int = 16,
+    checkpoint: str | None = None,
+    reset_data: str | os.PathLike | None = None,
+    spec: str = "anymal_d",
+) -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
     world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's)."""
     commands = scoring_commands(spec, num_random)
@@ -63,13 +71,25 @@ def score(policy, *, seeds: int = 3, steps: int | None = None, num_random: int =
     if checkpoint is not None:
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
-        core = ImaginedCore(checkpoint, len(commands) * seeds, reset_data=reset_data,
-                            options=ImaginationOptions(resample_commands=False, report_uncertainty=True))
+        core = ImaginedCore(
+            checkpoint,
+            len(commands) * seeds,
+            reset_data=reset_data,
+            options=ImaginationOptions(resample_commands=False, report_uncertainty=True),
+        )
     return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
 
 
-def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, seconds_each: float = 3.0,
-                fps: int = 15, size: tuple[int, int] = (400, 272), spec: str = "anymal_d") -> tuple[Path, Path]:
+def record_walk(
+    policy,
+    gif: str | os.PathLike,
+    still: str | os.PathLike,
+    *,
+    seconds_each: float = 3.0,
+    fps: int = 15,
+    size: tuple[int, int] = (400, 272),
+    spec: str = "anymal_d",
+) -> tuple[Path, Path]:
     """Render `policy` in physics through `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
     from PIL import Image, ImageDraw
 
@@ -100,86 +120,19 @@ def record_walk(policy, gif: str | os.PathLike, still: str | os.PathLike, *, sec
     finally:
         env.close()
     duration_ms = int(1000 * every * env.task_spec.policy_dt)
-    gif = atomic_write(gif, lambda tmp: frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
-                                                         duration=duration_ms, loop=0))
+    gif = atomic_write(
+        gif,
+        lambda tmp: frames[0].save(
+            tmp, format="GIF", save_all=True, append_images=frames[1:], duration=duration_ms, loop=0
+        ),
+    )
     still = atomic_write(still, lambda tmp: stills[0].save(tmp, format="PNG"))
     return gif, still
 
 
 def summary_line(name: str, e: Evaluation) -> str:
-    return (f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
-            f"|dv_xy| {e.lin_vel_error:.3f} m/s")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--policy", required=True,
-                        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
-                             "or 'random' (correlated random actions)")
-    parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
-    parser.add_argument("--checkpoint", default=None,
-                        help="score in this world model (the imagined env) instead of physics, same commands and seeds")
-    parser.add_argument("--reset-data", type=Path, default=None,
-                        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
-                             "the checkpoint's; the shipped one's are mostly early falls)")
-    parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
-    parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
-    parser.add_argument("--commands", type=int, default=16,
-                        help="random commands in the set, beside standing and 1 m/s forward (default: 16)")
-    parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.policy not in SCRIPTED and not Path(args.policy).is_file():
-        raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
-    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
-        raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
-    inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
-    try:
-        for name in ("score.md", "score.png", "walk.gif", "walk.png"):
-            check_output(args.out / name, inputs=inputs, overwrite=True)
-        report = check_output(args.out / "score.json", inputs=inputs, overwrite=args.overwrite)
-        with claim(report):
-            return _score(args)
-    except OutputError as err:
-        raise SystemExit(f"rwm-gym score: {err}") from None
-
-
-def _score(args: argparse.Namespace) -> int:
-    if args.policy not in SCRIPTED:
-        from rwm_gym.rl.safe_zip import load_policy
-        from rwm_gym.spec import load_spec
-
-        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))
-    else:
-        policy = args.policy
-    if args.reset_data is not None and args.checkpoint is None:
-        raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
-    if args.reset_data is not None and not args.reset_data.is_file():
-        raise SystemExit(f"rwm-gym score: --reset-data {args.reset_data}: no such file")
-    where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
-    if args.reset_data is not None:
-        where += f" from {args.reset_data}"
-    options = dict(seeds=args.seeds, steps=args.steps, num_random=args.commands, checkpoint=args.checkpoint,
-                   reset_data=args.reset_data)
-    result = score(policy, **options)
-    floor = result if args.policy == "zero" else score(zero_policy, **options)
-    table = format_table(result)
-    lines = [summary_line(f"policy {args.policy} in {where}", result),
-             summary_line(f"zero-action floor in {where}", floor)]
-    print(table)
-    print("\n".join(lines))
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text(args.out / "score.md", f"# Tracking score of {args.policy} in {where}\n\n```\n{table}\n```\n\n"
-               + "\n".join(f"- {line}" for line in lines) + "\n")
-    plot(result, args.out / "score.png", title=lines[0])
-    report = {"policy": str(args.policy), "where": where, "tracking": result.tracking,
-              "return": result.episode_return, "falls": result.falls, "episodes": result.episodes,
-              "floor": {"tracking": floor.tracking, "return": floor.episode_return, "falls": floor.falls},
-              "evaluation": result.to_dict(), "floor_evaluation": floor.to_dict()}
-    write_json(args.out / "score.json", report)
-    if args.video:
-        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png")
-        print(f"video: {gif}, still: {still}")
-    print(f"wrote {args.out / 'score.json'}")
-    return 0
+    """One line of an evaluation: tracking, return, falls and velocity error."""
+    return (
+        f"{name}: tracking {e.tracking:.3f}, return {e.episode_return:.2f}, falls {e.falls}/{e.episodes}, "
+        f"|dv_xy| {e.lin_vel_error:.3f} m/s"
+    )

@@ -73,9 +73,15 @@ class SHACConfig:
         """The `PPOConfig` whose policy layout this learner trains (what `make_ppo` builds and saves)."""
         from rwm_gym.rl.ppo import PPOConfig
 
-        return PPOConfig(num_envs=self.num_envs, n_steps=self.horizon, num_minibatches=1, net_arch=self.net_arch,
-                         activation=self.activation, log_std_init=self.log_std_init,
-                         positive_reward_only=self.positive_reward_only)
+        return PPOConfig(
+            num_envs=self.num_envs,
+            n_steps=self.horizon,
+            num_minibatches=1,
+            net_arch=self.net_arch,
+            activation=self.activation,
+            log_std_init=self.log_std_init,
+            positive_reward_only=self.positive_reward_only,
+        )
 
 
 class DifferentiableImagination:
@@ -90,8 +96,10 @@ class DifferentiableImagination:
     def __init__(self, core: ImaginedCore):
         options = core.options
         if options.acts_on_disagreement or options.sample_predictions or options.push_interval_s > 0:
-            raise ValueError("SHAC steps each env with its own head's mean: the uncertainty penalty and halt, "
-                             "sampled predictions and pushes are not implemented for it")
+            raise ValueError(
+                "SHAC steps each env with its own head's mean: the uncertainty penalty and halt, "
+                "sampled predictions and pushes are not implemented for it"
+            )
         if core.spec.extra.get("dm_control") is not None or "command" not in core.spec.observation.groups:
             raise ValueError(f"SHAC here trains the velocity-tracking task, not {core.spec.name}")
         self.core, self.spec, self.norm = core, core.spec, core.norm
@@ -154,8 +162,9 @@ class DifferentiableImagination:
         next_norm = torch.where(diverged[:, None], x, next_norm)
         next_state = self.norm.denormalize_state(next_norm)
         contact = p.contact_logits > 0
-        reward, _ = velocity_tracking_reward(self.spec, self.air, next_state, self.state, contact, self.command,
-                                             action, self.last_action)
+        reward, _ = velocity_tracking_reward(
+            self.spec, self.air, next_state, self.state, contact, self.command, action, self.last_action
+        )
         terminated = diverged | (p.termination_logit > 0)
         if options.fall_tilt > 0:
             gravity = next_state[:, self.spec.state_slices["projected_gravity"]].detach().cpu().numpy()
@@ -176,8 +185,9 @@ class DifferentiableImagination:
         due = np.flatnonzero((self.steps % self.period == 0).cpu().numpy())
         if len(due):
             fresh = sample_commands(self.spec.command, [self.core.rngs[i] for i in due])
-            self.command = self.command.index_put((torch.as_tensor(due, device=self.device),),
-                                                  torch.as_tensor(fresh, device=self.device))
+            self.command = self.command.index_put(
+                (torch.as_tensor(due, device=self.device),), torch.as_tensor(fresh, device=self.device)
+            )
 
 
 @dataclass
@@ -208,8 +218,9 @@ class SHAC:
         actor = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
         self.critic_modules = torch.nn.ModuleList([policy.mlp_extractor.value_net, policy.value_net])
         self.actor_optimizer = torch.optim.Adam(actor, lr=config.actor_lr, betas=(0.7, 0.95))
-        self.critic_optimizer = torch.optim.Adam(self.critic_modules.parameters(), lr=config.critic_lr,
-                                                 betas=(0.7, 0.95))
+        self.critic_optimizer = torch.optim.Adam(
+            self.critic_modules.parameters(), lr=config.critic_lr, betas=(0.7, 0.95)
+        )
         self.actor_parameters = actor
         self.target_critic = copy.deepcopy(self.critic_modules).requires_grad_(False)
         self.timesteps = 0
@@ -260,12 +271,24 @@ class SHAC:
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.actor_parameters, c.max_grad_norm)
         self.actor_optimizer.step()
-        critic_loss = self._train_critic(torch.stack(observations), torch.stack(rewards), torch.stack(next_values),
-                                         torch.stack(terminated_flags), torch.stack(done_flags))
+        critic_loss = self._train_critic(
+            torch.stack(observations),
+            torch.stack(rewards),
+            torch.stack(next_values),
+            torch.stack(terminated_flags),
+            torch.stack(done_flags),
+        )
         self.timesteps += n * c.horizon
-        return UpdateStats(self.timesteps, float(objective.mean().detach()), float(torch.stack(rewards).mean()),
-                           float(grad_norm), critic_loss, ended, terminated_count / (n * c.horizon),
-                           float(self.policy.log_std.detach().exp().mean()))
+        return UpdateStats(
+            self.timesteps,
+            float(objective.mean().detach()),
+            float(torch.stack(rewards).mean()),
+            float(grad_norm),
+            critic_loss,
+            ended,
+            terminated_count / (n * c.horizon),
+            float(self.policy.log_std.detach().exp().mean()),
+        )
 
     def _train_critic(self, obs, rewards, next_values, terminated, done) -> float:
         """Fit V to TD(lambda) targets of the rollout (T, N); the target critic follows softly."""
@@ -274,8 +297,13 @@ class SHAC:
         following = next_values[-1]
         for t in reversed(range(c.horizon)):
             alive = (~terminated[t]).float()
-            blend = next_values[t] if t == c.horizon - 1 else torch.where(
-                done[t], next_values[t], (1 - c.gae_lambda) * next_values[t] + c.gae_lambda * following)
+            blend = (
+                next_values[t]
+                if t == c.horizon - 1
+                else torch.where(
+                    done[t], next_values[t], (1 - c.gae_lambda) * next_values[t] + c.gae_lambda * following
+                )
+            )
             targets[t] = rewards[t] + c.gamma * alive * blend
             following = targets[t]
         flat_obs, flat_targets = obs.reshape(-1, obs.shape[-1]), targets.reshape(-1)
@@ -284,7 +312,7 @@ class SHAC:
         for _ in range(c.critic_iterations):
             order = torch.randperm(len(flat_targets), generator=self.generator, device=flat_obs.device)
             for k in range(c.critic_minibatches):
-                rows = order[k * size:(k + 1) * size]
+                rows = order[k * size : (k + 1) * size]
                 loss = (self._value(flat_obs[rows], self.critic_modules) - flat_targets[rows]).square().mean()
                 self.critic_optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -298,10 +326,13 @@ class SHAC:
 
     def state_dict(self) -> dict:
         """Everything a resumed run needs besides the policy's own weights."""
-        return {"actor_optimizer": self.actor_optimizer.state_dict(),
-                "critic_optimizer": self.critic_optimizer.state_dict(),
-                "target_critic": self.target_critic.state_dict(), "timesteps": self.timesteps,
-                "generator": self.generator.get_state()}
+        return {
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "target_critic": self.target_critic.state_dict(),
+            "timesteps": self.timesteps,
+            "generator": self.generator.get_state(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
@@ -309,4 +340,3 @@ class SHAC:
         self.target_critic.load_state_dict(state["target_critic"])
         self.timesteps = int(state["timesteps"])
         self.generator.set_state(state["generator"])
-

@@ -24,7 +24,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from rwm_gym.atomic import write_json
 from rwm_gym.rl.policy_file import save_policy
-from rwm_gym.rl.safe_zip import load_policy
 
 
 class TrainingRun:
@@ -61,8 +60,18 @@ class RunCheckpoint(BaseCallback):
     `log_row` is meant for `learn(on_rollout=...)`: it appends each rollout's log row to log.csv.
     """
 
-    def __init__(self, run: TrainingRun, config, *, save_every: int, snapshot_every: int,
-                 recorder=None, prior_wall_s: float = 0.0, restarts: int = 0, environment: dict | None = None):
+    def __init__(
+        self,
+        run: TrainingRun,
+        config,
+        *,
+        save_every: int,
+        snapshot_every: int,
+        recorder=None,
+        prior_wall_s: float = 0.0,
+        restarts: int = 0,
+        environment: dict | None = None,
+    ):
         super().__init__()
         self.run, self.config, self.recorder, self.environment = run, config, recorder, environment
         self.save_every, self.snapshot_every = save_every, snapshot_every
@@ -94,8 +103,13 @@ class RunCheckpoint(BaseCallback):
             writer = csv.DictWriter(f, fieldnames=["rollout", "total_wall_s", *row])
             if new:
                 writer.writeheader()
-            writer.writerow({"rollout": self._rollout_index(),
-                             "total_wall_s": round(self.prior_wall_s + time.monotonic() - self.started, 2), **row})
+            writer.writerow(
+                {
+                    "rollout": self._rollout_index(),
+                    "total_wall_s": round(self.prior_wall_s + time.monotonic() - self.started, 2),
+                    **row,
+                }
+            )
 
     def _on_rollout_end(self) -> None:
         if self._rollout_index() % self.save_every == 0:
@@ -103,13 +117,20 @@ class RunCheckpoint(BaseCallback):
 
     def save(self) -> None:
         save_policy(self.model, self.run.latest)
-        write_json(self.run.state_path, {
-            "ppo": asdict(self.config), "env": self.environment, "timesteps": int(self.num_timesteps), "rollouts": self._rollout_index(),
-            "learning_rate": float(self.model.learning_rate),
-            "wall_s": self.prior_wall_s + time.monotonic() - self.started, "restarts": self.restarts,
-            "experience": sorted(str(p.name) for p in self.run.experience.glob("part_*.h5")),
-            "experience_episodes_this_process": None if self.recorder is None else self.recorder.episodes_written,
-        })
+        write_json(
+            self.run.state_path,
+            {
+                "ppo": asdict(self.config),
+                "env": self.environment,
+                "timesteps": int(self.num_timesteps),
+                "rollouts": self._rollout_index(),
+                "learning_rate": float(self.model.learning_rate),
+                "wall_s": self.prior_wall_s + time.monotonic() - self.started,
+                "restarts": self.restarts,
+                "experience": sorted(str(p.name) for p in self.run.experience.glob("part_*.h5")),
+                "experience_episodes_this_process": None if self.recorder is None else self.recorder.episodes_written,
+            },
+        )
 
 
 def resume_model(run: TrainingRun, env, device: str) -> PPO:

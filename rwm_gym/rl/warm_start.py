@@ -50,15 +50,18 @@ class CloneConfig:
     """Std of Gaussian noise added to the last-action input while cloning, so the clone does not merely copy its
     previous action (the copycat shortcut of cloning from action histories)."""
     observation_noise: float = 0.0
-    """Scale of the spec's uniform observation noise added to the other inputs while cloning (0: none, 1: the spec's)."""
+    """Scale of the spec's uniform observation noise added to the other inputs while cloning (0: none, 1: the
+    spec's)."""
     val_fraction: float = 0.1
     """Episodes held out to report the validation MSE."""
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.batch_size < 1 or not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"CloneConfig: steps {self.steps} and batch_size {self.batch_size} must be >= 1, "
-                             f"val_fraction {self.val_fraction} in [0, 1)")
+            raise ValueError(
+                f"CloneConfig: steps {self.steps} and batch_size {self.batch_size} must be >= 1, "
+                f"val_fraction {self.val_fraction} in [0, 1)"
+            )
 
 
 @dataclass
@@ -109,9 +112,9 @@ def demonstrations(datasets: Sequence[Dataset | str | os.PathLike], *, drop_befo
             end = start + length - 1  # the last row has no transition
             if terminated[start + length - 1]:
                 end -= drop_before_fall
-            keep[start:max(end, start)] = True
+            keep[start : max(end, start)] = True
             last[start] = 0.0
-            episode[start:start + length] = offset + i
+            episode[start : start + length] = offset + i
         offset += ds.num_episodes
         obs.append(build_observation(spec, state[keep], command[keep], last[keep]))
         act.append(action[keep].astype(np.float32))
@@ -153,8 +156,13 @@ def _input_noise(dataset: Dataset | str | os.PathLike, config: CloneConfig) -> n
     return std
 
 
-def behaviour_clone(model: PPO, datasets: Sequence[Dataset | str | os.PathLike],
-                    config: CloneConfig = CloneConfig(), *, progress: bool = False) -> CloneStats:
+def behaviour_clone(
+    model: PPO,
+    datasets: Sequence[Dataset | str | os.PathLike],
+    config: CloneConfig = CloneConfig(),
+    *,
+    progress: bool = False,
+) -> CloneStats:
     """Fit `model`'s actor mean to the demonstrations in `datasets` in place, then set its log std to config.log_std.
 
     The critic is left as it is. A fraction `val_fraction` of the episodes is held out (when there are at least two).
@@ -199,9 +207,14 @@ def behaviour_clone(model: PPO, datasets: Sequence[Dataset | str | os.PathLike],
     with torch.no_grad():
         policy.log_std.fill_(config.log_std)
     return CloneStats(
-        pairs=len(obs_tr), val_pairs=len(obs_va), episodes=len(episodes), wall_s=time.monotonic() - started,
-        train_mse_before=before[0], train_mse_after=action_mse(model, obs_tr, act_tr),
-        val_mse_before=before[1], val_mse_after=action_mse(model, obs_va, act_va) if len(obs_va) else None,
+        pairs=len(obs_tr),
+        val_pairs=len(obs_va),
+        episodes=len(episodes),
+        wall_s=time.monotonic() - started,
+        train_mse_before=before[0],
+        train_mse_after=action_mse(model, obs_tr, act_tr),
+        val_mse_before=before[1],
+        val_mse_after=action_mse(model, obs_va, act_va) if len(obs_va) else None,
         curve=curve,
     )
 
@@ -213,8 +226,9 @@ def default_demonstrations() -> Path:
     return assets_dir() / "checkpoints" / DEMOS_FILE
 
 
-def write_demonstrations(source: Dataset | str | os.PathLike, out: str | os.PathLike, *, episodes: int = 64,
-                         rows: int = 250, seed: int = 0) -> Path:
+def write_demonstrations(
+    source: Dataset | str | os.PathLike, out: str | os.PathLike, *, episodes: int = 64, rows: int = 250, seed: int = 0
+) -> Path:
     """A small demonstration file: `episodes` episodes of `source`, at most `rows` rows each, gzip-compressed.
 
     The same cut as the reset data (`make_reset_data`), then every field rewritten whole with gzip + shuffle, which

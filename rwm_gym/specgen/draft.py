@@ -14,6 +14,8 @@ from rwm_gym.specgen.toml_text import significant, table_text
 
 @dataclass
 class Table:
+    """One TOML table of a spec being written: its values, comments per key and a note above it."""
+
     name: str
     values: dict
     comments: dict[str, str] = field(default_factory=dict)
@@ -25,6 +27,8 @@ class Table:
 
 @dataclass
 class SpecDraft:
+    """A spec being generated: header, tables and the choices made without being told."""
+
     header: list[str]
     """Comment lines at the top of the file."""
     tables: list[Table]
@@ -63,8 +67,16 @@ def fill_normalization(draft: SpecDraft, episodes: int, steps: int, seed: int = 
 
     spec = draft.parse()
     with tempfile.TemporaryDirectory(prefix="rwm-spec-") as tmp:
-        path = collect(spec, "random", episodes, Path(tmp) / "random.h5", seed=seed, max_steps=steps,
-                       num_envs=min(episodes, 4), progress=False)
+        path = collect(
+            spec,
+            "random",
+            episodes,
+            Path(tmp) / "random.h5",
+            seed=seed,
+            max_steps=steps,
+            num_envs=min(episodes, 4),
+            progress=False,
+        )
         data = Dataset.load(path)
         state, feet = data["state"].astype(np.float64), data["foot_height"].astype(np.float64)
         rows = data.num_steps
@@ -76,6 +88,8 @@ def fill_normalization(draft: SpecDraft, episodes: int, steps: int, seed: int = 
         table.values["std"] = [significant(v) for v in std]
     if feet.shape[1]:
         draft.table("privileged").values["foot_height_std"] = significant(max(feet.std(), 0.01))
-    return (f"mean and std of {episodes} random-policy episodes, {rows} rows\n(`rwm-gym collect --policy random "
-            f"--episodes {episodes} --max-steps {steps} --seed {seed}`),\nstd floored at max(0.05 x the group's "
-            f"largest std, 0.01), rounded to 4 significant digits.")
+    return (
+        f"mean and std of {episodes} random-policy episodes, {rows} rows\n(`rwm-gym collect --policy random "
+        f"--episodes {episodes} --max-steps {steps} --seed {seed}`),\nstd floored at max(0.05 x the group's "
+        f"largest std, 0.01), rounded to 4 significant digits."
+    )

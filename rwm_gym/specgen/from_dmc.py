@@ -22,12 +22,16 @@ import numpy as np
 from rwm_gym.specgen.draft import SpecDraft, Table
 
 _AXES = "xyz"
-_FREE, _BALL, _SLIDE, _HINGE = (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL),
-                                int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE))
+_FREE, _BALL, _SLIDE, _HINGE = (
+    int(mujoco.mjtJoint.mjJNT_FREE),
+    int(mujoco.mjtJoint.mjJNT_BALL),
+    int(mujoco.mjtJoint.mjJNT_SLIDE),
+    int(mujoco.mjtJoint.mjJNT_HINGE),
+)
 
 
 def _axis_name(axis: np.ndarray) -> str | None:
-    """"x", "y" or "z" for a unit axis along a coordinate axis, else None."""
+    """ "x", "y" or "z" for a unit axis along a coordinate axis, else None."""
     k = int(np.argmax(np.abs(axis)))
     return _AXES[k] if np.isclose(abs(axis[k]), 1.0) else None
 
@@ -49,8 +53,11 @@ def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, i: int) -> str:
 
 def find_base(model: mujoco.MjModel) -> int | None:
     """The floating base: a body under the world with a free joint, or with >= 2 joints none of them actuated."""
-    actuated = {int(model.actuator_trnid[a, 0]) for a in range(model.nu)
-                if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT)}
+    actuated = {
+        int(model.actuator_trnid[a, 0])
+        for a in range(model.nu)
+        if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT)
+    }
     for body in _children(model, 0):
         joints = list(range(model.body_jntadr[body], model.body_jntadr[body] + model.body_jntnum[body]))
         if any(int(model.jnt_type[j]) == _FREE for j in joints):
@@ -65,14 +72,20 @@ def base_groups(model: mujoco.MjModel, base: int) -> tuple[list[tuple[str, list[
     joints = list(range(model.body_jntadr[base], model.body_jntadr[base] + model.body_jntnum[base]))
     if any(int(model.jnt_type[j]) == _FREE for j in joints):
         xyz = list(_AXES)
-        return [("base_height", ["z"], "m"), ("projected_gravity", xyz, "1"), ("base_lin_vel", xyz, "m/s"),
-                ("base_ang_vel", xyz, "rad/s")], joints
+        return [
+            ("base_height", ["z"], "m"),
+            ("projected_gravity", xyz, "1"),
+            ("base_lin_vel", xyz, "m/s"),
+            ("base_ang_vel", xyz, "rad/s"),
+        ], joints
     slides, hinges = [], []
     for j in joints:
         axis = _axis_name(model.jnt_axis[j])
         if axis is None or int(model.jnt_type[j]) not in (_SLIDE, _HINGE):
-            raise ValueError(f"base joint {_name(model, mujoco.mjtObj.mjOBJ_JOINT, j)!r} is not a slide or hinge "
-                             f"along a coordinate axis")
+            raise ValueError(
+                f"base joint {_name(model, mujoco.mjtObj.mjOBJ_JOINT, j)!r} is not a slide or hinge "
+                f"along a coordinate axis"
+            )
         (slides if int(model.jnt_type[j]) == _SLIDE else hinges).append(axis)
     groups = []
     if "z" in slides:
@@ -95,8 +108,10 @@ def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]]
     groups, base_joints = base_groups(model, base) if base is not None else ([], [])
     base_name = _name(model, mujoco.mjtObj.mjOBJ_BODY, base) if base is not None else ""
     if base is not None:
-        notes.append(f"floating base {base_name!r}: state groups {', '.join(g[0] for g in groups)}; its horizontal "
-                     f"position is not in the state (add it by hand if the reward needs it)")
+        notes.append(
+            f"floating base {base_name!r}: state groups {', '.join(g[0] for g in groups)}; its horizontal "
+            f"position is not in the state (add it by hand if the reward needs it)"
+        )
     positions, angles, velocities = [], [], []
     for j in range(model.njnt):
         if j in base_joints:
@@ -104,8 +119,10 @@ def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]]
         name = _name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
         kind = int(model.jnt_type[j])
         if kind in (_FREE, _BALL):
-            raise ValueError(f"joint {name!r} is a free or ball joint outside the base; the dm_control layout "
-                             "takes hinges and slides only")
+            raise ValueError(
+                f"joint {name!r} is a free or ball joint outside the base; the dm_control layout "
+                "takes hinges and slides only"
+            )
         if not name:
             raise ValueError(f"joint {j} has no name; the spec names every state column")
         unlimited_hinge = kind == _HINGE and not model.jnt_limited[j]
@@ -113,9 +130,16 @@ def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]]
         velocities.append(name)
     if angles:
         notes.append(f"unlimited hinges {', '.join(angles)} enter as cos and sin of the angle")
-    groups += [(n, cols, unit) for n, cols, unit in (("joint_pos", positions, "rad or m"), ("joint_cos", angles, "1"),
-                                                      ("joint_sin", angles, "1"), ("joint_vel", velocities, "rad/s or m/s"))
-               if cols]
+    groups += [
+        (n, cols, unit)
+        for n, cols, unit in (
+            ("joint_pos", positions, "rad or m"),
+            ("joint_cos", angles, "1"),
+            ("joint_sin", angles, "1"),
+            ("joint_vel", velocities, "rad/s or m/s"),
+        )
+        if cols
+    ]
     actuators = [_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) for a in range(model.nu)]
     if not all(actuators):
         raise ValueError("every actuator needs a name (the spec lists them as actuator.joints)")
@@ -125,13 +149,22 @@ def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]]
 
 def contacts(model: mujoco.MjModel, base_name: str, feet: list[str] | None) -> tuple[list[str], list[str], list[str]]:
     """(contact bodies, feet, notes): the robot's colliding bodies when the world has a plane to touch."""
-    world_planes = [g for g in range(model.ngeom)
-                    if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
+    world_planes = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
+    ]
     if not world_planes:
         return [], [], ["no floor plane in the world: no contact flags"]
     robot = [b for root in _children(model, 0) for b in _subtree(model, root)]
-    colliding = [b for b in robot if any((model.geom_contype[g] | model.geom_conaffinity[g]) and model.geom_bodyid[g] == b
-                                         for g in range(model.ngeom))]
+    colliding = [
+        b
+        for b in robot
+        if any(
+            (model.geom_contype[g] | model.geom_conaffinity[g]) and model.geom_bodyid[g] == b
+            for g in range(model.ngeom)
+        )
+    ]
     names = [_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in colliding]
     names = [n for n in names if n]
     if feet is None:
@@ -162,34 +195,74 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
 
     title = "".join(p.capitalize() for p in f"{domain}_{task}".replace("-", "_").split("_"))
     if (domain, task) not in SUPPORTED:
-        notes.append(f"the imagined env cannot compute dm_control's {domain}-{task} reward from the predicted state: "
-                     f"give it a reward entry point ([imagination] reward = \"module:function\") or reward_fn=")
-    task_table = {"name": f"DMC-{title}", "physics_env_id": f"DMC-{title}-v0", "imagined_env_id": f"RWM-{title}-v0",
-                  "policy_dt": float(env.control_timestep()), "physics_dt": float(env.physics.timestep()),
-                  "episode_steps": episode_steps}
+        notes.append(
+            f"the imagined env cannot compute dm_control's {domain}-{task} reward from the predicted state: "
+            f'give it a reward entry point ([imagination] reward = "module:function") or reward_fn='
+        )
+    task_table = {
+        "name": f"DMC-{title}",
+        "physics_env_id": f"DMC-{title}-v0",
+        "imagined_env_id": f"RWM-{title}-v0",
+        "policy_dt": float(env.control_timestep()),
+        "physics_dt": float(env.physics.timestep()),
+        "episode_steps": episode_steps,
+    }
     if base:
         task_table["base_body"] = base
     actuators = groups[-1][1]
     tables = [
-        Table("task", task_table, {"policy_dt": "s, dm_control's control timestep (checked at load)",
-                                   "physics_dt": "s, the model's timestep (checked at load)",
-                                   "episode_steps": "the suite's time limit; suite tasks never terminate"}),
+        Table(
+            "task",
+            task_table,
+            {
+                "policy_dt": "s, dm_control's control timestep (checked at load)",
+                "physics_dt": "s, the model's timestep (checked at load)",
+                "episode_steps": "the suite's time limit; suite tasks never terminate",
+            },
+        ),
         Table("dm_control", {"domain": domain, "task": task, "contact_partner": "world"}),
-        Table("actuator", {"joints": actuators},
-              note="The model's actuators in model order; actions in [-1, 1] map linearly onto each control range."),
+        Table(
+            "actuator",
+            {"joints": actuators},
+            note="The model's actuators in model order; actions in [-1, 1] map linearly onto each control range.",
+        ),
     ]
     for name, columns, unit in groups:
-        tables.append(Table("state", {"name": name, "columns": columns, "unit": unit, "mean": [0.0] * len(columns),
-                                      "std": [1.0] * len(columns)}, array=True))
+        tables.append(
+            Table(
+                "state",
+                {
+                    "name": name,
+                    "columns": columns,
+                    "unit": unit,
+                    "mean": [0.0] * len(columns),
+                    "std": [1.0] * len(columns),
+                },
+                array=True,
+            )
+        )
     privileged = {"contact_bodies": contact_bodies, "feet": feet}
     if feet:
         privileged["foot_height_std"] = 0.1
-    tables.append(Table("privileged", privileged, {"foot_height_std": "m, std of the foot heights in the same data"},
-                        note="No termination: suite tasks run to their time limit."))
-    tables.append(Table("observation", {"groups": [g[0] for g in groups] + ["last_action"]},
-                        note="Policy observation: the state, then the last action."))
-    header = [f"Task spec: dm_control suite {domain}-{task}, written by `rwm-gym spec --from-dmc {domain}-{task}`.",
-              "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
-              "how the world-model state, contacts and observation are read from its physics",
-              "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m)."]
+    tables.append(
+        Table(
+            "privileged",
+            privileged,
+            {"foot_height_std": "m, std of the foot heights in the same data"},
+            note="No termination: suite tasks run to their time limit.",
+        )
+    )
+    tables.append(
+        Table(
+            "observation",
+            {"groups": [g[0] for g in groups] + ["last_action"]},
+            note="Policy observation: the state, then the last action.",
+        )
+    )
+    header = [
+        f"Task spec: dm_control suite {domain}-{task}, written by `rwm-gym spec --from-dmc {domain}-{task}`.",
+        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
+        "how the world-model state, contacts and observation are read from its physics",
+        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
+    ]
     return SpecDraft(header, tables, notes + contact_notes)

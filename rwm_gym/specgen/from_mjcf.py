@@ -52,8 +52,11 @@ def _is_below(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
 
 
 def _colliding_geoms(model: mujoco.MjModel, body: int) -> list[int]:
-    return [g for g in range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
-            if model.geom_contype[g] or model.geom_conaffinity[g]]
+    return [
+        g
+        for g in range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
+        if model.geom_contype[g] or model.geom_conaffinity[g]
+    ]
 
 
 def _find_base(model: mujoco.MjModel, base: str | None) -> int:
@@ -98,8 +101,9 @@ def _foot_point(model: mujoco.MjModel, data: mujoco.MjData, body: int) -> tuple[
 
 def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.ndarray]:
     """(centre, half sizes) in the body frame of a box around the body's colliding geoms, 10 % larger."""
-    geoms = _colliding_geoms(model, body) or list(range(model.body_geomadr[body],
-                                                        model.body_geomadr[body] + model.body_geomnum[body]))
+    geoms = _colliding_geoms(model, body) or list(
+        range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
+    )
     if not geoms:
         raise ValueError(f"body {_name(model, _BODY, body)!r} has no geom to sense contacts with")
     low = np.min([model.geom_pos[g] - model.geom_rbound[g] for g in geoms], axis=0)
@@ -107,8 +111,9 @@ def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.nda
     return (low + high) / 2, 1.1 * (high - low) / 2
 
 
-def _gains(model: mujoco.MjModel, joints: list[int], mass: float, height: float, n_feet: int,
-           notes: list[str]) -> tuple[float, float, float]:
+def _gains(
+    model: mujoco.MjModel, joints: list[int], mass: float, height: float, n_feet: int, notes: list[str]
+) -> tuple[float, float, float]:
     """(kp N·m/rad, kd N·m·s/rad, effort limit N·m) from the file's actuators where it has them, else from weight."""
     kps, kds, limits = [], [], []
     for a in range(model.nu):
@@ -128,8 +133,10 @@ def _gains(model: mujoco.MjModel, joints: list[int], mass: float, height: float,
     else:
         kp = significant(2.0 * mass * GRAVITY * height / n_feet)
         kd = significant(kp / 10.0)  # kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
-        notes.append(f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp x 0.1 s = {kd} N·m·s/rad "
-                     f"(no position servos in the file)")
+        notes.append(
+            f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp x 0.1 s = {kd} N·m·s/rad "
+            f"(no position servos in the file)"
+        )
     if limits:
         limit = significant(max(limits))
         notes.append(f"effort limit {limit} N·m from the file's actuator ranges")
@@ -175,8 +182,9 @@ class _Pose:
     height: float
 
 
-def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] | None = None,
-                 name: str | None = None) -> tuple[SpecDraft, str]:
+def legged_draft(
+    mjcf: str | Path, *, base: str | None = None, feet: list[str] | None = None, name: str | None = None
+) -> tuple[SpecDraft, str]:
     """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller."""
     path = Path(mjcf)
     mj, model = _load(path)
@@ -194,8 +202,10 @@ def legged_draft(mjcf: str | Path, *, base: str | None = None, feet: list[str] |
     dt, policy_dt, speed = _timing(model, pose.height, notes)
     task_name = _task_name(name, mj.modelname)
     tables = _tables(task_name, legs, pose, servo, foot_names, dt, policy_dt, speed)
-    robot_line = (f"Robot: {mass:.3g} kg, {len(legs.joints)} joints, {len(foot_names)} feet, base {legs.base_name!r} "
-                  f"standing at {pose.height:.3f} m. Units: SI (m, s, rad, N, N·m, kg).")
+    robot_line = (
+        f"Robot: {mass:.3g} kg, {len(legs.joints)} joints, {len(foot_names)} feet, base {legs.base_name!r} "
+        f"standing at {pose.height:.3f} m. Units: SI (m, s, rad, N, N·m, kg)."
+    )
     header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
     return SpecDraft(header, tables, notes), mj.to_xml()
 
@@ -237,8 +247,9 @@ def _hinge_joints(model: mujoco.MjModel, b: int, robot: list[int], base_name: st
     return joint_ids, joints
 
 
-def _find_feet(model: mujoco.MjModel, b: int, robot: list[int], base_name: str, feet: list[str] | None,
-               notes: list[str]) -> list[int]:
+def _find_feet(
+    model: mujoco.MjModel, b: int, robot: list[int], base_name: str, feet: list[str] | None, notes: list[str]
+) -> list[int]:
     """The foot bodies: those named by `--feet`, else the robot's leaf bodies with colliding geoms."""
     if feet:
         foot_bodies = [mujoco.mj_name2id(model, _BODY, f) for f in feet]
@@ -246,8 +257,11 @@ def _find_feet(model: mujoco.MjModel, b: int, robot: list[int], base_name: str, 
         if missing:
             raise ValueError(f"--feet: {missing[0]!r} is not a body of the robot below {base_name!r}")
         return foot_bodies
-    foot_bodies = [c for c in robot if c != b and not any(model.body_parentid[k] == c for k in robot)
-                   and _colliding_geoms(model, c)]
+    foot_bodies = [
+        c
+        for c in robot
+        if c != b and not any(model.body_parentid[k] == c for k in robot) and _colliding_geoms(model, c)
+    ]
     notes.append(f"feet: the leaf bodies {', '.join(_name(model, _BODY, f) for f in foot_bodies)}")
     return foot_bodies
 
@@ -267,31 +281,44 @@ def _find_pose(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, notes: lis
     mujoco.mj_forward(model, data)
     points = [_foot_point(model, data, f) for f in legs.feet]
     if not model.nkey:
-        lowest = min(float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p)[2]) - r
-                     for f, (_, p, r) in zip(legs.feet, points))
+        lowest = min(
+            float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p)[2]) - r for f, (_, p, r) in zip(legs.feet, points)
+        )
         qpos[2] -= lowest
         data.qpos[:] = qpos
         mujoco.mj_forward(model, data)
-        notes.append(f"default pose: qpos0 with the base at {qpos[2]:.3f} m so the feet touch the floor "
-                     f"(keyframe 'home' added)")
+        notes.append(
+            f"default pose: qpos0 with the base at {qpos[2]:.3f} m so the feet touch the floor (keyframe 'home' added)"
+        )
     default_pose = [significant(float(qpos[model.jnt_qposadr[j]]), 6) for j in legs.joint_ids]
     return _Pose(keyframe, qpos, points, default_pose, float(data.xpos[legs.base, 2]))
 
 
-def _add_floor_camera_and_servos(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, pose: _Pose,
-                                 servo: tuple[float, float, float], notes: list[str]) -> None:
+def _add_floor_camera_and_servos(
+    mj: mujoco.MjSpec,
+    model: mujoco.MjModel,
+    legs: _Legs,
+    pose: _Pose,
+    servo: tuple[float, float, float],
+    notes: list[str],
+) -> None:
     """Into the copy: a floor plane and a "track" camera where missing, a position servo named after each joint (in
     place of the joints' actuators), and the default keyframe where the file has none."""
     kp, kd, limit = servo
-    if not any(model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
-               for g in range(model.ngeom)):
+    if not any(
+        model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
+        for g in range(model.ngeom)
+    ):
         mj.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05])
         notes.append("no floor plane in the world: a plane 'floor' added at z = 0")
     if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "track") < 0:  # the physics env renders from "track"
         scale = 4.0 * pose.height
-        mj.body(legs.base_name).add_camera(name="track", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
-                                           pos=[0.5 * scale, -scale, 0.5 * scale],
-                                           xyaxes=[0.894, 0.447, 0, -0.128, 0.255, 0.958])
+        mj.body(legs.base_name).add_camera(
+            name="track",
+            mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
+            pos=[0.5 * scale, -scale, 0.5 * scale],
+            xyaxes=[0.894, 0.447, 0, -0.128, 0.255, 0.958],
+        )
     for actuator in [a for a in mj.actuators if a.target in legs.joints]:
         mj.delete(actuator)
     for j in legs.joints:
@@ -312,16 +339,22 @@ def _add_contact_sensors(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, 
         geom.name = geom.name or f"{_name(model, _BODY, f)}_foot"
         if mujoco.mj_name2id(model, _SITE, geom.name) >= 0:
             raise ValueError(f"a site named {geom.name!r} exists already; rename it (feet get sites of their name)")
-        body.add_site(name=geom.name, type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0],
-                      group=4)
-        mj.add_sensor(name=f"contact_{geom.name}", type=mujoco.mjtSensor.mjSENS_TOUCH,
-                      objtype=mujoco.mjtObj.mjOBJ_SITE, objname=geom.name)
+        body.add_site(
+            name=geom.name, type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0], group=4
+        )
+        mj.add_sensor(
+            name=f"contact_{geom.name}",
+            type=mujoco.mjtSensor.mjSENS_TOUCH,
+            objtype=mujoco.mjtObj.mjOBJ_SITE,
+            objname=geom.name,
+        )
         foot_names.append(geom.name)
     for s in [legs.base, *legs.thighs]:
         centre, half = _enclosing_box(model, s)
         site = f"contact_{_name(model, _BODY, s)}"
-        mj.body(_name(model, _BODY, s)).add_site(name=site, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre),
-                                                  size=list(half), group=4)
+        mj.body(_name(model, _BODY, s)).add_site(
+            name=site, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre), size=list(half), group=4
+        )
         mj.add_sensor(name=site, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
     return foot_names
 
@@ -334,48 +367,121 @@ def _timing(model: mujoco.MjModel, height: float, notes: list[str]) -> tuple[flo
     policy_dt = significant(substeps * dt, 9)
     notes.append(f"policy step {policy_dt} s = {substeps} x the model's timestep {dt} s; episodes of 1000 steps")
     speed = significant(min(1.0, height / 0.6), 2)  # ANYmal D stands 0.6 m tall and is commanded up to 1 m/s
-    notes.append(f"commands up to {speed} m/s and rad/s (ANYmal D's 1 m/s x standing height {height:.3f} m / 0.6 m); "
-                 f"reward weights, reset noise and action scale are ANYmal D's")
+    notes.append(
+        f"commands up to {speed} m/s and rad/s (ANYmal D's 1 m/s x standing height {height:.3f} m / 0.6 m); "
+        f"reward weights, reset noise and action scale are ANYmal D's"
+    )
     return dt, policy_dt, speed
 
 
-def _tables(task_name: str, legs: _Legs, pose: _Pose, servo: tuple[float, float, float], foot_names: list[str],
-            dt: float, policy_dt: float, speed: float) -> list[Table]:
+def _tables(
+    task_name: str,
+    legs: _Legs,
+    pose: _Pose,
+    servo: tuple[float, float, float],
+    foot_names: list[str],
+    dt: float,
+    policy_dt: float,
+    speed: float,
+) -> list[Table]:
     """The spec's tables: the robot's own figures, and ANYmal D's (`envs/anymal_d.toml`) for the rest."""
     a = load_spec("anymal_d")
     kp, kd, limit = servo
     joints, thigh_names = legs.joints, legs.thigh_names
     tables = [
-        Table("task", {"name": task_name, "physics_env_id": f"{task_name}-MuJoCo-v0",
-                       "imagined_env_id": f"RWM-{task_name}-v0", "model": "", "policy_dt": policy_dt,
-                       "physics_dt": dt, "episode_steps": 1000, "keyframe": pose.keyframe,
-                       "base_body": legs.base_name},
-              {"model": "the rwm-ready copy written beside this spec", "policy_dt": "s", "physics_dt": "s"}),
-        Table("reset", {"joint_pos_noise": a.reset.joint_pos_noise, "base_lin_vel_noise": a.reset.base_lin_vel_noise,
-                        "base_ang_vel_noise": a.reset.base_ang_vel_noise},
-              {"joint_pos_noise": "rad", "base_lin_vel_noise": "m/s", "base_ang_vel_noise": "rad/s"}),
-        Table("actuator", {"joints": joints, "default_pose": pose.default_pose, "action_scale": a.actuator.action_scale,
-                           "kp": kp, "kd": kd, "effort_limit": limit},
-              {"default_pose": "rad", "action_scale": "rad per unit action", "kp": "N·m/rad", "kd": "N·m·s/rad",
-               "effort_limit": "N·m"}),
+        Table(
+            "task",
+            {
+                "name": task_name,
+                "physics_env_id": f"{task_name}-MuJoCo-v0",
+                "imagined_env_id": f"RWM-{task_name}-v0",
+                "model": "",
+                "policy_dt": policy_dt,
+                "physics_dt": dt,
+                "episode_steps": 1000,
+                "keyframe": pose.keyframe,
+                "base_body": legs.base_name,
+            },
+            {"model": "the rwm-ready copy written beside this spec", "policy_dt": "s", "physics_dt": "s"},
+        ),
+        Table(
+            "reset",
+            {
+                "joint_pos_noise": a.reset.joint_pos_noise,
+                "base_lin_vel_noise": a.reset.base_lin_vel_noise,
+                "base_ang_vel_noise": a.reset.base_ang_vel_noise,
+            },
+            {"joint_pos_noise": "rad", "base_lin_vel_noise": "m/s", "base_ang_vel_noise": "rad/s"},
+        ),
+        Table(
+            "actuator",
+            {
+                "joints": joints,
+                "default_pose": pose.default_pose,
+                "action_scale": a.actuator.action_scale,
+                "kp": kp,
+                "kd": kd,
+                "effort_limit": limit,
+            },
+            {
+                "default_pose": "rad",
+                "action_scale": "rad per unit action",
+                "kp": "N·m/rad",
+                "kd": "N·m·s/rad",
+                "effort_limit": "N·m",
+            },
+        ),
     ]
-    groups = [("base_lin_vel", ["x", "y", "z"], "m/s"), ("base_ang_vel", ["x", "y", "z"], "rad/s"),
-              ("projected_gravity", ["x", "y", "z"], "1"), ("joint_pos", joints, "rad"),
-              ("joint_vel", joints, "rad/s"), ("joint_torque", joints, "N·m")]
+    groups = [
+        ("base_lin_vel", ["x", "y", "z"], "m/s"),
+        ("base_ang_vel", ["x", "y", "z"], "rad/s"),
+        ("projected_gravity", ["x", "y", "z"], "1"),
+        ("joint_pos", joints, "rad"),
+        ("joint_vel", joints, "rad/s"),
+        ("joint_torque", joints, "N·m"),
+    ]
     for group, columns, unit in groups:
-        tables.append(Table("state", {"name": group, "columns": columns, "unit": unit, "mean": [0.0] * len(columns),
-                                      "std": [1.0] * len(columns)}, array=True))
+        tables.append(
+            Table(
+                "state",
+                {
+                    "name": group,
+                    "columns": columns,
+                    "unit": unit,
+                    "mean": [0.0] * len(columns),
+                    "std": [1.0] * len(columns),
+                },
+                array=True,
+            )
+        )
     tables += [
-        Table("privileged", {"contact_bodies": thigh_names + foot_names, "contact_threshold": 1.0, "feet": foot_names,
-                             "thighs": thigh_names, "termination_bodies": [legs.base_name], "foot_height_std": 0.1},
-              {"contact_threshold": "N", "foot_height_std": "m"}),
+        Table(
+            "privileged",
+            {
+                "contact_bodies": thigh_names + foot_names,
+                "contact_threshold": 1.0,
+                "feet": foot_names,
+                "thighs": thigh_names,
+                "termination_bodies": [legs.base_name],
+                "foot_height_std": 0.1,
+            },
+            {"contact_threshold": "N", "foot_height_std": "m"},
+        ),
         Table("observation", {"groups": list(a.observation.groups)}),
-        Table("command", {"names": list(a.command.names), "low": [-speed] * 3, "high": [speed] * 3,
-                          "resample_seconds": a.command.resample_seconds,
-                          "standing_fraction": a.command.standing_fraction,
-                          "standing_threshold": a.command.standing_threshold}),
-        Table("reward", {"tracking_sigma": a.reward.tracking_sigma,
-                         "feet_air_time_target": a.reward.feet_air_time_target}),
+        Table(
+            "command",
+            {
+                "names": list(a.command.names),
+                "low": [-speed] * 3,
+                "high": [speed] * 3,
+                "resample_seconds": a.command.resample_seconds,
+                "standing_fraction": a.command.standing_fraction,
+                "standing_threshold": a.command.standing_threshold,
+            },
+        ),
+        Table(
+            "reward", {"tracking_sigma": a.reward.tracking_sigma, "feet_air_time_target": a.reward.feet_air_time_target}
+        ),
         Table("reward.weights", dict(a.reward.weights)),
     ]
     return tables

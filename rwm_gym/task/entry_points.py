@@ -51,8 +51,9 @@ class Transition:
     def column(self, name: str, *, before: bool = False) -> np.ndarray:
         """(N,) the state column "group/column" (e.g. "joint_cos/shoulder") after the step (before, if asked)."""
         if name not in self.spec.state_columns:
-            raise KeyError(f"{self.spec.name} has no state column {name!r} (columns: "
-                           f"{', '.join(self.spec.state_columns)})")
+            raise KeyError(
+                f"{self.spec.name} has no state column {name!r} (columns: {', '.join(self.spec.state_columns)})"
+            )
         index = self.spec.state_columns.index(name)
         return (self.state if before else self.next_state)[:, index]
 
@@ -73,7 +74,7 @@ def load_entry_point(target: str, what: str) -> StepFunction:
     for part in attr.split("."):
         function = getattr(function, part, None)
     if not callable(function):
-        raise ValueError(f"{what} entry point {target!r}: {module_name} has no function {attr!r}")  # noqa: TRY004
+        raise ValueError(f"{what} entry point {target!r}: {module_name} has no function {attr!r}")
     return function
 
 
@@ -81,19 +82,24 @@ def spec_entry_points(spec: TaskSpec) -> dict[str, str]:
     """The spec's `[imagination]` entry points ({"reward": ..., "termination": ...}, either may be absent)."""
     table = spec.extra.get(TABLE, {})
     if not isinstance(table, dict):
-        raise ValueError(f"task spec {spec.name}: [{TABLE}] must be a table")  # noqa: TRY004 (a bad spec file)
+        raise ValueError(f"task spec {spec.name}: [{TABLE}] must be a table")
     unknown = sorted(set(table) - set(KEYS))
     if unknown:
         raise ValueError(f"task spec {spec.name}: [{TABLE}] unknown field {unknown[0]!r} (known: {', '.join(KEYS)})")
     for key, value in table.items():
         if not isinstance(value, str):
-            raise ValueError(f"task spec {spec.name}: [{TABLE}] {key} must be a 'module:function' string")  # noqa: TRY004
+            raise ValueError(f"task spec {spec.name}: [{TABLE}] {key} must be a 'module:function' string")
     return dict(table)
 
 
-def step_functions(spec: TaskSpec, reward_fn: StepFunction | None = None,
-                   termination_fn: StepFunction | None = None, *, trust: bool = False,
-                   source: str = "the task spec") -> tuple[StepFunction | None, StepFunction | None]:
+def step_functions(
+    spec: TaskSpec,
+    reward_fn: StepFunction | None = None,
+    termination_fn: StepFunction | None = None,
+    *,
+    trust: bool = False,
+    source: str = "the task spec",
+) -> tuple[StepFunction | None, StepFunction | None]:
     """(reward function, termination function): the arguments where given, else the spec's entry points (imported only
     if `trust`; `source` names the file the spec came from in the error), else None."""
     named = spec_entry_points(spec)
@@ -101,9 +107,11 @@ def step_functions(spec: TaskSpec, reward_fn: StepFunction | None = None,
     for what, target in named.items():
         if given[what] is None and not trust:
             module = target.partition(":")[0]
-            raise ValueError(f"{source} names the {what} entry point {target!r}, which would import and run module "
-                             f"{module!r}: pass trust_entry_points=True (--trust-entry-points) if you trust it, "
-                             f"or {what}_fn=")
+            raise ValueError(
+                f"{source} names the {what} entry point {target!r}, which would import and run module "
+                f"{module!r}: pass trust_entry_points=True (--trust-entry-points) if you trust it, "
+                f"or {what}_fn="
+            )
     if reward_fn is None and "reward" in named:
         reward_fn = load_entry_point(named["reward"], "reward")
     if termination_fn is None and "termination" in named:
@@ -116,8 +124,9 @@ def call(function: StepFunction, transition: Transition, what: str, dtype: type)
     n = len(transition.next_state)
     out = np.asarray(function(transition))
     if out.shape not in ((n,), (n, 1)):
-        raise ValueError(f"{what} function {getattr(function, '__name__', function)!r} returned shape {out.shape}, "
-                         f"expected ({n},)")
+        raise ValueError(
+            f"{what} function {getattr(function, '__name__', function)!r} returned shape {out.shape}, expected ({n},)"
+        )
     out = out.reshape(n).astype(dtype)
     if dtype is not bool and not np.all(np.isfinite(out)):
         raise ValueError(f"{what} function {getattr(function, '__name__', function)!r} returned NaN or inf")

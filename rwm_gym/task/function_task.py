@@ -56,8 +56,9 @@ class FunctionTask:
         self.base.reset(ids, rngs, commands)
 
     def reward(self, next_state, state, contact, foot_height, action, last_action):
-        transition = Transition(self.spec, state, action, next_state, contact, foot_height, self.command.copy(),
-                                last_action)
+        transition = Transition(
+            self.spec, state, action, next_state, contact, foot_height, self.command.copy(), last_action
+        )
         if self.termination_fn is not None:
             self.ended = call(self.termination_fn, transition, "termination", bool)
         if self.reward_fn is None:

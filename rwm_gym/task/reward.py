@@ -69,7 +69,11 @@ def reward_terms(
     torch for tensors: see `rwm_gym.task.reward_torch`).
     """
     s = spec.state_slices
-    lin_vel, ang_vel, gravity = state[:, s["base_lin_vel"]], state[:, s["base_ang_vel"]], state[:, s["projected_gravity"]]
+    lin_vel, ang_vel, gravity = (
+        state[:, s["base_lin_vel"]],
+        state[:, s["base_ang_vel"]],
+        state[:, s["projected_gravity"]],
+    )
     sigma = spec.reward.tracking_sigma
     moving = xp.linalg.norm(command[:, :2], axis=1) > spec.command.standing_threshold
     standing = xp.linalg.norm(command, axis=1) < spec.command.standing_threshold

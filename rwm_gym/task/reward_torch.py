@@ -25,8 +25,9 @@ __all__ = ["FeetAirTime", "reward_terms", "total_reward", "velocity_tracking_rew
 class FeetAirTime:
     """Per-env, per-foot air-time timers (s) as tensors; the rule of `rwm_gym.task.reward.FeetAirTime`."""
 
-    def __init__(self, num_envs: int, num_feet: int, device: torch.device | str | None = None,
-                 dtype: torch.dtype = torch.float32):
+    def __init__(
+        self, num_envs: int, num_feet: int, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+    ):
         self.air_time = torch.zeros((num_envs, num_feet), device=device, dtype=dtype)
         """(N, F) s since each foot left the ground (0 while it is down)."""
         self.last_contact = torch.zeros((num_envs, num_feet), device=device, dtype=torch.bool)
@@ -43,18 +44,33 @@ class FeetAirTime:
         return term
 
 
-def reward_terms(spec: TaskSpec, state: torch.Tensor, prev_state: torch.Tensor, contact: torch.Tensor,
-                 command: torch.Tensor, action: torch.Tensor, prev_action: torch.Tensor,
-                 air_time_term: torch.Tensor) -> dict[str, torch.Tensor]:
+def reward_terms(
+    spec: TaskSpec,
+    state: torch.Tensor,
+    prev_state: torch.Tensor,
+    contact: torch.Tensor,
+    command: torch.Tensor,
+    action: torch.Tensor,
+    prev_action: torch.Tensor,
+    air_time_term: torch.Tensor,
+) -> dict[str, torch.Tensor]:
     """Unweighted reward terms, each (N,), for the transition prev_state --action--> state; the arguments of
     `rwm_gym.task.reward.reward_terms` as tensors (contact bool or 0/1, counted in the state's dtype)."""
-    return reward.reward_terms(spec, state, prev_state, contact.to(state.dtype), command, action, prev_action,
-                               air_time_term, xp=torch)
+    return reward.reward_terms(
+        spec, state, prev_state, contact.to(state.dtype), command, action, prev_action, air_time_term, xp=torch
+    )
 
 
-def velocity_tracking_reward(spec: TaskSpec, air_time: FeetAirTime, next_state: torch.Tensor, state: torch.Tensor,
-                             contact: torch.Tensor, command: torch.Tensor, action: torch.Tensor,
-                             last_action: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def velocity_tracking_reward(
+    spec: TaskSpec,
+    air_time: FeetAirTime,
+    next_state: torch.Tensor,
+    state: torch.Tensor,
+    contact: torch.Tensor,
+    command: torch.Tensor,
+    action: torch.Tensor,
+    last_action: torch.Tensor,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Reward (N,) of the transition state --action--> next_state and its named terms, composed as
     `VelocityTrackingTask.reward` does: the feet's contacts in `next_state` drive `air_time` (advanced once per call),
     whose touchdown term is paid against the spec's air-time target; `command` (N, 3) is the one in force.

@@ -24,9 +24,19 @@ import numpy as np
 
 from rwm_gym.spec import SuiteTask, TaskSpec
 
-SUPPORTED = {("cheetah", "run"), ("walker", "walk"), ("walker", "run"), ("walker", "stand"), ("hopper", "hop"),
-             ("hopper", "stand"), ("quadruped", "walk"), ("quadruped", "run"), ("humanoid", "walk"),
-             ("humanoid", "run"), ("finger", "spin")}
+SUPPORTED = {
+    ("cheetah", "run"),
+    ("walker", "walk"),
+    ("walker", "run"),
+    ("walker", "stand"),
+    ("hopper", "hop"),
+    ("hopper", "stand"),
+    ("quadruped", "walk"),
+    ("quadruped", "run"),
+    ("humanoid", "walk"),
+    ("humanoid", "run"),
+    ("finger", "spin"),
+}
 """(domain, task) pairs whose reward reads only quantities `StateReadout` provides."""
 
 
@@ -97,10 +107,12 @@ class SuiteReward:
         self.spec, self.suite_task = spec, SuiteTask.from_spec(spec)
         key = (self.suite_task.domain, self.suite_task.task)
         if key not in SUPPORTED:
-            raise ValueError(f"task spec {spec.name}: the reward of dm_control {key[0]}-{key[1]} cannot be computed "
-                             f"from the world-model state (supported: "
-                             f"{', '.join(f'{d}-{t}' for d, t in sorted(SUPPORTED))}); name a reward function in the "
-                             f"spec ([imagination] reward = \"module:function\") or pass reward_fn=")
+            raise ValueError(
+                f"task spec {spec.name}: the reward of dm_control {key[0]}-{key[1]} cannot be computed "
+                f"from the world-model state (supported: "
+                f"{', '.join(f'{d}-{t}' for d, t in sorted(SUPPORTED))}); name a reward function in the "
+                f'spec ([imagination] reward = "module:function") or pass reward_fn='
+            )
         env = suite.load(*key, task_kwargs={"random": 0})
         self.task = env.task
         model = env.physics.model.ptr
@@ -115,8 +127,11 @@ class SuiteReward:
             if model.body_parentid[head] != base or model.body_dofnum[head] != 0:
                 raise ValueError(f"task spec {spec.name}: the head must be rigidly fixed to {spec.base_body!r}")
             self._head_offset = model.body_pos[head].copy()  # m, in the torso frame
-        self._columns = {(g, c): _column(spec, g, c) for g in ("base_height", "projected_gravity", "base_lin_vel")
-                         for c in ("x", "y", "z")}
+        self._columns = {
+            (g, c): _column(spec, g, c)
+            for g in ("base_height", "projected_gravity", "base_lin_vel")
+            for c in ("x", "y", "z")
+        }
         self._hinge = _column(spec, "joint_vel", "hinge")
 
     def _vector(self, state: np.ndarray, group: str) -> np.ndarray:
@@ -131,8 +146,10 @@ class SuiteReward:
     def quantities(self, state: np.ndarray, foot_height: np.ndarray, action: np.ndarray) -> dict[str, np.ndarray]:
         """Everything `StateReadout` answers with, for every env: name -> (N, ...)."""
         state = np.asarray(state, dtype=np.float64)
-        values = {"foot_height": np.asarray(foot_height, dtype=np.float64),
-                  "ctrl": self._ctrl_mid + self._ctrl_half * np.asarray(action, dtype=np.float64)}
+        values = {
+            "foot_height": np.asarray(foot_height, dtype=np.float64),
+            "ctrl": self._ctrl_mid + self._ctrl_half * np.asarray(action, dtype=np.float64),
+        }
         if self._hinge is not None:
             values["hinge_velocity"] = state[:, self._hinge]
         if self.spec.base_body:
@@ -146,8 +163,9 @@ class SuiteReward:
             # = (cos p, 0, sin p) = (-g_z, 0, g_x)
             values["forward_velocity"] = -gravity[:, 2] * velocity[:, 0] + gravity[:, 0] * velocity[:, 2]
             values["vertical_velocity"] = np.sum(world_z * velocity, axis=1)
-            values["horizontal_speed"] = np.sqrt(np.maximum(
-                np.sum(velocity**2, axis=1) - values["vertical_velocity"] ** 2, 0.0))
+            values["horizontal_speed"] = np.sqrt(
+                np.maximum(np.sum(velocity**2, axis=1) - values["vertical_velocity"] ** 2, 0.0)
+            )
             if self._head_offset is not None:
                 values["head_height"] = values["height"] + world_z @ self._head_offset
         return values

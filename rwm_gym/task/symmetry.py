@@ -49,8 +49,10 @@ def _joint_mirror(spec: TaskSpec, table: SymmetrySpec) -> Mirror:
     index = np.array([joints.index(name) for name in table.joints])
     mirror = Mirror(index, np.asarray(table.joint_signs, dtype=np.float32))
     if not np.array_equal(index[index], np.arange(len(joints))) or np.any(mirror.sign * mirror.sign[index] != 1):
-        raise ValueError(f"task spec {spec.name}: [symmetry] joints are not a mirror (mirroring twice must give "
-                         f"every joint back with its sign)")
+        raise ValueError(
+            f"task spec {spec.name}: [symmetry] joints are not a mirror (mirroring twice must give "
+            f"every joint back with its sign)"
+        )
     # actions and joint_pos are offsets from the default pose: the pose must be its own mirror image
     pose = np.asarray(spec.actuator.default_pose)
     if not np.allclose(mirror(pose), pose):
@@ -73,8 +75,10 @@ def _mirror(spec: TaskSpec, groups: tuple[str, ...]) -> Mirror:
             sign.append(joints.sign)
         elif name in table.signs:
             if len(table.signs[name]) != size:
-                raise ValueError(f"task spec {spec.name}: [symmetry.signs] {name} has {len(table.signs[name])} "
-                                 f"signs for {size} columns")
+                raise ValueError(
+                    f"task spec {spec.name}: [symmetry.signs] {name} has {len(table.signs[name])} "
+                    f"signs for {size} columns"
+                )
             index.append(start + np.arange(size))
             sign.append(np.asarray(table.signs[name], dtype=np.float32))
         else:

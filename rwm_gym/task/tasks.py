@@ -29,6 +29,8 @@ from rwm_gym.task.reward import FeetAirTime, reward_terms, total_reward
 
 
 class Task(Protocol):
+    """Commands, reward and termination of N envs, shared by the physics and the imagined cores."""
+
     command: np.ndarray
     """(N, K) the current commands (K = 0 without commands)."""
     terminates: bool
@@ -38,8 +40,15 @@ class Task(Protocol):
         """New episodes in envs `ids`; `rngs` are their generators (one per id). `commands` (len(ids), K): hold these
         for the episode instead of sampling."""
 
-    def reward(self, next_state: np.ndarray, state: np.ndarray, contact: np.ndarray, foot_height: np.ndarray,
-               action: np.ndarray, last_action: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def reward(
+        self,
+        next_state: np.ndarray,
+        state: np.ndarray,
+        contact: np.ndarray,
+        foot_height: np.ndarray,
+        action: np.ndarray,
+        last_action: np.ndarray,
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Reward (N,) of the transition state --action--> next_state (SI units) and its named terms (each (N,)).
         Called once per step: it advances the task's timers."""
 
@@ -108,15 +117,22 @@ class SuiteRewardTask:
         pass
 
 
-def make_task(spec: TaskSpec, num_envs: int, *, resample_commands: bool = True, reward_fn=None,
-              termination_fn=None, trust_entry_points: bool = False, source: str = "the task spec") -> Task:
+def make_task(
+    spec: TaskSpec,
+    num_envs: int,
+    *,
+    resample_commands: bool = True,
+    reward_fn=None,
+    termination_fn=None,
+    trust_entry_points: bool = False,
+    source: str = "the task spec",
+) -> Task:
     """The task of a spec: a dm_control suite task if it has a `[dm_control]` table, else velocity tracking; reward and
     termination functions (arguments, else the spec's entry points if trusted) replace theirs."""
     from rwm_gym.task.entry_points import step_functions
     from rwm_gym.task.function_task import CommandlessTask, FunctionTask
 
-    reward_fn, termination_fn = step_functions(spec, reward_fn, termination_fn, trust=trust_entry_points,
-                                               source=source)
+    reward_fn, termination_fn = step_functions(spec, reward_fn, termination_fn, trust=trust_entry_points, source=source)
     if "dm_control" in spec.extra:
         base = SuiteRewardTask(spec, num_envs) if reward_fn is None else CommandlessTask(num_envs)
     else:

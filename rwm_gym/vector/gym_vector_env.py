@@ -52,7 +52,8 @@ class CoreGymVectorEnv(gym.vector.VectorEnv):
         if self._needs_reset:
             raise gym.error.ResetNeeded("call reset() before step()")
         obs, reward, terminated, truncated, info, done, final_obs = step_with_autoreset(
-            self.core, actions, self._held_commands)
+            self.core, actions, self._held_commands
+        )
         every = np.ones(self.num_envs, dtype=bool)
         infos: dict[str, Any] = {}
         for key, value in info.items():

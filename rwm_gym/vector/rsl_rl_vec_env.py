@@ -75,9 +75,13 @@ class CoreRslRlVecEnv(VecEnv):
         self.max_episode_length: int = episode_steps(core)
         self.device = torch.device(device if device is not None else getattr(core, "device", "cpu"))
         options = getattr(core, "options", None)
-        self.cfg = RslRlEnvConfig(task=core.spec.name, num_envs=self.num_envs, episode_steps=self.max_episode_length,
-                                  policy_dt=float(core.spec.policy_dt),
-                                  options=asdict(options) if is_dataclass(options) else {})
+        self.cfg = RslRlEnvConfig(
+            task=core.spec.name,
+            num_envs=self.num_envs,
+            episode_steps=self.max_episode_length,
+            policy_dt=float(core.spec.policy_dt),
+            options=asdict(options) if is_dataclass(options) else {},
+        )
         self._held_commands: np.ndarray | None = None
         self._term_sums: dict[str, np.ndarray] = {}
         self._obs = self.reset(seed=seed)
@@ -112,8 +116,9 @@ class CoreRslRlVecEnv(VecEnv):
         """Every env one step. actions: (num_envs, num_actions). Returns obs, rewards (num_envs,), dones (num_envs,)
         and extras with "time_outs" (num_envs,) and, when episodes ended, "log"."""
         actions_np = actions.detach().to("cpu", torch.float64).numpy()
-        obs, reward, terminated, truncated, info, done, _ = step_with_autoreset(self.core, actions_np,
-                                                                                self._held_commands)
+        obs, reward, terminated, truncated, info, done, _ = step_with_autoreset(
+            self.core, actions_np, self._held_commands
+        )
         self._obs = self._observations(obs)
         time_outs = truncated & ~terminated
         extras: dict = {"time_outs": torch.as_tensor(time_outs, device=self.device)}
@@ -131,8 +136,9 @@ class CoreRslRlVecEnv(VecEnv):
         policy = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
         return TensorDict({OBSERVATION_GROUP: policy}, batch_size=[self.num_envs], device=self.device)
 
-    def _episode_log(self, info: dict, done: np.ndarray, terminated: np.ndarray,
-                     time_outs: np.ndarray) -> dict[str, float]:
+    def _episode_log(
+        self, info: dict, done: np.ndarray, terminated: np.ndarray, time_outs: np.ndarray
+    ) -> dict[str, float]:
         """Accumulate each reward term per env; for the envs in `done`, the means over their episodes."""
         log: dict[str, float] = {}
         for key, value in info.items():
@@ -141,7 +147,7 @@ class CoreRslRlVecEnv(VecEnv):
             sums = self._term_sums.setdefault(key, np.zeros(self.num_envs))
             sums += value
             if len(done):
-                log[f"Episode_Term/{key[len('reward/'):]}"] = float(sums[done].mean())
+                log[f"Episode_Term/{key[len('reward/') :]}"] = float(sums[done].mean())
                 sums[done] = 0.0
         if len(done):
             log["Episode_Termination/time_out"] = float(time_outs[done].mean())
@@ -165,8 +171,15 @@ class LocomotionRslRlVecEnv(CoreRslRlVecEnv):
     """rsl_rl VecEnv of N MuJoCo simulations (the physics that judges policies); kwargs as `LocomotionSB3VecEnv`.
     `device` is where the tensors go (the simulation runs on the CPU)."""
 
-    def __init__(self, num_envs: int = 1, spec: str = "anymal_d", *, seed: int | None = 0,
-                 device: str | torch.device = "cpu", **kwargs):
+    def __init__(
+        self,
+        num_envs: int = 1,
+        spec: str = "anymal_d",
+        *,
+        seed: int | None = 0,
+        device: str | torch.device = "cpu",
+        **kwargs,
+    ):
         from rwm_gym.physics.locomotion import make_core
 
         super().__init__(make_core(spec, num_envs, **kwargs), seed=seed, device=device)

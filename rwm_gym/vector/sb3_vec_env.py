@@ -37,7 +37,7 @@ class CoreSB3VecEnv(VecEnv):
         self._lengths = np.zeros(core.num_envs, dtype=np.int64)
         self._start = time.time()
 
-    def seed(self, seed: int | None = None) -> Sequence[None | int]:
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
         self._seeds = seeds_per_env(seed, self.num_envs)
         return self._seeds
 

@@ -18,36 +18,51 @@ from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.options import add_dataclass_options
 
-_MODEL_OPTIONS = tuple(f for f in fields(ModelConfig)
-                       if f.name not in ("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
+_MODEL_OPTIONS = tuple(
+    f for f in fields(ModelConfig) if f.name not in ("kind", "state_dim", "action_dim", "contact_dim", "foot_dim")
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym train`: the run, then one flag per TrainConfig and ModelConfig field."""
     parser.add_argument("--data", required=True, help="HDF5 dataset to train on")
-    parser.add_argument("--model", choices=MODEL_KINDS,
-                        help="model family (default rwm, or --init's)")
+    parser.add_argument("--model", choices=MODEL_KINDS, help="model family (default rwm, or --init's)")
     parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fine-tuning); its model "
-                        "config is the default of every model option")
+    parser.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from this checkpoint's weights (fine-tuning); its model "
+        "config is the default of every model option",
+    )
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
     parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_dataclass_options(parser.add_argument_group("training options"), TrainConfig, defaults_none=True,
-                          choices={"loss": LOSSES, "schedule": SCHEDULES})
-    add_dataclass_options(parser.add_argument_group("model options"), ModelConfig, defaults_none=True,
-                          skip=("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"))
+    add_dataclass_options(
+        parser.add_argument_group("training options"),
+        TrainConfig,
+        defaults_none=True,
+        choices={"loss": LOSSES, "schedule": SCHEDULES},
+    )
+    add_dataclass_options(
+        parser.add_argument_group("model options"),
+        ModelConfig,
+        defaults_none=True,
+        skip=("kind", "state_dim", "action_dim", "contact_dim", "foot_dim"),
+    )
 
 
 def summary_text(stats: dict) -> str:
     """The end-of-run line's figures, each to a sensible precision ('none' where a figure is missing)."""
+
     def figure(value, form: str) -> str:
         return "none" if value is None else format(value, form)
 
-    return (f"{stats['iterations']:,} iterations in {stats['wall_s']:.1f} s, train loss "
-            f"{figure(stats.get('train_loss'), '.4f')}, val error {figure(stats.get('val_error'), '.4f')}")
+    return (
+        f"{stats['iterations']:,} iterations in {stats['wall_s']:.1f} s, train loss "
+        f"{figure(stats.get('train_loss'), '.4f')}, val error {figure(stats.get('val_error'), '.4f')}"
+    )
 
 
 def _given(args: argparse.Namespace, options) -> dict:
@@ -90,9 +105,11 @@ def check_memory(model_config: ModelConfig, config: TrainConfig, spec) -> None:
         if torch.cuda.is_available():
             have = torch.cuda.get_device_properties(0).total_memory
     if need > have:
-        raise ValueError(f"the model and batch need about {need / 2**30:.0f} GiB (hidden size "
-                         f"{model_config.hidden_size}, batch size {config.batch_size}), more than the "
-                         f"{have / 2**30:.0f} GiB this machine has")
+        raise ValueError(
+            f"the model and batch need about {need / 2**30:.0f} GiB (hidden size "
+            f"{model_config.hidden_size}, batch size {config.batch_size}), more than the "
+            f"{have / 2**30:.0f} GiB this machine has"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,8 +131,17 @@ def run(args: argparse.Namespace) -> int:
         check_memory(model_config, config, dataset.spec())
         main_rank = os.environ.get("RANK", "0") == "0"  # only rank 0 writes, so only it holds the lock
         with claim(args.out) if main_rank else contextlib.nullcontext():
-            result = train(dataset, model_config, config, args.out, resume=args.resume, progress=not args.quiet,
-                           tensorboard=args.tensorboard, init=args.init, overwrite=args.overwrite)
+            result = train(
+                dataset,
+                model_config,
+                config,
+                args.out,
+                resume=args.resume,
+                progress=not args.quiet,
+                tensorboard=args.tensorboard,
+                init=args.init,
+                overwrite=args.overwrite,
+            )
     except KeyboardInterrupt:
         return 130
     except (ValueError, OSError, DatasetError, CheckpointError) as err:

@@ -16,8 +16,9 @@ import time
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from rwm_gym.imagination.core import ImaginationOptions
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.imagination.options import ImaginationOptions
+from rwm_gym.options import add_dataclass_options, dataclass_from_args
 from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
 
 IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first_episode_length", "divergence_bound")
@@ -25,16 +26,29 @@ IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym shac`."""
     parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
-    parser.add_argument("--reset-data", type=Path, default=None,
-                        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)")
-    add_dataclass_options(parser.add_argument_group("imagination"), ImaginationOptions,
-                          skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS),
-                          types={"episode_steps": int})
-    add_dataclass_options(parser.add_argument_group("SHAC"), SHACConfig, nargs={"net_arch": "+"},
-                          types={"net_arch": int}, choices={"activation": ("elu", "tanh", "relu")})
+    parser.add_argument(
+        "--reset-data",
+        type=Path,
+        default=None,
+        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)",
+    )
+    add_imagination_options(parser, skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS))
+    add_dataclass_options(
+        parser.add_argument_group("SHAC"),
+        SHACConfig,
+        nargs={"net_arch": "+"},
+        types={"net_arch": int},
+        choices={"activation": ("elu", "tanh", "relu")},
+    )
     parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
-    parser.add_argument("--minutes", type=float, default=None, help="stop this process after this wall time")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="stop this process after this wall time (default: none, the --timesteps budget alone)",
+    )
     parser.add_argument("--run-dir", type=Path, required=True, help="resumable run folder")
     parser.add_argument("--snapshot-every", type=int, default=20, help="updates between policy snapshots")
     parser.add_argument("--save-every", type=int, default=20, help="updates between resume points")
@@ -70,12 +84,12 @@ def _train(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.timesteps < 1 or (args.minutes is not None and args.minutes <= 0):
         raise SystemExit("rwm-gym shac: --timesteps and --minutes must be positive")
-    config = SHACConfig(**{f.name: tuple(v) if isinstance(v := getattr(args, f.name), list) else v
-                           for f in fields(SHACConfig)})
-    options = ImaginationOptions(**{name: getattr(args, name) for name in IMAGINATION_FIELDS})
+    config = dataclass_from_args(SHACConfig, args)
+    options = imagination_from_args(args)
     try:
-        core = ImaginedCore(args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data,
-                            options=options)
+        core = ImaginedCore(
+            args.checkpoint, config.num_envs, device=args.device, reset_data=args.reset_data, options=options
+        )
         imagination = DifferentiableImagination(core)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"rwm-gym shac: {error}") from None
@@ -96,15 +110,31 @@ def _train(args: argparse.Namespace) -> int:
         print(f"resuming {run_folder.folder} at {learner.timesteps:,} steps")
     seed_offset = 7919 * (state.get("restarts", -1) + 1)
     imagination.reset(list(range(core.num_envs)), [args.seed + seed_offset + i for i in range(core.num_envs)])
-    train(learner, model, run_folder, args, state.get("wall_s", 0.0) if resumed else 0.0,
-          state.get("restarts", -1) + 1, config, environment)
+    train(
+        learner,
+        model,
+        run_folder,
+        args,
+        state.get("wall_s", 0.0) if resumed else 0.0,
+        state.get("restarts", -1) + 1,
+        config,
+        environment,
+    )
     out = save_policy(model, args.out)
     print(f"{run_folder.folder}: {learner.timesteps:,} imagined steps in all; wrote {out}")
     return 0
 
 
-def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall_s: float, restarts: int,
-          config: SHACConfig, environment: dict) -> None:
+def train(
+    learner: SHAC,
+    model,
+    run_folder,
+    args: argparse.Namespace,
+    prior_wall_s: float,
+    restarts: int,
+    config: SHACConfig,
+    environment: dict,
+) -> None:
     """Updates until `--timesteps` (or `--minutes`), with snapshots, resume points and one log row per update."""
     import torch
 
@@ -115,9 +145,16 @@ def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall
     def save() -> None:
         save_policy(model, run_folder.latest)
         atomic_write(run_folder.folder / "latest_shac.pt", lambda tmp: torch.save(learner.state_dict(), tmp))
-        write_json(run_folder.state_path, {"shac": _jsonable(asdict(config)), "env": _jsonable(environment),
-                                           "timesteps": learner.timesteps, "restarts": restarts,
-                                           "wall_s": prior_wall_s + time.monotonic() - started})
+        write_json(
+            run_folder.state_path,
+            {
+                "shac": _jsonable(asdict(config)),
+                "env": _jsonable(environment),
+                "timesteps": learner.timesteps,
+                "restarts": restarts,
+                "wall_s": prior_wall_s + time.monotonic() - started,
+            },
+        )
 
     run_folder.folder.mkdir(parents=True, exist_ok=True)
     bar = BudgetBar(steps=args.timesteps, minutes=None, desc="shac", initial=learner.timesteps, unit_scale=True)
@@ -131,8 +168,12 @@ def train(learner: SHAC, model, run_folder, args: argparse.Namespace, prior_wall
             stats = learner.update()
             update += 1
             _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
-            bar.show(stats.timesteps, time.monotonic() - started, ret=f"{stats.imagined_return:.3f}",
-                     grad=f"{stats.actor_grad_norm:.2g}")
+            bar.show(
+                stats.timesteps,
+                time.monotonic() - started,
+                ret=f"{stats.imagined_return:.3f}",
+                grad=f"{stats.actor_grad_norm:.2g}",
+            )
             if update % args.save_every == 0:
                 save()
         save()

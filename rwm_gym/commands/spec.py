@@ -19,15 +19,23 @@ from rwm_gym.atomic import write_text
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym spec`."""
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--from-dmc", metavar="DOMAIN-TASK", help="a dm_control suite task, e.g. acrobot-swingup")
     source.add_argument("--mjcf", type=Path, help="MJCF of a legged robot with a free-floating base")
-    parser.add_argument("--out", type=Path, required=True,
-                        help="spec to write (.toml); --mjcf also writes the model copy OUT.rwm.xml")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="spec to write (.toml); --mjcf also writes the model copy OUT.rwm.xml"
+    )
     parser.add_argument("--base", help="--mjcf: the floating base body (default: the body with the free joint)")
-    parser.add_argument("--feet", nargs="+", help="foot bodies (default: --mjcf the leaf bodies of the legs, "
-                                                  "--from-dmc the colliding bodies named like a foot)")
-    parser.add_argument("--name", help="--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0")
+    parser.add_argument(
+        "--feet",
+        nargs="+",
+        help="foot bodies (default: --mjcf the leaf bodies of the legs, "
+        "--from-dmc the colliding bodies named like a foot)",
+    )
+    parser.add_argument(
+        "--name", help="--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"
+    )
     parser.add_argument("--episodes", type=int, default=8, help="random-policy episodes for the normalisation")
     parser.add_argument("--steps", type=int, default=200, help="policy steps per normalisation episode (at most)")
     parser.add_argument("--seed", type=int, default=0)
@@ -35,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`rwm-gym spec`: 0, or 2 with one line on stderr on bad input."""
     from rwm_gym.output_guard import check_output
     from rwm_gym.specgen.draft import fill_normalization
 

@@ -1,0 +1,30 @@
+"""`rwm-gym import`: read a Minari dataset written by `rwm-gym export` back into an rwm-gym dataset
+(`rwm_gym.data.minari_io`; needs rwm-gym[minari]). The module's name has a trailing underscore: `import` is a
+keyword."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from rwm_gym.data.dataset import DatasetError
+from rwm_gym.data.minari_io import import_minari
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym import`."""
+    parser.add_argument("--minari", required=True, type=Path, metavar="DIR", help="Minari dataset folder")
+    parser.add_argument("--out", required=True, type=Path, help="rwm-gym dataset (.h5) to write")
+    parser.add_argument("--overwrite", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    """`rwm-gym import`: the written file, or one line on stderr and exit 2."""
+    try:
+        path = import_minari(args.minari, args.out, overwrite=args.overwrite)
+    except (ValueError, OSError, DatasetError) as err:
+        print(f"rwm-gym import: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0

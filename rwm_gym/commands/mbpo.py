@@ -1,0 +1,120 @@
+"""`rwm-gym mbpo`: the MBPO-PPO loop (`rwm_gym.rl.mbpo`) in a resumable run folder."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.options import (
+    add_dataclass_options,
+    dataclass_from_args,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+)
+from rwm_gym.output_guard import OutputError, check_output, claim, resolved
+from rwm_gym.rl.mbpo import MBPOConfig, mbpo
+
+RUN_FILES = re.compile(r"(data_\d+\.h5|buffer\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
+"""The files the loop writes in its folder (`--out`)."""
+
+
+def check_run_folder(out: Path, inputs) -> None:
+    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself."""
+    folder = resolved(out)
+    for source in (s for s in inputs if s is not None):
+        path = resolved(source)
+        if path == folder or (path.parent == folder and RUN_FILES.fullmatch(path.name)):
+            raise OutputError(
+                f"--out {out}: the run writes {path.name if path != folder else 'into it'}, which is "
+                f"the input {source}; copy the input elsewhere first"
+            )
+    check_output(folder, overwrite=True, folder=True)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym mbpo`: the run's files, then one flag per `MBPOConfig` and `ImaginationOptions` field."""
+    parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="run folder: models, data, policies and the report; the same command resumes it",
+    )
+    parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
+    parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
+    parser.add_argument(
+        "--init-policy",
+        default=None,
+        type=Path,
+        help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)",
+    )
+    parser.add_argument(
+        "--model-free-curve",
+        default=None,
+        type=Path,
+        help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
+        "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)",
+    )
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    counts = (
+        "iterations",
+        "ppo_timesteps",
+        "num_envs",
+        "collect_episodes",
+        "collect_steps",
+        "model_iterations",
+        "eval_seeds",
+    )
+    add_dataclass_options(
+        parser,
+        MBPOConfig,
+        skip={"imagination"},
+        types={
+            "action_noise": non_negative_float,
+            "eval_steps": positive_int,
+            "base_episodes": non_negative_int,
+            "critic_warmup_steps": non_negative_int,
+            **dict.fromkeys(counts, positive_int),
+        },
+    )
+    add_imagination_options(
+        parser,
+        defaults=MBPOConfig().imagination,
+        aliases={"episode_steps": ["--imagined-episode-steps"]},
+        types={"episode_steps": positive_int},
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """`rwm-gym mbpo`: refuse a run folder that would overwrite an input, then run (or resume) the loop in it."""
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    config = dataclass_from_args(
+        MBPOConfig, args, skip={"imagination"}, imagination=imagination_from_args(args, MBPOConfig().imagination)
+    )
+    try:
+        check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
+        with claim(args.out):
+            report = mbpo(
+                args.data,
+                args.out,
+                config,
+                checkpoint=args.checkpoint,
+                init_policy=args.init_policy,
+                model_kind=args.model,
+                device=args.device,
+                model_free_curve=args.model_free_curve,
+            )
+    except ValueError as error:
+        raise SystemExit(f"rwm-gym mbpo: {error}") from None
+    print(
+        f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}; "
+        f"report {args.out / 'mbpo.json'}, curve {args.out / 'mbpo.png'}"
+    )
+    return 0

@@ -1,0 +1,388 @@
+"""`rwm-gym ppo`: train PPO in imagination (or in physics), report what it cost, and judge it in physics.
+
+The library half is `rwm_gym.rl.ppo` (settings, env, learner); this module is the command: options, the behaviour-
+cloning warm start, the resumable run folder (`rwm_gym.rl.training_run`), and the JSON / PNG report beside the zip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from stable_baselines3.common.vec_env import VecEnv
+
+from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args, non_default
+from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int
+from rwm_gym.output_guard import OutputError, check_output, claim
+from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.ppo import (
+    ACTIVATIONS,
+    WHERE,
+    PositiveReward,
+    PPOConfig,
+    TrainStats,
+    learn,
+    make_env,
+    make_ppo,
+    warm_up_critic,
+)
+from rwm_gym.rl.safe_zip import load_policy
+
+
+def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
+    """Physics transitions the policy cost, and where that figure comes from (or why it is unknown): its own steps
+    in physics; in imagination, the rows of the world model's dataset."""
+    if where == "physics":
+        return trained_steps, "the policy's own physics steps"
+    if checkpoint is None:
+        from rwm_gym.imagination.core import default_checkpoint
+
+        checkpoint = default_checkpoint()
+    from rwm_gym.model.checkpoint import dataset_rows
+
+    return dataset_rows(checkpoint)
+
+
+def anneal_steps(config: PPOConfig, timesteps: int | None) -> float:
+    """Env steps of the learning-rate anneal: `lr_anneal_fraction` of the whole `--timesteps` budget."""
+    if config.lr_anneal_fraction and not timesteps:
+        raise SystemExit("rwm-gym ppo: --lr-anneal-fraction needs a --timesteps budget (the anneal ends with it)")
+    return config.lr_anneal_fraction * (timesteps or 0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym ppo`: the run, then one flag per `PPOConfig` and `ImaginationOptions` field."""
+    parser.add_argument(
+        "--in",
+        dest="where",
+        choices=WHERE,
+        default="imagination",
+        help="train in the imagined env (world model) or in physics (model-free baseline)",
+    )
+    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
+    parser.add_argument(
+        "--reset-data",
+        type=Path,
+        default=None,
+        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)",
+    )
+    parser.add_argument(
+        "--timesteps",
+        type=non_negative_int,
+        default=None,
+        help="budget in env steps (default: none; with neither budget, --minutes 8)",
+    )
+    parser.add_argument(
+        "--minutes",
+        type=non_negative_float,
+        default=None,
+        help="budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)",
+    )
+    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    parser.add_argument(
+        "--bc-data",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
+        "from before PPO (rwm_gym.rl.warm_start)",
+    )
+    parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
+    parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
+    parser.add_argument(
+        "--keep-best",
+        action="store_true",
+        help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
+        "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)",
+    )
+    parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
+    parser.add_argument(
+        "--eval-steps",
+        type=int,
+        default=None,
+        help="policy steps per evaluation episode (default: the task's episode, 20 s)",
+    )
+    parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
+    parser.add_argument(
+        "--run-dir",
+        type=Path,
+        default=None,
+        help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
+        "experience; running the same command again continues to the same --timesteps total",
+    )
+    parser.add_argument("--save-every", type=int, default=10, help="with --run-dir: rollouts between resume points")
+    parser.add_argument("--snapshot-every", type=int, default=25, help="with --run-dir: rollouts between snapshots")
+    parser.add_argument(
+        "--record-every",
+        type=int,
+        default=0,
+        help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
+        "world-model data (0: none)",
+    )
+    add_dataclass_options(
+        parser.add_argument_group("PPO", "PPO's settings (rwm_gym.rl.ppo.PPOConfig)"),
+        PPOConfig,
+        defaults_none=True,
+        types={"net_arch": int},
+        nargs={"net_arch": "+"},
+        choices={"activation": ACTIVATIONS},
+    )
+    add_imagination_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """`rwm-gym ppo`: refuse an --out that would replace an input or another run's file, then train holding its
+    lock; a --run-dir run may rewrite its own --out (running the command again resumes it)."""
+    if (args.timesteps == 0 or args.minutes == 0) and not args.bc_data:
+        raise SystemExit("rwm-gym ppo: a budget of 0 trains nothing (0 is for --bc-data: the cloned actor alone)")
+    inputs = [args.checkpoint, args.reset_data, *(args.bc_data or [])]
+    try:
+        check_output(args.out, inputs=inputs, overwrite=args.overwrite or args.run_dir is not None)
+        with claim(args.out):
+            return _train(args)
+    except OutputError as err:
+        raise SystemExit(f"rwm-gym ppo: {err}") from None
+
+
+def _train(args: argparse.Namespace) -> int:
+    """Build the env and the learner, warm-start, train, save, judge in physics and write the report."""
+    from rwm_gym.atomic import write_json
+
+    config = dataclass_from_args(PPOConfig, args)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    if args.timesteps is None and args.minutes is None:
+        args.minutes = 8.0
+    env_kwargs, imagined = _imagination(args)
+    try:
+        env = make_env(
+            args.where,
+            config.num_envs,
+            checkpoint=args.checkpoint,
+            device=args.device,
+            seed=args.seed,
+            env_kwargs=env_kwargs,
+        )
+    except (ValueError, FileNotFoundError) as error:  # a checkpoint or reset data that cannot serve these options
+        raise SystemExit(f"rwm-gym ppo: {error}") from None
+    if args.run_dir is not None:
+        return run_resumable(args, config, env, imagined)
+    model = make_ppo(env, config, seed=args.seed, device=args.device)
+    warm = _behaviour_clone(args, model)
+    warmup = None
+    if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
+        warmup = warm_up_critic(model, config.critic_warmup_steps)
+        print(f"critic warm-up: {warmup.timesteps:,} {args.where} steps in {warmup.wall_s:.0f} s, actor frozen")
+    if args.timesteps == 0 or args.minutes == 0:  # the warm start alone
+        stats = TrainStats(0, 0.0, 0.0)
+    else:
+        stats = learn(
+            model,
+            timesteps=args.timesteps,
+            minutes=args.minutes,
+            target_kl=config.target_kl,
+            anneal_steps=anneal_steps(config, args.timesteps),
+        )
+    out = save_policy(model, args.out)
+    print(
+        f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
+        f"wrote {out}"
+    )
+    report = {
+        "where": args.where,
+        "checkpoint": args.checkpoint,
+        "seed": args.seed,
+        "ppo": config.to_dict(),
+        "imagination": imagined,
+        "behaviour_cloning": warm.report(args),
+        "critic_warmup": None if warmup is None else asdict(warmup),
+        "train": asdict(stats),
+        "kept": "ppo",
+    }  # which policy --out holds; --keep-best may hand back the clone
+    report["physics_samples"], report["physics_samples_source"] = physics_samples(
+        args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0)
+    )
+    samples = report["physics_samples"]
+    print(
+        f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
+        f"({report['physics_samples_source']})"
+    )
+    if not args.no_eval:
+        _judge(args, model, out, warm, report)
+    print(f"report: {write_json(out.with_suffix('.json'), report)}")
+    return 0
+
+
+def _imagination(args: argparse.Namespace) -> tuple[dict, dict]:
+    """The imagined env's kwargs (its `ImaginationOptions` and reset data) and what the run records of them: the
+    options given (those that differ from the defaults); refused for --in physics."""
+    options = imagination_from_args(args)
+    imagined = {**non_default(options), **({"reset_data": str(args.reset_data)} if args.reset_data else {})}
+    refused = [k for k in imagined if k != "episode_steps"]  # --in physics has always ignored --episode-steps
+    if refused and args.where != "imagination":
+        raise SystemExit(
+            f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in refused)} apply to --in imagination"
+        )
+    if args.where != "imagination":
+        return {}, {}
+    return {"options": options, "reset_data": args.reset_data}, imagined
+
+
+@dataclass
+class _WarmStart:
+    """The behaviour-cloned actor (`--bc-data`): its statistics, its physics evaluation and its zip."""
+
+    cloned: object = None
+    evaluation: object = None
+    path: Path | None = None
+
+    def report(self, args: argparse.Namespace) -> dict | None:
+        if self.cloned is None:
+            return None
+        return {
+            "data": [str(p) for p in args.bc_data],
+            **self.cloned.to_dict(),
+            "evaluation": None if args.no_eval else self.evaluation.to_dict(),
+        }
+
+
+def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
+    """With --bc-data: clone the demonstrator's actions into the actor and judge the clone alone in physics."""
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
+
+    if not args.bc_data:
+        return _WarmStart()
+    from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
+
+    warm = _WarmStart(
+        behaviour_clone(
+            model,
+            args.bc_data,
+            CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std, seed=args.seed),
+            progress=True,
+        )
+    )
+    cloned = warm.cloned
+    held_out = "none" if cloned.val_mse_after is None else f"{cloned.val_mse_after:.3f}"
+    print(
+        f"behaviour cloning: {cloned.pairs:,} pairs from {cloned.episodes} episodes, action MSE "
+        f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
+        f"in {cloned.wall_s:.0f} s"
+    )
+    if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+        warm.evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        print("physics evaluation of the cloned actor, before PPO:")
+        print(format_table(warm.evaluation))
+        save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
+        warm.path = out_bc
+        print(f"wrote {out_bc}")
+    return warm
+
+
+def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict) -> None:
+    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse."""
+    from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
+
+    evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+    print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
+    print(format_table(evaluation))
+    report["evaluation"] = evaluation.to_dict()
+    cloned_eval = warm.evaluation
+    if args.keep_best and warm.cloned is not None and cloned_eval.tracking > evaluation.tracking:
+        os.replace(out, out.with_name(out.stem + "_ppo.zip"))
+        save_policy(load_policy(warm.path, device=args.device), out)
+        evaluation, report["kept"] = cloned_eval, "behaviour_cloning"
+        print(
+            f"PPO made the policy worse in physics (tracking {cloned_eval.tracking:.3f} -> "
+            f"{report['evaluation']['tracking']:.3f}, falls {cloned_eval.falls} -> "
+            f"{report['evaluation']['falls']}): {out} is the cloned actor, the PPO policy is "
+            f"{out.with_name(out.stem + '_ppo.zip')}"
+        )
+    elif warm.cloned is not None:
+        print(
+            f"{out} is the PPO policy (physics tracking {cloned_eval.tracking:.3f} cloned -> "
+            f"{evaluation.tracking:.3f} after PPO)"
+        )
+    print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
+
+
+def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict) -> int:
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
+    from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
+
+    if not args.timesteps:
+        raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
+    run = TrainingRun(args.run_dir)
+    state = run.state()
+    saved = {**json.loads(json.dumps(PPOConfig().to_dict())), **state.get("ppo", {})}  # a field added since: default
+    if run.resumable and saved != json.loads(json.dumps(config.to_dict())):
+        raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
+    environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
+    if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
+        raise SystemExit(
+            f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another --run-dir"
+        )
+    recorder = None
+    if args.record_every:
+        if args.where != "physics":
+            raise SystemExit("rwm-gym ppo: --record-every records physics experience; use it with --in physics")
+        from rwm_gym.rl.experience import RecordingCore
+
+        env.core = recorder = RecordingCore(
+            env.core,
+            run.next_experience_file(),
+            every=args.record_every,
+            policy=f"ppo ({args.run_dir})",
+            seed=args.seed,
+        )
+    if run.resumable:
+        env.seed(args.seed + 7919 * (state["restarts"] + 1))  # fresh episodes, not a replay of the first start
+        model = resume_model(run, PositiveReward(env) if config.positive_reward_only else env, args.device)
+        print(f"resuming {run.folder} at {model.num_timesteps:,} steps (restart {state['restarts'] + 1})")
+    else:
+        model = make_ppo(env, config, seed=args.seed, device=args.device)
+    checkpoint = RunCheckpoint(
+        run,
+        config,
+        save_every=args.save_every,
+        snapshot_every=args.snapshot_every,
+        recorder=recorder,
+        prior_wall_s=state.get("wall_s", 0.0),
+        restarts=state.get("restarts", -1) + 1,
+        environment=environment,
+    )
+    remaining = args.timesteps - model.num_timesteps
+    try:
+        if remaining > 0:
+            learn(
+                model,
+                timesteps=remaining,
+                minutes=args.minutes,
+                target_kl=config.target_kl,
+                callbacks=(checkpoint,),
+                on_rollout=checkpoint.log_row,
+                anneal_steps=anneal_steps(config, args.timesteps),
+            )
+            checkpoint.save()
+        else:
+            print(f"{run.folder} already has its {args.timesteps:,} steps")
+    finally:
+        if recorder is not None:
+            recorder.close()
+    out = save_policy(model, args.out)
+    print(f"{run.folder}: {model.num_timesteps:,} steps in all; wrote {out}")
+    return 0

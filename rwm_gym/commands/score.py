@@ -1,0 +1,119 @@
+"""`rwm-gym score`: a policy's tracking score beside the zero-action floor (`rwm_gym.rl.score`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rwm_gym.atomic import write_json, write_text
+from rwm_gym.output_guard import OutputError, check_output, claim
+from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
+from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `rwm-gym score`."""
+    parser.add_argument(
+        "--policy",
+        required=True,
+        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
+        "or 'random' (correlated random actions)",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="score in this world model (the imagined env) instead of physics, same commands and seeds",
+    )
+    parser.add_argument(
+        "--reset-data",
+        type=Path,
+        default=None,
+        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
+        "the checkpoint's; the shipped one's are mostly early falls)",
+    )
+    parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
+    parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
+    parser.add_argument(
+        "--commands",
+        type=int,
+        default=16,
+        help="random commands in the set, beside standing and 1 m/s forward (default: 16)",
+    )
+    parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
+
+
+def run(args: argparse.Namespace) -> int:
+    """`rwm-gym score`: 0, or 2 with one line on stderr on bad input."""
+    if args.policy not in SCRIPTED and not Path(args.policy).is_file():
+        raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
+    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
+        raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
+    inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
+    try:
+        for name in ("score.md", "score.png", "walk.gif", "walk.png"):
+            check_output(args.out / name, inputs=inputs, overwrite=True)
+        report = check_output(args.out / "score.json", inputs=inputs, overwrite=args.overwrite)
+        with claim(report):
+            return _score(args)
+    except OutputError as err:
+        raise SystemExit(f"rwm-gym score: {err}") from None
+
+
+def _score(args: argparse.Namespace) -> int:
+    if args.policy not in SCRIPTED:
+        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.spec import load_spec
+
+        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))
+    else:
+        policy = args.policy
+    if args.reset_data is not None and args.checkpoint is None:
+        raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
+    if args.reset_data is not None and not args.reset_data.is_file():
+        raise SystemExit(f"rwm-gym score: --reset-data {args.reset_data}: no such file")
+    where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
+    if args.reset_data is not None:
+        where += f" from {args.reset_data}"
+    options = dict(
+        seeds=args.seeds,
+        steps=args.steps,
+        num_random=args.commands,
+        checkpoint=args.checkpoint,
+        reset_data=args.reset_data,
+    )
+    result = score(policy, **options)
+    floor = result if args.policy == "zero" else score(zero_policy, **options)
+    table = format_table(result)
+    lines = [
+        summary_line(f"policy {args.policy} in {where}", result),
+        summary_line(f"zero-action floor in {where}", floor),
+    ]
+    print(table)
+    print("\n".join(lines))
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(
+        args.out / "score.md",
+        f"# Tracking score of {args.policy} in {where}\n\n```\n{table}\n```\n\n"
+        + "\n".join(f"- {line}" for line in lines)
+        + "\n",
+    )
+    plot(result, args.out / "score.png", title=lines[0])
+    report = {
+        "policy": str(args.policy),
+        "where": where,
+        "tracking": result.tracking,
+        "return": result.episode_return,
+        "falls": result.falls,
+        "episodes": result.episodes,
+        "floor": {"tracking": floor.tracking, "return": floor.episode_return, "falls": floor.falls},
+        "evaluation": result.to_dict(),
+        "floor_evaluation": floor.to_dict(),
+    }
+    write_json(args.out / "score.json", report)
+    if args.video:
+        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png")
+        print(f"video: {gif}, still: {still}")
+    print(f"wrote {args.out / 'score.json'}")
+    return 0
