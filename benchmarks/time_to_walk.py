@@ -231,8 +231,9 @@ def plot(summary: dict, floor: float | None, path: Path) -> Path:
         ax.axhline(WALKS["tracking"], color="tab:green", ls=":")
     axes[0].set_xlabel("training wall time (min; load average in summary.json)")
     axes[1].set_xlabel("imagined env steps (M)")
-    axes[0].set_ylabel("tracking score in physics (dashed: standing still; green: walks)")
-    fig.suptitle("Learning from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed")
+    axes[0].set_ylabel("tracking score in physics")
+    fig.suptitle("Learning from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed; "
+                 "dashed: standing still, dotted green: walks")
     fig.legend(fontsize=8, loc="lower center", ncol=3)
     fig.tight_layout(rect=(0, 0.12, 1, 1))
     return save_png(fig, path, dpi=100)
