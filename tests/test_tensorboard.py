@@ -1,0 +1,102 @@
+"""`--tensorboard DIR` of `rwm-gym ppo`, `mbpo` and `shac`: tiny runs write event files, read back here with
+TensorBoard's own reader; the scalars the docs name are there, with finite values."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from rwm_gym.cli import main as cli
+
+pytest.importorskip("tensorboard", reason="the [tensorboard] extra (tensorboard) is not installed")
+
+TINY_PPO = ["--num-envs", "8", "--n-steps", "16", "--net-arch", "32", "32", "--threads", "1"]
+
+
+def scalars(folder) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar tag of the event files in `folder`: its (step, value) points."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def assert_finite(logged: dict, tags) -> None:
+    missing = [tag for tag in tags if tag not in logged]
+    assert not missing, f"missing {missing}; logged: {sorted(logged)}"
+    for tag in tags:
+        assert logged[tag] and all(math.isfinite(value) for _, value in logged[tag]), (tag, logged[tag])
+
+
+def test_ppo_in_imagination_logs_sb3s_scalars_and_the_imagined_envs(tmp_path):
+    board = tmp_path / "tb"
+    command = [
+        "ppo",
+        *TINY_PPO,
+        "--timesteps",
+        "384",  # three rollouts of 8 x 16
+        "--episode-steps",
+        "20",
+        "--fall-tilt",
+        "30",
+        "--torque-halt",
+        "0.95",
+        "--report-uncertainty",
+        "--no-eval",
+        "--out",
+        str(tmp_path / "policy.zip"),
+        "--tensorboard",
+        str(board),
+    ]
+    assert cli(command) == 0
+    logged = scalars(board)
+    halts = [f"termination/{flag}" for flag in ("model_diverged", "uncertainty_halt", "fall_tilt", "torque_halt")]
+    assert_finite(
+        logged,
+        [
+            "train/approx_kl",
+            "train/value_loss",
+            "rollout/ep_len_mean",
+            "reward/track_lin_vel_xy",
+            "episode/length",
+            "episode/count",
+            *halts,
+            "termination/any",
+            "uncertainty/mean",
+            "uncertainty/max",
+        ],
+    )
+    assert [step for step, _ in logged["reward/track_lin_vel_xy"]] == [128, 256, 384]  # one point per rollout
+    assert all(0.0 <= value <= 1.0 for tag in halts for _, value in logged[tag])
+
+
+def test_tensorboard_leaves_the_training_unchanged(tmp_path):
+    """The KL rule reads the previous update's KL from SB3's logger: a logger that outlives `learn` must not change
+    what it reads (two `learn` calls with a critic warm-up between, with and without TensorBoard)."""
+    import torch
+
+    def run(board):
+        out = tmp_path / f"policy_{board is not None}.zip"
+        extra = ["--tensorboard", str(board)] if board else []
+        common = ["--timesteps", "256", "--critic-warmup-steps", "128", "--episode-steps", "20", "--no-eval"]
+        assert cli(["ppo", *TINY_PPO, *common, "--out", str(out), *extra]) == 0
+        from rwm_gym.rl.safe_zip import load_policy
+
+        return load_policy(out).policy.state_dict()
+
+    plain, logged = run(None), run(tmp_path / "tb")
+    assert all(torch.equal(plain[k], logged[k]) for k in plain)
+
+
+def test_a_missing_tensorboard_is_one_line_naming_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "tensorboard", None)  # import tensorboard raises ImportError
+    for command in (
+        ["ppo", "--timesteps", "128"],
+        ["train", "--data", "d.h5", "--out", str(tmp_path / "m.safetensors")],
+    ):
+        with pytest.raises(SystemExit, match=r"--tensorboard needs the tensorboard package: pip install 'rwm-gym\["):
+            cli([*command, "--tensorboard", str(tmp_path / "tb")])
