@@ -72,6 +72,21 @@ def test_ppo_in_imagination_logs_sb3s_scalars_and_the_imagined_envs(tmp_path):
     assert all(0.0 <= value <= 1.0 for tag in halts for _, value in logged[tag])
 
 
+def test_shac_logs_its_update_stats(tmp_path):
+    from dataclasses import fields
+
+    from rwm_gym.rl.shac import UpdateStats
+
+    board = tmp_path / "tb"
+    command = ["shac", "--num-envs", "8", "--horizon", "4", "--critic-iterations", "1", "--episode-steps", "20"]
+    command += ["--fall-tilt", "30", "--run-dir", str(tmp_path / "run"), "--threads", "1", "--timesteps", "96"]
+    assert cli([*command, "--out", str(tmp_path / "policy.zip"), "--tensorboard", str(board)]) == 0
+    logged = scalars(board)
+    tags = [f"shac/{f.name}" for f in fields(UpdateStats) if f.name != "timesteps"]
+    assert_finite(logged, tags)
+    assert [step for step, _ in logged["shac/imagined_return"]] == [32, 64, 96]  # one point per update
+
+
 def test_tensorboard_leaves_the_training_unchanged(tmp_path):
     """The KL rule reads the previous update's KL from SB3's logger: a logger that outlives `learn` must not change
     what it reads (two `learn` calls with a critic warm-up between, with and without TensorBoard)."""
@@ -96,6 +111,7 @@ def test_a_missing_tensorboard_is_one_line_naming_the_extra(tmp_path, monkeypatc
     monkeypatch.setitem(sys.modules, "tensorboard", None)  # import tensorboard raises ImportError
     for command in (
         ["ppo", "--timesteps", "128"],
+        ["shac", "--timesteps", "128", "--run-dir", str(tmp_path / "run")],
         ["train", "--data", "d.h5", "--out", str(tmp_path / "m.safetensors")],
     ):
         with pytest.raises(SystemExit, match=r"--tensorboard needs the tensorboard package: pip install 'rwm-gym\["):
