@@ -72,6 +72,32 @@ def test_ppo_in_imagination_logs_sb3s_scalars_and_the_imagined_envs(tmp_path):
     assert all(0.0 <= value <= 1.0 for tag in halts for _, value in logged[tag])
 
 
+def test_mbpo_logs_ppos_scalars_and_each_iterations_physics_score_and_model_error(tmp_path):
+    from rwm_gym.data.collect import collect
+    from rwm_gym.model.config import TrainConfig
+    from rwm_gym.model.factory import model_config_for
+    from rwm_gym.model.train import train
+    from rwm_gym.spec import load_spec
+
+    data = collect("AnymalD-MuJoCo-v0", "random", 4, tmp_path / "data.h5", num_envs=4, max_steps=60, progress=False)
+    config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32)
+    train_config = TrainConfig(history=8, forecast=4, iterations=10, batch_size=16, val_every=10, val_fraction=0.25)
+    checkpoint = train(data, config, train_config, tmp_path / "tiny.safetensors", progress=False).path
+    board = tmp_path / "tb"
+    command = ["mbpo", "--data", str(data), "--out", str(tmp_path / "run"), "--checkpoint", str(checkpoint)]
+    command += ["--iterations", "1", "--ppo-timesteps", "128", "--num-envs", "8", "--imagined-episode-steps", "20"]
+    command += ["--collect-episodes", "2", "--collect-steps", "48", "--model-iterations", "2", "--eval-seeds", "1"]
+    command += ["--eval-steps", "10", "--threads", "1"]
+    assert cli([*command, "--tensorboard", str(board)]) == 0
+    logged = scalars(board)
+    fields = ("tracking", "falls", "physics_return", "lin_vel_error", "physics_samples", "imagined_steps")
+    assert_finite(logged, [f"mbpo/{name}" for name in fields])
+    assert [step for step, _ in logged["mbpo/tracking"]] == [0, 1]  # the starting policy, then iteration 1
+    errors = [tag for tag in logged if tag.startswith("mbpo/model_error_fresh/")]
+    assert errors and [step for step, _ in logged[errors[0]]] == [1]
+    assert_finite(logged, [*errors, "mbpo/imagined_step_reward", "train/approx_kl", "reward/track_lin_vel_xy"])
+
+
 def test_shac_logs_its_update_stats(tmp_path):
     from dataclasses import fields
 
@@ -112,6 +138,7 @@ def test_a_missing_tensorboard_is_one_line_naming_the_extra(tmp_path, monkeypatc
     for command in (
         ["ppo", "--timesteps", "128"],
         ["shac", "--timesteps", "128", "--run-dir", str(tmp_path / "run")],
+        ["mbpo", "--data", "d.h5", "--out", str(tmp_path / "mbpo")],
         ["train", "--data", "d.h5", "--out", str(tmp_path / "m.safetensors")],
     ):
         with pytest.raises(SystemExit, match=r"--tensorboard needs the tensorboard package: pip install 'rwm-gym\["):
