@@ -98,6 +98,19 @@ def test_mbpo_logs_ppos_scalars_and_each_iterations_physics_score_and_model_erro
     assert_finite(logged, [*errors, "mbpo/imagined_step_reward", "train/approx_kl", "reward/track_lin_vel_xy"])
 
 
+def test_train_logs_the_world_models_losses(tmp_path):
+    from rwm_gym.data.collect import collect
+
+    data = collect("AnymalD-MuJoCo-v0", "random", 2, tmp_path / "data.h5", num_envs=2, max_steps=40, progress=False)
+    board = tmp_path / "tb"
+    command = ["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), "--hidden-size", "16"]
+    command += ["--history", "8", "--forecast", "4", "--iterations", "4", "--batch-size", "8", "--val-every", "2"]
+    assert cli([*command, "--quiet", "--tensorboard", str(board)]) == 0
+    logged = scalars(board)
+    assert_finite(logged, ["train_loss", "val_error", "lr", "wall_s"])
+    assert [step for step, _ in logged["train_loss"]] == [2, 4]
+
+
 def test_shac_logs_its_update_stats(tmp_path):
     from dataclasses import fields
 
