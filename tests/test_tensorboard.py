@@ -126,6 +126,15 @@ def test_shac_logs_its_update_stats(tmp_path):
     assert [step for step, _ in logged["shac/imagined_return"]] == [32, 64, 96]  # one point per update
 
 
+def test_a_resumed_ppo_run_continues_its_curves(tmp_path):
+    board, run = tmp_path / "tb", tmp_path / "run"
+    command = ["ppo", *TINY_PPO, "--episode-steps", "20", "--no-eval", "--run-dir", str(run), "--save-every", "1"]
+    command += ["--out", str(tmp_path / "policy.zip"), "--tensorboard", str(board)]
+    assert cli([*command, "--timesteps", "256"]) == 0
+    assert cli([*command, "--timesteps", "384"]) == 0  # the same run, resumed to a larger budget
+    assert [step for step, _ in scalars(board)["reward/track_lin_vel_xy"]] == [128, 256, 384]
+
+
 def test_tensorboard_leaves_the_training_unchanged(tmp_path):
     """The KL rule reads the previous update's KL from SB3's logger: a logger that outlives `learn` must not change
     what it reads (two `learn` calls with a critic warm-up between, with and without TensorBoard)."""
