@@ -190,3 +190,41 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
         assert args.lr_anneal_fraction == (anneal or None)
         assert args.torque_halt == meta["env"]["imagination"]["torque_halt"]
         assert args.log_std_init == meta["ppo"]["log_std_init"] and args.positive_reward_only is True
+
+
+def _numbers(value, path=""):
+    """The leaves of a JSON report by path."""
+    if isinstance(value, dict):
+        return {k: v for key, item in value.items() for k, v in _numbers(item, f"{path}/{key}").items()}
+    if isinstance(value, list):
+        return {k: v for i, item in enumerate(value) for k, v in _numbers(item, f"{path}/{i}").items()}
+    return {path: value}
+
+
+@pytest.mark.parametrize("policy", ["gait", "assets/policies/anymal_d_ppo_physics.zip"])
+def test_two_workers_give_the_figures_of_one(tmp_path, policy):
+    """`--workers 2` splits the episodes over two processes; the same seeds give the same figures: exactly for a
+    scripted policy, and for an SB3 policy up to the float rounding of a network acting on a smaller batch."""
+    import json
+    from pathlib import Path
+
+    from rwm_gym.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    policy = policy if policy == "gait" else str(root / policy)
+    reports = []
+    for workers in (1, 2):
+        out = tmp_path / f"workers_{workers}"
+        command = ["score", "--policy", policy, "--out", str(out), "--seeds", "2", "--steps", "6", "--commands", "1"]
+        assert main([*command, "--workers", str(workers)]) == 0
+        report = json.loads((out / "score.json").read_text())
+        for evaluation in (report["evaluation"], report["floor_evaluation"]):
+            evaluation.pop("wall_s")
+        reports.append(_numbers(report))
+    assert reports[0]["/episodes"] == 6  # standing, 1 m/s forward and one drawn command, two seeds each
+    if policy == "gait":
+        assert reports[0] == reports[1]
+    else:
+        assert reports[0].keys() == reports[1].keys()
+        for key, value in reports[0].items():
+            assert reports[1][key] == (pytest.approx(value, rel=1e-6, abs=1e-9) if isinstance(value, float) else value)

@@ -58,6 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
         "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)",
     )
+    parser.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        default=None,
+        help="write TensorBoard scalars here: PPO's in imagination and each iteration's physics score, falls and "
+        "model error on the fresh data (needs the [tensorboard] extra)",
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     counts = (
@@ -91,6 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym mbpo`: refuse a run folder that would overwrite an input, then run (or resume) the loop in it."""
+    from rwm_gym.tensorboard import check_tensorboard
+
+    check_tensorboard(args.tensorboard, "rwm-gym mbpo")
     if args.threads:
         import torch
 
@@ -110,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
                 model_kind=args.model,
                 device=args.device,
                 model_free_curve=args.model_free_curve,
+                tensorboard=args.tensorboard,
             )
     except ValueError as error:
         raise SystemExit(f"rwm-gym mbpo: {error}") from None

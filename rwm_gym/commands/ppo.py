@@ -116,6 +116,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
     parser.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        default=None,
+        help="write TensorBoard scalars here: SB3's own, the reward terms, episode lengths, halts and the ensemble's "
+        "disagreement per rollout (rwm_gym.rl.tensorboard; needs the [tensorboard] extra)",
+    )
+    parser.add_argument(
         "--run-dir",
         type=Path,
         default=None,
@@ -147,6 +154,9 @@ def run(args: argparse.Namespace) -> int:
     lock; a --run-dir run may rewrite its own --out (running the command again resumes it)."""
     if (args.timesteps == 0 or args.minutes == 0) and not args.bc_data:
         raise SystemExit("rwm-gym ppo: a budget of 0 trains nothing (0 is for --bc-data: the cloned actor alone)")
+    from rwm_gym.tensorboard import check_tensorboard
+
+    check_tensorboard(args.tensorboard, "rwm-gym ppo")
     inputs = [args.checkpoint, args.reset_data, *(args.bc_data or [])]
     try:
         check_output(args.out, inputs=inputs, overwrite=args.overwrite or args.run_dir is not None)
@@ -195,6 +205,7 @@ def _train(args: argparse.Namespace) -> int:
             timesteps=args.timesteps,
             minutes=args.minutes,
             target_kl=config.target_kl,
+            callbacks=_tensorboard(args, model),
             anneal_steps=anneal_steps(config, args.timesteps),
         )
     out = save_policy(model, args.out)
@@ -225,6 +236,15 @@ def _train(args: argparse.Namespace) -> int:
         _judge(args, model, out, warm, report)
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
+
+
+def _tensorboard(args: argparse.Namespace, model) -> tuple:
+    """With --tensorboard: `model` logs to TensorBoard, and the callbacks that add the env's scalars."""
+    if args.tensorboard is None:
+        return ()
+    from rwm_gym.rl.tensorboard import tensorboard_callbacks, tensorboard_logger
+
+    return tensorboard_callbacks(model, tensorboard_logger(args.tensorboard))
 
 
 def _imagination(args: argparse.Namespace) -> tuple[dict, dict]:
@@ -373,7 +393,7 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imag
                 timesteps=remaining,
                 minutes=args.minutes,
                 target_kl=config.target_kl,
-                callbacks=(checkpoint,),
+                callbacks=(checkpoint, *_tensorboard(args, model)),
                 on_rollout=checkpoint.log_row,
                 anneal_steps=anneal_steps(config, args.timesteps),
             )

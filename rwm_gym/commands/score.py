@@ -42,14 +42,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes the physics episodes are split over, each a batched core of a block of them; the same "
+        "figures as one (default: 1)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym score`: 0, or 2 with one line on stderr on bad input."""
     if args.policy not in SCRIPTED and not Path(args.policy).is_file():
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
-    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1):
-        raise SystemExit("rwm-gym score: --seeds and --steps must be >= 1, --commands >= 0")
+    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1) or args.workers < 1:
+        raise SystemExit("rwm-gym score: --seeds, --steps and --workers must be >= 1, --commands >= 0")
+    if args.workers > 1 and args.checkpoint is not None:
+        raise SystemExit("rwm-gym score: --workers splits physics episodes; a --checkpoint scores in one process")
     inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
     try:
         for name in ("score.md", "score.png", "walk.gif", "walk.png"):
@@ -66,7 +75,7 @@ def _score(args: argparse.Namespace) -> int:
         from rwm_gym.rl.safe_zip import load_policy
         from rwm_gym.spec import load_spec
 
-        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))
+        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))  # refused here, in one line
     else:
         policy = args.policy
     if args.reset_data is not None and args.checkpoint is None:
@@ -82,9 +91,12 @@ def _score(args: argparse.Namespace) -> int:
         num_random=args.commands,
         checkpoint=args.checkpoint,
         reset_data=args.reset_data,
+        workers=args.workers,
     )
+    if args.workers > 1:  # each process loads the policy itself
+        policy = args.policy
     result = score(policy, **options)
-    floor = result if args.policy == "zero" else score(zero_policy, **options)
+    floor = result if args.policy == "zero" else score("zero" if args.workers > 1 else zero_policy, **options)
     table = format_table(result)
     lines = [
         summary_line(f"policy {args.policy} in {where}", result),

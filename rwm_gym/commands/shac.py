@@ -56,13 +56,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip of the final policy")
+    parser.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        default=None,
+        help="write each update's UpdateStats as TensorBoard scalars shac/<field> here, at its imagined step "
+        "(needs the [tensorboard] extra)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym shac`: refuse an --out that would replace an input or another run's file (the run folder's own policy
     may be rewritten: running the command again resumes), then train holding its lock."""
     from rwm_gym.output_guard import OutputError, check_output, claim
+    from rwm_gym.tensorboard import check_tensorboard
 
+    check_tensorboard(args.tensorboard, "rwm-gym shac")
     try:
         check_output(args.out, inputs=[args.checkpoint, args.reset_data], overwrite=True)
         with claim(args.out):
@@ -157,6 +166,11 @@ def train(
         )
 
     run_folder.folder.mkdir(parents=True, exist_ok=True)
+    writer = None
+    if args.tensorboard is not None:
+        from rwm_gym.tensorboard import summary_writer
+
+        writer = summary_writer(args.tensorboard)
     bar = BudgetBar(steps=args.timesteps, minutes=None, desc="shac", initial=learner.timesteps, unit_scale=True)
     started, update = time.monotonic(), learner.timesteps // (config.num_envs * config.horizon)
     try:
@@ -168,6 +182,10 @@ def train(
             stats = learner.update()
             update += 1
             _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
+            if writer is not None:
+                for name, value in asdict(stats).items():
+                    if name != "timesteps":  # the step itself
+                        writer.add_scalar(f"shac/{name}", value, stats.timesteps)
             bar.show(
                 stats.timesteps,
                 time.monotonic() - started,
@@ -179,6 +197,8 @@ def train(
         save()
     finally:
         bar.close()
+        if writer is not None:
+            writer.close()
 
 
 def _log(path: Path, stats: UpdateStats, total_wall_s: float) -> None:

@@ -37,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "config is the default of every model option",
     )
     parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
-    parser.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs tensorboard)")
+    parser.add_argument(
+        "--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs the [tensorboard] extra)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_dataclass_options(
         parser.add_argument_group("training options"),
@@ -115,7 +117,9 @@ def check_memory(model_config: ModelConfig, config: TrainConfig, spec) -> None:
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym train`: train, print a summary line, write the checkpoint; 2 on bad input, 130 on Ctrl-C."""
     from rwm_gym.output_guard import check_output, claim
+    from rwm_gym.tensorboard import check_tensorboard
 
+    check_tensorboard(args.tensorboard, "rwm-gym train")
     try:
         if args.resume and not Path(args.out).exists():
             raise ValueError(f"--resume: {args.out} does not exist, nothing to resume (leave out --resume to start)")

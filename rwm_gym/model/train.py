@@ -508,12 +508,10 @@ def _resume(
 
 
 def _tensorboard(log_dir: str | None):
-    """A SummaryWriter when a log dir is asked for and tensorboard is installed (it is not a dependency)."""
+    """A SummaryWriter when a log dir is asked for (`rwm_gym.tensorboard`: one line naming the extra without the
+    package)."""
     if not log_dir:
         return None
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except ImportError:
-        print("tensorboard is not installed; no TensorBoard scalars written", file=sys.stderr)
-        return None
-    return SummaryWriter(log_dir)
+    from rwm_gym.tensorboard import summary_writer
+
+    return summary_writer(log_dir)

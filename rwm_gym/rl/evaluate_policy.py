@@ -140,18 +140,44 @@ def evaluate_policy(
     started = time.monotonic()
     commands = [tuple(float(c) for c in cmd) for cmd in (commands or scoring_commands(spec))]
     pairs = [(c, s) for c in commands for s in seeds]
+    tally = run_episodes(
+        act, pairs, steps=steps, settle_steps=settle_steps, spec=spec, env_kwargs=env_kwargs, core=core
+    )
+    return summarize(tally, commands, pairs, time.monotonic() - started)
+
+
+def run_episodes(
+    act: PolicyFn,
+    pairs: Sequence[tuple[tuple[float, ...], int]],
+    *,
+    steps: int | None = None,
+    settle_steps: int = 50,
+    spec: str | TaskSpec = "anymal_d",
+    env_kwargs: dict | None = None,
+    core=None,
+) -> _Tally:
+    """The per-env sums of one episode per (command, seed) pair, env k running pair k (`evaluate_policy`'s work
+    before its means; `_Tally.concatenate` joins the tallies of consecutive blocks of pairs run apart)."""
     core = _evaluation_core(core, spec, len(pairs), env_kwargs)
     task = core.spec
     steps = steps or task.episode_steps
-    if len(commands[0]) != len(task.command.names):
-        raise ValueError(f"commands have {len(commands[0])} entries, the task's {task.name} has {task.command.names}")
+    if len(pairs[0][0]) != len(task.command.names):
+        raise ValueError(f"commands have {len(pairs[0][0])} entries, the task's {task.name} has {task.command.names}")
     n = len(pairs)
     obs = core.reset(np.arange(n), [s for _, s in pairs], np.asarray([c for c, _ in pairs], dtype=np.float32))
-    tally = _Tally.start(task, core.command.astype(np.float64))
+    tally = _Tally.start(task, core.command.astype(np.float64), steps)
     for t in range(steps):
         obs, reward, terminated, _, info = core.step(np.clip(act(obs), -1.0, 1.0))
         state = core.current.state if hasattr(core, "current") else core.state
         tally.add(reward, terminated, info, state, settled=t >= settle_steps)
+    return tally
+
+
+def summarize(
+    tally: _Tally, commands: Sequence[tuple[float, ...]], pairs: Sequence[tuple[tuple[float, ...], int]], wall_s: float
+) -> Evaluation:
+    """The evaluation of the episodes of `pairs` (a tally of all of them, in their order): per command and overall."""
+    steps, n = tally.steps, len(pairs)
     rows = [tally.result(c, np.array([pc == c for pc, _ in pairs]), steps) for c in commands]
     return Evaluation(
         commands=rows,
@@ -162,7 +188,7 @@ def evaluate_policy(
         falls=int(sum(r.falls for r in rows)),
         episodes=n,
         steps=steps,
-        wall_s=time.monotonic() - started,
+        wall_s=wall_s,
     )
 
 
@@ -194,11 +220,13 @@ class _Tally:
     alive_steps: np.ndarray
     sums: dict[str, np.ndarray]
     """lin_err, yaw_err, vx, vy, wz over the settled steps; dist over every step."""
+    steps: int = 0
+    """Policy steps of each episode."""
     disagreement: np.ndarray | None = None
     """Summed over each env's steps before a fall, where the core reports it."""
 
     @classmethod
-    def start(cls, task: TaskSpec, cmd: np.ndarray) -> _Tally:
+    def start(cls, task: TaskSpec, cmd: np.ndarray, steps: int) -> _Tally:
         n = len(cmd)
         cmd_norm = np.linalg.norm(cmd[:, :2], axis=1)
         direction = np.divide(cmd[:, :2], cmd_norm[:, None], out=np.zeros((n, 2)), where=cmd_norm[:, None] > 0)
@@ -212,7 +240,18 @@ class _Tally:
             np.zeros(n),
             np.zeros(n),
             {k: np.zeros(n) for k in ("lin_err", "yaw_err", "vx", "vy", "wz", "dist")},
+            steps,
         )
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[_Tally]) -> _Tally:
+        """One tally of the envs of `parts`, in their order (the same arrays one core of all of them gives)."""
+        first = parts[0]
+        arrays = ("cmd", "direction", "alive", "returns", "counted", "tracking", "alive_steps")
+        joined = {name: np.concatenate([getattr(p, name) for p in parts]) for name in arrays}
+        sums = {k: np.concatenate([p.sums[k] for p in parts]) for k in first.sums}
+        disagreement = None if first.disagreement is None else np.concatenate([p.disagreement for p in parts])
+        return cls(task=first.task, **joined, sums=sums, steps=first.steps, disagreement=disagreement)
 
     def add(self, reward: np.ndarray, terminated: np.ndarray, info: dict, state: np.ndarray, settled: bool) -> None:
         """One step: the reward and disagreement before a fall, then tracking, distance and (once `settled`) the

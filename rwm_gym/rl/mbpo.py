@@ -29,6 +29,18 @@ from rwm_gym.imagination.options import ImaginationOptions
 TRACKING_TARGET = 0.80
 """The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
 
+TENSORBOARD_FIELDS = (
+    "tracking",
+    "falls",
+    "physics_return",
+    "lin_vel_error",
+    "yaw_rate_error",
+    "physics_samples",
+    "imagined_steps",
+    "imagined_step_reward",
+)
+"""The fields of an iteration's log row written as TensorBoard scalars `mbpo/<field>` (beside the model's error)."""
+
 RESUME_MAY_CHANGE = ("iterations",)
 """MBPOConfig fields a resumed run may set differently; the others must match the folder's."""
 
@@ -104,6 +116,7 @@ def mbpo(
     device: str = "cpu",
     model_free_curve: str | Path | None = None,
     progress: bool = True,
+    tensorboard: str | Path | None = None,
 ) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
@@ -112,6 +125,9 @@ def mbpo(
     init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
+    tensorboard: a folder for TensorBoard event files: PPO's scalars at its imagined steps (`rwm_gym.rl.tensorboard`)
+    and, at each iteration k as the step, `mbpo/<field>` of its log row (physics tracking, falls, return and velocity
+    errors, samples, imagined steps and reward) and `mbpo/model_error_fresh/<horizon>`.
     """
     from rwm_gym.data.dataset import Dataset
     from rwm_gym.imagination.reset_data import make_reset_data
@@ -125,7 +141,7 @@ def mbpo(
     if report is not None:
         _check_resume(report, config, report_path)
     starting = Dataset.load(data)
-    loop = _Loop(out, config, device, progress, model_free)
+    loop = _Loop(out, config, device, progress, model_free, tensorboard)
     started = time.monotonic()
     if not loop.base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
         keep = config.base_episodes or starting.num_episodes
@@ -146,10 +162,14 @@ def mbpo(
 class _Loop:
     """The steps of one run folder's loop: its files, the imagined env, (re)training and one iteration."""
 
-    def __init__(self, out: Path, config: MBPOConfig, device: str, progress: bool, model_free) -> None:
+    def __init__(
+        self, out: Path, config: MBPOConfig, device: str, progress: bool, model_free, tensorboard: str | Path | None
+    ) -> None:
         from rwm_gym.rl.ppo import PPOConfig
+        from rwm_gym.rl.tensorboard import tensorboard_logger
 
         self.out, self.config, self.device, self.progress, self.model_free = out, config, device, progress, model_free
+        self.logger = None if tensorboard is None else tensorboard_logger(tensorboard)
         self.base = out / "buffer_base.h5"
         self.model_config = None
         self.ppo_config = PPOConfig(
@@ -251,6 +271,7 @@ class _Loop:
             ],
         }
         self.write_report(report)
+        self.log_row(report["log"][0])
         tqdm.write(f"iteration 0: physics tracking {evaluation.tracking:.3f}, falls {evaluation.falls}")
         return report
 
@@ -260,6 +281,7 @@ class _Loop:
         from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
         from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
         from rwm_gym.rl.ppo import learn, load_ppo, save_policy
+        from rwm_gym.rl.tensorboard import tensorboard_callbacks
 
         config, out, previous = self.config, self.out, report["log"][-1]
         fresh_files = [out / f"data_{j}.h5" for j in range(1, k)]
@@ -274,7 +296,11 @@ class _Loop:
         policy._setup_lr_schedule()
         policy.set_random_seed(config.seed + k)
         stats = learn(
-            policy, timesteps=config.ppo_timesteps, target_kl=self.ppo_config.target_kl, progress=self.progress
+            policy,
+            timesteps=config.ppo_timesteps,
+            target_kl=self.ppo_config.target_kl,
+            progress=self.progress,
+            callbacks=tensorboard_callbacks(policy, self.logger),
         )
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
@@ -313,12 +339,24 @@ class _Loop:
         }
         report["log"].append(row)
         self.write_report(report)
+        self.log_row(row)
         tqdm.write(
             f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
             f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
             f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}"
         )
         tqdm.write(format_table(evaluation))
+
+    def log_row(self, row: dict) -> None:
+        """An iteration's log row as TensorBoard scalars at the step k (with --tensorboard)."""
+        if self.logger is None:
+            return
+        for name in TENSORBOARD_FIELDS:
+            if row.get(name) is not None:
+                self.logger.record(f"mbpo/{name}", row[name])
+        for horizon, error in (row["model_error_fresh"] or {}).items():
+            self.logger.record(f"mbpo/model_error_fresh/{horizon}", error)
+        self.logger.dump(step=row["iteration"])
 
     def write_report(self, report: dict) -> None:
         """`mbpo.json` with the best iteration so far, and `mbpo.png`."""
