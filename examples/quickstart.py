@@ -163,6 +163,8 @@ def ppo_options(recipe: dict) -> list[str]:
             options.append(f"--{name.replace('_', '-')}={value}")
     if recipe["ppo"]["positive_reward_only"]:
         options.append("--positive-reward-only")
+    if recipe["ppo"].get("lr_anneal_fraction"):  # absent from the JSONs of recipes older than the anneal
+        options.append(f"--lr-anneal-fraction={recipe['ppo']['lr_anneal_fraction']}")
     return options
 
 

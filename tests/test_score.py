@@ -141,11 +141,9 @@ def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
 
 def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     """The from-scratch policy's JSON records every seed of its recipe (the shipped one is the best by physics score,
-    each curve ends at that seed's final score) and of the other measured recipes (each a different setting, and the
-    quick start tells them apart), and its world model ships with the reset windows it names."""
+    each curve ends at that seed's final score) and of the other measured recipes, and its world model ships with the
+    reset windows it names."""
     import json
-
-    from script_loader import EXAMPLES, load_script
 
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.resources import assets_dir, shipped_file
@@ -155,9 +153,6 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
     assert len(seeds) >= 3 and meta["seed"] == max(seeds, key=lambda s: seeds[s]["tracking"])
     assert seeds[meta["seed"]]["tracking"] == meta["score"]["tracking"]
     others = meta.get("other_recipes", [])
-    quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
-    settings = [setting for setting, _ in quickstart.measured_recipes(meta)]
-    assert len(set(settings)) == len(settings) == 1 + len(others)  # each curve's setting is told apart
     for run in [*seeds.values(), *(run for other in others for run in other["seeds"])]:
         assert run["curve"][-1]["timesteps"] == run["imagined_steps"]
         assert run["curve"][-1]["falls"] == run["falls"]
@@ -169,7 +164,7 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
 
 
 def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_knows():
-    """Every option `recipe` reads from the shipped JSON is one `rwm-gym ppo` parses to the JSON's value; the
+    """Every option `ppo_options` reads from the shipped JSON is one `rwm-gym ppo` parses to the JSON's value; the
     learning-rate anneal is passed only where the recipe has one."""
     import argparse
     import json
@@ -185,7 +180,7 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
     add_arguments(parser)
     for anneal in (0.25, 0.0, None):
         ppo = {k: v for k, v in {**meta["ppo"], "lr_anneal_fraction": anneal}.items() if v is not None}
-        options = quickstart.recipe({**meta, "ppo": ppo})
+        options = quickstart.ppo_options({**meta, "ppo": ppo})
         args = parser.parse_args(options)
         assert args.lr_anneal_fraction == (anneal or None)
         assert args.torque_halt == meta["env"]["imagination"]["torque_halt"]
