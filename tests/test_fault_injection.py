@@ -103,8 +103,8 @@ def checkpoint(data: Path, tmp_path_factory) -> Path:
 @pytest.mark.parametrize("key", ["lr_schedule", "observation_space", "policy_kwargs"])
 def test_a_malicious_policy_zip_runs_nothing_through_any_loader(tmp_path: Path, key: str) -> None:
     from rwm_gym.policies.factory import make_policy
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
     from rwm_gym.rl.evaluate_policy import as_policy
-    from rwm_gym.rl.safe_zip import PolicyFileError, load_policy
 
     evil, marker = malicious_zip(tmp_path, key)
     for load in (load_policy, as_policy, lambda p: make_policy(str(p), SPEC, 1)):
@@ -149,7 +149,7 @@ def test_no_module_loads_sb3_zips_any_other_way() -> None:
     offenders = [
         str(p.relative_to(package))
         for p in package.rglob("*.py")
-        if p.name != "safe_zip.py" and "PPO.load(" in p.read_text().replace("`PPO.load(", "")
+        if p.name != "policy_zip.py" and "PPO.load(" in p.read_text().replace("`PPO.load(", "")
     ]
     assert offenders == []
 
@@ -158,7 +158,7 @@ def test_no_module_loads_sb3_zips_any_other_way() -> None:
 def test_every_shipped_policy_loads_safely_and_acts_as_sb3_loads_it(policy: Path) -> None:
     from stable_baselines3 import PPO
 
-    from rwm_gym.rl.safe_zip import load_policy
+    from rwm_gym.policy_zip import load_policy
     from rwm_gym.spec import load_spec
 
     safe, plain = load_policy(policy, spec=load_spec("anymal_d")), PPO.load(policy, device="cpu")
@@ -173,7 +173,7 @@ def test_a_training_run_zip_with_its_run_state_loads_safely(tmp_path: Path) -> N
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
 
-    from rwm_gym.rl.safe_zip import load_policy
+    from rwm_gym.policy_zip import load_policy
 
     model = PPO(
         "MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2), n_steps=128, batch_size=64, n_epochs=1, device="cpu"

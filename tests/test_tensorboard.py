@@ -145,7 +145,7 @@ def test_tensorboard_leaves_the_training_unchanged(tmp_path):
         extra = ["--tensorboard", str(board)] if board else []
         common = ["--timesteps", "256", "--critic-warmup-steps", "128", "--episode-steps", "20", "--no-eval"]
         assert cli(["ppo", *TINY_PPO, *common, "--out", str(out), *extra]) == 0
-        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.policy_zip import load_policy
 
         return load_policy(out).policy.state_dict()
 

@@ -17,6 +17,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args, non_default
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int
 from rwm_gym.output_guard import OutputError, check_output, claim
+from rwm_gym.policy_zip import load_policy
 from rwm_gym.rl.policy_file import save_policy
 from rwm_gym.rl.ppo import (
     ACTIVATIONS,
@@ -29,7 +30,6 @@ from rwm_gym.rl.ppo import (
     make_ppo,
     warm_up_critic,
 )
-from rwm_gym.rl.safe_zip import load_policy
 
 
 def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:

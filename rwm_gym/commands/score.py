@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _score(args: argparse.Namespace) -> int:
     if args.policy not in SCRIPTED:
-        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.policy_zip import load_policy
         from rwm_gym.spec import load_spec
 
         policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))  # refused here, in one line

@@ -112,7 +112,7 @@ def _train(args: argparse.Namespace) -> int:
     model = make_ppo(CoreSB3VecEnv(core), config.ppo_config(), seed=args.seed, device=args.device)
     learner = SHAC(imagination, model.policy, config, seed=args.seed)
     if resumed:
-        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.policy_zip import load_policy
 
         model.policy.load_state_dict(load_policy(run_folder.latest, device=args.device).policy.state_dict())
         learner.load_state_dict(torch.load(run_folder.folder / "latest_shac.pt", weights_only=True))

@@ -84,7 +84,7 @@ class SB3Policy:
     def __init__(
         self, path: str | Path, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0, algorithm: str = "PPO"
     ):
-        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.policy_zip import load_policy
 
         self.model = load_policy(path, device="cpu", spec=spec, algorithm=algorithm)
         self.name = f"sb3:{Path(path).name}"

@@ -107,7 +107,7 @@ class Evaluation:
 def as_policy(policy: str | os.PathLike | PolicyFn | object) -> PolicyFn:
     """A deterministic policy function from an SB3 `.zip` path, an SB3 model (anything with `predict`) or a callable."""
     if isinstance(policy, (str, os.PathLike)):
-        from rwm_gym.rl.safe_zip import load_policy
+        from rwm_gym.policy_zip import load_policy
 
         policy = load_policy(policy, device="cpu")
     if hasattr(policy, "predict"):

@@ -231,9 +231,9 @@ class _Loop:
         """Iteration 0: the starting model (trained on `data`, or a copy of `checkpoint`) and policy, scored."""
         from rwm_gym.model.checkpoint import read_meta
         from rwm_gym.model.factory import model_config_for
+        from rwm_gym.policy_zip import load_policy
         from rwm_gym.rl.evaluate_policy import evaluate_policy
         from rwm_gym.rl.ppo import make_ppo, save_policy, warm_up_critic
-        from rwm_gym.rl.safe_zip import load_policy
 
         config = self.config
         if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement

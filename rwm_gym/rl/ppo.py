@@ -183,7 +183,7 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
 
 def load_ppo(path, env: VecEnv, config: PPOConfig, *, device: str = "cpu") -> PPO:
     """A saved PPO policy to continue training on `env` with `config`'s buffer (the mirrored one for `symmetry`)."""
-    from rwm_gym.rl.safe_zip import load_policy
+    from rwm_gym.policy_zip import load_policy
 
     model = load_policy(path, env=env, device=device)  # runs no code from the file
     if config.symmetry:
