@@ -61,6 +61,11 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
         "ppo",
         ["--num-envs=1024", "--fall-tilt=30", "--matmul-precision=bfloat16", "--symmetry"],
     ),
+    "envs4096_symmetry": (
+        "PPO, 4096 envs, bf16, mirror augmentation",
+        "ppo",
+        ["--num-envs=4096", "--matmul-precision=bfloat16", "--symmetry"],
+    ),
     "envs512": ("PPO, 512 envs, fall tilt 30", "ppo", ["--num-envs=512", "--fall-tilt=30"]),
     "envs256": ("PPO, 256 envs, fall tilt 30", "ppo", ["--num-envs=256", "--fall-tilt=30"]),
     "shac": (
@@ -232,8 +237,10 @@ def plot(summary: dict, floor: float | None, path: Path) -> Path:
     axes[0].set_xlabel("training wall time (min; load average in summary.json)")
     axes[1].set_xlabel("imagined env steps (M)")
     axes[0].set_ylabel("tracking score in physics")
-    fig.suptitle("Learning from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed; "
-                 "dashed: standing still, dotted green: walks")
+    fig.suptitle(
+        "Learning from scratch in the shipped world model, scored in MuJoCo (ANYmal D), one line per seed; "
+        "dashed: standing still, dotted green: walks"
+    )
     fig.legend(fontsize=8, loc="lower center", ncol=3)
     fig.tight_layout(rect=(0, 0.12, 1, 1))
     return save_png(fig, path, dpi=100)
