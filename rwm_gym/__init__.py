@@ -48,6 +48,8 @@ EXPORTS: dict[str, str] = {
     "rsl_rl_train_cfg": "rwm_gym.rl.rsl_rl_train_cfg",
     "MBPOConfig": "rwm_gym.rl.mbpo",
     "mbpo": "rwm_gym.rl.mbpo",
+    "SHACConfig": "rwm_gym.rl.shac",
+    "load_policy": "rwm_gym.policy_zip",
     "score": "rwm_gym.rl.score",
     "zero_policy": "rwm_gym.rl.score",
     "Evaluation": "rwm_gym.rl.evaluate_policy",
