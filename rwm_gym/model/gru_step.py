@@ -9,7 +9,7 @@ n = tanh(W_in x + b_in + r * (W_hn h + b_hn)); h' = n + z * (h - n)); no autogra
 
 With `matmul_dtype=torch.bfloat16` the products run in bfloat16 (fp32 accumulation in oneDNN; 2.5-4x the fp32 rate
 on CPUs with AVX512-BF16 or AMX) while the gate arithmetic and the hidden state stay float32: only the products'
-inputs and outputs are rounded. `benchmarks/time_to_walk.py --precision` measures its effect on forecasts and policies.
+inputs and outputs are rounded (the effect on speed and forecasts: docs/results/time-to-walk.md).
 """
 
 from __future__ import annotations
@@ -60,9 +60,7 @@ def _layer(x: torch.Tensor, h: torch.Tensor, w: _LayerWeights, out: torch.Tensor
     gates = torch.addmm(w.input_bias, x, w.input_t)  # (rows, 3H): every input product
     reset_update = gates[:, : 2 * hidden].addmm_(h, w.hidden_rz_t).sigmoid_()  # BLAS accumulates: no extra pass
     candidate = torch.addmm(w.hidden_n_bias, h, w.hidden_n_t)
-    candidate = torch.addcmul(gates[:, 2 * hidden :], reset_update[:, :hidden], candidate, out=candidate)
-    candidate = candidate.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(a) = 2 sigmoid(2a) - 1: 4x faster on CPU
-    return torch.lerp(candidate, h, reset_update[:, hidden:], out=out)
+    return _new_hidden(gates[:, 2 * hidden :], reset_update, candidate, h, out)
 
 
 def _layer_low_precision(x: torch.Tensor, h: torch.Tensor, w: _LayerWeights, out: torch.Tensor) -> torch.Tensor:
@@ -72,8 +70,16 @@ def _layer_low_precision(x: torch.Tensor, h: torch.Tensor, w: _LayerWeights, out
     gates = torch.mm(x.to(low), w.input_t).to(h.dtype).add_(w.input_bias)
     reset_update = gates[:, : 2 * hidden].add_(torch.mm(h_low, w.hidden_rz_t)).sigmoid_()
     candidate = torch.mm(h_low, w.hidden_n_t).to(h.dtype).add_(w.hidden_n_bias)
-    candidate = torch.addcmul(gates[:, 2 * hidden :], reset_update[:, :hidden], candidate, out=candidate)
-    candidate = candidate.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)
+    return _new_hidden(gates[:, 2 * hidden :], reset_update, candidate, h, out)
+
+
+def _new_hidden(
+    input_n: torch.Tensor, reset_update: torch.Tensor, hidden_n: torch.Tensor, h: torch.Tensor, out: torch.Tensor
+) -> torch.Tensor:
+    """h' = n + z * (h - n) with n = tanh(input_n + r * hidden_n), written into `out` (hidden_n is overwritten)."""
+    hidden = h.shape[1]
+    candidate = torch.addcmul(input_n, reset_update[:, :hidden], hidden_n, out=hidden_n)
+    candidate = candidate.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(a) = 2 sigmoid(2a) - 1: 4x faster on CPU
     return torch.lerp(candidate, h, reset_update[:, hidden:], out=out)
 
 

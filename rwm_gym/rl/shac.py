@@ -24,7 +24,7 @@ import torch
 
 from rwm_gym.imagination.core import ImaginedCore, tilt_degrees
 from rwm_gym.task.commands import resample_period, sample_commands
-from rwm_gym.task.observation import observation_slices
+from rwm_gym.task.observation import observation_parts
 from rwm_gym.task.reward_torch import FeetAirTime, velocity_tracking_reward
 
 
@@ -107,7 +107,6 @@ class DifferentiableImagination:
         self.model.set_disagreement(False)
         self.device, n = core.device, core.num_envs
         self.period = resample_period(self.spec.command, self.spec.policy_dt)
-        self.slices = observation_slices(self.spec)
         self.air = FeetAirTime(n, self.spec.foot_dim, self.device)
         self.steps = torch.zeros(n, dtype=torch.long, device=self.device)
         self.state = torch.zeros((n, self.spec.state_dim), device=self.device)
@@ -140,16 +139,8 @@ class DifferentiableImagination:
         self.air.air_time = self.air.air_time.detach()
 
     def observe(self) -> torch.Tensor:
-        """(N, O) observation, as `rwm_gym.task.observation.build_observation` (no noise)."""
-        parts = []
-        for name in self.spec.observation.groups:
-            if name == "command":
-                parts.append(self.command)
-            elif name == "last_action":
-                parts.append(self.last_action)
-            else:
-                parts.append(self.state[:, self.spec.state_slices[name]])
-        return torch.cat(parts, dim=1)
+        """(N, O) observation, as `rwm_gym.task.observation.build_observation` builds it (no noise), differentiable."""
+        return torch.cat(observation_parts(self.spec, self.state, self.command, self.last_action), dim=1)
 
     def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every env one step with autograd: reward (N,), terminated (N,) and truncated (N,) bool."""

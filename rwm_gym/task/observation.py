@@ -19,6 +19,14 @@ def observation_slices(spec: TaskSpec) -> dict[str, slice]:
     return out
 
 
+def observation_parts(spec: TaskSpec, state, command, last_action) -> list:
+    """The observation's groups in the spec's order, each (N, size): slices of state (N, S), command (N, K) and last
+    action (N, A), numpy arrays or torch tensors alike (a differentiable learner builds its observation from these)."""
+    slices = spec.state_slices
+    by_name = {"command": command, "last_action": last_action}
+    return [by_name[name] if name in by_name else state[:, slices[name]] for name in spec.observation.groups]
+
+
 def build_observation(
     spec: TaskSpec,
     state: np.ndarray,
@@ -30,15 +38,8 @@ def build_observation(
 
     With `noise_rngs` (one generator per env), each group gets uniform noise of the spec's half-width.
     """
-    slices = spec.state_slices
     parts = []
-    for name in spec.observation.groups:
-        if name == "command":
-            part = command
-        elif name == "last_action":
-            part = last_action
-        else:
-            part = state[:, slices[name]]
+    for name, part in zip(spec.observation.groups, observation_parts(spec, state, command, last_action), strict=True):
         part = np.asarray(part, dtype=np.float32)
         width = spec.observation.noise.get(name, 0.0)
         if noise_rngs is not None and width > 0:
