@@ -609,3 +609,27 @@ def test_a_run_dir_from_before_the_anneal_resumes_with_its_default(tmp_path):
     (run / "state.json").write_text(json.dumps(state))
     assert main([*args, "--timesteps", "128"]) == 0
     assert json.loads((run / "state.json").read_text())["timesteps"] == 128
+
+
+def test_state_dependent_exploration_holds_its_noise_and_saves_a_policy_that_loads(tiny_checkpoint, tmp_path):
+    """gSDE (`use_sde`): within one exploration matrix the same observation gets the same noisy action (noise held in
+    time, unlike white noise); the policy trains in imagination and its zip loads through the safe loader."""
+    from rwm_gym.policy_zip import load_policy
+    from rwm_gym.rl.ppo import save_policy
+
+    config = replace(TINY, use_sde=True, log_std_init=-2.0)
+    env = make_env("imagination", config.num_envs, checkpoint=tiny_checkpoint, seed=0, env_kwargs={"episode_steps": 16})
+    model = make_ppo(env, config, seed=0)
+    assert model.use_sde and model.sde_sample_freq == -1
+    obs = torch.as_tensor(env.reset(), dtype=torch.float32)
+    model.policy.reset_noise(config.num_envs)
+    first, again = model.policy(obs)[0], model.policy(obs)[0]
+    torch.testing.assert_close(first, again)
+    model.policy.reset_noise(config.num_envs)
+    assert not torch.allclose(first, model.policy(obs)[0])
+    learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
+    path = save_policy(model, tmp_path / "sde.zip")
+    loaded = load_policy(path)
+    assert loaded.use_sde
+    action, _ = loaded.predict(obs.numpy(), deterministic=True)
+    np.testing.assert_allclose(action, model.predict(obs.numpy(), deterministic=True)[0], atol=1e-6)

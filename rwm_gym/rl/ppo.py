@@ -39,7 +39,12 @@ class PPOConfig:
     activation: str = "elu"
     """Activation of both MLPs: elu, tanh or relu."""
     log_std_init: float = 0.0
-    """Initial log std of the Gaussian policy (0: std 1)."""
+    """Initial log std of the Gaussian policy (0: std 1); with `use_sde`, of the exploration matrix's entries."""
+    use_sde: bool = False
+    """Generalised state-dependent exploration (gSDE, Raffin et al. 2021): the action noise is a random linear function
+    of the actor's last hidden layer, held for `sde_sample_freq` steps, so it is smooth in time instead of white."""
+    sde_sample_freq: int = -1
+    """Steps between fresh exploration matrices with `use_sde` (-1: once per rollout)."""
     clip_range: float = 0.2
     """PPO ratio clip."""
     n_epochs: int = 5
@@ -163,6 +168,8 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
         ent_coef=config.ent_coef,
         vf_coef=config.vf_coef,
         max_grad_norm=config.max_grad_norm,
+        use_sde=config.use_sde,
+        sde_sample_freq=config.sde_sample_freq,
         seed=seed,
         device=device,
         verbose=0,

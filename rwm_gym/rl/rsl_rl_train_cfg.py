@@ -27,6 +27,7 @@ def rsl_rl_train_cfg(
         "critic_warmup_steps": config.critic_warmup_steps != 0,
         "positive_reward_only": config.positive_reward_only,
         "lr_anneal_fraction": config.lr_anneal_fraction != 0,
+        "use_sde": config.use_sde,
     }
     for name, used in unsupported.items():
         if used:
