@@ -58,16 +58,18 @@ _PARSED_TYPES = (int, float, Path)
 
 @cache
 def _annotated_types(cls: type) -> dict[str, type]:
-    """Each field's annotated type, with `X | None` read as X and `tuple[X, ...]` as X (the type of one value),
-    where X is one of `_PARSED_TYPES`."""
+    """Each field's annotated type where it is one of `_PARSED_TYPES`, read through `X | None` and `tuple[X, ...]`
+    (a flag parses one value at a time)."""
     try:
         hints = get_type_hints(cls)
     except (NameError, TypeError):  # an annotation naming what only a type checker imports
         return {}
     found = {}
     for name, hint in hints.items():
-        args = [a for a in get_args(hint) if a is not type(None) and a is not Ellipsis]
-        if get_origin(hint) is not None and len(args) == 1:
+        while get_origin(hint) is not None:  # tuple[Path, ...] | None: Path
+            args = [a for a in get_args(hint) if a is not type(None) and a is not Ellipsis]
+            if len(args) != 1:
+                break
             hint = args[0]
         if hint in _PARSED_TYPES:
             found[name] = hint
