@@ -66,3 +66,13 @@ def add_group(parser: argparse.ArgumentParser, cls: type, title: str | None = No
     docstring); `options` go to `add_dataclass_options`."""
     target = parser if title is None else parser.add_argument_group(title, cls.__doc__)
     add_dataclass_options(target, cls, **options)
+
+
+@dataclass(frozen=True)
+class PhysicsEnvOptions:
+    """The physics env a command runs: an id or a spec, and the robot's MJCF."""
+
+    env: str = "AnymalD-MuJoCo-v0"
+    """registered physics env id, or the path of a task spec (.toml)"""
+    xml_file: Path | None = None
+    """another MJCF of the robot"""
