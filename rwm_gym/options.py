@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import ast
 import inspect
+import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import MISSING, Field, field, fields, replace
 from functools import cache
@@ -86,9 +87,10 @@ def _field_default(f: Field, defaults: object | None) -> object:
 
 
 def _help(doc: str, default: object) -> str:
-    """The field docstring, with the default named unless the docstring names one or there is none (required)."""
+    """The field docstring, with the default named unless the docstring names it ("(default ..." or "default: ...")
+    or there is none (a required flag)."""
     shown = list(default) if isinstance(default, tuple) else default
-    named = default is MISSING or "default" in doc
+    named = default is MISSING or re.search(r"\(default\b|\bdefault:", doc) is not None
     return (doc if named else f"{doc} (default {shown})").strip().replace("%", "%%")
 
 

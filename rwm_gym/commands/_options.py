@@ -5,7 +5,8 @@ command (`--overwrite`, `--device`, `--tensorboard`, `--run-dir`, ...) is writte
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from rwm_gym.options import add_dataclass_options, option
@@ -61,10 +62,20 @@ class RunFolderOptions:
     """with --run-dir: updates (PPO: rollouts) between policy snapshots"""
 
 
-def add_group(parser: argparse.ArgumentParser, cls: type, title: str | None = None, **options) -> None:
+def add_group(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    title: str | None = None,
+    *,
+    only: Iterable[str] | None = None,
+    **options,
+) -> None:
     """The flags of the dataclass `cls` in `parser` (in an argument group `title` if given, described by the class
-    docstring); `options` go to `add_dataclass_options`."""
+    docstring): of the fields named in `only` if given (a library config whose other fields the command leaves at
+    their defaults); `options` go to `add_dataclass_options`."""
     target = parser if title is None else parser.add_argument_group(title, cls.__doc__)
+    if only is not None:
+        options["skip"] = {f.name for f in fields(cls)} - set(only)
     add_dataclass_options(target, cls, **options)
 
 
