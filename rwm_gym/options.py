@@ -142,6 +142,8 @@ def add_dataclass_options(
             target.add_argument(*names, dest=f.name, action=action, default=value, help=help_text, required=is_required)
             continue
         cli.setdefault("type", _flag_type(cls, f.name, default))
+        if not cli.get("choices"):  # argparse's metavar, named after the flag rather than the dest
+            cli.setdefault("metavar", names[0].lstrip("-").replace("-", "_").upper())
         value = list(value) if isinstance(value, tuple) else value  # argparse appends to (and prints) a list
         target.add_argument(*names, dest=f.name, default=value, help=help_text, required=is_required, **cli)
 

@@ -25,8 +25,8 @@ from rwm_gym.physics.params import CONVERGED_SOLVER
 
 @dataclass(frozen=True, kw_only=True)
 class GapOptions:
-    """The simulator, the measured data, the report folder and the inputs given as text (JSON, lists); the rest of
-    the workflow's settings are fields of its configs."""
+    """The simulator, the measured data, the report folder and the inputs given as text (JSON, a solver's
+    iterations); the workflow's settings are fields of its configs."""
 
     sim: str = "AnymalD-MuJoCo-v0"
     """registered physics env id of the nominal simulator"""
@@ -36,9 +36,6 @@ class GapOptions:
     """measured dataset (HDF5, rwm-gym format)"""
     out: Path
     """report folder"""
-    scopes: str = ",".join(FitConfig.scopes)
-    """joint-group scopes tried for the best joint effect, comma-separated from leg, joint_type, joint (none: global
-    only; each kept only if held-out data pays)"""
     sensor_noise: str | None = None
     """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
     solver_iterations: int = CONVERGED_SOLVER.iterations
@@ -46,6 +43,14 @@ class GapOptions:
     world_model: str = "auto"
     """checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped one for
     AnymalD-MuJoCo-v0 (else none); none: skip them"""
+
+
+def scope_list(text: str) -> tuple[str, ...]:
+    """An argparse type: comma-separated joint-group scopes of `FitConfig.scopes` ('none': the global forms only)."""
+    scopes = tuple(s for s in text.split(",") if s and s != "none")
+    if unknown := sorted(set(scopes) - set(SCOPES[1:])):
+        raise argparse.ArgumentTypeError(f"unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
+    return scopes
 
 
 OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
@@ -56,7 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
     add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction"})
-    add_group(parser, FitConfig, "fit", only={"max_effects", "joint_candidates"})
+    add_group(
+        parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
+    )
     add_group(
         parser,
         WorldModelGapConfig,
@@ -72,10 +79,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
         noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
-        scopes = tuple(s for s in args.scopes.split(",") if s and s != "none")
-        unknown = sorted(set(scopes) - set(SCOPES[1:]))
-        if unknown:
-            raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         from rwm_gym.output_guard import check_output
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             args.out,
             sim_kwargs=sim_kwargs,
             config=dataclass_from_args(GapConfig, args, solver=solver_option(args.solver_iterations)),
-            fit_config=dataclass_from_args(FitConfig, args, scopes=scopes),
+            fit_config=dataclass_from_args(FitConfig, args),
             sensor_noise=noise,
             world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs),
             wm_config=wm_config,
