@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rwm_gym.physics.locomotion import LocomotionCore
+from rwm_gym.physics.options import PhysicsOptions
 from rwm_gym.policies.gait import GaitPolicy
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import observation_slices
@@ -33,7 +34,7 @@ def rollout(
     `error_xy` (m/s, mean |commanded - measured| planar body velocity), `error_yaw` (rad/s), over upright steps.
     """
     n = len(seeds)
-    core = LocomotionCore(spec, n, nthread=min(n, os.cpu_count() or 1))
+    core = LocomotionCore(spec, n, options=PhysicsOptions(nthread=min(n, os.cpu_count() or 1)))
     obs = core.reset(np.arange(n), seeds, None if command is None else np.tile(np.float32(command), (n, 1)))
     policy = GaitPolicy(spec, n, **gait)
     policy.reset(np.arange(n), [np.random.default_rng([seed, 1]) for seed in seeds])

@@ -39,6 +39,7 @@ EXPORTS: dict[str, str] = {
     "DMCGymVectorEnv": "rwm_gym.vector.gym_vector_env",
     "DMCSB3VecEnv": "rwm_gym.vector.sb3_vec_env",
     "ImaginationOptions": "rwm_gym.imagination.options",
+    "PhysicsOptions": "rwm_gym.physics.options",
     "PhysicsParams": "rwm_gym.physics.params",
     "default_checkpoint": "rwm_gym.imagination.core",
     # policies: PPO in imagination or physics, MBPO, and the tracking score that judges them in physics

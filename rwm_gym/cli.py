@@ -1,7 +1,8 @@
 """The `rwm-gym` command: one subcommand per job, each a module of `rwm_gym.commands`.
 
-Each module listed in `COMMANDS` defines `add_arguments(parser)` and `run(args) -> int | None`; it is imported only
-when its subcommand runs, so `rwm-gym --help` stays fast.
+Each module listed in `COMMANDS` defines `OPTIONS` (the dataclasses its flags are generated from, one per group of
+options, with `rwm_gym.options`), `add_arguments(parser)` and `run(args) -> int | None`; it is imported only when its
+subcommand runs, so `rwm-gym --help` stays fast.
 """
 
 from __future__ import annotations

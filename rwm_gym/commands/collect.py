@@ -4,47 +4,49 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import rwm_gym
+from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, add_group
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, DatasetError
-from rwm_gym.options import non_negative_float
+from rwm_gym.options import non_negative_float, option
+
+
+@dataclass(frozen=True)
+class CollectOptions:
+    """What is collected, how, and where it is written."""
+
+    out: Path
+    """HDF5 file to write"""
+    policy: str = "gait"
+    """'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip"""
+    episodes: int = 64
+    """episodes to collect"""
+    seed: int = 0
+    """episode k starts from seed + k"""
+    num_envs: int = 8
+    """simulations stepped together"""
+    workers: int = 1
+    """processes collecting side by side, each with --num-envs simulations; the file is the same whatever the
+    number"""
+    action_noise: float = option(0.0, parse=non_negative_float)
+    """Gaussian std added to the policy's actions"""
+    max_steps: int | None = None
+    """cap on episode length in policy steps (default: the task's episode length)"""
+    physics: str | None = None
+    """JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)"""
+
+
+OPTIONS = (PhysicsEnvOptions, CollectOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym collect` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym collect`."""
-    parser.add_argument(
-        "--env", default="AnymalD-MuJoCo-v0", help="registered physics env id, or the path of a task spec (.toml)"
-    )
-    parser.add_argument(
-        "--policy", default="gait", help="'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip"
-    )
-    parser.add_argument("--episodes", type=int, default=64, help="episodes to collect (default 64)")
-    parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
-    parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")
-    parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (default 8)")
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=1,
-        help="processes collecting side by side, each with --num-envs simulations (default 1); the "
-        "file is the same whatever the number",
-    )
-    parser.add_argument(
-        "--action-noise", type=non_negative_float, default=0.0, help="Gaussian std added to the policy's actions"
-    )
-    parser.add_argument(
-        "--max-steps",
-        type=int,
-        default=None,
-        help="cap on episode length in policy steps (default: the task's episode length)",
-    )
-    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument(
-        "--physics", default=None, help="JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)"
-    )
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def _no_constant(name: str):

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.atomic import write_json
+from rwm_gym.commands._options import OverwriteOption, add_group
 from rwm_gym.data.dataset import DatasetError
 from rwm_gym.model.checkpoint import CheckpointError
 from rwm_gym.model.evaluate import (
@@ -15,47 +17,44 @@ from rwm_gym.model.evaluate import (
     format_table,
     plot_running_mean,
 )
+from rwm_gym.options import dataclass_from_args, option
+
+
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """The checkpoint, the data it is evaluated on, and what is written (how: `EvalConfig`)."""
+
+    checkpoint: str
+    """world-model checkpoint (.safetensors)"""
+    data: tuple[str, ...] = option(nargs="+")
+    """HDF5 datasets of the same task (held-out episodes), each evaluated on its own"""
+    out: str | None = None
+    """folder for evaluation.json and error_vs_horizon.png"""
+    all_episodes: bool = False
+    """use every episode, even of the checkpoint's training file or repeating its episodes"""
+    training_data: tuple[str, ...] = option((), nargs="+", metavar="FILE")
+    """data the model trained on besides its recorded file (e.g. an --init checkpoint's): evaluated episodes that
+    repeat one of theirs are left out (default: none)"""
+    quiet: bool = False
+    """no progress bar"""
+
+
+OPTIONS = (EvaluateOptions, OverwriteOption, EvalConfig)
+"""The dataclasses the flags of `rwm-gym evaluate` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of `rwm-gym evaluate`."""
-    d = EvalConfig()
-    parser.add_argument("--checkpoint", required=True, help="world-model checkpoint (.safetensors)")
-    parser.add_argument(
-        "--data",
-        required=True,
-        nargs="+",
-        help="HDF5 datasets of the same task (held-out episodes), each evaluated on its own",
+    """Options of `rwm-gym evaluate`: what is evaluated, then one flag per `EvalConfig` field but its batch size."""
+    add_group(parser, EvaluateOptions)
+    add_group(parser, OverwriteOption)
+    add_group(
+        parser,
+        EvalConfig,
+        "evaluation",
+        skip={"batch_size"},
+        flags={"noise_levels": ["--noise"]},
+        nargs={"horizons": "+", "noise_levels": "*"},
     )
-    parser.add_argument("--out", help="folder for evaluation.json and error_vs_horizon.png")
-    parser.add_argument("--history", type=int, default=d.history, help=f"warm-up rows (default {d.history})")
-    parser.add_argument("--horizons", type=int, nargs="+", default=list(d.horizons), help="horizons to report")
-    parser.add_argument("--max-horizon", type=int, default=d.max_horizon, help="cap of the longest horizon")
-    parser.add_argument(
-        "--noise",
-        type=float,
-        nargs="*",
-        default=list(d.noise_levels),
-        help="noise stds for the robustness test (none: skip)",
-    )
-    parser.add_argument("--max-windows", type=int, default=d.max_windows, help="windows per horizon")
-    parser.add_argument("--device", default=d.device, help="torch device")
-    parser.add_argument("--seed", type=int, default=d.seed, help="seed of window choice and noise")
-    parser.add_argument(
-        "--all-episodes",
-        action="store_true",
-        help="use every episode, even of the checkpoint's training file or repeating its episodes",
-    )
-    parser.add_argument(
-        "--training-data",
-        nargs="+",
-        default=[],
-        metavar="FILE",
-        help="data the model trained on besides its recorded file (e.g. an --init checkpoint's): "
-        "evaluated episodes that repeat one of theirs are left out (default: none)",
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT/evaluation.json")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,15 +69,7 @@ def run(args: argparse.Namespace) -> int:
             inputs = [args.checkpoint, *args.data, *args.training_data]
             check_output(Path(args.out) / "error_vs_horizon.png", inputs=inputs, overwrite=True)
             check_output(Path(args.out) / "evaluation.json", inputs=inputs, overwrite=args.overwrite)
-        config = EvalConfig(
-            history=args.history,
-            horizons=tuple(args.horizons),
-            max_horizon=args.max_horizon,
-            noise_levels=tuple(args.noise),
-            max_windows=args.max_windows,
-            seed=args.seed,
-            device=args.device,
-        )
+        config = dataclass_from_args(EvalConfig, args)
         for data in args.data:
             results[Path(data).stem] = evaluate_checkpoint(
                 args.checkpoint, data, config, args.all_episodes, not args.quiet, args.training_data

@@ -4,18 +4,35 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
+from rwm_gym.commands._options import OverwriteOption, add_group
 from rwm_gym.data.dataset import DatasetError
 from rwm_gym.data.minari_io import export_minari
+from rwm_gym.options import option
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """The dataset exported and where."""
+
+    minari: Path = option(metavar="DATA.h5")
+    """rwm-gym dataset to export"""
+    out: Path
+    """folder to write the Minari dataset into"""
+    dataset_id: str | None = None
+    """Minari dataset id (default rwm-gym/TASK/FILE-v0)"""
+
+
+OPTIONS = (ExportOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym export` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym export`."""
-    parser.add_argument("--minari", required=True, type=Path, metavar="DATA.h5", help="rwm-gym dataset to export")
-    parser.add_argument("--out", required=True, type=Path, help="folder to write the Minari dataset into")
-    parser.add_argument("--dataset-id", help="Minari dataset id (default rwm-gym/TASK/FILE-v0)")
-    parser.add_argument("--overwrite", action="store_true")
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
+from rwm_gym.commands._options import add_group
 from rwm_gym.gap.fit import FitConfig
 from rwm_gym.gap.measured import SensorNoise, solver_option
 from rwm_gym.gap.report import world_model_table
@@ -17,89 +19,66 @@ from rwm_gym.gap.workflow import (
     run_gap,
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig
+from rwm_gym.options import dataclass_from_args
 from rwm_gym.physics.params import CONVERGED_SOLVER
 
 
+@dataclass(frozen=True, kw_only=True)
+class GapOptions:
+    """The simulator, the measured data, the report folder and the inputs given as text (JSON, a solver's
+    iterations); the workflow's settings are fields of its configs."""
+
+    sim: str = "AnymalD-MuJoCo-v0"
+    """registered physics env id of the nominal simulator"""
+    sim_kwargs: str | None = None
+    """JSON env kwargs, e.g. {"xml_file": "my_robot.xml"}"""
+    measured: Path
+    """measured dataset (HDF5, rwm-gym format)"""
+    out: Path
+    """report folder"""
+    sensor_noise: str | None = None
+    """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
+    solver_iterations: int = CONVERGED_SOLVER.iterations
+    """MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)"""
+    world_model: str = "auto"
+    """checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped one for
+    AnymalD-MuJoCo-v0 (else none); none: skip them"""
+
+
+def scope_list(text: str) -> tuple[str, ...]:
+    """An argparse type: comma-separated joint-group scopes of `FitConfig.scopes` ('none': the global forms only)."""
+    scopes = tuple(s for s in text.split(",") if s and s != "none")
+    if unknown := sorted(set(scopes) - set(SCOPES[1:])):
+        raise argparse.ArgumentTypeError(f"unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
+    return scopes
+
+
+OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
+"""The dataclasses the flags of `rwm-gym gap` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of `rwm-gym gap`."""
-    parser.add_argument("--sim", default="AnymalD-MuJoCo-v0", help="registered physics env id of the nominal simulator")
-    parser.add_argument("--sim-kwargs", default=None, help='JSON env kwargs, e.g. {"xml_file": "my_robot.xml"}')
-    parser.add_argument("--measured", type=Path, required=True, help="measured dataset (HDF5, rwm-gym format)")
-    parser.add_argument("--out", type=Path, required=True, help="report folder")
-    parser.add_argument("--val-fraction", type=float, default=GapConfig.val_fraction, help="held-out episode share")
-    parser.add_argument(
-        "--scopes",
-        default=",".join(FitConfig.scopes),
-        help=f"joint-group scopes tried for the best joint effect, comma-separated from "
-        f"{', '.join(SCOPES[1:])} (none: global only; each kept only if held-out data pays)",
+    """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
+    add_group(parser, GapOptions)
+    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction"})
+    add_group(
+        parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
     )
-    parser.add_argument(
-        "--max-effects",
-        type=int,
-        default=FitConfig.max_effects,
-        help="forward selection names at most this many effects",
-    )
-    parser.add_argument(
-        "--joint-candidates",
-        type=int,
-        default=FitConfig.joint_candidates,
-        help="at later selection steps, the best candidates also refitted together with the named "
-        "effects (0: each fitted on top of them, frozen)",
-    )
-    parser.add_argument(
-        "--learned-correction",
-        action=argparse.BooleanOptionalAction,
-        default=GapConfig.learned_correction,
-        help="learn a residual joint torque when a gap above the noise floor remains",
-    )
-    parser.add_argument(
-        "--sensor-noise",
-        default=None,
-        help='JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured\'s',
-    )
-    parser.add_argument(
-        "--solver-iterations",
-        type=int,
-        default=CONVERGED_SOLVER.iterations,
-        help="MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)",
-    )
-    parser.add_argument(
-        "--world-model",
-        default="auto",
-        help="checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped "
-        "one for AnymalD-MuJoCo-v0 (else none); none: skip them",
-    )
-    parser.add_argument(
-        "--finetune-iterations",
-        type=int,
-        default=WorldModelGapConfig.iterations,
-        help="fine-tuning budget (gradient steps) of the world model after correction",
-    )
-    parser.add_argument(
-        "--regenerate-episodes",
-        type=int,
-        default=WorldModelGapConfig.episodes,
-        help="episodes regenerated from the corrected simulator for the fine-tuning",
-    )
-    parser.add_argument(
-        "--device",
-        default=WorldModelGapConfig.device,
-        help="torch device of the world-model rows (fine-tuning and evaluation): cpu or cuda",
+    add_group(
+        parser,
+        WorldModelGapConfig,
+        "world model",
+        only={"iterations", "episodes", "device"},
+        flags={"iterations": ["--finetune-iterations"], "episodes": ["--regenerate-episodes"]},
     )
 
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym gap`: 0, or 2 with one line on stderr on bad input."""
-    wm_config = WorldModelGapConfig(
-        iterations=args.finetune_iterations, episodes=args.regenerate_episodes, device=args.device
-    )
+    wm_config = dataclass_from_args(WorldModelGapConfig, args)
     try:
         sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
         noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
-        scopes = tuple(s for s in args.scopes.split(",") if s and s != "none")
-        unknown = sorted(set(scopes) - set(SCOPES[1:]))
-        if unknown:
-            raise ValueError(f"--scopes: unknown scope(s) {unknown}; choose from {', '.join(SCOPES[1:])}")
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         from rwm_gym.output_guard import check_output
@@ -115,12 +94,8 @@ def run(args: argparse.Namespace) -> int:
             args.measured,
             args.out,
             sim_kwargs=sim_kwargs,
-            config=GapConfig(
-                val_fraction=args.val_fraction,
-                learned_correction=args.learned_correction,
-                solver=solver_option(args.solver_iterations),
-            ),
-            fit_config=FitConfig(scopes=scopes, max_effects=args.max_effects, joint_candidates=args.joint_candidates),
+            config=dataclass_from_args(GapConfig, args, solver=solver_option(args.solver_iterations)),
+            fit_config=dataclass_from_args(FitConfig, args),
             sensor_noise=noise,
             world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs),
             wm_config=wm_config,

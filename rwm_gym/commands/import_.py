@@ -6,17 +6,33 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
+from rwm_gym.commands._options import OverwriteOption, add_group
 from rwm_gym.data.dataset import DatasetError
 from rwm_gym.data.minari_io import import_minari
+from rwm_gym.options import option
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """The Minari dataset read and the dataset written."""
+
+    minari: Path = option(metavar="DIR")
+    """Minari dataset folder"""
+    out: Path
+    """rwm-gym dataset (.h5) to write"""
+
+
+OPTIONS = (ImportOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym import` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym import`."""
-    parser.add_argument("--minari", required=True, type=Path, metavar="DIR", help="Minari dataset folder")
-    parser.add_argument("--out", required=True, type=Path, help="rwm-gym dataset (.h5) to write")
-    parser.add_argument("--overwrite", action="store_true")
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
+from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, add_group
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import parse_effects
@@ -14,48 +16,42 @@ from rwm_gym.gap.measured import (
     make_measured,
     solver_option,
 )
+from rwm_gym.options import option
 from rwm_gym.physics.params import CONVERGED_SOLVER
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeasuredOptions:
+    """The hidden effects, what drives the robot, and the file written (the nominal simulator: `PhysicsEnvOptions`)."""
+
+    effect: tuple[str, ...] = option((), append=True)
+    """effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)"""
+    magnitude: tuple[str, ...] = option((), append=True)
+    """its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)"""
+    physics: str | None = None
+    """JSON dict of further PhysicsParams to hide (per-joint ok)"""
+    policy: str = "excitation"
+    """what drives the robot: excitation (made for identification), gait, random, or the path of an SB3 .zip (an
+    ordinary walking policy, as in a real robot's log)"""
+    episodes: int = 16
+    max_steps: int = 250
+    """policy steps per episode"""
+    noise_scale: float = 1.0
+    """multiplier on the default sensor noise (0: none)"""
+    solver_iterations: int = CONVERGED_SOLVER.iterations
+    """MuJoCo solver iterations per physics step of the hidden robot (0: the MJCF's own)"""
+    seed: int = 0
+    out: Path
+
+
+OPTIONS = (MeasuredOptions, PhysicsEnvOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym make-measured` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym make-measured`."""
-    parser.add_argument(
-        "--effect",
-        action="append",
-        default=[],
-        help="effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)",
-    )
-    parser.add_argument(
-        "--magnitude",
-        action="append",
-        default=[],
-        help="its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)",
-    )
-    parser.add_argument("--physics", default=None, help="JSON dict of further PhysicsParams to hide (per-joint ok)")
-    parser.add_argument(
-        "--policy",
-        default="excitation",
-        help="what drives the robot: excitation (made for identification), gait, random, or the path "
-        "of an SB3 .zip (an ordinary walking policy, as in a real robot's log)",
-    )
-    parser.add_argument("--episodes", type=int, default=16)
-    parser.add_argument("--max-steps", type=int, default=250, help="policy steps per episode")
-    parser.add_argument(
-        "--env", default="AnymalD-MuJoCo-v0", help="physics env id or spec path (the nominal simulator)"
-    )
-    parser.add_argument("--xml-file", type=Path, default=None, help="another MJCF of the robot")
-    parser.add_argument(
-        "--noise-scale", type=float, default=1.0, help="multiplier on the default sensor noise (0: none)"
-    )
-    parser.add_argument(
-        "--solver-iterations",
-        type=int,
-        default=CONVERGED_SOLVER.iterations,
-        help="MuJoCo solver iterations per physics step of the hidden robot (0: the MJCF's own)",
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--overwrite", action="store_true")
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.commands._options import TensorBoardOption, TorchOptions, add_group
+from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import (
     add_dataclass_options,
     dataclass_from_args,
@@ -34,39 +37,33 @@ def check_run_folder(out: Path, inputs) -> None:
     check_output(folder, overwrite=True, folder=True)
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """The loop's inputs and its run folder."""
+
+    data: Path
+    """initial physics dataset (HDF5)"""
+    out: Path
+    """run folder: models, data, policies and the report; the same command resumes it"""
+    checkpoint: str | None = None
+    """world model to start from (default: train one on --data)"""
+    model: str = "rwm"
+    """world-model kind to (re)train"""
+    init_policy: Path | None = None
+    """SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)"""
+    model_free_curve: Path | None = None
+    """CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g.
+    assets/policies/anymal_d_ppo_physics_curve.csv (default: none)"""
+
+
+OPTIONS = (RunOptions, TensorBoardOption, TorchOptions, MBPOConfig, ImaginationOptions)
+"""The dataclasses the flags of `rwm-gym mbpo` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym mbpo`: the run's files, then one flag per `MBPOConfig` and `ImaginationOptions` field."""
-    parser.add_argument("--data", required=True, type=Path, help="initial physics dataset (HDF5)")
-    parser.add_argument(
-        "--out",
-        required=True,
-        type=Path,
-        help="run folder: models, data, policies and the report; the same command resumes it",
-    )
-    parser.add_argument("--checkpoint", default=None, help="world model to start from (default: train one on --data)")
-    parser.add_argument("--model", default="rwm", help="world-model kind to (re)train")
-    parser.add_argument(
-        "--init-policy",
-        default=None,
-        type=Path,
-        help="SB3 PPO zip to start from, e.g. a behaviour-cloned actor (default: a fresh policy)",
-    )
-    parser.add_argument(
-        "--model-free-curve",
-        default=None,
-        type=Path,
-        help="CSV (timesteps, tracking) of a model-free PPO run, drawn beside the loop's curve, e.g. "
-        "assets/policies/anymal_d_ppo_physics_curve.csv (default: none)",
-    )
-    parser.add_argument(
-        "--tensorboard",
-        metavar="DIR",
-        default=None,
-        help="write TensorBoard scalars here: PPO's in imagination and each iteration's physics score, falls and "
-        "model error on the fresh data (needs the [tensorboard] extra)",
-    )
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    for group in (RunOptions, TensorBoardOption, TorchOptions):
+        add_group(parser, group)
     counts = (
         "iterations",
         "ppo_timesteps",

@@ -15,7 +15,16 @@ from pathlib import Path
 from stable_baselines3.common.vec_env import VecEnv
 
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args, non_default
-from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int
+from rwm_gym.commands._options import (
+    OverwriteOption,
+    RunFolderOptions,
+    TensorBoardOption,
+    TorchOptions,
+    WorldModelOptions,
+    add_group,
+)
+from rwm_gym.imagination.options import ImaginationOptions
+from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int, option
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.policy_zip import load_policy
 from rwm_gym.rl.policy_file import save_policy
@@ -30,6 +39,7 @@ from rwm_gym.rl.ppo import (
     make_ppo,
     warm_up_critic,
 )
+from rwm_gym.rl.warm_start import CloneConfig
 
 
 def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
@@ -53,91 +63,74 @@ def anneal_steps(config: PPOConfig, timesteps: int | None) -> float:
     return config.lr_anneal_fraction * (timesteps or 0)
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """What the run trains in, for how long, and what it writes."""
+
+    where: str = option("imagination", flags=["--in"], choices=WHERE)
+    """train in the imagined env (world model) or in physics (model-free baseline)"""
+    timesteps: int | None = option(None, parse=non_negative_int)
+    """budget in env steps (default: none; with neither budget, --minutes 8)"""
+    minutes: float | None = option(None, parse=non_negative_float)
+    """budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)"""
+    seed: int = 0
+    out: Path = Path("policy.zip")
+    """SB3 zip to write (JSON and PNG beside)"""
+    record_every: int = 0
+    """with --run-dir --in physics: write the episodes of every N-th env to experience/ as world-model data
+    (0: none)"""
+
+
+@dataclass(frozen=True)
+class BCOptions:
+    """Behaviour cloning of a demonstrator into the actor before PPO (rwm_gym.rl.warm_start)."""
+
+    bc_data: tuple[Path, ...] | None = option(None, nargs="+")
+    """datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned from before PPO
+    (rwm_gym.rl.warm_start)"""
+    bc_steps: int = CloneConfig.steps
+    """behaviour-cloning Adam steps"""
+    bc_log_std: float = CloneConfig.log_std
+    """action log std after cloning"""
+    keep_best: bool = False
+    """with --bc-data: if the physics tracking score after PPO is below the clone's, write the clone as --out (said
+    in the output and the JSON; the PPO policy stays as *_ppo.zip)"""
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """The physics evaluation of the trained policy (rwm_gym.rl.evaluate_policy)."""
+
+    eval: bool = True
+    """judge the policy in physics after training (--no-eval: skip the physics evaluation)"""
+    eval_seeds: int = 3
+    """physics episodes per evaluation command"""
+    eval_steps: int | None = None
+    """policy steps per evaluation episode (default: the task's episode, 20 s)"""
+
+
+OPTIONS = (
+    RunOptions,
+    WorldModelOptions,
+    TorchOptions,
+    OverwriteOption,
+    TensorBoardOption,
+    RunFolderOptions,
+    BCOptions,
+    EvalOptions,
+    PPOConfig,
+    ImaginationOptions,
+)
+"""The dataclasses the flags of `rwm-gym ppo` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym ppo`: the run, then one flag per `PPOConfig` and `ImaginationOptions` field."""
-    parser.add_argument(
-        "--in",
-        dest="where",
-        choices=WHERE,
-        default="imagination",
-        help="train in the imagined env (world model) or in physics (model-free baseline)",
-    )
-    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
-    parser.add_argument(
-        "--reset-data",
-        type=Path,
-        default=None,
-        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)",
-    )
-    parser.add_argument(
-        "--timesteps",
-        type=non_negative_int,
-        default=None,
-        help="budget in env steps (default: none; with neither budget, --minutes 8)",
-    )
-    parser.add_argument(
-        "--minutes",
-        type=non_negative_float,
-        default=None,
-        help="budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)",
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu", help="torch device of the policy and of the world model")
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)",
-    )
-    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip to write (JSON and PNG beside)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument(
-        "--bc-data",
-        type=Path,
-        nargs="+",
-        default=None,
-        help="datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned "
-        "from before PPO (rwm_gym.rl.warm_start)",
-    )
-    parser.add_argument("--bc-steps", type=int, default=4000, help="behaviour-cloning Adam steps")
-    parser.add_argument("--bc-log-std", type=float, default=-1.0, help="action log std after cloning")
-    parser.add_argument(
-        "--keep-best",
-        action="store_true",
-        help="with --bc-data: if the physics tracking score after PPO is below the clone's, write the "
-        "clone as --out (said in the output and the JSON; the PPO policy stays as *_ppo.zip)",
-    )
-    parser.add_argument("--eval-seeds", type=int, default=3, help="physics episodes per evaluation command")
-    parser.add_argument(
-        "--eval-steps",
-        type=int,
-        default=None,
-        help="policy steps per evaluation episode (default: the task's episode, 20 s)",
-    )
-    parser.add_argument("--no-eval", action="store_true", help="skip the physics evaluation")
-    parser.add_argument(
-        "--tensorboard",
-        metavar="DIR",
-        default=None,
-        help="write TensorBoard scalars here: SB3's own, the reward terms, episode lengths, halts and the ensemble's "
-        "disagreement per rollout (rwm_gym.rl.tensorboard; needs the [tensorboard] extra)",
-    )
-    parser.add_argument(
-        "--run-dir",
-        type=Path,
-        default=None,
-        help="resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, "
-        "experience; running the same command again continues to the same --timesteps total",
-    )
-    parser.add_argument("--save-every", type=int, default=10, help="with --run-dir: rollouts between resume points")
-    parser.add_argument("--snapshot-every", type=int, default=25, help="with --run-dir: rollouts between snapshots")
-    parser.add_argument(
-        "--record-every",
-        type=int,
-        default=0,
-        help="with --run-dir --in physics: write the episodes of every N-th env to experience/ as "
-        "world-model data (0: none)",
-    )
+    for group in (RunOptions, WorldModelOptions, TorchOptions, OverwriteOption, TensorBoardOption):
+        add_group(parser, group)
+    add_group(parser, RunFolderOptions, "run folder")
+    add_group(parser, BCOptions, "behaviour cloning")
+    add_group(parser, EvalOptions, "evaluation")
     add_dataclass_options(
         parser.add_argument_group("PPO", "PPO's settings (rwm_gym.rl.ppo.PPOConfig)"),
         PPOConfig,
@@ -232,7 +225,7 @@ def _train(args: argparse.Namespace) -> int:
         f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
         f"({report['physics_samples_source']})"
     )
-    if not args.no_eval:
+    if args.eval:
         _judge(args, model, out, warm, report)
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
@@ -276,7 +269,7 @@ class _WarmStart:
         return {
             "data": [str(p) for p in args.bc_data],
             **self.cloned.to_dict(),
-            "evaluation": None if args.no_eval else self.evaluation.to_dict(),
+            "evaluation": self.evaluation.to_dict() if args.eval else None,
         }
 
 
@@ -286,7 +279,7 @@ def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
 
     if not args.bc_data:
         return _WarmStart()
-    from rwm_gym.rl.warm_start import CloneConfig, behaviour_clone
+    from rwm_gym.rl.warm_start import behaviour_clone
 
     warm = _WarmStart(
         behaviour_clone(
@@ -303,7 +296,7 @@ def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
         f"{cloned.train_mse_before:.3f} -> {cloned.train_mse_after:.3f} (held out: {held_out}) "
         f"in {cloned.wall_s:.0f} s"
     )
-    if not args.no_eval:  # the warm start alone, so the effect of PPO is plain to see
+    if args.eval:  # the warm start alone, so the effect of PPO is plain to see
         warm.evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
         print("physics evaluation of the cloned actor, before PPO:")
         print(format_table(warm.evaluation))

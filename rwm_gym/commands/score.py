@@ -3,52 +3,51 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.atomic import write_json, write_text
+from rwm_gym.commands._options import OverwriteOption, add_group
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
 from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
 
 
+@dataclass(frozen=True, kw_only=True)
+class ScoreOptions:
+    """The policy scored, where, on which episodes, and the folder written."""
+
+    policy: str
+    """SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) or 'random' (correlated
+    random actions)"""
+    out: Path
+    """folder for score.json, score.md, score.png"""
+    checkpoint: str | None = None
+    """score in this world model (the imagined env) instead of physics, same commands and seeds"""
+    reset_data: Path | None = None
+    """with --checkpoint: dataset of real histories the imagined episodes start from (default: the checkpoint's; the
+    shipped one's are mostly early falls)"""
+    seeds: int = 3
+    """episodes per command (default: 3)"""
+    steps: int | None = None
+    """policy steps per episode (default: the task's, 20 s)"""
+    commands: int = 16
+    """random commands in the set, beside standing and 1 m/s forward (default: 16)"""
+    video: bool = False
+    """also write walk.gif and walk.png (needs offscreen GL)"""
+    workers: int = 1
+    """processes the physics episodes are split over, each a batched core of a block of them; the same figures as
+    one (default: 1)"""
+
+
+OPTIONS = (ScoreOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym score` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym score`."""
-    parser.add_argument(
-        "--policy",
-        required=True,
-        help="SB3 .zip policy to score, or 'zero' (zero-action floor), 'gait' (the scripted trot) "
-        "or 'random' (correlated random actions)",
-    )
-    parser.add_argument("--out", type=Path, required=True, help="folder for score.json, score.md, score.png")
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="score in this world model (the imagined env) instead of physics, same commands and seeds",
-    )
-    parser.add_argument(
-        "--reset-data",
-        type=Path,
-        default=None,
-        help="with --checkpoint: dataset of real histories the imagined episodes start from (default: "
-        "the checkpoint's; the shipped one's are mostly early falls)",
-    )
-    parser.add_argument("--seeds", type=int, default=3, help="episodes per command (default: 3)")
-    parser.add_argument("--steps", type=int, default=None, help="policy steps per episode (default: the task's, 20 s)")
-    parser.add_argument(
-        "--commands",
-        type=int,
-        default=16,
-        help="random commands in the set, beside standing and 1 m/s forward (default: 16)",
-    )
-    parser.add_argument("--video", action="store_true", help="also write walk.gif and walk.png (needs offscreen GL)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing DIR/score.json")
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=1,
-        help="processes the physics episodes are split over, each a batched core of a block of them; the same "
-        "figures as one (default: 1)",
-    )
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def run(args: argparse.Namespace) -> int:

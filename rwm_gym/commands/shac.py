@@ -13,10 +13,17 @@ from __future__ import annotations
 import argparse
 import csv
 import time
-from dataclasses import asdict, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
+from rwm_gym.commands._options import (
+    RunFolderOptions,
+    TensorBoardOption,
+    TorchOptions,
+    WorldModelOptions,
+    add_group,
+)
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import add_dataclass_options, dataclass_from_args
 from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
@@ -25,15 +32,34 @@ IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first
 """The `ImaginationOptions` SHAC's stepper implements (flags generated from their field docstrings)."""
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """The run's budget and what it writes (its folder: `RunFolderOptions`)."""
+
+    timesteps: int
+    """the run's budget in imagined env steps"""
+    minutes: float | None = None
+    """stop this process after this wall time (default: none, the --timesteps budget alone)"""
+    seed: int = 0
+    out: Path = Path("policy.zip")
+    """SB3 zip of the final policy"""
+
+
+OPTIONS = (
+    RunOptions,
+    RunFolderOptions,
+    WorldModelOptions,
+    TorchOptions,
+    TensorBoardOption,
+    SHACConfig,
+    ImaginationOptions,
+)
+"""The dataclasses the flags of `rwm-gym shac` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym shac`."""
-    parser.add_argument("--checkpoint", default=None, help="world-model checkpoint (default: the shipped one)")
-    parser.add_argument(
-        "--reset-data",
-        type=Path,
-        default=None,
-        help="dataset of real histories imagined episodes restart from (default: the checkpoint's)",
-    )
+    add_group(parser, WorldModelOptions)
     add_imagination_options(parser, skip={f.name for f in fields(ImaginationOptions)} - set(IMAGINATION_FIELDS))
     add_dataclass_options(
         parser.add_argument_group("SHAC"),
@@ -42,27 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         types={"net_arch": int},
         choices={"activation": ("elu", "tanh", "relu")},
     )
-    parser.add_argument("--timesteps", type=int, required=True, help="the run's budget in imagined env steps")
-    parser.add_argument(
-        "--minutes",
-        type=float,
-        default=None,
-        help="stop this process after this wall time (default: none, the --timesteps budget alone)",
+    add_group(parser, RunOptions)
+    add_group(
+        parser, RunFolderOptions, defaults=RunFolderOptions(save_every=20, snapshot_every=20), required={"run_dir"}
     )
-    parser.add_argument("--run-dir", type=Path, required=True, help="resumable run folder")
-    parser.add_argument("--snapshot-every", type=int, default=20, help="updates between policy snapshots")
-    parser.add_argument("--save-every", type=int, default=20, help="updates between resume points")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--out", type=Path, default=Path("policy.zip"), help="SB3 zip of the final policy")
-    parser.add_argument(
-        "--tensorboard",
-        metavar="DIR",
-        default=None,
-        help="write each update's UpdateStats as TensorBoard scalars shac/<field> here, at its imagined step "
-        "(needs the [tensorboard] extra)",
-    )
+    add_group(parser, TorchOptions)
+    add_group(parser, TensorBoardOption)
 
 
 def run(args: argparse.Namespace) -> int:

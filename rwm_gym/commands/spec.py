@@ -13,33 +13,45 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.atomic import write_text
+from rwm_gym.commands._options import OverwriteOption, add_group
+from rwm_gym.options import option
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpecOptions:
+    """The model a spec is drafted from (one of --from-dmc and --mjcf), the choices it would guess, and its file."""
+
+    from_dmc: str | None = option(None, metavar="DOMAIN-TASK", one_of="source")
+    """a dm_control suite task, e.g. acrobot-swingup"""
+    mjcf: Path | None = option(None, one_of="source")
+    """MJCF of a legged robot with a free-floating base"""
+    out: Path
+    """spec to write (.toml); --mjcf also writes the model copy OUT.rwm.xml"""
+    base: str | None = None
+    """--mjcf: the floating base body (default: the body with the free joint)"""
+    feet: tuple[str, ...] | None = option(None, nargs="+")
+    """foot bodies (default: --mjcf the leaf bodies of the legs, --from-dmc the colliding bodies named like a foot)"""
+    name: str | None = None
+    """--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"""
+    episodes: int = 8
+    """random-policy episodes for the normalisation"""
+    steps: int = 200
+    """policy steps per normalisation episode (at most)"""
+    seed: int = 0
+
+
+OPTIONS = (SpecOptions, OverwriteOption)
+"""The dataclasses the flags of `rwm-gym spec` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym spec`."""
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--from-dmc", metavar="DOMAIN-TASK", help="a dm_control suite task, e.g. acrobot-swingup")
-    source.add_argument("--mjcf", type=Path, help="MJCF of a legged robot with a free-floating base")
-    parser.add_argument(
-        "--out", type=Path, required=True, help="spec to write (.toml); --mjcf also writes the model copy OUT.rwm.xml"
-    )
-    parser.add_argument("--base", help="--mjcf: the floating base body (default: the body with the free joint)")
-    parser.add_argument(
-        "--feet",
-        nargs="+",
-        help="foot bodies (default: --mjcf the leaf bodies of the legs, "
-        "--from-dmc the colliding bodies named like a foot)",
-    )
-    parser.add_argument(
-        "--name", help="--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"
-    )
-    parser.add_argument("--episodes", type=int, default=8, help="random-policy episodes for the normalisation")
-    parser.add_argument("--steps", type=int, default=200, help="policy steps per normalisation episode (at most)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    for group in OPTIONS:
+        add_group(parser, group)
 
 
 def run(args: argparse.Namespace) -> int:

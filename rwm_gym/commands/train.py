@@ -7,40 +7,51 @@ import argparse
 import contextlib
 import os
 import sys
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
+from rwm_gym.commands._options import OverwriteOption, TensorBoardOption, add_group
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model import distributed
 from rwm_gym.model.checkpoint import CheckpointError, read_meta
 from rwm_gym.model.config import LOSSES, MODEL_KINDS, SCHEDULES, ModelConfig, TrainConfig
 from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
-from rwm_gym.options import add_dataclass_options
+from rwm_gym.options import add_dataclass_options, option
 
 _MODEL_OPTIONS = tuple(
     f for f in fields(ModelConfig) if f.name not in ("kind", "state_dim", "action_dim", "contact_dim", "foot_dim")
 )
 
 
+@dataclass(frozen=True, kw_only=True)
+class TrainOptions:
+    """The run: its data, where it starts from, and its checkpoint."""
+
+    data: str
+    """HDF5 dataset to train on"""
+    model: str | None = option(None, choices=MODEL_KINDS)
+    """model family (default rwm, or --init's)"""
+    out: str
+    """checkpoint to write (.safetensors)"""
+    resume: bool = False
+    """continue the run saved at --out"""
+    init: str | None = option(None, metavar="CKPT")
+    """start from this checkpoint's weights (fine-tuning); its model config is the default of every model option"""
+    teacher_forcing: bool = False
+    """same as --forecast 1"""
+    quiet: bool = False
+    """no progress bar"""
+
+
+OPTIONS = (TrainOptions, OverwriteOption, TensorBoardOption, TrainConfig, ModelConfig)
+"""The dataclasses the flags of `rwm-gym train` come from."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym train`: the run, then one flag per TrainConfig and ModelConfig field."""
-    parser.add_argument("--data", required=True, help="HDF5 dataset to train on")
-    parser.add_argument("--model", choices=MODEL_KINDS, help="model family (default rwm, or --init's)")
-    parser.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
-    parser.add_argument("--resume", action="store_true", help="continue the run saved at --out")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument(
-        "--init",
-        metavar="CKPT",
-        help="start from this checkpoint's weights (fine-tuning); its model "
-        "config is the default of every model option",
-    )
-    parser.add_argument("--teacher-forcing", action="store_true", help="same as --forecast 1")
-    parser.add_argument(
-        "--tensorboard", metavar="DIR", help="write TensorBoard scalars here (needs the [tensorboard] extra)"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    for group in (TrainOptions, OverwriteOption, TensorBoardOption):
+        add_group(parser, group)
     add_dataclass_options(
         parser.add_argument_group("training options"),
         TrainConfig,

@@ -236,9 +236,12 @@ class _Runner:
 
 
 def _takes_nthread(env_id: str | Path | TaskSpec) -> bool:
+    """Whether the core's entry point takes `nthread`: by name, or among its keyword arguments (`make_core`'s
+    `PhysicsOptions` fields)."""
     from rwm_gym.registration import _entry, resolve_spec
 
-    return "nthread" in inspect.signature(_entry(resolve_spec(env_id), "core_entry_point")).parameters
+    parameters = inspect.signature(_entry(resolve_spec(env_id), "core_entry_point")).parameters
+    return "nthread" in parameters or any(p.kind is p.VAR_KEYWORD for p in parameters.values())
 
 
 def _in_order(finished: Iterable[tuple[int, dict]]) -> Iterator[dict]:

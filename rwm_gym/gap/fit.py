@@ -70,7 +70,9 @@ class FitConfig:
     min_excess_explained: float = 0.3
     """Share of the gap still above the noise floor that an effect must explain to be named."""
     scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
-    """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`)."""
+    """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`): leg, joint_type
+    and/or joint, each kept only if held-out data pays (none: the global forms only; on the command line,
+    comma-separated)."""
     group_sweeps: int = 2
     """Sweeps of the coordinate-wise fit of a per-leg or per-joint-type form. One costs half as much, but the groups
     fitted first soak up part of an effect held by a later group (knee friction), which a second sweep gives back."""

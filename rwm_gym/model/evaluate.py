@@ -42,13 +42,16 @@ class EvalConfig:
     max_horizon: int = 368
     """Cap of the longest horizon."""
     noise_levels: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
-    """Std of the Gaussian noise added to the normalised history states and actions."""
+    """Stds of the Gaussian noise added to the normalised history states and actions in the robustness test (none:
+    no such test)."""
     max_windows: int = 512
     """Windows per horizon (a seeded subset when more fit)."""
     batch_size: int = 512
     """Windows per forward pass."""
     seed: int = 0
+    """Seed of the window choice and the noise."""
     device: str = "cpu"
+    """torch device of the model."""
 
     def __post_init__(self) -> None:
         for name in ("history", "max_horizon", "max_windows", "batch_size"):

@@ -9,14 +9,15 @@ envs in `rwm_gym.vector` are the same core with N > 1 (`make_core`). So the thre
 from __future__ import annotations
 
 import atexit
-from collections.abc import Mapping, Sequence
-from pathlib import Path
+from collections.abc import Sequence
+from dataclasses import replace
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 
 from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
+from rwm_gym.physics.options import PhysicsOptions
 from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, dead_band
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
@@ -26,42 +27,36 @@ from rwm_gym.task.tasks import VelocityTrackingTask
 
 
 class LocomotionCore:
-    """The task for N simulations of one robot. Arrays are (N, ...) unless said otherwise."""
+    """The task for N simulations of one robot. Arrays are (N, ...) unless said otherwise; `options` (a
+    `PhysicsOptions`, default its defaults) say which robot and how it runs."""
 
-    def __init__(
-        self,
-        spec: TaskSpec,
-        num_envs: int = 1,
-        *,
-        xml_file: str | Path | None = None,
-        physics: PhysicsParams | Mapping[str, object] | None = None,
-        observation_noise: bool = False,
-        nthread: int = 0,
-        resample_commands: bool = True,
-        solver: SolverSettings | Mapping[str, int] | None = None,
-    ):
-        self.spec = spec
+    def __init__(self, spec: TaskSpec, num_envs: int = 1, *, options: PhysicsOptions | None = None):
+        options = options or PhysicsOptions()
+        self.spec, self.options = spec, options
         self.num_envs = num_envs = check_num_envs(num_envs)
+        physics = options.physics
         self.params = physics if isinstance(physics, PhysicsParams) else PhysicsParams.from_dict(physics)
-        self.solver = SolverSettings.from_dict(solver)
-        self.model = build_model(spec, xml_file, self.params, self.solver)
+        self.solver = SolverSettings.from_dict(options.solver)
+        self.model = build_model(spec, options.xml_file, self.params, self.solver)
         if not np.isclose(self.model.opt.timestep, spec.physics_dt):
             raise ValueError(
                 f"task spec {spec.name}: task.physics_dt is {spec.physics_dt} s but the MJCF "
-                f"{xml_file or spec.model_path} steps {self.model.opt.timestep} s"
+                f"{options.xml_file or spec.model_path} steps {self.model.opt.timestep} s"
             )
         self.layout = RobotLayout.from_model(self.model, spec)
         band = dead_band(spec, self.model, self.params)
         self.sim = (
-            SingleSimulator(self.model, band) if num_envs == 1 else BatchSimulator(self.model, num_envs, nthread, band)
+            SingleSimulator(self.model, band)
+            if num_envs == 1
+            else BatchSimulator(self.model, num_envs, options.nthread, band)
         )
         self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         if self.keyframe < 0:
             raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")
-        self.observation_noise = observation_noise
+        self.observation_noise = options.observation_noise
         self.rngs = [np.random.default_rng() for _ in range(num_envs)]
         n, a = num_envs, spec.action_dim
-        self.task = VelocityTrackingTask(spec, n, resample_commands)
+        self.task = VelocityTrackingTask(spec, n, options.resample_commands)
         self.last_action = np.zeros((n, a))
         self.steps = np.zeros(n, dtype=np.int64)
         self.current: Measurement = self._measure()
@@ -144,10 +139,14 @@ class LocomotionCore:
         }
 
 
-def make_core(spec: str | TaskSpec = "anymal_d", num_envs: int = 1, **kwargs) -> LocomotionCore:
-    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec; kwargs as
-    `LocomotionCore` (xml_file, physics, observation_noise, nthread (0: all CPUs), resample_commands, solver)."""
-    return LocomotionCore(spec if isinstance(spec, TaskSpec) else load_spec(spec), num_envs, **kwargs)
+def make_core(
+    spec: str | TaskSpec = "anymal_d", num_envs: int = 1, *, options: PhysicsOptions | None = None, **kwargs
+) -> LocomotionCore:
+    """The batched core of N simulations of a spec, by spec name (e.g. "anymal_d") or TaskSpec. kwargs: fields of
+    `PhysicsOptions` (xml_file, physics, observation_noise, nthread, resample_commands, solver) that replace those of
+    `options`; the one place the keyword conveniences of the physics envs become options."""
+    options = replace(options or PhysicsOptions(), **kwargs)
+    return LocomotionCore(spec if isinstance(spec, TaskSpec) else load_spec(spec), num_envs, options=options)
 
 
 class LocomotionEnv(gym.Env):
@@ -158,7 +157,8 @@ class LocomotionEnv(gym.Env):
     `env.unwrapped.model` / `env.unwrapped.data`; `xml_file` and `physics` (see `PhysicsParams`) change the robot;
     `solver` (see `SolverSettings`, e.g. `{"iterations": 100}`) how exactly MuJoCo solves each step, not the robot.
     `reset(options={"command": (vx, vy, yaw_rate)})` holds a command for the episode; `resample_commands=False` keeps
-    each episode's sampled command. The keyword arguments are `LocomotionCore`'s, listed there once.
+    each episode's sampled command. The keyword arguments are `make_core`'s: `options` (a `PhysicsOptions`) and its
+    fields one by one, listed there once.
     """
 
     metadata = {"render_modes": ["rgb_array"]}  # render_fps: the spec's control rate, set per instance
@@ -173,7 +173,7 @@ class LocomotionEnv(gym.Env):
         camera: str = "track",
         **kwargs,
     ):
-        """kwargs as `LocomotionCore`: xml_file, physics, observation_noise, resample_commands, solver."""
+        """kwargs as `make_core`: `options` and the fields of `PhysicsOptions` (xml_file, physics, ...)."""
         self.core = make_core(spec, 1, **kwargs)
         self.task_spec = self.core.spec
         self.observation_space = self.core.single_observation_space

@@ -68,8 +68,8 @@ class CoreGymVectorEnv(gym.vector.VectorEnv):
 
 
 class LocomotionGymVectorEnv(CoreGymVectorEnv):
-    """Gymnasium VectorEnv of N MuJoCo simulations (`mujoco.batch` on a thread pool); kwargs as `LocomotionEnv` plus
-    `nthread` (0: all CPUs)."""
+    """Gymnasium VectorEnv of N MuJoCo simulations (`mujoco.batch` on a thread pool); kwargs as `make_core`:
+    `options` (a `PhysicsOptions`) and its fields (`nthread`: threads of the pool, 0 all CPUs)."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
         from rwm_gym.physics.locomotion import make_core

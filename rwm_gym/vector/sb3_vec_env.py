@@ -85,7 +85,7 @@ class CoreSB3VecEnv(VecEnv):
 
 
 class LocomotionSB3VecEnv(CoreSB3VecEnv):
-    """SB3 VecEnv of N MuJoCo simulations; kwargs as `LocomotionEnv` plus `nthread` (0: all CPUs)."""
+    """SB3 VecEnv of N MuJoCo simulations; kwargs as `make_core`: `options` (a `PhysicsOptions`) and its fields."""
 
     def __init__(self, num_envs: int = 1, spec: str | TaskSpec = "anymal_d", **kwargs):
         from rwm_gym.physics.locomotion import make_core

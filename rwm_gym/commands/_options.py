@@ -1,0 +1,89 @@
+"""Option groups several `rwm-gym` commands share: one dataclass per group, so a flag that means the same in every
+command (`--overwrite`, `--device`, `--tensorboard`, `--run-dir`, ...) is written once. A command adds a group with
+`add_group`; its own options are dataclasses in its module, listed with these in its `OPTIONS`."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+from rwm_gym.options import add_dataclass_options, option
+
+
+@dataclass(frozen=True)
+class OverwriteOption:
+    """Whether an existing output is replaced."""
+
+    overwrite: bool = False
+    """replace an existing output (without it, the command stops before writing over one)"""
+
+
+@dataclass(frozen=True)
+class TorchOptions:
+    """Where torch runs a command's networks."""
+
+    device: str = "cpu"
+    """torch device of the policy and of the world model"""
+    threads: int | None = None
+    """torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)"""
+
+
+@dataclass(frozen=True)
+class WorldModelOptions:
+    """The world model an imagined env runs, and the real histories its episodes restart from."""
+
+    checkpoint: str | None = None
+    """world-model checkpoint (default: the shipped one)"""
+    reset_data: Path | None = None
+    """dataset of real histories imagined episodes restart from (default: the checkpoint's)"""
+
+
+@dataclass(frozen=True)
+class TensorBoardOption:
+    """Where a training run writes its TensorBoard scalars."""
+
+    tensorboard: str | None = option(None, metavar="DIR")
+    """write the run's TensorBoard scalars here (docs/guides/ppo-in-imagination.md lists each command's; needs the
+    [tensorboard] extra)"""
+
+
+@dataclass(frozen=True)
+class RunFolderOptions:
+    """A policy-training run in a resumable folder (`rwm_gym.rl.training_run`)."""
+
+    run_dir: Path | None = None
+    """resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, experience; running the
+    same command again continues to the same --timesteps total"""
+    save_every: int = 10
+    """with --run-dir: updates (PPO: rollouts) between resume points"""
+    snapshot_every: int = 25
+    """with --run-dir: updates (PPO: rollouts) between policy snapshots"""
+
+
+def add_group(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    title: str | None = None,
+    *,
+    only: Iterable[str] | None = None,
+    **options,
+) -> None:
+    """The flags of the dataclass `cls` in `parser` (in an argument group `title` if given, described by the class
+    docstring): of the fields named in `only` if given (a library config whose other fields the command leaves at
+    their defaults); `options` go to `add_dataclass_options`."""
+    target = parser if title is None else parser.add_argument_group(title, cls.__doc__)
+    if only is not None:
+        options["skip"] = {f.name for f in fields(cls)} - set(only)
+    add_dataclass_options(target, cls, **options)
+
+
+@dataclass(frozen=True)
+class PhysicsEnvOptions:
+    """The physics env a command runs: an id or a spec, and the robot's MJCF."""
+
+    env: str = "AnymalD-MuJoCo-v0"
+    """registered physics env id, or the path of a task spec (.toml)"""
+    xml_file: Path | None = None
+    """another MJCF of the robot"""
