@@ -10,6 +10,7 @@ import rwm_gym
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.options import non_negative_float
+from rwm_gym.workers import RayMissing, add_worker_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,13 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="HDF5 file to write")
     parser.add_argument("--seed", type=int, default=0, help="episode k starts from seed + k (default 0)")
     parser.add_argument("--num-envs", type=int, default=8, help="simulations stepped together (default 8)")
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=1,
-        help="processes collecting side by side, each with --num-envs simulations (default 1); the "
-        "file is the same whatever the number",
-    )
+    add_worker_arguments(parser, "the episodes")
     parser.add_argument(
         "--action-noise", type=non_negative_float, default=0.0, help="Gaussian std added to the policy's actions"
     )
@@ -77,12 +72,13 @@ def run(args: argparse.Namespace) -> int:
             env_kwargs=env_kwargs,
             overwrite=args.overwrite,
             workers=args.workers,
+            backend=args.backend,
         )
     except KeyboardInterrupt:
         kept = f"{args.out} is unchanged" if replacing else f"the finished episodes are in {args.out} (complete=false)"
         print(f"rwm-gym collect: interrupted; {kept}", file=sys.stderr)
         return 130
-    except (ValueError, TypeError, OSError, DatasetError) as err:
+    except (ValueError, TypeError, OSError, DatasetError, RayMissing) as err:
         print(f"rwm-gym collect: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)
