@@ -20,11 +20,12 @@ TESTS = Path(__file__).parent
 
 @pytest.fixture(scope="module")
 def ray_cluster():
-    """A local Ray cluster of 2 CPUs for this file's tests (started in about 5 s); its workers import this
-    checkout's rwm_gym and this folder's modules."""
+    """A new local Ray cluster of 2 CPUs for this file's tests (started in about 5 s), whatever cluster `ray start`
+    left on this machine; its workers import this checkout's rwm_gym and this folder's modules."""
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'rwm-gym[ray]')")
     path = os.pathsep.join(filter(None, [str(TESTS.parent), str(TESTS), os.environ.get("PYTHONPATH")]))
     ray.init(
+        address="local",
         num_cpus=2,
         include_dashboard=False,
         log_to_driver=False,
