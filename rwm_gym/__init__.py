@@ -47,6 +47,7 @@ EXPORTS: dict[str, str] = {
     "make_ppo": "rwm_gym.rl.ppo",
     "learn": "rwm_gym.rl.ppo",
     "rsl_rl_train_cfg": "rwm_gym.rl.rsl_rl_train_cfg",
+    "DistributedOnPolicyRunner": "rwm_gym.rl.rsl_rl_runner",
     "MBPOConfig": "rwm_gym.rl.mbpo",
     "mbpo": "rwm_gym.rl.mbpo",
     "SHACConfig": "rwm_gym.rl.shac",
