@@ -22,7 +22,7 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
 
 from rwm_gym.registration import register_all
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 # public name -> the module that defines it (imported on first access)
 EXPORTS: dict[str, str] = {
