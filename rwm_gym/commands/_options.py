@@ -63,6 +63,17 @@ class RunFolderOptions:
     """with --run-dir: updates (PPO: rollouts) between policy snapshots"""
 
 
+@dataclass(frozen=True)
+class WorkerOptions:
+    """Workers a command's physics episodes are split over (`rwm_gym.workers`): the same results as one."""
+
+    workers: int = 1
+    """workers the episodes are split over, each a batched core of a block of them; the same results as one"""
+    backend: str = option("processes", choices=BACKENDS)
+    """where the workers run: spawned processes on this machine, or Ray tasks on the cluster `ray start` made (else
+    a local one; needs pip install 'rwm-gym[ray]')"""
+
+
 def add_group(
     parser: argparse.ArgumentParser,
     cls: type,
@@ -78,17 +89,6 @@ def add_group(
     if only is not None:
         options["skip"] = {f.name for f in fields(cls)} - set(only)
     add_dataclass_options(target, cls, **options)
-
-
-@dataclass(frozen=True)
-class WorkerOptions:
-    """Workers a command's physics episodes are split over (`rwm_gym.workers`): the same results as one."""
-
-    workers: int = 1
-    """workers the episodes are split over, each a batched core of a block of them; the same results as one"""
-    backend: str = option("processes", choices=BACKENDS)
-    """where the workers run: spawned processes on this machine, or Ray tasks on the cluster `ray start` made (else
-    a local one; needs pip install 'rwm-gym[ray]')"""
 
 
 @dataclass(frozen=True)

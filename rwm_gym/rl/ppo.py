@@ -78,7 +78,7 @@ class PPOConfig:
     update_precision: str = "float32"
     """dtype of the products in PPO's update: float32, or bfloat16 (autocast around each update; the rollouts stay
     float32). The update is most of PPO's time at 1024 envs; bf16 runs it 1.5x faster on CPUs with AVX512-BF16 or
-    AMX (docs/results/time-to-walk.md)."""
+    AMX, but two seeds trained with it learned markedly slower than with float32 (docs/results/time-to-walk.md)."""
     symmetry: bool = False
     """Train on each sample and its left-right mirror image (the task spec's [symmetry] table): every minibatch
     doubles (rwm_gym.rl.mirror_buffer)."""
