@@ -1,5 +1,7 @@
 """A task spec for any dm_control suite task, read off the suite's own model (`rwm-gym spec --from-dmc DOMAIN-TASK`).
 
+`--from-dmc manipulation-TASK` drafts a `dm_control.manipulation` task instead (`rwm_gym.specgen.from_manipulation`).
+
 The state follows the vocabulary of `rwm_gym.physics.dmc_layout`:
 
 - a floating base (the first body under the world with a free joint, or with two or more joints none of which is
@@ -101,11 +103,19 @@ def base_groups(model: mujoco.MjModel, base: int) -> tuple[list[tuple[str, list[
     return groups, joints
 
 
-def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]], list[str]]:
-    """(base body name or "", state groups [(name, columns, unit)], notes on what was chosen)."""
+def layout(
+    model: mujoco.MjModel, objects: tuple[int, ...] = ()
+) -> tuple[str, list[tuple[str, list[str], str]], list[str]]:
+    """(base body name or "", state groups [(name, columns, unit)], notes on what was chosen).
+
+    objects: free bodies a fixed-base manipulator moves (their joints are left out here, and no base is looked for).
+    """
     notes = []
-    base = find_base(model)
+    base = None if objects else find_base(model)
     groups, base_joints = base_groups(model, base) if base is not None else ([], [])
+    base_joints += [
+        j for b in objects for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
+    ]
     base_name = _name(model, mujoco.mjtObj.mjOBJ_BODY, base) if base is not None else ""
     if base is not None:
         notes.append(
@@ -180,6 +190,12 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
     """The spec of suite task `domain`-`task` with placeholder normalisation (see `draft.fill_normalization`)."""
     from dm_control import suite
 
+    from rwm_gym.physics.dmc_environments import MANIPULATION
+
+    if domain == MANIPULATION:
+        from rwm_gym.specgen.from_manipulation import manipulation_draft
+
+        return manipulation_draft(task)
     try:
         env = suite.load(domain, task, task_kwargs={"random": 0})
     except (ValueError, KeyError) as err:
