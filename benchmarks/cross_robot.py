@@ -1,10 +1,13 @@
 """Cross-robot benchmark: one world-model recipe on every dm_control suite domain, against the baselines.
 
-For every `DMC-*` physics env: collect a data mix (correlated random actions plus slow, large, saturating noisy
-actions), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with the same budget and
-hyperparameters, plus the "no change" predictor. The recipe is the one `benchmarks/world_models.py` uses on
-ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task spec) and `TrainConfig`'s defaults
-(history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the budget (`--iterations`) differs.
+For every suite domain's `DMC-*` physics env (the Jaco arm's `DMC-Jaco-ReachSite-v0` and `DMC-Jaco-LiftBrick-v0`
+with `--domains`): collect a data mix (correlated random actions plus slow, large, saturating noisy actions; for the
+arm, joint velocity commands that wander the workspace: the target and the brick are in every state, though the
+random hand seldom meets them), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with
+the same budget and hyperparameters, plus the "no change" predictor. The recipe is the one
+`benchmarks/world_models.py` uses on ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task
+spec) and `TrainConfig`'s defaults (history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the
+budget (`--iterations`) differs.
 Each is scored on held-out episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from
 its own mean predictions, and take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised
 state) at steps 8, 32 and 100.
@@ -17,6 +20,7 @@ table. The wall time reported is the sum of the domains' own wall times (collect
     python benchmarks/cross_robot.py                       # full budget on CPU (see --help)
     python benchmarks/cross_robot.py --device cuda         # same on a GPU
     python benchmarks/cross_robot.py --iterations 20 --episodes 4 --domains DMC-Cheetah-Run-v0   # smoke test
+    python benchmarks/cross_robot.py --domains DMC-Jaco-ReachSite-v0,DMC-Jaco-LiftBrick-v0 --out DIR   # the arm
 """
 
 from __future__ import annotations
@@ -44,6 +48,11 @@ from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.registration import DMC_SPECS
 from rwm_gym.spec import load_spec
 
+SUITE_IDS = sorted(
+    i for i, name in DMC_SPECS.items() if load_spec(name).extra["dm_control"]["domain"] != "manipulation"
+)
+"""The suite domains, run by default; the Jaco arm's tasks (dm_control.manipulation) join with --domains."""
+
 # name -> (model kind, forecast steps in training; 1 = teacher forcing)
 MODELS: dict[str, tuple[str, int | None]] = {
     "RWM": ("rwm", None),
@@ -61,14 +70,15 @@ class Options:
 
     out: Path = Path("benchmarks/results/cross_robot")
     """Folder for data, results.json, results.md and error_vs_horizon.png."""
-    domains: str = ",".join(sorted(DMC_SPECS))
-    """Comma-separated physics env ids."""
+    domains: str = ",".join(SUITE_IDS)
+    """Comma-separated physics env ids (default: the suite's; any `DMC-*` id, e.g. DMC-Jaco-ReachSite-v0)."""
     models: str = ",".join(MODELS)
     """Comma-separated models to run (default all)."""
     episodes: int = 16
     """Episodes per policy (random and noisy) and domain."""
     episode_steps: int = 400
-    """Length of each collected episode (policy steps); at least 32 + max(horizons)."""
+    """Length of each collected episode (policy steps, at most the task's: 250 for the Jaco tasks); at least
+    32 + max(horizons)."""
     iterations: int = 150
     """Gradient steps per model (the same for every model and domain); 150 fits ~45 min on one CPU core."""
     cpu_minutes: float = 0.0

@@ -105,7 +105,7 @@ class EvalOptions:
     eval: bool = True
     """judge the policy in physics after training (--no-eval: skip the physics evaluation)"""
     eval_seeds: int = 3
-    """physics episodes per evaluation command"""
+    """physics episodes per evaluation command (a dm_control task: episodes, seeds 0..N-1)"""
     eval_steps: int | None = None
     """policy steps per evaluation episode (default: the task's episode, 20 s)"""
 
@@ -307,10 +307,34 @@ def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
     return warm
 
 
+def _dm_control_task(args: argparse.Namespace):
+    """The task spec of the --checkpoint when it is a dm_control task (judged by its return and success), else None."""
+    if args.where != "imagination" or args.checkpoint is None:
+        return None
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.registration import simulator_of
+
+    spec = read_meta(args.checkpoint).spec
+    return spec if simulator_of(spec) == "dm_control" else None
+
+
 def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict) -> None:
-    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse."""
+    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse.
+
+    A dm_control task is judged by its own return over full episodes (and its success, for a manipulation task) in
+    its physics env, seeds 0..--eval-seeds - 1 (`rwm_gym.rl.evaluate_dmc`); the legged task by its tracking score."""
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 
+    dm_control = _dm_control_task(args)
+    if dm_control is not None:
+        if args.keep_best:
+            raise SystemExit("rwm-gym ppo: --keep-best compares tracking scores, which a dm_control task has not")
+        from rwm_gym.rl.evaluate_dmc import evaluate_episodes
+
+        episodes = evaluate_episodes(model, dm_control, seeds=args.eval_seeds, steps=args.eval_steps)
+        print(f"physics evaluation: {episodes.summary()}")
+        report["evaluation"] = episodes.to_dict()
+        return
     evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
     print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
     print(format_table(evaluation))
