@@ -3,7 +3,8 @@
 For every suite domain's `DMC-*` physics env (the Jaco arm's `DMC-Jaco-ReachSite-v0` and `DMC-Jaco-LiftBrick-v0`
 with `--domains`): collect a data mix (correlated random actions plus slow, large, saturating noisy actions; for the
 arm, joint velocity commands that wander the workspace: the target and the brick are in every state, though the
-random hand seldom meets them), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with
+random hand seldom meets them, so a reach task's mix adds the scripted reach `rwm_gym.policies.reach` at four noise
+levels), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with
 the same budget and hyperparameters, plus the "no change" predictor. The recipe is the one
 `benchmarks/world_models.py` uses on ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task
 spec) and `TrainConfig`'s defaults (history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the
@@ -107,17 +108,38 @@ class Options:
         )
 
 
+REACH_NOISE = (0.0, 0.1, 0.2, 0.5)
+"""Action noise of the scripted reach's episodes in a reach task's mix: clean reaches, hovers, near misses, misses."""
+
+
+def mix_policies(env_id: str, episodes: int) -> list:
+    """The policies of a domain's data mix: random (rho 0.9, sigma 0.5) and noisy (rho 0.98, sigma 1.0: slow, large,
+    often saturated) actions; for a reach task (`[manipulation] goal = "reach"`) also the scripted reach at each
+    `REACH_NOISE`, so the data hold the states near the target that random actions seldom visit."""
+    spec = load_spec(DMC_SPECS[env_id])
+    policies = []
+    for rho, sigma in ((0.9, 0.5), (0.98, 1.0)):
+        policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
+        policy.name = f"random(rho={rho},sigma={sigma})"
+        policies.append(policy)
+    if spec.extra.get("manipulation", {}).get("goal") == "reach":
+        from rwm_gym.policies.reach import ReachPolicy
+
+        for sigma in REACH_NOISE:
+            policy = ReachPolicy(spec, episodes, action_noise=sigma)
+            policy.name = f"reach(sigma={sigma})"
+            policies.append(policy)
+    return policies
+
+
 def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
-    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged:
-    `folder/<env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists)."""
+    """The episodes of `mix_policies`, `episodes` per policy of `episode_steps` steps, merged: `folder/<env_id>.h5`
+    (kept if it exists)."""
     out = folder / f"{env_id}.h5"
     if out.exists():
         return out
-    spec = load_spec(DMC_SPECS[env_id])
     parts = []
-    for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
-        policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
-        policy.name = f"random(rho={rho},sigma={sigma})"
+    for k, policy in enumerate(mix_policies(env_id, episodes)):
         path = folder / f"{env_id}.part{k}.h5"
         collect(
             env_id,
@@ -237,8 +259,9 @@ def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s
             f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
             f"(lower is better). One recipe for every domain: {budget} x "
             f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
-            f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
-            f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
+            f"device {options.device}, {options.threads} thread(s). Data per domain: {options.episodes} "
+            f"episodes per policy x {options.episode_steps} steps (random + noisy actions; a reach task also the "
+            f"scripted reach at noise {', '.join(map(str, REACH_NOISE))}). Total wall time "
             f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."
         ),
         "",

@@ -15,7 +15,9 @@ import pytest
 
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.cli import main
+from rwm_gym.data.dataset import Dataset
 from rwm_gym.physics.dmc import make_core
+from rwm_gym.policies.factory import make_policy
 from rwm_gym.spec import load_spec, parse_spec
 from rwm_gym.task.manipulation_reward import ManipulationReward
 from rwm_gym.task.tasks import state_reward
@@ -122,3 +124,28 @@ def test_reach_from_collection_to_ppo_in_imagination_judged_by_success_in_physic
     evaluation = json.loads(policy.with_suffix(".json").read_text())["evaluation"]
     assert evaluation["env_id"] == REACH and evaluation["episodes"] == 2 and evaluation["steps"] == 10
     assert 0.0 <= evaluation["success_rate"] <= 1.0 and 0.0 <= evaluation["episode_return"] <= 10.0
+
+
+def test_the_scripted_reach_meets_the_target_in_physics_and_noise_makes_it_miss() -> None:
+    from rwm_gym.policies.reach import ReachPolicy
+    from rwm_gym.rl.evaluate_dmc import evaluate_episodes
+
+    spec = load_spec(SPECS[REACH])
+    clean = evaluate_episodes(ReachPolicy(spec, 6).act, REACH, seeds=6)
+    assert clean.success_rate >= 5 / 6 and clean.success_steps > 0.5
+    noisy = ReachPolicy(spec, 6, action_noise=0.5)
+    noisy.reset(np.arange(6), [np.random.default_rng(k) for k in range(6)])
+    assert evaluate_episodes(noisy.act, REACH, seeds=6).success_steps < clean.success_steps / 2
+
+
+def test_collect_with_the_reach_policy_is_deterministic(tmp_path: Path) -> None:
+    runs = []
+    for name in ("a.h5", "b.h5"):
+        collect = ["collect", "--env", REACH, "--policy", "reach", "--action-noise", "0.2", "--episodes", "3"]
+        assert main([*collect, "--num-envs", "2", "--max-steps", "20", "--out", str(tmp_path / name)]) == 0
+        runs.append(Dataset.load(tmp_path / name))
+    assert runs[0].info.policy == "reach"
+    np.testing.assert_array_equal(runs[0]["state"], runs[1]["state"])
+    with pytest.raises(ValueError, match="needs a \\[manipulation\\] goal = 'reach'"):
+        make_policy("reach", load_spec(SPECS[LIFT]), 1)
+
