@@ -149,3 +149,13 @@ def test_collect_with_the_reach_policy_is_deterministic(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="needs a \\[manipulation\\] goal = 'reach'"):
         make_policy("reach", load_spec(SPECS[LIFT]), 1)
 
+
+def test_ppo_in_physics_trains_on_a_dm_control_task_and_is_judged_by_success(tmp_path: Path, capsys) -> None:
+    policy = tmp_path / "reach_physics.zip"
+    ppo = ["ppo", "--in", "physics", "--env", REACH, "--timesteps", "32", "--num-envs", "2", "--n-steps", "16"]
+    assert main([*ppo, "--net-arch", "16", "--eval-seeds", "2", "--eval-steps", "10", "--out", str(policy)]) == 0
+    report = json.loads(policy.with_suffix(".json").read_text())
+    assert report["where"] == "physics" and report["env"] == REACH and report["physics_samples"] >= 32
+    assert report["evaluation"]["env_id"] == REACH and 0.0 <= report["evaluation"]["success_rate"] <= 1.0
+    with pytest.raises(SystemExit, match="--env applies to --in physics"):
+        main(["ppo", "--env", REACH, "--timesteps", "32", "--out", str(tmp_path / "x.zip")])
