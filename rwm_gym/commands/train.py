@@ -57,6 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         TrainConfig,
         defaults_none=True,
         choices={"loss": LOSSES, "schedule": SCHEDULES},
+        nargs={"forecast_curriculum": "+"},
     )
     add_dataclass_options(
         parser.add_argument_group("model options"),
@@ -104,7 +105,9 @@ def memory_estimate(model_config: ModelConfig, config: TrainConfig, spec) -> flo
     with torch.device("meta"):
         params = sum(p.numel() for p in build_model(model_config, spec).parameters())
     width = max(model_config.hidden_size, model_config.head_hidden)
-    activations = config.batch_size * (config.history + config.forecast) * width * (model_config.num_layers + 1) * 8
+    activations = (
+        config.batch_size * (config.history + max(config.forecasts)) * width * (model_config.num_layers + 1) * 8
+    )
     return 4.0 * (4 * params + activations)
 
 
