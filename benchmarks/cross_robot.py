@@ -107,18 +107,21 @@ class Options:
         )
 
 
-def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
+def collect_mix(
+    env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0, name: str | None = None
+) -> Path:
     """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged:
-    `folder/<env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists)."""
-    out = folder / f"{env_id}.h5"
+    `folder/<name or env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists). `env_id`
+    is a dm_control physics id or the path of a task spec."""
+    out = folder / f"{name or env_id}.h5"
     if out.exists():
         return out
-    spec = load_spec(DMC_SPECS[env_id])
+    spec = load_spec(DMC_SPECS.get(env_id, env_id))
     parts = []
     for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
         policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
         policy.name = f"random(rho={rho},sigma={sigma})"
-        path = folder / f"{env_id}.part{k}.h5"
+        path = folder / f"{name or env_id}.part{k}.h5"
         collect(
             env_id,
             policy,
@@ -137,17 +140,34 @@ def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, se
     return out
 
 
-@torch.no_grad()
 def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Options) -> np.ndarray:
     """Mean relative error at every forecast step 1..max(horizons) over held-out windows, (max_horizon,)."""
-    horizon, history = max(int(h) for h in options.horizons.split(",")), options.train_config.history
+    horizon = max(int(h) for h in options.horizons.split(","))
+    return forecast_errors(
+        model,
+        dataset,
+        val_ids,
+        options.train_config.history,
+        horizon,
+        options.eval_windows,
+        options.seed,
+        options.device,
+    )
+
+
+@torch.no_grad()
+def forecast_errors(
+    model, dataset: Dataset, val_ids: np.ndarray, history: int, horizon: int, windows: int, seed: int, device: str
+) -> np.ndarray:
+    """Mean relative error at every forecast step 1..horizon, (horizon,): open-loop mean forecasts from the true
+    actions after `history` true steps, on `windows` held-out windows drawn with `seed` from the episodes `val_ids`."""
     rows = history + horizon
-    windows = WindowData(dataset, Normalizer.from_spec(dataset.spec()), options.device)
-    starts = windows.window_starts(val_ids, rows)
+    data = WindowData(dataset, Normalizer.from_spec(dataset.spec()), device)
+    starts = data.window_starts(val_ids, rows)
     if len(starts) == 0:
         raise ValueError(f"{dataset.path}: no held-out episode has {rows} rows; raise --episode-steps")
-    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[: options.eval_windows]
-    batch = windows.gather(starts[pick.to(starts.device)], rows)
+    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(seed))[:windows]
+    batch = data.gather(starts[pick.to(starts.device)], rows)
     model.eval()
     prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, : rows - 1], horizon, sample=False)
     return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()
