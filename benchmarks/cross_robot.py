@@ -112,11 +112,10 @@ REACH_NOISE = (0.0, 0.1, 0.2, 0.5)
 """Action noise of the scripted reach's episodes in a reach task's mix: clean reaches, hovers, near misses, misses."""
 
 
-def mix_policies(env_id: str, episodes: int) -> list:
+def mix_policies(spec, episodes: int) -> list:
     """The policies of a domain's data mix: random (rho 0.9, sigma 0.5) and noisy (rho 0.98, sigma 1.0: slow, large,
     often saturated) actions; for a reach task (`[manipulation] goal = "reach"`) also the scripted reach at each
     `REACH_NOISE`, so the data hold the states near the target that random actions seldom visit."""
-    spec = load_spec(DMC_SPECS[env_id])
     policies = []
     for rho, sigma in ((0.9, 0.5), (0.98, 1.0)):
         policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
@@ -132,15 +131,19 @@ def mix_policies(env_id: str, episodes: int) -> list:
     return policies
 
 
-def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
-    """The episodes of `mix_policies`, `episodes` per policy of `episode_steps` steps, merged: `folder/<env_id>.h5`
-    (kept if it exists)."""
-    out = folder / f"{env_id}.h5"
+def collect_mix(
+    env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0, name: str | None = None
+) -> Path:
+    """The episodes of `mix_policies`, `episodes` per policy of `episode_steps` steps, merged:
+    `folder/<name or env_id>.h5` (kept if it exists). `env_id` is a dm_control physics id or the path of a task
+    spec."""
+    out = folder / f"{name or env_id}.h5"
     if out.exists():
         return out
+    spec = load_spec(DMC_SPECS.get(env_id, env_id))
     parts = []
-    for k, policy in enumerate(mix_policies(env_id, episodes)):
-        path = folder / f"{env_id}.part{k}.h5"
+    for k, policy in enumerate(mix_policies(spec, episodes)):
+        path = folder / f"{name or env_id}.part{k}.h5"
         collect(
             env_id,
             policy,
@@ -159,17 +162,34 @@ def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, se
     return out
 
 
-@torch.no_grad()
 def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Options) -> np.ndarray:
     """Mean relative error at every forecast step 1..max(horizons) over held-out windows, (max_horizon,)."""
-    horizon, history = max(int(h) for h in options.horizons.split(",")), options.train_config.history
+    horizon = max(int(h) for h in options.horizons.split(","))
+    return forecast_errors(
+        model,
+        dataset,
+        val_ids,
+        options.train_config.history,
+        horizon,
+        options.eval_windows,
+        options.seed,
+        options.device,
+    )
+
+
+@torch.no_grad()
+def forecast_errors(
+    model, dataset: Dataset, val_ids: np.ndarray, history: int, horizon: int, windows: int, seed: int, device: str
+) -> np.ndarray:
+    """Mean relative error at every forecast step 1..horizon, (horizon,): open-loop mean forecasts from the true
+    actions after `history` true steps, on `windows` held-out windows drawn with `seed` from the episodes `val_ids`."""
     rows = history + horizon
-    windows = WindowData(dataset, Normalizer.from_spec(dataset.spec()), options.device)
-    starts = windows.window_starts(val_ids, rows)
+    data = WindowData(dataset, Normalizer.from_spec(dataset.spec()), device)
+    starts = data.window_starts(val_ids, rows)
     if len(starts) == 0:
         raise ValueError(f"{dataset.path}: no held-out episode has {rows} rows; raise --episode-steps")
-    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[: options.eval_windows]
-    batch = windows.gather(starts[pick.to(starts.device)], rows)
+    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(seed))[:windows]
+    batch = data.gather(starts[pick.to(starts.device)], rows)
     model.eval()
     prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, : rows - 1], horizon, sample=False)
     return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()

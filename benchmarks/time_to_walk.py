@@ -96,6 +96,28 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
             "--update-precision=bfloat16",
         ],
     ),
+    "history_ep100": (
+        "the history recipe with 2-s imagined episodes",
+        "ppo",
+        [
+            "--num-envs=1024",
+            "--fall-tilt=30",
+            "--command-from-history=0.5",
+            "--matmul-precision=bfloat16",
+            "--episode-steps=100",
+        ],
+    ),
+    "history_ep200": (
+        "the history recipe with 4-s imagined episodes",
+        "ppo",
+        [
+            "--num-envs=1024",
+            "--fall-tilt=30",
+            "--command-from-history=0.5",
+            "--matmul-precision=bfloat16",
+            "--episode-steps=200",
+        ],
+    ),
     "shac": (
         "SHAC, 1024 envs, horizon 16, fall tilt 30",
         "shac",
