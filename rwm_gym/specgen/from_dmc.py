@@ -186,6 +186,25 @@ def contacts(model: mujoco.MjModel, base_name: str, feet: list[str] | None) -> t
     return names, list(feet), [note]
 
 
+def observation_table(groups: list[tuple[str, list[str], str]]) -> Table:
+    """The policy observation of a dm_control spec: every state group, then the last action."""
+    return Table(
+        "observation",
+        {"groups": [g[0] for g in groups] + ["last_action"]},
+        note="Policy observation: the state, then the last action.",
+    )
+
+
+def spec_header(what: str, name: str) -> list[str]:
+    """The comment lines that open a spec written by `rwm-gym spec --from-dmc NAME`."""
+    return [
+        f"Task spec: {what}, written by `rwm-gym spec --from-dmc {name}`.",
+        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
+        "how the world-model state, contacts and observation are read from its physics",
+        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
+    ]
+
+
 def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraft:
     """The spec of suite task `domain`-`task` with placeholder normalisation (see `draft.fill_normalization`)."""
     from dm_control import suite
@@ -268,17 +287,6 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
             note="No termination: suite tasks run to their time limit.",
         )
     )
-    tables.append(
-        Table(
-            "observation",
-            {"groups": [g[0] for g in groups] + ["last_action"]},
-            note="Policy observation: the state, then the last action.",
-        )
-    )
-    header = [
-        f"Task spec: dm_control suite {domain}-{task}, written by `rwm-gym spec --from-dmc {domain}-{task}`.",
-        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
-        "how the world-model state, contacts and observation are read from its physics",
-        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
-    ]
+    tables.append(observation_table(groups))
+    header = spec_header(f"dm_control suite {domain}-{task}", f"{domain}-{task}")
     return SpecDraft(header, tables, notes + contact_notes)

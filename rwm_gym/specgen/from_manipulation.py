@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.specgen.draft import SpecDraft, Table
-from rwm_gym.specgen.from_dmc import _children, _name, _subtree, layout
+from rwm_gym.specgen.from_dmc import _children, _name, _subtree, layout, observation_table, spec_header
 from rwm_gym.specgen.toml_text import significant
 
 _BODY_GROUPS = (
@@ -178,17 +178,6 @@ def manipulation_draft(task: str) -> SpecDraft:
     tables.append(
         Table("privileged", {"contact_bodies": contact_bodies, "feet": []}, note="No termination: none in dm_control.")
     )
-    tables.append(
-        Table(
-            "observation",
-            {"groups": [g[0] for g in groups] + ["last_action"]},
-            note="Policy observation: the state, then the last action.",
-        )
-    )
-    header = [
-        f"Task spec: dm_control.manipulation {task}, written by `rwm-gym spec --from-dmc manipulation-{task}`.",
-        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
-        "how the world-model state, contacts and observation are read from its physics",
-        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
-    ]
+    tables.append(observation_table(groups))
+    header = spec_header(f"dm_control.manipulation {task}", f"manipulation-{task}")
     return SpecDraft(header, tables, notes)
