@@ -186,6 +186,19 @@ def contacts(model: mujoco.MjModel, base_name: str, feet: list[str] | None) -> t
     return names, list(feet), [note]
 
 
+def task_table_of(values: dict, time_limit_note: str) -> Table:
+    """The [task] table of a dm_control spec, its timing fields annotated (`time_limit_note` for episode_steps)."""
+    return Table(
+        "task",
+        values,
+        {
+            "policy_dt": "s, dm_control's control timestep (checked at load)",
+            "physics_dt": "s, the model's timestep (checked at load)",
+            "episode_steps": time_limit_note,
+        },
+    )
+
+
 def observation_table(groups: list[tuple[str, list[str], str]]) -> Table:
     """The policy observation of a dm_control spec: every state group, then the last action."""
     return Table(
@@ -246,15 +259,7 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
         task_table["base_body"] = base
     actuators = groups[-1][1]
     tables = [
-        Table(
-            "task",
-            task_table,
-            {
-                "policy_dt": "s, dm_control's control timestep (checked at load)",
-                "physics_dt": "s, the model's timestep (checked at load)",
-                "episode_steps": "the suite's time limit; suite tasks never terminate",
-            },
-        ),
+        task_table_of(task_table, "the suite's time limit; suite tasks never terminate"),
         Table("dm_control", {"domain": domain, "task": task, "contact_partner": "world"}),
         Table(
             "actuator",

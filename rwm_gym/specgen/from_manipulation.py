@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.specgen.draft import SpecDraft, Table
-from rwm_gym.specgen.from_dmc import _children, _name, _subtree, layout, observation_table, spec_header
+from rwm_gym.specgen.from_dmc import _children, _name, _subtree, layout, observation_table, spec_header, task_table_of
 from rwm_gym.specgen.toml_text import significant
 
 _BODY_GROUPS = (
@@ -145,15 +145,7 @@ def manipulation_draft(task: str) -> SpecDraft:
         "episode_steps": episode_steps,
     }
     tables = [
-        Table(
-            "task",
-            task_table,
-            {
-                "policy_dt": "s, dm_control's control timestep (checked at load)",
-                "physics_dt": "s, the model's timestep (checked at load)",
-                "episode_steps": "dm_control's time limit; the tasks never terminate",
-            },
-        ),
+        task_table_of(task_table, "dm_control's time limit; the tasks never terminate"),
         Table("dm_control", {"domain": "manipulation", "task": task, "contact_partner": partner}),
     ]
     if goal is not None:
