@@ -1,11 +1,14 @@
 """Teach a world model the states its own policies exploit: their physics episodes, then a fine-tune.
 
-    python examples/make_base_mix.py --out runs/s27/base
-    python examples/make_coverage_model.py --base runs/s27/base/mix.h5 --out runs/s27/cover \\
-        --policies runs/s26/anneal0/policy.zip runs/s26/anneal1/policy.zip runs/s26/anneal2/policy.zip \\
+    python examples/make_base_mix.py --out runs/cover/base
+    python examples/make_coverage_model.py --base runs/cover/base/mix.h5 --out runs/cover/model \\
+        --policies runs/anneal0/policy.zip runs/anneal1/policy.zip runs/anneal2/policy.zip \\
                    assets/policies/anymal_d_ppo_imagination.zip
 
-Policies trained from scratch inside a model find where it is wrong: the README's annealed seed 2 falls three times
+A second step continues from the first: `--checkpoint runs/cover/model/model.safetensors --base
+runs/cover/model/buffer.h5` with the new policies, so the model keeps the earlier policies' episodes too.
+
+Policies trained from scratch inside a model find where it is wrong: an annealed from-scratch policy fell three times
 on the fastest diagonal command, where the shipped MBPO model predicts it upright with no fall 25 steps out. The cause
 is data coverage, so this collects each policy's own physics episodes (`--episodes` per action-noise level, from
 consecutive seeds), merges them after the base mix (the task's ordinary motions, so the model keeps what it knew) and
@@ -135,7 +138,8 @@ def main(argv: list[str] | None = None) -> Path:
 
     model, meta = load_checkpoint(fine_tune.path)
     rows = {
-        "start_model": start.provenance.get("dataset_steps"),
+        # the whole chain behind the start model where it was itself fine-tuned this way, else its training rows
+        "start_model": start.extras.get("physics_rows", {}).get("total") or start.provenance.get("dataset_steps"),
         "base": Dataset.load(args.base).num_steps,
         "own": sum(Dataset.load(part).num_steps for part in parts),
     }
