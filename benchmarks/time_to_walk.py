@@ -123,6 +123,11 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
         "ppo",
         ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
     ),
+    "history_taught": (
+        "the history recipe in the model taught two rounds of its own policies' episodes (the quick start)",
+        "ppo",
+        ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
+    ),
     "shac": (
         "SHAC, 1024 envs, horizon 16, fall tilt 30",
         "shac",
@@ -131,10 +136,15 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
 }
 """name -> (what, learner, its options beyond the shared ones)."""
 
-RECIPE_MODELS = {"history_own_data": "assets/checkpoints/anymal_d_rwm_cover_history.safetensors"}
-"""Recipes trained in another world model than MODEL: `MODEL` fine-tuned by `examples/make_coverage_model.py` on the
-physics episodes of four policies of the history recipes (seed 0 of `history` at 14.0 M steps, seeds 0 / 1 / 2 of
-`history_ep100` at 10.3 / 13.5 / 11.3 M), 32 episodes of up to 1000 steps each at action noise 0 and 0.26."""
+RECIPE_MODELS = {
+    "history_own_data": "assets/checkpoints/anymal_d_rwm_cover_history.safetensors",
+    "history_taught": "assets/checkpoints/anymal_d_rwm_taught.safetensors",
+}
+"""Recipes trained in another world model than MODEL, each one MBPO data step further
+(`examples/make_coverage_model.py`: 32 physics episodes of up to 1000 steps per policy at action noise 0 and 0.26,
+then a 600-step fine-tune). `anymal_d_rwm_cover_history`: `MODEL` taught four policies of the history recipes (seed 0
+of `history` at 14.0 M steps, seeds 0 / 1 / 2 of `history_ep100` at 10.3 / 13.5 / 11.3 M). `anymal_d_rwm_taught`: that
+model taught four policies of `history_own_data` (seed 0 at 9.3 M, seed 1 at 10.3 and 11.3 M, seed 2 at 10.3 M)."""
 
 
 def train(recipe: str, seed: int, minutes: float, threads: int, run_dir: Path, snapshot_every: int) -> None:

@@ -2,19 +2,19 @@
 
     pip install . && python examples/quickstart.py
 
-1. PPO (`rwm-gym ppo`) trains a fresh policy in the shipped world model with the from-scratch recipe of
-   `assets/policies/anymal_d_ppo_imagination.json` (4096 imagined ANYmal D robots stepped in one forward pass, 1 s
-   episodes restarted from real histories, the ensemble-disagreement penalty and halt, the torque halt), the world
-   model's products in bfloat16 where the CPU has native bf16, on both cores. No physics sample is used.
+1. PPO (`rwm-gym ppo`) trains a fresh policy in the world model `anymal_d_rwm_taught` with the recipe of
+   `assets/policies/anymal_d_ppo_quickstart.json`: 1024 imagined ANYmal D robots stepped in one forward pass, 1 s
+   episodes restarted from real histories (half of them commanded at the velocity their history moves at), a fall at
+   30 degrees of tilt, the ensemble-disagreement penalty and halt, the torque halt; the world model's products in
+   bfloat16 where the CPU has native bf16, on both cores. No physics sample is used.
 2. The policy is scored in MuJoCo with `rwm-gym score`'s tracking score (18 commands x 3 seeds x 20 s; a fall scores 0
    for the rest of its episode), beside the standing-still floor and the shipped policies.
-3. `curve.png` places this run on the recipe's measured curves, and `walk.gif` shows the policy walking (needs
-   offscreen GL, `MUJOCO_GL=egl`).
+3. `curve.png` places this run on the recipe's measured seeds, and `walk.gif` shows the policy walking (needs offscreen
+   GL, `MUJOCO_GL=egl`).
 
-The default budget fits about 10 minutes from install to verdict on 2 CPU cores; it teaches the policy to stand and
-start stepping. The recipe walks (tracking >= 0.80 with at most 2 falls) at 24-40 M imagined steps:
-`python examples/quickstart.py --timesteps 40000000` continues the same run there (benchmarks/time_to_walk.py and
-docs/results/learning-speed.md have the measured times). Run the command again after an interruption to continue.
+The recipe walks (tracking >= 0.80 with at most 2 falls in 54) at its default 11.8 M imagined steps on its three
+measured seeds; `--recipe anymal_d_ppo_imagination` runs the 40 M-step recipe of the shipped 4096-robot policy instead.
+docs/results/time-to-walk.md has the measured times. Run the command again after an interruption to continue.
 """
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ import os
 import sys
 from pathlib import Path
 
+RECIPE = "anymal_d_ppo_quickstart"
+"""The recipe JSON in assets/policies the quick start runs: its settings, shipped policy and measured seeds."""
+
 WALKS = (0.80, 2)
 """(tracking, falls in 54): the policy walks at tracking >= 0.80 with at most 2 falls (the zero-action floor stands
 at 0.23 with none)."""
@@ -33,10 +36,12 @@ at 0.23 with none)."""
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--timesteps",
-        type=int,
-        default=8_257_536,
-        help="PPO budget in imagined steps (default: 84 rollouts of 4096 x 24, about 7 min on 2 idle cores)",
+        "--recipe",
+        default=RECIPE,
+        help=f"a recipe JSON in assets/policies (default {RECIPE}; anymal_d_ppo_imagination: the 40 M-step one)",
+    )
+    parser.add_argument(
+        "--timesteps", type=int, default=None, help="PPO budget in imagined steps (default: the recipe's)"
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--num-envs", type=int, default=None, help="imagined robots (default: the recipe's)")
@@ -66,12 +71,13 @@ def main() -> int:
     from rwm_gym.rl.score import record_walk, score
 
     policies = assets_dir() / "policies"
-    recipe = json.loads((policies / "anymal_d_ppo_imagination.json").read_text())
+    recipe = json.loads((policies / f"{Path(args.recipe).stem}.json").read_text())
+    timesteps = args.timesteps or recipe["imagined_steps"]
     precision = args.precision or default_precision(args.device)
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
     print(
         f"PPO from scratch in {Path(recipe['world_model']['checkpoint']).stem}: {num_envs} imagined "
-        f"robots, {args.timesteps:,} steps, {args.threads} threads, {precision} products"
+        f"robots, {timesteps:,} steps, {args.threads} threads, {precision} products"
     )
     started = time.monotonic()
     code = cli(
@@ -84,7 +90,7 @@ def main() -> int:
             "--matmul-precision",
             precision,
             "--timesteps",
-            str(args.timesteps),
+            str(timesteps),
             "--run-dir",
             str(args.out / "run"),
             "--save-every",
@@ -129,7 +135,7 @@ def main() -> int:
         ("VERDICT: it walks" if walks else "VERDICT: it does not walk yet")
         + f" after {steps / 1e6:.1f} M imagined steps in {trained / 60:.1f} min (walking: tracking >= {WALKS[0]}"
         f" with <= {WALKS[1]} falls)"
-        + ("" if walks else "; --timesteps 40000000 continues this run to where the recipe walks")
+        + ("" if walks else "; a larger --timesteps continues this run (curve.png: the recipe's seeds)")
     )
     return 0
 

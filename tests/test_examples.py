@@ -197,8 +197,8 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert state["timesteps"] >= 64 and (out / "policy.zip").is_file()
     from rwm_gym.resources import assets_dir
 
-    shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
-    # the shipped from-scratch policy's recipe (fields added since it was trained at their defaults)
+    shipped = json.loads((assets_dir() / "policies" / "anymal_d_ppo_quickstart.json").read_text())
+    # the quick start's recipe, as its JSON states it (fields added since it was trained at their defaults)
     assert {k: state["ppo"][k] for k in shipped["ppo"]} == {**shipped["ppo"], "num_envs": 8}
     assert not state["ppo"]["symmetry"]
     expected = {k: v for k, v in shipped["env"]["imagination"].items() if v is not None}

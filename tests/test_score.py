@@ -119,7 +119,14 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
 
 
 @pytest.mark.parametrize(
-    "name", ["anymal_d_ppo_physics", "anymal_d_mbpo_ppo", "anymal_d_mbpo_ppo_random_data", "anymal_d_ppo_imagination"]
+    "name",
+    [
+        "anymal_d_ppo_physics",
+        "anymal_d_mbpo_ppo",
+        "anymal_d_mbpo_ppo_random_data",
+        "anymal_d_ppo_imagination",
+        "anymal_d_ppo_quickstart",
+    ],
 )
 def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
     """Each shipped policy is under 1 MiB, carries no training-env state, and walks forward at 1 m/s in physics on
@@ -139,18 +146,20 @@ def test_shipped_policies_are_small_and_walk_forward_as_their_json_says(name):
     assert forward.falls == 0 and forward.tracking > 0.6
 
 
-def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
-    """The from-scratch policy's JSON records every seed of its recipe (the shipped one is the best by physics score,
-    each curve ends at that seed's final score) and of the other measured recipes, and its world model ships with the
-    reset windows it names."""
+@pytest.mark.parametrize("name", ["anymal_d_ppo_imagination", "anymal_d_ppo_quickstart"])
+def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model(name):
+    """A from-scratch policy's JSON records every seed of its recipe (the shipped one is the best by physics score,
+    or for the quick start its default seed 0; each curve ends at that seed's final score) and of the other measured
+    recipes, and its world model ships with the reset windows it names."""
     import json
 
     from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.resources import assets_dir, shipped_file
 
-    meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    meta = json.loads((assets_dir() / "policies" / f"{name}.json").read_text())
     seeds = {run["seed"]: run for run in meta["seeds"]}
-    assert len(seeds) >= 3 and meta["seed"] == max(seeds, key=lambda s: seeds[s]["tracking"])
+    shipped = 0 if name == "anymal_d_ppo_quickstart" else max(seeds, key=lambda s: seeds[s]["tracking"])
+    assert len(seeds) >= 3 and meta["seed"] == shipped
     assert seeds[meta["seed"]]["tracking"] == meta["score"]["tracking"]
     others = meta.get("other_recipes", [])
     for run in [*seeds.values(), *(run for other in others for run in other["seeds"])]:
@@ -163,9 +172,10 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model():
         shipped_file("checkpoints/anymal_d_rwm_mbpo.safetensors")
 
 
-def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_knows():
-    """Every option `ppo_options` reads from the shipped JSON is one `rwm-gym ppo` parses to the JSON's value; the
-    learning-rate anneal is passed only where the recipe has one."""
+@pytest.mark.parametrize("name", ["anymal_d_ppo_imagination", "anymal_d_ppo_quickstart"])
+def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_knows(name):
+    """Every option `ppo_options` reads from a recipe JSON the quick start runs is one `rwm-gym ppo` parses to the
+    JSON's value; the learning-rate anneal is passed only where the recipe has one."""
     import argparse
     import json
 
@@ -175,7 +185,7 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
     from rwm_gym.resources import assets_dir
 
     quickstart = load_script(EXAMPLES / "quickstart.py", "example_quickstart")
-    meta = json.loads((assets_dir() / "policies" / "anymal_d_ppo_imagination.json").read_text())
+    meta = json.loads((assets_dir() / "policies" / f"{name}.json").read_text())
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     for anneal in (0.25, 0.0, None):
@@ -183,7 +193,8 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
         options = quickstart.ppo_options({**meta, "ppo": ppo})
         args = parser.parse_args(options)
         assert args.lr_anneal_fraction == (anneal or None)
-        assert args.torque_halt == meta["env"]["imagination"]["torque_halt"]
+        for option, value in meta["env"]["imagination"].items():
+            assert getattr(args, option) == value, option
         assert args.log_std_init == meta["ppo"]["log_std_init"] and args.positive_reward_only is True
 
 
