@@ -71,7 +71,10 @@ def main() -> int:
     from rwm_gym.rl.score import record_walk, score
 
     policies = assets_dir() / "policies"
-    recipe = json.loads((policies / f"{Path(args.recipe).stem}.json").read_text())
+    recipe_file = policies / f"{Path(args.recipe).stem}.json"
+    if not recipe_file.is_file() or not from_scratch(recipe := json.loads(recipe_file.read_text())):
+        known = sorted(p.stem for p in policies.glob("*.json") if from_scratch(json.loads(p.read_text())))
+        parser.error(f"--recipe {args.recipe}: not a from-scratch recipe in {policies} (known: {', '.join(known)})")
     timesteps = args.timesteps or recipe["imagined_steps"]
     precision = args.precision or default_precision(args.device)
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
@@ -138,6 +141,11 @@ def main() -> int:
         + ("" if walks else "; a larger --timesteps continues this run (curve.png: the recipe's seeds)")
     )
     return 0
+
+
+def from_scratch(recipe: dict) -> bool:
+    """Whether a shipped policy's JSON is a recipe the quick start runs: PPO in imagination with measured seeds."""
+    return recipe.get("env", {}).get("where") == "imagination" and "seeds" in recipe and "ppo" in recipe
 
 
 def default_precision(device: str) -> str:

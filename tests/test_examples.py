@@ -212,6 +212,23 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert json.loads((out / "run" / "state.json").read_text())["timesteps"] == state["timesteps"]
 
 
+def test_quickstart_refuses_a_recipe_it_cannot_run_in_one_line(tmp_path):
+    """--recipe names a shipped from-scratch recipe; anything else (a missing file, an MBPO policy's JSON) stops
+    with one line that lists the ones it can run, before any training."""
+    import subprocess
+
+    for recipe in ("no_such_recipe", "anymal_d_mbpo_ppo"):
+        run = subprocess.run(
+            [sys.executable, str(EXAMPLES / "quickstart.py"), "--recipe", recipe, "--out", str(tmp_path / "qs")],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert run.returncode == 2 and not (tmp_path / "qs").exists()
+        assert f"--recipe {recipe}: not a from-scratch recipe" in run.stderr.splitlines()[-1]
+        assert "anymal_d_ppo_quickstart" in run.stderr.splitlines()[-1]
+
+
 @pytest.mark.slow  # five commands, each a fresh process (about a minute on idle cores)
 def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
     """The GPU pipeline's logic on tiny budgets with --device cpu (no GPU on CI; the script is written for one)."""
