@@ -20,7 +20,6 @@ from rwm_gym.gap.workflow import (
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig
 from rwm_gym.options import dataclass_from_args
-from rwm_gym.physics.params import CONVERGED_SOLVER
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -38,8 +37,9 @@ class GapOptions:
     """report folder"""
     sensor_noise: str | None = None
     """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
-    solver_iterations: int = CONVERGED_SOLVER.iterations
-    """MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)"""
+    solver_iterations: int = 0
+    """MuJoCo solver iterations per physics step of the re-simulations (0: the sim env's own, so the gap is that
+    of the simulator as it runs; 100: each step solved to convergence)"""
     world_model: str = "auto"
     """checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped one for
     AnymalD-MuJoCo-v0 (else none); none: skip them"""

@@ -8,6 +8,11 @@ values, which `make-measured --physics` can hide.
 
 Backlash is a dead band of the position error at the physics rate (`rwm_gym.physics.backlash`); it is the one effect
 the corrected MJCF cannot hold, so it lives in the corrected env options.
+
+`contact_solver` is no property of the robot but of the simulator: its constraint solver (iterations, no-slip
+iterations, friction cone) solves contacts and joint friction too coarsely to follow the robot. Its nominal values
+are the simulator's own settings (the `solver` the vocabulary is built for), so the gap of the simulator as the user
+runs it is measured first, and a finer solve must earn its three parameters like any other effect.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings, build_model
 from rwm_gym.spec import TaskSpec
 
 
@@ -80,11 +85,54 @@ def _payload(v: np.ndarray, spec: TaskSpec) -> dict[str, object]:
     return {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}
 
 
-def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, Effect]:
+SOLVER_ITERATION_STEP = 4
+"""Resolution of the `contact_solver` effect's iteration count (a step of 1 would cost a re-simulation per count)."""
+
+NOSLIP_RANGE = (0, 8, 2)
+"""Lowest, highest and step of the `contact_solver` effect's no-slip iterations."""
+
+
+def solver_effect(model: mujoco.MjModel) -> Effect:
+    """`contact_solver` for a simulator whose compiled `model` holds its solver settings (the nominal values)."""
+    opt = model.opt
+    iterations, noslip = int(opt.iterations), int(opt.noslip_iterations)
+    elliptic = float(opt.cone == CONES["elliptic"])
+    most = max(iterations, int(CONVERGED_SOLVER.iterations))
+    line_search = max(int(opt.ls_iterations), int(CONVERGED_SOLVER.ls_iterations))
+    lo, hi, step = NOSLIP_RANGE
+
+    def apply(v: np.ndarray) -> dict[str, object]:
+        n, slip, cone = round(float(v[0])), round(float(v[1])), float(v[2]) >= 0.5
+        if (n, slip, cone) == (iterations, noslip, bool(elliptic)):
+            return {"solver": None}
+        return {
+            "solver": SolverSettings(
+                iterations=n,
+                ls_iterations=line_search if n != iterations else int(opt.ls_iterations),
+                noslip_iterations=slip,
+                cone="elliptic" if cone else "pyramidal",
+            )
+        }
+
+    return Effect(
+        "contact_solver",
+        "the simulator's constraint solver too coarse: more iterations, no-slip iterations or the elliptic cone",
+        (
+            Parameter("solver_iterations", "1", iterations, iterations, most, most, step=SOLVER_ITERATION_STEP),
+            Parameter("noslip_iterations", "1", noslip, min(lo, noslip), max(hi, noslip), noslip, step=step),
+            Parameter("elliptic_cone", "1", elliptic, 0.0, 1.0, elliptic, step=1.0),
+        ),
+        apply,
+    )
+
+
+def vocabulary(
+    spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None
+) -> dict[str, Effect]:
     """Every effect the workflow knows, with nominal values and ranges resolved against the task spec (effort limit,
-    physics dt) and the robot model (floor friction)."""
+    physics dt), the robot model (floor friction) and the simulator's `solver` (None: the MJCF's)."""
     limit, dt = spec.actuator.effort_limit, spec.physics_dt
-    model = build_model(spec, xml_file)
+    model = build_model(spec, xml_file, solver=solver)
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     mu = float(model.geom_friction[floor, 0]) if floor >= 0 else 1.0
     effects = (
@@ -153,6 +201,7 @@ def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, 
             (Parameter("backlash", "rad", 0.0, 0.0, 0.08, 0.03),),
             lambda v: {"backlash": float(v[0])},
         ),
+        solver_effect(model),
     )
     return {e.name: e for e in effects}
 
@@ -168,6 +217,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "payload",
     "ground_friction",
     "backlash",
+    "contact_solver",
 )
 """The vocabulary's names, in report order (`vocabulary(spec)` has the same keys)."""
 

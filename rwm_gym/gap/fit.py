@@ -2,9 +2,9 @@
 
 Fitting (training episodes): the residual vector is the normalised state error of re-simulated windows over the first
 `fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are
-refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay)
-on their steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the
-optimum (`mujoco.sysid.calculate_intervals`).
+refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay, the
+solver's iteration counts and cone) on their steps, other multi-parameter ones by `scipy.optimize.least_squares`.
+Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
 step; the explained fraction is 1 - gap_after / gap_before; the score charges `penalty_per_parameter` per extra
@@ -223,6 +223,8 @@ def fit_effect(
     if first.step > 0 and len(effect.parameters) == 1:
         steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
+    elif all(p.step > 0 for p in effect.parameters):
+        values = discrete_search(effect, cost, start, (lo, hi))
     elif len(effect.parameters) == 1:
         found = optimize.minimize_scalar(
             lambda x: cost(np.array([x])),
@@ -254,6 +256,19 @@ def fit_effect(
         scope=effect.scope,
         rejected=rejected,
     )
+
+
+def discrete_search(effect: Effect, cost, start: np.ndarray, bracket: tuple[float, float]) -> np.ndarray:
+    """One sweep over the steps of an effect whose every parameter is discrete (the solver's iteration counts and
+    cone): the first within `bracket`, each other over its range, one at a time, the others held at the best so far.
+    Least squares would see no slope there."""
+    values = np.asarray(start, float).copy()
+    for i, p in enumerate(effect.parameters):
+        lo, hi = bracket if i == 0 else (p.low, p.high)
+        steps = np.unique(np.append(np.arange(lo, hi + p.step / 2, p.step), values[i]))
+        trials = [np.concatenate([values[:i], [x], values[i + 1 :]]) for x in steps]
+        values = trials[int(np.argmin([cost(t) for t in trials]))]
+    return values
 
 
 def fit_coordinatewise(

@@ -35,7 +35,7 @@ from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_win
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
-from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, SolverSettings
+from rwm_gym.physics.params import CONES, PhysicsParams, SolverSettings
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
 
@@ -55,9 +55,10 @@ class GapConfig:
     """Measured steps replayed before each window (fills the actuator delay buffer)."""
     learned_correction: bool = True
     """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
-    solver: SolverSettings | None = CONVERGED_SOLVER
-    """MuJoCo solver settings of every re-simulation (default: each step solved to convergence, not the fast MJCF's
-    4 iterations; see `resim.Resimulator`); None: the MJCF's own. The corrected MJCF keeps the MJCF's settings."""
+    solver: SolverSettings | None = None
+    """MuJoCo solver settings of every re-simulation, on top of the sim env's (None: the sim env's own, its `solver`
+    kwarg or its MJCF's, so the gap is that of the simulator as it runs; `CONVERGED_SOLVER`: each step solved to
+    convergence). A solver too coarse for the data is the `contact_solver` effect."""
 
 
 def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
@@ -107,8 +108,9 @@ def run_gap(
     train_ids, held_ids, held = held_out_windows(data, config)
     horizon = held.horizon
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
-    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=config.solver)
-    effects = vocabulary(spec, sim_kwargs.get("xml_file"))
+    solver = core.solver.then(config.solver)
+    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=solver)
+    effects = vocabulary(spec, sim_kwargs.get("xml_file"), solver)
 
     held, dropped_held = drop_diverged(resim, held, base, measured)
     train, dropped_train = drop_diverged(resim, train, base, measured)
@@ -155,6 +157,7 @@ def run_gap(
         "corrected": write_corrected(spec, corrected_params, out, sim_kwargs.get("xml_file"), sim_kwargs),
         "plots": plots,
         "sim": sim,
+        "solver": solver_section(resim, config),
         "measured": str(measured),
         "config": {
             "gap": dataclasses.asdict(config),
@@ -265,6 +268,19 @@ def _gap_numbers(before: np.ndarray, after: np.ndarray, horizons) -> dict:
         "gap_before_per_horizon": {str(h): float(v) for h, v in zip(horizons, before.mean(0))},
         "gap_after_per_horizon": {str(h): float(v) for h, v in zip(horizons, after.mean(0))},
         "gap_metric": "normalised state MSE ((sim - measured) / spec state std)^2 at each horizon, held-out windows",
+    }
+
+
+def solver_section(resim: Resimulator, config: GapConfig) -> dict:
+    """The solver every re-simulation ran with, as the compiled nominal model holds it, and where it came from."""
+    opt = resim.model(PhysicsParams()).opt
+    cone = next(name for name, value in CONES.items() if value == opt.cone)
+    return {
+        "iterations": int(opt.iterations),
+        "ls_iterations": int(opt.ls_iterations),
+        "noslip_iterations": int(opt.noslip_iterations),
+        "cone": cone,
+        "source": "the sim env's own" if config.solver is None else "the sim env's with --solver-iterations on top",
     }
 
 

@@ -4,7 +4,9 @@
 value leaves the model unchanged, so `PhysicsParams()` is the nominal robot. Per-joint fields take one value for all
 actuated joints or one value per joint (spec order). Everything here lands in the compiled `MjModel` (MuJoCo holds
 actuator delay natively), so the single env, the batched env and `mujoco.sysid` all see the same robot, except
-`backlash`, which no MJCF element holds: the simulators apply it (`dead_band`, `rwm_gym.physics.backlash`).
+`backlash`, which no MJCF element holds: the simulators apply it (`dead_band`, `rwm_gym.physics.backlash`). One
+field is not physical: `solver`, how exactly MuJoCo solves the robot's contacts, which the gap workflow fits as the
+effect `contact_solver` (a simulator whose solver is too coarse misses what the robot does).
 """
 
 from __future__ import annotations
@@ -52,11 +54,16 @@ class PhysicsParams:
     """Sliding friction coefficient of the floor (1); None keeps the model's."""
     backlash: PerJoint = 0.0
     """Total width of the gear dead band between motor and link (rad); an env option, not MJCF (see `backlash`)."""
+    solver: SolverSettings | None = None
+    """Solver settings applied on top of the env's (`SolverSettings`; None: the env's own). Not physics: the gap
+    workflow's `contact_solver` effect puts a finer solve here."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.solver, Mapping):
+            object.__setattr__(self, "solver", SolverSettings.from_dict(self.solver))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if value is None or isinstance(value, (bool, str)):
+            if value is None or isinstance(value, (bool, str, SolverSettings)):
                 continue
             numbers = np.asarray(value)
             if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):
@@ -74,7 +81,10 @@ class PhysicsParams:
         return cls(**{k: tuple(v) if isinstance(v, (list, np.ndarray)) else v for k, v in values.items()})
 
     def to_dict(self) -> dict[str, object]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        out = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        if out["solver"] is not None:  # only the settings it changes
+            out["solver"] = {k: v for k, v in out["solver"].items() if v is not None}
+        return out
 
     def replace(self, **changes: object) -> PhysicsParams:
         return dataclasses.replace(self, **changes)
@@ -107,6 +117,8 @@ class SolverSettings:
     """Line-search iterations per solver iteration (MuJoCo's default 50)."""
     noslip_iterations: int | None = None
     """No-slip post-solve iterations (0: off)."""
+    cone: str | None = None
+    """Friction cone: "pyramidal" or "elliptic" (MuJoCo's default "pyramidal")."""
 
     @classmethod
     def from_dict(cls, values: Mapping[str, object] | SolverSettings | None) -> SolverSettings:
@@ -119,6 +131,10 @@ class SolverSettings:
         return cls(**dict(values or {}))
 
     def apply(self, mj: mujoco.MjSpec) -> None:
+        if self.cone is not None:
+            if self.cone not in CONES:
+                raise ValueError(f"solver setting cone must be one of {sorted(CONES)}, got {self.cone!r}")
+            mj.option.cone = CONES[self.cone]
         for name in ("iterations", "ls_iterations", "noslip_iterations"):
             value = getattr(self, name)
             if value is not None:
@@ -126,6 +142,21 @@ class SolverSettings:
                     raise ValueError(f"solver setting {name} must be >= 0, got {value}")
                 setattr(mj.option, name, int(value))
 
+    def then(self, other: SolverSettings | None) -> SolverSettings:
+        """These settings with `other`'s (where not None) applied on top."""
+        if other is None:
+            return self
+        changes = {
+            f.name: getattr(other, f.name) for f in dataclasses.fields(other) if getattr(other, f.name) is not None
+        }
+        return dataclasses.replace(self, **changes)
+
+
+CONES: dict[str, int] = {
+    "pyramidal": int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
+    "elliptic": int(mujoco.mjtCone.mjCONE_ELLIPTIC),
+}
+"""MuJoCo's friction cones by name (`mjOption.cone`)."""
 
 CONVERGED_SOLVER = SolverSettings(iterations=100, ls_iterations=50)
 """MuJoCo's default iteration counts (no-slip as in the MJCF): each physics step solved to convergence."""
@@ -205,6 +236,8 @@ def build_spec(
     mj = mujoco.MjSpec.from_file(str(path))
     if solver is not None:
         solver.apply(mj)
+    if params.solver is not None:
+        params.solver.apply(mj)
     figures = JointFigures.of(spec, params)
     for i, name in enumerate(spec.actuator.joints):
         actuator, joint = mj.actuator(name), mj.joint(name)
@@ -240,25 +273,27 @@ class ModelCache:
     """`build_model` for many parameter sets of one robot, without compiling each.
 
     Fitting a sim-to-real gap re-simulates hundreds of candidate parameter sets, and compiling each took a sixth of a
-    fit's time. Each structure (payload or not, delay in physics steps, floor friction or not) is compiled once; the
-    figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the compiler derives from
-    them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The result equals
-    `build_model(spec, xml_file, params, solver)` field for field, up to rounding (tests/test_physics_params.py).
+    fit's time. Each structure (payload or not, delay in physics steps, floor friction or not, solver settings) is
+    compiled once; the figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the
+    compiler derives from them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The
+    result equals `build_model(spec, xml_file, params, solver)` field for field, up to rounding
+    (tests/test_physics_params.py).
     """
 
     def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None):
         self.spec, self.xml_file, self.solver = spec, xml_file, solver
-        self._templates: dict[tuple[bool, int, bool], mujoco.MjModel] = {}
+        self._templates: dict[tuple[bool, int, bool, SolverSettings | None], mujoco.MjModel] = {}
 
     def __call__(self, params: PhysicsParams | None = None) -> mujoco.MjModel:
         params = params or PhysicsParams()
         figures = JointFigures.of(self.spec, params)
-        key = (params.payload_mass > 0, figures.delay_steps, params.ground_friction is not None)
+        key = (params.payload_mass > 0, figures.delay_steps, params.ground_friction is not None, params.solver)
         if key not in self._templates:
             structure = PhysicsParams(
                 action_delay=params.action_delay,
                 payload_mass=1.0 if key[0] else 0.0,
                 ground_friction=1.0 if key[2] else None,
+                solver=params.solver,
             )
             self._templates[key] = build_model(self.spec, self.xml_file, structure, self.solver)
         template = self._templates[key]
