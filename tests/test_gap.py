@@ -200,7 +200,12 @@ EPISODES = {"backlash": 9}
 """Measured episodes per test where 6 leave too few held-out blocks for the significance test."""
 
 
-@pytest.mark.parametrize("name", [n for n in EFFECT_NAMES if n != "backlash"])
+ROBOT_EFFECTS = tuple(n for n in EFFECT_NAMES if n != "contact_solver")
+"""Effects make-measured can hide: its robot is solved to convergence, so a finer solve hides nothing
+(`contact_solver` is tested in test_gap_selection)."""
+
+
+@pytest.mark.parametrize("name", [n for n in ROBOT_EFFECTS if n != "backlash"])
 def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name):
     report = _hidden_and_check(tmp_path, name, episodes=EPISODES.get(name, 6))
     assert set(report) >= {
@@ -318,7 +323,7 @@ _KNOWN_LIMITS = {
         if (n, s) in _KNOWN_LIMITS
         else (n, s)
         for s in (0.5, 2.0)
-        for n in EFFECT_NAMES
+        for n in ROBOT_EFFECTS
     ],
 )
 def test_workflow_other_magnitudes(tmp_path, name, scale):

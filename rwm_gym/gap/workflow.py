@@ -29,6 +29,15 @@ from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_windo
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
+from rwm_gym.gap.noise_estimate import (
+    DIFFERENCE_ORDER,
+    MATERIAL_RATIO,
+    channels,
+    estimate_noise,
+    measured_noise,
+    noise_for_floor,
+    quantity_noise,
+)
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
@@ -36,6 +45,7 @@ from rwm_gym.gap.select import CrossFit, Selection, select_effects
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.physics.params import CONES, PhysicsParams, SolverSettings
+from rwm_gym.physics.robot import RobotLayout
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
 
@@ -116,7 +126,9 @@ def run_gap(
     train, dropped_train = drop_diverged(resim, train, base, measured)
     nominal_sim = resim.rollout(held, base)
     before = gap_per_window(spec, nominal_sim, held)
-    floor = noise_floor(resim, held, base, sensor_noise, floor_config)
+    noise_check = sensor_noise_check(resim, data, held, base, sensor_noise)
+    floor_noise = noise_check.pop("floor_noise")
+    floor = noise_floor(resim, held, base, floor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
     cross = None
     if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
@@ -125,7 +137,7 @@ def run_gap(
         effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
     )
     corrected_params, after = selection.params, selection.gap_after
-    corrected_floor, residual = _residual(resim, held, selection, floor, after, sensor_noise, fit_config, floor_config)
+    corrected_floor, residual = _residual(resim, held, selection, floor, after, floor_noise, fit_config, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
         learned = learned_section(
@@ -140,6 +152,8 @@ def run_gap(
         "noise_floor": {
             **floor_test,
             "sensor_noise": dataclasses.asdict(sensor_noise),
+            "floor_sensor_noise": dataclasses.asdict(floor_noise),
+            "noise_check": noise_check,
             "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
             f"model and re-simulated again, mean of {floor_config.draws} draws",
         },
@@ -268,6 +282,25 @@ def _gap_numbers(before: np.ndarray, after: np.ndarray, horizons) -> dict:
         "gap_before_per_horizon": {str(h): float(v) for h, v in zip(horizons, before.mean(0))},
         "gap_after_per_horizon": {str(h): float(v) for h, v in zip(horizons, after.mean(0))},
         "gap_metric": "normalised state MSE ((sim - measured) / spec state std)^2 at each horizon, held-out windows",
+    }
+
+
+def sensor_noise_check(
+    resim: Resimulator, data: Dataset, held: Windows, base: PhysicsParams, assumed: SensorNoise
+) -> dict:
+    """The measured data's sensor noise estimated from the data (`noise_estimate`) beside the assumed model, and the
+    noise the floor is computed with ("floor_noise", popped by the caller)."""
+    layout = RobotLayout.from_model(resim.model(base), resim.spec)
+    measured = measured_noise(data, layout, np.arange(data.num_episodes))
+    twin = resim.simulate(held, base)
+    leak = quantity_noise(channels(layout, twin["qpos"], twin["qvel"], twin["joint_torque"]))
+    floor_noise, table = noise_for_floor(assumed, estimate_noise(measured, leak))
+    return {
+        "floor_noise": floor_noise,
+        "quantities": table,
+        "method": f"robust std of the order-{DIFFERENCE_ORDER} differences of every measured episode, less (in "
+        "variance) that of the nominal re-simulation of the held-out windows (the motion's own leak); the floor takes "
+        f"a resolved estimate where it differs from the assumed value by more than {MATERIAL_RATIO}x either way",
     }
 
 
