@@ -94,7 +94,24 @@ def _verdict(report: dict) -> list[str]:
             f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n"
         ),
+        *_noise_check(floor.get("noise_check")),
     ]
+
+
+def _noise_check(check: dict | None) -> list[str]:
+    """The sensor noise estimated from the data beside the assumed model, one row per quantity."""
+    if not check:
+        return []
+    lines = [
+        "| sensor quantity | assumed std | estimated std | estimate / assumed | resolved | floor uses |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, row in check["quantities"].items():
+        lines.append(
+            f"| {name} | {row['assumed']:.3g} | {row['estimated']:.3g} | {row['ratio']:.2f} | "
+            f"{'yes' if row['resolved'] else 'no (motion dominates)'} | {row['used']} |"
+        )
+    return [*lines, "", f"Noise estimate: {check['method']}.\n"]
 
 
 def _named_effects(report: dict) -> list[str]:
