@@ -25,7 +25,7 @@ from rwm_gym.gap.learned import (
 )
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
-from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
+from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
@@ -253,27 +253,24 @@ def test_solver_settings_are_an_env_option_and_the_gap_default():
     assert GapConfig().solver is None  # the workflow re-simulates with the sim env's own settings
 
 
-@pytest.mark.xfail(
-    reason="not understood: passed in one run, in the next the sim's own solver left a max state error of 40 at the "
-    "true friction (the converged one 81)",
-    strict=False,
-)
 def test_the_gap_is_that_of_the_simulator_as_it_runs(tmp_path):
     """Data from the package's fast physics on a slippery floor: the sim env's own solver at the true friction
-    reproduces them; a converged solver does not (its own gap, which once read as `unexplained`)."""
+    reproduces them; a converged solver does not. The solver's warm start is state outside qpos/qvel that the
+    replayed steps rebuild: with one, a window at a touchdown is left far off (`resim.WARMUP`)."""
     hidden = {"ground_friction": [0.35]}
     path = make_measured(
         hidden, 2, tmp_path / "m.h5", max_steps=60, policy="gait", solver=None, noise=SensorNoise(scale=0.0),
         progress=False,
     )  # fmt: skip
     data = Dataset.load(path)
-    windows = make_windows(data, np.arange(2), 5, 7)
     truth = PhysicsParams(ground_friction=0.35)
-    errors = {
-        name: float(np.abs(Resimulator(SPEC, solver=solver).rollout(windows, truth) - windows.target).max())
-        for name, solver in (("own", None), ("converged", CONVERGED_SOLVER))
-    }
-    assert errors["own"] < 1e-3 < errors["converged"], errors
+
+    def error(solver, warmup: int = WARMUP) -> float:
+        windows = make_windows(data, np.arange(2), 5, 1, warmup)
+        return float(np.abs(Resimulator(SPEC, solver=solver).rollout(windows, truth) - windows.target).max())
+
+    errors = {"own": error(None), "converged": error(CONVERGED_SOLVER), "own, one replayed step": error(None, 1)}
+    assert errors["own"] < 1e-3 < min(errors["converged"], errors["own, one replayed step"]), errors
 
 
 def test_contact_solver_is_an_effect_charged_for_its_parameters(tmp_path):

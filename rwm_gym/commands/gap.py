@@ -39,7 +39,8 @@ class GapOptions:
     """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
     solver_iterations: int = 0
     """MuJoCo solver iterations per physics step of the re-simulations (0: the sim env's own, so the gap is that
-    of the simulator as it runs; 100: each step solved to convergence)"""
+    of the simulator as it runs, unless --solver-check finds a converged solve reproduces the data materially
+    better; 100: each step solved to convergence)"""
     world_model: str = "auto"
     """checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped one for
     AnymalD-MuJoCo-v0 (else none); none: skip them"""
@@ -60,7 +61,7 @@ OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
-    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction"})
+    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check"})
     add_group(
         parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
     )

@@ -40,11 +40,12 @@ from rwm_gym.gap.noise_estimate import (
 )
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
-from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
+from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
+from rwm_gym.gap.solver_check import choose_solver, corrected_solver, solver_settings
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
-from rwm_gym.physics.params import CONES, PhysicsParams, SolverSettings
+from rwm_gym.physics.params import PhysicsParams, SolverSettings
 from rwm_gym.physics.robot import RobotLayout
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
@@ -61,14 +62,17 @@ class GapConfig:
     """Rows between the starts of fitting windows."""
     eval_stride: int = 5
     """Rows between the starts of held-out windows."""
-    warmup: int = 2
-    """Measured steps replayed before each window (fills the actuator delay buffer)."""
+    warmup: int = WARMUP
+    """Measured steps replayed before each window (fills the actuator delay buffer and the solver's warm start)."""
     learned_correction: bool = True
     """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
     solver: SolverSettings | None = None
     """MuJoCo solver settings of every re-simulation, on top of the sim env's (None: the sim env's own, its `solver`
     kwarg or its MJCF's, so the gap is that of the simulator as it runs; `CONVERGED_SOLVER`: each step solved to
     convergence). A solver too coarse for the data is the `contact_solver` effect."""
+    solver_check: bool = True
+    """Fit the first selection step under a converged solve too, and re-simulate with it where it reproduces the data
+    materially better than the sim env's own solver (`gap.solver_check`; a no-op where that is converged)."""
 
 
 def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
@@ -118,12 +122,13 @@ def run_gap(
     train_ids, held_ids, held = held_out_windows(data, config)
     horizon = held.horizon
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
-    solver = core.solver.then(config.solver)
-    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=solver)
-    effects = vocabulary(spec, sim_kwargs.get("xml_file"), solver)
-
+    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=core.solver.then(config.solver))
     held, dropped_held = drop_diverged(resim, held, base, measured)
     train, dropped_train = drop_diverged(resim, train, base, measured)
+    solver_check = {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}
+    if config.solver_check:
+        resim, solver_check = choose_solver(resim, train, held, base, fit_config, progress)
+    effects = vocabulary(spec, sim_kwargs.get("xml_file"), resim.solver)
     nominal_sim = resim.rollout(held, base)
     before = gap_per_window(spec, nominal_sim, held)
     noise_check = sensor_noise_check(resim, data, held, base, sensor_noise)
@@ -137,6 +142,7 @@ def run_gap(
         effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
     )
     corrected_params, after = selection.params, selection.gap_after
+    carried = corrected_params.replace(solver=corrected_solver(resim, solver_check))  # what the corrected env runs
     corrected_floor, residual = _residual(resim, held, selection, floor, after, floor_noise, fit_config, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
@@ -167,11 +173,11 @@ def run_gap(
         "learned_correction": learned,
         "held_out_episodes": [int(e) for e in held_ids],
         "fit_episodes": [int(e) for e in train_ids],
-        "corrected_physics": corrected_params.to_dict(),
-        "corrected": write_corrected(spec, corrected_params, out, sim_kwargs.get("xml_file"), sim_kwargs),
+        "corrected_physics": carried.to_dict(),
+        "corrected": write_corrected(spec, carried, out, sim_kwargs.get("xml_file"), sim_kwargs),
         "plots": plots,
         "sim": sim,
-        "solver": solver_section(resim, config),
+        "solver": {**solver_settings(resim), "source": solver_source(config), "check": solver_check},
         "measured": str(measured),
         "config": {
             "gap": dataclasses.asdict(config),
@@ -188,7 +194,7 @@ def run_gap(
             held_ids,
             resim,
             base,
-            corrected_params,
+            carried,
             Path(world_model),
             out,
             wm_config,
@@ -304,17 +310,9 @@ def sensor_noise_check(
     }
 
 
-def solver_section(resim: Resimulator, config: GapConfig) -> dict:
-    """The solver every re-simulation ran with, as the compiled nominal model holds it, and where it came from."""
-    opt = resim.model(PhysicsParams()).opt
-    cone = next(name for name, value in CONES.items() if value == opt.cone)
-    return {
-        "iterations": int(opt.iterations),
-        "ls_iterations": int(opt.ls_iterations),
-        "noslip_iterations": int(opt.noslip_iterations),
-        "cone": cone,
-        "source": "the sim env's own" if config.solver is None else "the sim env's with --solver-iterations on top",
-    }
+def solver_source(config: GapConfig) -> str:
+    """Where the solver settings the check started from came from."""
+    return "the sim env's own" if config.solver is None else "the sim env's with --solver-iterations on top"
 
 
 def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object, str | None]:
