@@ -95,6 +95,19 @@ def _verdict(report: dict) -> list[str]:
             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n"
         ),
         *_noise_check(floor.get("noise_check")),
+        *_solver(report.get("solver")),
+    ]
+
+
+def _solver(solver: dict | None) -> list[str]:
+    """The solver the re-simulations ran with and why (`gap.solver_check`)."""
+    if not solver:
+        return []
+    check = solver.get("check", {})
+    taken = "a converged solve" if check.get("taken") == "converged" else solver["source"]
+    return [
+        f"Re-simulated with {taken} ({solver['iterations']} iterations, {solver['ls_iterations']} line-search, "
+        f"{solver['noslip_iterations']} no-slip, {solver['cone']} cone): {check.get('reason', '')}.\n"
     ]
 
 
