@@ -25,7 +25,7 @@ from rwm_gym.gap.learned import (
 )
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
-from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, make_windows, normalised_residual
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
@@ -255,8 +255,8 @@ def test_solver_settings_are_an_env_option_and_the_gap_default():
 
 def test_the_gap_is_that_of_the_simulator_as_it_runs(tmp_path):
     """Data from the package's fast physics on a slippery floor: the sim env's own solver at the true friction
-    reproduces them; a converged solver does not. The solver's warm start is state outside qpos/qvel that the
-    replayed steps rebuild: with one, a window at a touchdown is left far off (`resim.WARMUP`)."""
+    reproduces them, with 4 replayed steps; a converged solver does not. The solver's warm start is state outside
+    qpos/qvel that the replayed steps rebuild: with one, a window at a touchdown is left far off (`resim.WARMUP`)."""
     hidden = {"ground_friction": [0.35]}
     path = make_measured(
         hidden, 2, tmp_path / "m.h5", max_steps=60, policy="gait", solver=None, noise=SensorNoise(scale=0.0),
@@ -265,7 +265,7 @@ def test_the_gap_is_that_of_the_simulator_as_it_runs(tmp_path):
     data = Dataset.load(path)
     truth = PhysicsParams(ground_friction=0.35)
 
-    def error(solver, warmup: int = WARMUP) -> float:
+    def error(solver, warmup: int = 4) -> float:
         windows = make_windows(data, np.arange(2), 5, 1, warmup)
         return float(np.abs(Resimulator(SPEC, solver=solver).rollout(windows, truth) - windows.target).max())
 
