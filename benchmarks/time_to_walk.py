@@ -68,6 +68,34 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
     ),
     "envs512": ("PPO, 512 envs, fall tilt 30", "ppo", ["--num-envs=512", "--fall-tilt=30"]),
     "envs256": ("PPO, 256 envs, fall tilt 30", "ppo", ["--num-envs=256", "--fall-tilt=30"]),
+    "envs1024_gsde": (
+        "PPO, 1024 envs, fall tilt 30, bf16, gSDE exploration",
+        "ppo",
+        [
+            "--num-envs=1024",
+            "--fall-tilt=30",
+            "--matmul-precision=bfloat16",
+            "--use-sde",
+            "--log-std-init=-3.3",
+            "--target-kl=0.05",
+        ],
+    ),
+    "history": (
+        "PPO, 1024 envs, fall tilt 30, half the restarts commanded by their history, bf16 model",
+        "ppo",
+        ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
+    ),
+    "history_bf16_update": (
+        "the same with PPO's update in bf16",
+        "ppo",
+        [
+            "--num-envs=1024",
+            "--fall-tilt=30",
+            "--command-from-history=0.5",
+            "--matmul-precision=bfloat16",
+            "--update-precision=bfloat16",
+        ],
+    ),
     "shac": (
         "SHAC, 1024 envs, horizon 16, fall tilt 30",
         "shac",

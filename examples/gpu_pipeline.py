@@ -1,25 +1,26 @@
 """The whole pipeline on a GPU machine, each stage timed: collect -> train -> evaluate -> PPO in imagination (scored in
-physics). Written for a machine with NVIDIA GPUs. On one H100 collect, train and evaluate
-ran (figures in the docs' Results, "Scaling"); its PPO stage ran past the time allowed, and 2+ GPUs (torchrun) were
-not run. Run it and send `timings.json`.
+physics). Written for a machine with NVIDIA GPUs; this version of it has not been run on one (the docs' Results,
+"Scaling", keep an earlier version's H100 figures). Run it and send `timings.json`.
 
     python examples/gpu_pipeline.py                            # all GPUs torch sees, all CPU cores for physics
     python examples/gpu_pipeline.py --device cpu --episodes 2 --episode-steps 40 --iterations 4 \\
         --ppo-timesteps 256 --ppo-envs 8 --no-ppo-eval       # the smoke run of the tests
 
 Stages, as the commands a user would type (printed as they run):
-1. `rwm-gym collect --workers <CPU cores>`: scripted trot with action noise, then random actions; merged.
+1. `rwm-gym collect --workers <CPU cores> --backend <backend>`: scripted trot with action noise, then random actions;
+   merged.
 2. `torchrun --nproc_per_node=<GPUs> rwm-gym train --device cuda`: data-parallel (DDP, nccl) with one GPU per rank;
    `--batch-size` is the global batch, split over the GPUs. One GPU: plain `rwm-gym train`.
 3. `rwm-gym evaluate --device cuda` on the held-out episodes.
 4. `rwm-gym ppo --in imagination --device cuda`: PPO on many imagined robots, evaluated in physics (MuJoCo, CPU).
 
-Writes `timings.json` (per stage: command, wall seconds; the machine: GPU names, CPU count, load average) to --out.
+Writes `timings.json` to --out, atomically after every stage (an interrupted run keeps the stages it finished): per
+stage the command, its wall seconds and the load average after it; the machine (torch and CUDA versions, the device
+and GPU names, the CPU model, its core count and torch's thread count, the load average before) and the commit.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import shlex
@@ -31,6 +32,8 @@ from pathlib import Path
 
 import torch
 
+import rwm_gym
+from rwm_gym.atomic import write_json
 from rwm_gym.data.dataset import merge_datasets
 from rwm_gym.options import parse_dataclass_args
 
@@ -50,7 +53,9 @@ class Options:
     num_envs: int = 32
     """Simulations per collection worker (mujoco.batch)."""
     workers: int = 0
-    """Collection processes (0: one per CPU core)."""
+    """Collection workers (0: one per CPU core)."""
+    backend: str = "processes"
+    """Where the collection workers run: "processes" on this machine, or "ray" tasks on the Ray cluster."""
     gpus: int = 0
     """Training processes, one GPU each (0: every GPU torch sees; 1 with --device cpu)."""
     iterations: int = 20000
@@ -66,8 +71,47 @@ class Options:
     seed: int = 0
 
 
-def stage(name: str, command: list[str], timings: dict) -> None:
-    """Run one command, fail loudly, and record its wall time."""
+def cpu_model() -> str:
+    """The CPU's model name (Linux: /proc/cpuinfo), else what `platform` knows."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def commit() -> str | None:
+    """The checkout's commit, where this runs from a git checkout."""
+    done = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, check=False
+    )
+    return done.stdout.strip() or None
+
+
+def machine(device: str) -> dict:
+    """The hardware and software the stages ran on."""
+    cuda = torch.device(device).type == "cuda"
+    return {
+        "device": torch.cuda.get_device_name(0) if cuda else "cpu",
+        "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
+        "cpu_model": cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "rwm_gym": rwm_gym.__version__,
+        "commit": commit(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "loadavg_before": os.getloadavg(),
+    }
+
+
+def stage(name: str, command: list[str], timings: dict, record: Path) -> None:
+    """Run one command, fail loudly, record its wall time and write the record so far."""
     print(f"[{name}] {shlex.join(command)}", flush=True)
     tic = time.perf_counter()
     subprocess.run(command, check=True)
@@ -76,6 +120,7 @@ def stage(name: str, command: list[str], timings: dict) -> None:
         "wall_s": time.perf_counter() - tic,
         "loadavg_after": os.getloadavg(),
     }
+    write_json(record, timings)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -86,17 +131,8 @@ def main(argv: list[str] | None = None) -> dict:
     gpus = options.gpus or (torch.cuda.device_count() if cuda else 1)
     workers = options.workers or os.cpu_count() or 1
     cli = [sys.executable, "-m", "rwm_gym.cli"]
-    timings = {
-        "options": asdict(options),
-        "machine": {
-            "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
-            "cpu_count": os.cpu_count(),
-            "platform": platform.platform(),
-            "torch": torch.__version__,
-            "loadavg_before": os.getloadavg(),
-        },
-        "stages": {},
-    }
+    record = out / "timings.json"
+    timings = {"options": asdict(options), "machine": machine(options.device), "stages": {}}
 
     parts = []
     for policy, episodes, noise, seed in (
@@ -117,6 +153,8 @@ def main(argv: list[str] | None = None) -> dict:
                 str(options.num_envs),
                 "--workers",
                 str(workers),
+                "--backend",
+                options.backend,
                 "--action-noise",
                 str(noise),
                 "--max-steps",
@@ -128,6 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
                 "--overwrite",
             ],
             timings,
+            record,
         )
         parts.append(path)
     data = out / "data" / "mix.h5"
@@ -160,6 +199,7 @@ def main(argv: list[str] | None = None) -> dict:
             "--quiet",
         ],
         timings,
+        record,
     )
     stage(
         "evaluate",
@@ -177,6 +217,7 @@ def main(argv: list[str] | None = None) -> dict:
             "--quiet",
         ],
         timings,
+        record,
     )
     ppo = [
         *cli,
@@ -196,10 +237,10 @@ def main(argv: list[str] | None = None) -> dict:
         "--out",
         str(out / "policy.zip"),
     ]
-    stage("ppo", ppo + ([] if options.ppo_eval else ["--no-eval"]), timings)
+    stage("ppo", ppo + ([] if options.ppo_eval else ["--no-eval"]), timings, record)
 
     timings["total_s"] = sum(s["wall_s"] for s in timings["stages"].values())
-    (out / "timings.json").write_text(json.dumps(timings, indent=2))
+    write_json(record, timings)
     for name, entry in timings["stages"].items():
         print(f"{name:16s} {entry['wall_s']:8.1f} s")
     return timings

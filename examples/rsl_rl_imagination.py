@@ -2,12 +2,18 @@
 
     pip install ".[rsl-rl]"
     python examples/rsl_rl_imagination.py --num-envs 512 --iterations 50
+    torchrun --nproc_per_node=2 examples/rsl_rl_imagination.py --num-envs 256      # 2 CPU processes (gloo)
+    torchrun --nproc_per_node=8 examples/rsl_rl_imagination.py --device cuda --num-envs 4096   # 8 GPUs (nccl)
 
 The imagined env `RWM-AnymalD-v0` on the shipped world model, presented as rsl_rl's `VecEnv`
 (`rwm_gym.vector.rsl_rl_vec_env.ImaginedRslRlVecEnv`); the runner gets RWM's PPO settings (`PPOConfig`, turned into
 rsl_rl's `train_cfg` by `rsl_rl_train_cfg`) and is used as it comes: its TensorBoard log, checkpoints
 (`model_<it>.pt`) and console report land in `--log-dir`. The trained policy is then run in MuJoCo physics on the
 scoring command set (`rwm-gym score`'s), beside the zero-action floor. Options are the fields of `Args`.
+
+Under torchrun every rank trains on its own batch of `--num-envs` imagined robots (rank r's env i seeded
+seed + r x num-envs + i, its action noise seeded seed + r) with rsl_rl's own multi-GPU mode
+(`rwm_gym.rl.rsl_rl_runner`: gloo on the CPU, nccl and one GPU per rank on cuda); rank 0 logs, saves and scores.
 """
 
 from __future__ import annotations
@@ -39,11 +45,11 @@ class Args:
     uncertainty_penalty: float = 0.0
     """RWM-U's lambda: reward -lambda * ensemble disagreement * dt."""
     seed: int = 0
-    """Seeds the envs (env i: seed + i) and torch."""
+    """Seeds the envs (env i: seed + i; under torchrun, rank r's: seed + r x num_envs + i) and torch (seed + r)."""
     log_dir: str = "runs/rsl_rl_imagination"
     """The runner's log folder (TensorBoard, checkpoints)."""
     device: str = "cpu"
-    """Where the world model, the policy and the tensors live (cpu or cuda)."""
+    """Where the world model, the policy and the tensors live (cpu or cuda; under torchrun, cuda is cuda:LOCAL_RANK)."""
     threads: int = 1
     """torch CPU threads."""
     score_seeds: int = 1
@@ -65,32 +71,41 @@ def policy_function(policy, device: str):
 
 
 def main(args: Args) -> dict:
-    from rsl_rl.runners import OnPolicyRunner
-
+    from rwm_gym.model.distributed import close_world, init_world, rank_device
+    from rwm_gym.rl.rsl_rl_runner import DistributedOnPolicyRunner
     from rwm_gym.rl.rsl_rl_train_cfg import rsl_rl_train_cfg
     from rwm_gym.vector.rsl_rl_vec_env import ImaginedRslRlVecEnv
 
+    world = init_world(args.device)  # torchrun's ranks join the process group here; a plain run is a world of one
+    device = str(rank_device(args.device, world))
     torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
+    torch.manual_seed(args.seed + world.rank)
     env = ImaginedRslRlVecEnv(
         args.checkpoint,
         args.num_envs,
-        seed=args.seed,
-        device=args.device,
+        seed=args.seed + world.rank * args.num_envs,
+        device=device,
         reset_data=args.reset_data,
         episode_steps=args.episode_steps,
         uncertainty_penalty=args.uncertainty_penalty,
     )
     train_cfg = rsl_rl_train_cfg(PPOConfig(num_envs=args.num_envs), run_name="rwm_imagination")
-    runner = OnPolicyRunner(env, train_cfg, log_dir=args.log_dir, device=args.device)
+    log_dir = args.log_dir if world.is_main else None
+    runner = DistributedOnPolicyRunner(env, train_cfg, log_dir=log_dir, device=device)
     runner.learn(num_learning_iterations=args.iterations)
-    result = {"imagined_steps": args.iterations * train_cfg["num_steps_per_env"] * args.num_envs}
-    print(f"trained {result['imagined_steps']} imagined steps; the runner's log and checkpoints are in {args.log_dir}")
+    close_world()
+    result = {"imagined_steps": args.iterations * train_cfg["num_steps_per_env"] * args.num_envs * world.size}
+    if not world.is_main:
+        return result
+    print(
+        f"trained {result['imagined_steps']} imagined steps on {world.size} process(es); the runner's log and "
+        f"checkpoints are in {args.log_dir}"
+    )
 
     if args.score_seeds > 0:
         from rwm_gym.rl.score import score, summary_line
 
-        policy = policy_function(runner.get_inference_policy(device=args.device), args.device)
+        policy = policy_function(runner.get_inference_policy(device=device), device)
         trained = score(policy, seeds=args.score_seeds, steps=args.score_steps)
         floor = score("zero", seeds=args.score_seeds, steps=args.score_steps)
         print(summary_line("rsl_rl PPO in imagination", trained))

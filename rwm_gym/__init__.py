@@ -22,7 +22,7 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
 
 from rwm_gym.registration import register_all
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 # public name -> the module that defines it (imported on first access)
 EXPORTS: dict[str, str] = {
@@ -47,6 +47,7 @@ EXPORTS: dict[str, str] = {
     "make_ppo": "rwm_gym.rl.ppo",
     "learn": "rwm_gym.rl.ppo",
     "rsl_rl_train_cfg": "rwm_gym.rl.rsl_rl_train_cfg",
+    "DistributedOnPolicyRunner": "rwm_gym.rl.rsl_rl_runner",
     "MBPOConfig": "rwm_gym.rl.mbpo",
     "mbpo": "rwm_gym.rl.mbpo",
     "SHACConfig": "rwm_gym.rl.shac",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -242,7 +243,9 @@ def test_gpu_pipeline_runs_every_stage_on_the_cpu(tmp_path):
     )
     assert list(timings["stages"]) == ["collect_gait", "collect_random", "train", "evaluate", "ppo"]
     assert (tmp_path / "rwm.safetensors").is_file() and (tmp_path / "policy.zip").is_file()
-    assert (tmp_path / "timings.json").is_file()
+    record = json.loads((tmp_path / "timings.json").read_text())
+    assert record["stages"].keys() == timings["stages"].keys() and record["machine"]["device"] == "cpu"
+    assert record["machine"]["cpu_model"] and record["machine"]["torch_threads"] >= 1 and record["machine"]["torch"]
 
 
 def test_rsl_rl_example_trains_in_imagination_and_scores_in_physics(tmp_path):

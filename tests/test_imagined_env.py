@@ -381,3 +381,25 @@ def test_random_first_episode_length_spreads_the_first_restarts(checkpoint):
         _, _, _dones, infos = venv.step(np.zeros((32, 12), dtype=np.float32))
         ends.append(sum(info.get("TimeLimit.truncated", False) for info in infos))
     assert sum(ends) >= 20 and max(ends) < 32  # restarts come on different steps, not all at once
+
+
+def test_command_from_history_gives_a_share_of_restarts_the_velocity_their_history_moves_at(checkpoint):
+    from rwm_gym.imagination.core import HISTORY_COMMAND_ROWS, ImaginedCore
+    from rwm_gym.imagination.options import ImaginationOptions
+
+    n = 64
+    spec = load_spec("anymal_d")
+    drawn = ImaginedCore(checkpoint, n)
+    drawn.reset(np.arange(n), seeds=list(range(n)))
+    core = ImaginedCore(checkpoint, n, options=ImaginationOptions(command_from_history=0.5))
+    core.reset(np.arange(n), seeds=list(range(n)))
+    windows = core.reset_windows.gather(np.array([core.reset_windows.draw(np.random.default_rng(i)) for i in range(n)]))
+    recent = windows.states[:, -HISTORY_COMMAND_ROWS:]
+    s = spec.state_slices
+    moving = np.concatenate([recent[:, :, s["base_lin_vel"]][:, :, :2], recent[:, :, s["base_ang_vel"]][:, :, 2:]], 2)
+    velocity = np.clip(moving.mean(axis=1), spec.command.low, spec.command.high)
+    from_history = np.all(np.isclose(core.command, velocity, atol=1e-5), axis=1)
+    kept = np.all(core.command == drawn.command, axis=1)
+    assert 16 <= from_history.sum() <= 48 and np.all(from_history | kept)  # each env: its history's, or its draw
+    with pytest.raises(ValueError, match="command_from_history"):
+        ImaginationOptions(command_from_history=1.5)

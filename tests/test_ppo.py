@@ -633,3 +633,38 @@ def test_state_dependent_exploration_holds_its_noise_and_saves_a_policy_that_loa
     assert loaded.use_sde
     action, _ = loaded.predict(obs.numpy(), deterministic=True)
     np.testing.assert_allclose(action, model.predict(obs.numpy(), deterministic=True)[0], atol=1e-6)
+
+
+def test_bf16_updates_train_in_autocast_while_rollouts_and_heads_stay_float32(tiny_checkpoint, monkeypatch):
+    """`update_precision="bfloat16"`: SB3's update runs under autocast, the rollouts and the action / value heads do
+    not, and training ends with autocast off."""
+    from rwm_gym.rl.ppo import update_callbacks
+
+    config = replace(TINY, update_precision="bfloat16")
+    env = make_env("imagination", config.num_envs, checkpoint=tiny_checkpoint, seed=0, env_kwargs={"episode_steps": 16})
+    model = make_ppo(env, config, seed=0)
+    seen = {"train": [], "collect": [], "heads": []}
+    train, step_async = model.train, model.env.step_async
+
+    def spy_train():
+        seen["train"].append(torch.is_autocast_enabled("cpu"))
+        obs = torch.zeros(2, env.observation_space.shape[0])
+        latent_pi, latent_vf = model.policy.mlp_extractor(model.policy.extract_features(obs))
+        heads = (model.policy.action_net(latent_pi), model.policy.value_net(latent_vf))
+        seen["heads"].append({h.dtype for h in heads})
+        train()
+
+    def spy_step(actions):
+        seen["collect"].append(torch.is_autocast_enabled("cpu"))
+        step_async(actions)
+
+    monkeypatch.setattr(model, "train", spy_train)
+    monkeypatch.setattr(model.env, "step_async", spy_step)
+    learn(
+        model, timesteps=3 * config.num_envs * config.n_steps, progress=False, callbacks=update_callbacks(config, model)
+    )
+    assert seen["train"] == [True] * 3 and seen["collect"] == [False] * (3 * config.n_steps)
+    assert seen["heads"] == [{torch.float32}] * 3
+    assert not torch.is_autocast_enabled("cpu")
+    with pytest.raises(ValueError, match="update_precision"):
+        PPOConfig(update_precision="float16")

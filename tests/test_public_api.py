@@ -32,7 +32,7 @@ def test_import_loads_neither_torch_nor_mujoco() -> None:
 @pytest.mark.parametrize("name", sorted(rwm_gym.EXPORTS))
 def test_every_export_is_defined_where_the_map_says(name: str) -> None:
     module = rwm_gym.EXPORTS[name]
-    if module == "rwm_gym.vector.rsl_rl_vec_env":
+    if module in ("rwm_gym.vector.rsl_rl_vec_env", "rwm_gym.rl.rsl_rl_runner"):
         pytest.importorskip("rsl_rl", reason='needs the optional extra: pip install ".[rsl-rl]"')
     assert getattr(rwm_gym, name) is getattr(importlib.import_module(module), name)
     assert name in rwm_gym.__all__ and name in dir(rwm_gym)

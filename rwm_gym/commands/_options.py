@@ -10,6 +10,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from rwm_gym.options import add_dataclass_options, option
+from rwm_gym.workers import BACKENDS
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,17 @@ class RunFolderOptions:
     """with --run-dir: updates (PPO: rollouts) between resume points"""
     snapshot_every: int = 25
     """with --run-dir: updates (PPO: rollouts) between policy snapshots"""
+
+
+@dataclass(frozen=True)
+class WorkerOptions:
+    """Workers a command's physics episodes are split over (`rwm_gym.workers`): the same results as one."""
+
+    workers: int = 1
+    """workers the episodes are split over, each a batched core of a block of them; the same results as one"""
+    backend: str = option("processes", choices=BACKENDS)
+    """where the workers run: spawned processes on this machine, or Ray tasks on the cluster `ray start` made (else
+    a local one; needs pip install 'rwm-gym[ray]')"""
 
 
 def add_group(

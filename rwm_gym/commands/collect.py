@@ -8,10 +8,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import rwm_gym
-from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, add_group
+from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, WorkerOptions, add_group
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.options import non_negative_float, option
+from rwm_gym.workers import RayMissing
 
 
 @dataclass(frozen=True)
@@ -28,9 +29,6 @@ class CollectOptions:
     """episode k starts from seed + k"""
     num_envs: int = 8
     """simulations stepped together"""
-    workers: int = 1
-    """processes collecting side by side, each with --num-envs simulations; the file is the same whatever the
-    number"""
     action_noise: float = option(0.0, parse=non_negative_float)
     """Gaussian std added to the policy's actions"""
     max_steps: int | None = None
@@ -41,7 +39,7 @@ class CollectOptions:
     by default; {"solver": {"iterations": 100}} solves each step to convergence"""
 
 
-OPTIONS = (PhysicsEnvOptions, CollectOptions, OverwriteOption)
+OPTIONS = (PhysicsEnvOptions, CollectOptions, WorkerOptions, OverwriteOption)
 """The dataclasses the flags of `rwm-gym collect` come from."""
 
 
@@ -81,12 +79,13 @@ def run(args: argparse.Namespace) -> int:
             env_kwargs=env_kwargs,
             overwrite=args.overwrite,
             workers=args.workers,
+            backend=args.backend,
         )
     except KeyboardInterrupt:
         kept = f"{args.out} is unchanged" if replacing else f"the finished episodes are in {args.out} (complete=false)"
         print(f"rwm-gym collect: interrupted; {kept}", file=sys.stderr)
         return 130
-    except (ValueError, TypeError, OSError, DatasetError) as err:
+    except (ValueError, TypeError, OSError, DatasetError, RayMissing) as err:
         print(f"rwm-gym collect: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)

@@ -37,6 +37,7 @@ from rwm_gym.rl.ppo import (
     learn,
     make_env,
     make_ppo,
+    update_callbacks,
     warm_up_critic,
 )
 from rwm_gym.rl.warm_start import CloneConfig
@@ -198,7 +199,7 @@ def _train(args: argparse.Namespace) -> int:
             timesteps=args.timesteps,
             minutes=args.minutes,
             target_kl=config.target_kl,
-            callbacks=_tensorboard(args, model),
+            callbacks=(*update_callbacks(config, model), *_tensorboard(args, model)),
             anneal_steps=anneal_steps(config, args.timesteps),
         )
     out = save_policy(model, args.out)
@@ -386,7 +387,7 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imag
                 timesteps=remaining,
                 minutes=args.minutes,
                 target_kl=config.target_kl,
-                callbacks=(checkpoint, *_tensorboard(args, model)),
+                callbacks=(checkpoint, *update_callbacks(config, model), *_tensorboard(args, model)),
                 on_rollout=checkpoint.log_row,
                 anneal_steps=anneal_steps(config, args.timesteps),
             )

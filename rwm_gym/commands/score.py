@@ -7,10 +7,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.atomic import write_json, write_text
-from rwm_gym.commands._options import OverwriteOption, add_group
+from rwm_gym.commands._options import OverwriteOption, WorkerOptions, add_group
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
 from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
+from rwm_gym.workers import RayMissing, check_backend, uses_workers
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,12 +36,9 @@ class ScoreOptions:
     """random commands in the set, beside standing and 1 m/s forward (default: 16)"""
     video: bool = False
     """also write walk.gif and walk.png (needs offscreen GL)"""
-    workers: int = 1
-    """processes the physics episodes are split over, each a batched core of a block of them; the same figures as
-    one (default: 1)"""
 
 
-OPTIONS = (ScoreOptions, OverwriteOption)
+OPTIONS = (ScoreOptions, WorkerOptions, OverwriteOption)
 """The dataclasses the flags of `rwm-gym score` come from."""
 
 
@@ -56,8 +54,12 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
     if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1) or args.workers < 1:
         raise SystemExit("rwm-gym score: --seeds, --steps and --workers must be >= 1, --commands >= 0")
-    if args.workers > 1 and args.checkpoint is not None:
+    if uses_workers(args.workers, args.backend) and args.checkpoint is not None:
         raise SystemExit("rwm-gym score: --workers splits physics episodes; a --checkpoint scores in one process")
+    try:
+        check_backend(args.backend)
+    except RayMissing as err:
+        raise SystemExit(f"rwm-gym score: {err}") from None
     inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
     try:
         for name in ("score.md", "score.png", "walk.gif", "walk.png"):
@@ -91,11 +93,13 @@ def _score(args: argparse.Namespace) -> int:
         checkpoint=args.checkpoint,
         reset_data=args.reset_data,
         workers=args.workers,
+        backend=args.backend,
     )
-    if args.workers > 1:  # each process loads the policy itself
+    in_workers = uses_workers(args.workers, args.backend)
+    if in_workers:  # each worker loads the policy itself
         policy = args.policy
     result = score(policy, **options)
-    floor = result if args.policy == "zero" else score("zero" if args.workers > 1 else zero_policy, **options)
+    floor = result if args.policy == "zero" else score("zero" if in_workers else zero_policy, **options)
     table = format_table(result)
     lines = [
         summary_line(f"policy {args.policy} in {where}", result),

@@ -1,7 +1,8 @@
 """Collect episodes from a physics env into an HDF5 dataset (`rwm-gym collect`).
 
-Runs N envs of a batched physics core side by side, in one process or in `--workers` processes; episode k always
-starts from seed `seed + k` (env and policy), so its content does not depend on N or on the workers. One writer appends
+Runs N envs of a batched physics core side by side, in one process or in `--workers` workers (spawned processes or
+Ray tasks, `rwm_gym.workers`); episode k always starts from seed `seed + k` (env and policy), so its content does not
+depend on N, on the workers or on the backend. One writer appends
 the episodes in episode order and flushes each at once: an interrupted collection keeps every episode written (those
 that finished before an earlier one are held back until it is written).
 """
@@ -10,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import inspect
-import os
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +25,7 @@ from rwm_gym.policies.base import Policy
 from rwm_gym.policies.factory import make_policy
 from rwm_gym.registration import env_name, make_physics_core
 from rwm_gym.spec import TaskSpec
+from rwm_gym.workers import check_backend, run_in_workers, threads_per_worker, uses_workers
 
 ROW_FIELDS = ("state", "contact", "foot_height", "terminated", "command", "qpos", "qvel")
 
@@ -71,17 +72,21 @@ def collect(
     overwrite: bool = False,
     progress: bool = True,
     workers: int = 1,
+    backend: str = "processes",
 ) -> Path:
     """Collect `episodes` episodes of `env_id` (a physics id, a spec path or a TaskSpec) driven by `policy` into `out`;
     returns the path.
 
     max_steps caps each episode's length (default: the spec's episode length). env_kwargs go to the physics core
-    (e.g. `xml_file`, `physics`). workers > 1 runs that many processes, each a batched core of `num_envs` envs, on
-    blocks of episode numbers (`policy` must then be a name or a path); this process writes every episode in episode
-    order, so the file is the same, byte for byte, whatever `workers` and `num_envs` (tested for the random and gait
-    policies; an SB3 policy acts on a batch, whose float rounding may depend on its size).
+    (e.g. `xml_file`, `physics`). workers > 1 (or backend "ray") runs that many workers of `backend` ("processes" or
+    "ray", see `rwm_gym.workers`), each a batched core of `num_envs` envs, on blocks of episode numbers (`policy` must
+    then be a name or a path); this process writes every episode in episode order, so the file is the same, byte for
+    byte, whatever `workers`, `backend` and `num_envs` (tested for the random and gait policies; an SB3 policy acts on
+    a batch, whose float rounding may depend on its size).
     """
-    _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers)
+    in_workers = uses_workers(workers, backend)
+    _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers, in_workers)
+    check_backend(backend)
     job = _Job(
         env_id,
         policy,
@@ -90,7 +95,7 @@ def collect(
         action_noise,
         max_steps,
         dict(env_kwargs or {}),
-        threads=0 if workers == 1 else max(1, (os.cpu_count() or 1) // workers),
+        threads=threads_per_worker(workers, backend) if in_workers else 0,
     )
     runner = _Runner(job)
     spec, core, horizon = runner.core.spec, runner.core, runner.horizon
@@ -111,18 +116,20 @@ def collect(
         DatasetWriter(out, info, overwrite=overwrite) as writer,
         tqdm(total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress) as bar,
     ):
-        if workers == 1:
-            finished = runner.run(range(episodes))
-        else:
+        if in_workers:
             del runner, core  # the workers build their own
-            finished = _fan_out(job, episodes, workers)
+            finished = _fan_out(job, episodes, workers, backend)
+        else:
+            finished = runner.run(range(episodes))
         for episode in _in_order(finished):
             writer.append_episode(episode)
             bar.update(1)
     return out
 
 
-def _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers) -> None:
+def _check_request(
+    env_id, policy, episodes, out, max_steps, action_noise, env_kwargs, overwrite, workers, in_workers
+) -> None:
     """`collect`'s arguments checked before anything runs: counts, noise, the output (not an input, not another
     run's) and what the workers can carry; a ValueError or DatasetError of one line otherwise."""
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
@@ -141,8 +148,8 @@ def _check_request(env_id, policy, episodes, out, max_steps, action_noise, env_k
     check_output(out, inputs=inputs, overwrite=overwrite)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    if workers > 1 and not isinstance(policy, str):
-        raise ValueError("collect with workers > 1 needs the policy as a name or a path, not an object")
+    if in_workers and not isinstance(policy, str):
+        raise ValueError("collect in workers needs the policy as a name or a path, not an object")
 
 
 def finished_collection(path: str | Path, *, episodes: int, seed: int, what: str = "this collection") -> bool:
@@ -258,22 +265,20 @@ _WORKER: _Runner | None = None
 
 
 def _worker_block(job: _Job, numbers: range) -> list[tuple[int, dict]]:
-    """A worker process's share: the episodes of one block of numbers (the core is built once per process)."""
+    """A worker's share: the episodes of one block of numbers (the core is built once per process)."""
     global _WORKER
     if _WORKER is None or _WORKER.job != job:
         _WORKER = _Runner(job)
     return list(_WORKER.run(numbers))
 
 
-def _fan_out(job: _Job, episodes: int, workers: int) -> Iterator[tuple[int, dict]]:
-    """Episodes from `workers` processes; blocks of numbers go to whichever worker is free and come back in order."""
-    import multiprocessing
-
+def _fan_out(job: _Job, episodes: int, workers: int, backend: str) -> Iterator[tuple[int, dict]]:
+    """Episodes from `workers` workers of `backend`; blocks of numbers go to whichever worker is free and come back
+    in order."""
     block = max(1, min(4 * job.num_envs, -(-episodes // workers)))  # a few waves of envs, all workers busy
     blocks = [range(a, min(a + block, episodes)) for a in range(0, episodes, block)]
-    with multiprocessing.get_context("spawn").Pool(workers) as pool:
-        for result in pool.imap(functools.partial(_worker_block, job), blocks):
-            yield from result
+    for result in run_in_workers(functools.partial(_worker_block, job), blocks, workers, backend):
+        yield from result
 
 
 def stack_episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:

@@ -45,6 +45,11 @@ def default_checkpoint(env_id: str = "RWM-AnymalD-v0") -> Path:
 MATMUL_PRECISIONS = dict(zip(MATMUL_PRECISION_NAMES, (None, torch.bfloat16), strict=True))
 """`ImaginationOptions.matmul_precision` -> the dtype handed to the model (None: its weights' own)."""
 
+HISTORY_COMMAND_NAMES = ("vx", "vy", "yaw_rate")
+"""The commands `ImaginationOptions.command_from_history` reads off a history: base-frame planar velocity, yaw rate."""
+HISTORY_COMMAND_ROWS = 10
+"""Last rows of a history window whose mean velocity becomes its command (0.2 s at 50 Hz: about a trot step)."""
+
 
 def tilt_degrees(projected_gravity: np.ndarray) -> np.ndarray:
     """(N,) angle between the base's z axis and up, from the gravity direction in the base frame (N, 3)."""
@@ -141,6 +146,14 @@ class ImaginedCore:
                 f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
                 f"limit, which {name} has not"
             )
+        if self.options.command_from_history > 0 and (
+            list(self.spec.command.names) != list(HISTORY_COMMAND_NAMES)
+            or not {"base_lin_vel", "base_ang_vel"} <= set(slices)
+        ):
+            raise ValueError(
+                f"{self.checkpoint}: command_from_history needs commands {', '.join(HISTORY_COMMAND_NAMES)} and "
+                f"base_lin_vel and base_ang_vel state groups, which {name} has not"
+            )
         if self.options.push_interval_s > 0 and "base_lin_vel" not in slices:
             raise ValueError(
                 f"{self.checkpoint}: push_interval_s needs a base_lin_vel state group, which {name} has not"
@@ -236,6 +249,8 @@ class ImaginedCore:
         self.foot_height[ids] = windows.foot_height
         self.last_action[ids] = windows.actions[:, -1]
         self.task.reset(ids, [self.rngs[i] for i in ids], commands)
+        if commands is None and self.options.command_from_history > 0:
+            self._command_from_history(ids, windows.states)
         self.steps[ids] = 0
         if self.options.random_first_episode_length:
             for i in ids[~self.started[ids]]:
@@ -243,6 +258,19 @@ class ImaginedCore:
         self.started[ids] = True
         self.uncertainty[ids] = 0.0
         return self.observe(ids)
+
+    def _command_from_history(self, ids: np.ndarray, states: np.ndarray) -> None:
+        """Give a share of the restarted envs `ids` the velocity their history windows (states (n, T, S), SI) end at
+        as their command (`ImaginationOptions.command_from_history`); each env decides with its own generator."""
+        chosen = np.array([self.rngs[i].random() < self.options.command_from_history for i in ids])
+        if not chosen.any():
+            return
+        s, recent = self.spec.state_slices, states[chosen, -HISTORY_COMMAND_ROWS:]
+        velocity = np.concatenate(
+            [recent[:, :, s["base_lin_vel"]][:, :, :2], recent[:, :, s["base_ang_vel"]][:, :, 2:]], axis=2
+        ).mean(axis=1)
+        command = self.spec.command
+        self.task.command[ids[chosen]] = np.clip(velocity, command.low, command.high)
 
     def _warm_hidden(self, windows, member: torch.Tensor | None = None):
         """The model's hidden state after replaying real history windows (`ResetWindow`s stacked)."""

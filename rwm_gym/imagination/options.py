@@ -46,6 +46,11 @@ class ImaginationOptions:
     every PPO rollout sees the same phase of its episodes."""
     resample_commands: bool = True
     """Resample commands on the spec's period (off: one command per episode)."""
+    command_from_history: float = 0.0
+    """Share of restarts whose command is the velocity their real history was moving at (its last rows' mean vx, vy
+    and yaw rate, within the command range) instead of a fresh draw: the episode starts mid-gait with that gait's
+    own goal (reference-state initialisation), so a young policy is paid for keeping a gait before it has found one
+    (0: every command drawn; needs commands named vx, vy, yaw_rate)."""
     push_interval_s: float = 0.0
     """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
     push_velocity: float = 0.5
@@ -68,6 +73,8 @@ class ImaginationOptions:
     ANYmal model: benchmarks/RESULTS.md). Gates, hidden state and heads stay float32."""
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.command_from_history <= 1.0:
+            raise ValueError(f"ImaginationOptions.command_from_history {self.command_from_history} is not in [0, 1]")
         if self.matmul_precision not in MATMUL_PRECISION_NAMES:
             raise ValueError(
                 f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "

@@ -280,7 +280,7 @@ class _Loop:
         from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
         from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
         from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
-        from rwm_gym.rl.ppo import learn, load_ppo, save_policy
+        from rwm_gym.rl.ppo import learn, load_ppo, save_policy, update_callbacks
         from rwm_gym.rl.tensorboard import tensorboard_callbacks
 
         config, out, previous = self.config, self.out, report["log"][-1]
@@ -300,7 +300,7 @@ class _Loop:
             timesteps=config.ppo_timesteps,
             target_kl=self.ppo_config.target_kl,
             progress=self.progress,
-            callbacks=tensorboard_callbacks(policy, self.logger),
+            callbacks=(*update_callbacks(self.ppo_config, policy), *tensorboard_callbacks(policy, self.logger)),
         )
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)

@@ -1,15 +1,16 @@
 """`rwm-gym score`: a policy's tracking score in physics (or in a world model), beside the zero-action floor.
 
     rwm-gym score --policy P.zip --out DIR [--checkpoint CKPT [--reset-data H5]] [--video] [--workers N]
+                  [--backend processes|ray]
 
 Runs the policy on the fixed scoring command set (`scoring_commands`: standing, 1 m/s forward and 16 commands drawn
 from the spec's ranges with a fixed seed), `--seeds` episodes each, commands held for the whole 20 s episode, and
 does the same for a policy that sends zero actions (it stands still: the floor any walking policy must beat).
 Writes DIR/score.json (tracking, return, falls, per command; the floor beside), DIR/score.md (the table) and
 DIR/score.png; `--video` adds DIR/walk.gif and a still DIR/walk.png of the policy walking through forward, lateral,
-turn and stop commands. `--workers N` splits the episodes over N processes, each a batched physics core of a
-consecutive block of them (as `rwm-gym collect --workers` does): the same seeds give the same figures (to float
-rounding for an SB3 policy, whose network then acts on smaller batches).
+turn and stop commands. `--workers N` splits the episodes over N workers (spawned processes, or Ray tasks with
+`--backend ray`; `rwm_gym.workers`), each a batched physics core of a consecutive block of them: the same seeds give
+the same figures (to float rounding for an SB3 policy, whose network then acts on smaller batches).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from rwm_gym.rl.evaluate_policy import (
     scoring_commands,
     summarize,
 )
+from rwm_gym.workers import run_in_workers, threads_per_worker, uses_workers
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
     ("forward 1.0 m/s", (1.0, 0.0, 0.0)),
@@ -76,21 +78,22 @@ def score(
     reset_data: str | os.PathLike | None = None,
     spec: str = "anymal_d",
     workers: int = 1,
+    backend: str = "processes",
 ) -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
     world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's).
 
-    workers > 1: the physics episodes split over that many processes (`policy` then a name or a path); the figures
-    are those of one process, exactly for the scripted policies; an SB3 network acting on a smaller batch rounds
-    differently (about 1e-9 relative, tested).
+    workers > 1 (or backend "ray"): the physics episodes split over that many workers of `backend` ("processes" or
+    "ray", `rwm_gym.workers`; `policy` then a name or a path); the figures are those of one process, exactly for the
+    scripted policies; an SB3 network acting on a smaller batch rounds differently (about 1e-9 relative, tested).
     """
     commands = scoring_commands(spec, num_random)
-    if workers > 1:
+    if uses_workers(workers, backend):
         if checkpoint is not None:
-            raise ValueError("workers > 1 score in physics; a world model scores in one process")
+            raise ValueError("workers score in physics; a world model scores in one process")
         if not isinstance(policy, (str, os.PathLike)):
-            raise ValueError("score with workers > 1 needs the policy as a name or a path, not an object")
-        return _score_in_workers(str(policy), commands, seeds, steps, spec, workers)
+            raise ValueError("score in workers needs the policy as a name or a path, not an object")
+        return _score_in_workers(str(policy), commands, seeds, steps, spec, workers, backend)
     policy = resolve_policy(policy, len(commands) * seeds, spec)
     core = None
     if checkpoint is not None:
@@ -105,19 +108,18 @@ def score(
     return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
 
 
-def _score_in_workers(policy: str, commands, seeds: int, steps: int | None, spec: str, workers: int) -> Evaluation:
-    """`score` in physics with the (command, seed) episodes in `workers` consecutive blocks, one process each; their
+def _score_in_workers(
+    policy: str, commands, seeds: int, steps: int | None, spec: str, workers: int, backend: str
+) -> Evaluation:
+    """`score` in physics with the (command, seed) episodes in `workers` consecutive blocks, one worker each; their
     tallies joined in order, so the means are taken over the same arrays as in one process."""
-    import multiprocessing
-
     started = time.monotonic()
     pairs = [(c, s) for c in commands for s in range(seeds)]
     bounds = np.linspace(0, len(pairs), min(workers, len(pairs)) + 1).round().astype(int)
     blocks = [range(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
-    threads = max(1, (os.cpu_count() or 1) // len(blocks))
+    threads = threads_per_worker(len(blocks), backend)
     job = functools.partial(_score_block, policy, pairs, steps, spec, threads)
-    with multiprocessing.get_context("spawn").Pool(len(blocks)) as pool:
-        tallies = pool.map(job, blocks)
+    tallies = list(run_in_workers(job, blocks, len(blocks), backend))
     return summarize(_Tally.concatenate(tallies), commands, pairs, time.monotonic() - started)
 
 

@@ -18,7 +18,8 @@ unchanged:
 - `episode_length_buf` is the core's own step counter (a view on CPU): writing it, as
   `OnPolicyRunner.learn(init_at_random_ep_len=True)` does, moves every env's time limit, as in Isaac Lab.
 
-This module is the only one that imports rsl_rl, so the rest of rwm-gym runs without it.
+This module and `rwm_gym.rl.rsl_rl_runner` (its runner on several processes or GPUs) are the only ones that import
+rsl_rl, so the rest of rwm-gym runs without it.
 """
 
 from __future__ import annotations
