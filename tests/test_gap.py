@@ -36,9 +36,9 @@ def test_vocabulary_is_complete_with_units_and_nominal_values():
     assert tuple(EFFECTS) == EFFECT_NAMES
     for effect in EFFECTS.values():
         nominal = effect.physics(effect.nominal)
-        if effect.name in ("torque_limit", "ground_friction"):  # nominal = the spec's / the model's value
+        if effect.name in ("torque_limit", "ground_friction", "ground_compliance"):  # the spec's / model's value
             model, default = build_model(SPEC, params=nominal), build_model(SPEC)
-            for field in ("actuator_forcerange", "geom_friction"):
+            for field in ("actuator_forcerange", "geom_friction", "geom_solref", "geom_solimp"):
                 np.testing.assert_array_equal(getattr(model, field), getattr(default, field))
         else:
             assert nominal == PhysicsParams(), effect.name
@@ -109,6 +109,8 @@ def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
         PhysicsParams(joint_friction=1.3, joint_damping=0.7, armature=tuple(np.linspace(0.0, 0.1, 12))),
         PhysicsParams(payload_mass=3.0, payload_com=(0.1, 0.0, 0.05), ground_friction=0.4, motor_strength=0.8),
         PhysicsParams(action_delay=0.005, kp_scale=1.2, kd_scale=0.5, torque_limit=50.0),
+        PhysicsParams(ground_solref=(0.05, 0.6), ground_solimp=(0.8, 0.9, 0.002)),
+        PhysicsParams(ground_friction=0.5, ground_solref=(0.03, 1.2)),
     ],
 )
 def test_model_cache_gives_the_compiled_model(params):
@@ -196,8 +198,10 @@ def _hidden_and_check(tmp_path, name: str, scale: float = 1.0, episodes: int = 6
     return report
 
 
-EPISODES = {"backlash": 9}
-"""Measured episodes per test where 6 leave too few held-out blocks for the significance test."""
+EPISODES = {"backlash": 9, "base_velocity_bias": 9}
+"""Measured episodes per test where 6 leave too few held-out blocks for the significance test (a base-velocity bias
+of 0.1 m/s: on 6, the converged solve that fits it to 4 % is not significantly better than the sim env's own, whose
+fit stalls at a third of it)."""
 
 
 ROBOT_EFFECTS = tuple(n for n in EFFECT_NAMES if n != "contact_solver")
@@ -205,7 +209,7 @@ ROBOT_EFFECTS = tuple(n for n in EFFECT_NAMES if n != "contact_solver")
 (`contact_solver` is tested in test_gap_selection)."""
 
 
-@pytest.mark.parametrize("name", [n for n in ROBOT_EFFECTS if n != "backlash"])
+@pytest.mark.parametrize("name", [n for n in ROBOT_EFFECTS if n not in ("backlash", "torque_speed_limit")])
 def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name):
     report = _hidden_and_check(tmp_path, name, episodes=EPISODES.get(name, 6))
     assert set(report) >= {
@@ -218,6 +222,22 @@ def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name
         "corrected",
         "plots",
     }
+
+
+def test_torque_speed_limit_is_fitted_but_shows_in_too_few_windows_to_name(tmp_path):
+    """A drive losing 15 N·m per rad/s above 1.5 rad/s: the excitation policy rarely drives a joint fast and hard at
+    once, so the gap sits in a few windows. Its fit is right (14.0 N·m·s/rad) and removes three quarters of the
+    held-out gap, but the floor's rank test on 6 episodes gives p = 0.93 (0.19 on 9) and the cross-fitted test 0.25
+    (0.13), short of p < 0.01 / candidates, so the workflow names nothing."""
+    effect = EFFECTS["torque_speed_limit"]
+    data = make_measured(
+        {"torque_speed_limit": effect.values_from_magnitude(15.0)}, 6, tmp_path / "m.h5", max_steps=150, progress=False
+    )
+    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    best = report["candidates"][0]
+    assert best["effect"] == "torque_speed_limit" and abs(best["values"][0] - 15.0) <= 0.25 * 15.0, best
+    assert best["gap_mean"] <= 0.5 * report["gap_before"]
+    assert report["identifiability"]["torque_speed_limit"]["identifiable"]
 
 
 def test_a_robot_that_collapses_within_a_second_is_scored_on_the_steps_it_has(tmp_path):

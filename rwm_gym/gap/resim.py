@@ -26,8 +26,9 @@ import mujoco
 import numpy as np
 
 from rwm_gym.data.dataset import Dataset
-from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, SolverSettings, dead_band
+from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, SolverSettings, drive_rewrites
 from rwm_gym.physics.robot import RobotLayout, measure
+from rwm_gym.physics.sensors import SensorBias
 from rwm_gym.physics.simulator import BatchSimulator
 from rwm_gym.spec import TaskSpec
 
@@ -177,13 +178,24 @@ class Resimulator:
         correction: TorqueCorrection | None = None,
     ) -> dict[str, np.ndarray]:
         """`rollout` with the raw arrays too: {"state" (W, H, S), "qpos" (W, H, nq), "qvel" (W, H, nv),
-        "joint_torque" (W, H, A)}; `correction` adds a learned joint torque at every policy step."""
+        "joint_torque" (W, H, A)}, all as the sensors read them (the measured rows are readings: a sensor bias of
+        `params` is undone on each before the simulation takes it, `rwm_gym.physics.sensors`); `correction` adds a
+        learned joint torque at every policy step."""
         spec, horizon = self.spec, horizon or windows.horizon
         model = self.model(params)
         layout = RobotLayout.from_model(model, spec)
         keyframe = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         n, k = len(windows), windows.warmup
-        sim = BatchSimulator(model, n, self.nthread, dead_band(spec, model, params))
+        sim = BatchSimulator(model, n, self.nthread, drive_rewrites(spec, model, params))
+        bias = SensorBias.of(layout, params)
+
+        def truth(i: int) -> tuple[np.ndarray, np.ndarray]:  # the state under the measured row start-K+i
+            return (
+                bias.unread(windows.qpos[:, i], windows.qvel[:, i])
+                if bias
+                else (windows.qpos[:, i], windows.qvel[:, i])
+            )
+
         qpos, qvel = sim.batch.bind("qpos"), sim.batch.bind("qvel")
         applied = sim.batch.bind("qfrc_applied") if correction is not None else None
         ctrl = np.zeros((n, model.nu))
@@ -201,7 +213,7 @@ class Resimulator:
             ctrl[:, layout.actuator_ids] = target
             sim.step(ctrl, spec.substeps)
 
-        sim.reset(np.arange(n), keyframe, windows.qpos[:, 0], windows.qvel[:, 0])
+        sim.reset(np.arange(n), keyframe, *truth(0))
         warnings_before = np.array(sim.batch.warning[:, :, 1])
         out = {
             "state": np.empty((n, horizon, spec.state_dim)),
@@ -212,15 +224,18 @@ class Resimulator:
         with held_warnings():
             for i in range(k):
                 if i > 0:
-                    qpos[:], qvel[:] = windows.qpos[:, i], windows.qvel[:, i]
+                    qpos[:], qvel[:] = truth(i)
                     sim.batch.forward()
                 step(windows.actions[:, i])
             if k > 0:
-                qpos[:], qvel[:] = windows.qpos[:, k], windows.qvel[:, k]
+                qpos[:], qvel[:] = truth(k)
                 sim.batch.forward()
             for h in range(horizon):
                 step(windows.actions[:, k + h])
                 arrays = sim.arrays()
+                if bias is not None:
+                    read_qpos, read_qvel = bias.read(arrays["qpos"], arrays["qvel"])
+                    arrays = {**arrays, "qpos": read_qpos, "qvel": read_qvel}
                 out["state"][:, h] = measure(layout, spec, **arrays).state
                 out["qpos"][:, h], out["qvel"][:, h] = arrays["qpos"], arrays["qvel"]
                 out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]

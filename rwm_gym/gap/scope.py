@@ -2,8 +2,8 @@
 
 A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
-one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash; the best
-`FitConfig.scoped_effects` of those whose global form reduces the held-out gap at all) of a selection step are also
+one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash, encoder offset; the
+best `FitConfig.scoped_effects` of those whose global form reduces the held-out gap at all) of a selection step are also
 fitted per group (from nominal, `FitConfig.group_sweeps` sweeps of one bounded search per group value,
 `fit.fit_coordinatewise`) and scored on the same held-out windows with the same rule: every parameter beyond the
 first inflates the remaining gap by `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain
@@ -39,6 +39,7 @@ JOINT_EFFECTS: tuple[str, ...] = (
     "motor_strength",
     "torque_limit",
     "backlash",
+    "encoder_offset",
 )
 """Effects of one number applied to every actuated joint (a per-joint `PhysicsParams` field)."""
 
