@@ -61,7 +61,7 @@ OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
-    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check"})
+    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check", "bootstrap"})
     add_group(
         parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
     )
@@ -113,7 +113,9 @@ def run(args: argparse.Namespace) -> int:
     for item in report["effects"]:
         print(f"  {item['effect']} ({item['scope']}), {item['share_of_explained_gap']:.0%} of the explained gap")
         for name, value in item["parameters"].items():
-            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}")
+            spread = item.get("bootstrap", {}).get(name)
+            interval = " (bootstrap 95 %: {:.4g} to {:.4g})".format(*spread["interval"]) if spread else ""
+            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}{interval}")
     print(
         f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
         f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}"

@@ -2,8 +2,10 @@
 
 report.json keys: `effect` (the first named effect, `none` or `unexplained`), `reason`, `scope` (of the first:
 `global`, `leg`, `joint_type`, `joint`, or null), `effects` (every named effect in order: scope, parameters, units,
-uncertainty, `share_of_explained_gap`), `parameters` / `units` / `uncertainty` (all named parameters, flat),
-`joint_refit`, `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
+uncertainty, `share_of_explained_gap`, and with `GapConfig.bootstrap` the `bootstrap` std and 95 % interval of each
+parameter), `parameters` / `units` / `uncertainty` (all named parameters, flat), `bootstrap` (`resamples`, and per
+named parameter its `std` and `interval` over resampled fitting episodes, `gap.bootstrap`), `joint_refit`,
+`explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
 1, 5 and 25 steps or fewer where the held-out episodes are shorter, after the named effects),
 `gap_before_per_horizon`, `gap_after_per_horizon`,
 `noise_floor` (the floor, the test of the nominal gap against it, the sensor-noise model), `residual` (the same test
@@ -131,17 +133,19 @@ def _named_effects(report: dict) -> list[str]:
     """One row per parameter of each named effect, in the order named."""
     if not report["effects"]:
         return []
+    boot = report.get("bootstrap", {}).get("parameters", {})
     lines = [
         (
-            "| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
-            "|---|---|---|---|---|---|---|---|"
+            "| order | effect | scope | share of explained gap | parameter | value | ± 1σ | bootstrap 95 % | unit |\n"
+            "|---|---|---|---|---|---|---|---|---|"
         )
     ]
     for i, item in enumerate(report["effects"], 1):
         for name, value in item["parameters"].items():
+            interval = "{:.4g} to {:.4g}".format(*boot[name]["interval"]) if name in boot else "-"
             lines.append(
                 f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
-                f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |"
+                f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {interval} | {item['units'][name]} |"
             )
     return [*lines, ""]
 

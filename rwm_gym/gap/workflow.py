@@ -22,6 +22,7 @@ from rwm_gym import atomic
 from rwm_gym.atomic import write_json
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.bootstrap import bootstrap
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
@@ -73,6 +74,10 @@ class GapConfig:
     solver_check: bool = True
     """Fit the first selection step under a converged solve too, and re-simulate with it where it reproduces the data
     materially better than the sim env's own solver (`gap.solver_check`; a no-op where that is converged)."""
+    bootstrap: int = 0
+    """Resamples of the fitting episodes (drawn with replacement) on which the named effects are refitted, for the
+    bootstrap std and 95 % interval of each fitted value in the report (`gap.bootstrap`; 0: none). Each costs about
+    one local fit."""
 
 
 def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
@@ -142,6 +147,7 @@ def run_gap(
         effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
     )
     corrected_params, after = selection.params, selection.gap_after
+    spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
     carried = corrected_params.replace(solver=corrected_solver(resim, solver_check))  # what the corrected env runs
     corrected_floor, residual = _residual(resim, held, selection, floor, after, floor_noise, fit_config, floor_config)
     learned = None
@@ -153,7 +159,8 @@ def run_gap(
 
     plots, located = _plots(spec, held, horizon, nominal_sim, corrected_sim, before, out)
     report = {
-        **named_section(selection),
+        **named_section(selection, spread),
+        "bootstrap": spread,
         **_gap_numbers(before, after, gap_horizons(horizon)),
         "noise_floor": {
             **floor_test,
@@ -329,9 +336,11 @@ def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object
         return windows.subset(~err.windows), f"dropped: the nominal simulator blows up there ({err.reason})"
 
 
-def named_section(selection: Selection) -> dict:
+def named_section(selection: Selection, spread: dict | None = None) -> dict:
     """The report's verdict: `effect` (the first named, `unexplained` or `none`), `effects` in order with their
-    share of the explained gap, and every named parameter flat in `parameters` / `units` / `uncertainty`."""
+    share of the explained gap (and, with a bootstrap `spread`, each parameter's), and every named parameter flat in
+    `parameters` / `units` / `uncertainty`."""
+    boot = (spread or {}).get("parameters", {})
     named = [
         {
             "effect": e.name,
@@ -339,6 +348,7 @@ def named_section(selection: Selection) -> dict:
             "parameters": dict(zip(f.names, f.values)),
             "units": dict(zip(f.names, f.units)),
             "uncertainty": dict(zip(f.names, f.uncertainty)),
+            **({"bootstrap": {n: boot[n] for n in f.names}} if boot else {}),
             "share_of_explained_gap": share,
         }
         for (e, f), share in zip(selection.named, selection.shares)
