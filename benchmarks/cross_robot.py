@@ -1,10 +1,14 @@
 """Cross-robot benchmark: one world-model recipe on every dm_control suite domain, against the baselines.
 
-For every `DMC-*` physics env: collect a data mix (correlated random actions plus slow, large, saturating noisy
-actions), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with the same budget and
-hyperparameters, plus the "no change" predictor. The recipe is the one `benchmarks/world_models.py` uses on
-ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task spec) and `TrainConfig`'s defaults
-(history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the budget (`--iterations`) differs.
+For every suite domain's `DMC-*` physics env (the Jaco arm's `DMC-Jaco-ReachSite-v0` and `DMC-Jaco-LiftBrick-v0`
+with `--domains`): collect a data mix (correlated random actions plus slow, large, saturating noisy actions; for the
+arm, joint velocity commands that wander the workspace: the target and the brick are in every state, though the
+random hand seldom meets them, so a reach task's mix adds the scripted reach `rwm_gym.policies.reach` at four noise
+levels), then train RWM (autoregressive), RWM teacher-forced, MLP, RSSM and Transformer with
+the same budget and hyperparameters, plus the "no change" predictor. The recipe is the one
+`benchmarks/world_models.py` uses on ANYmal D: `model_config_for(kind, spec)` (only the sizes come from each task
+spec) and `TrainConfig`'s defaults (history 32, forecast 8, batch 64, Adam 1e-3 with a cosine schedule); only the
+budget (`--iterations`) differs.
 Each is scored on held-out episodes: warm up on `history` true steps, predict `max(horizons)` steps open-loop from
 its own mean predictions, and take RWM's relative L1 error (sum |pred - true| / sum |true| over the normalised
 state) at steps 8, 32 and 100.
@@ -17,6 +21,7 @@ table. The wall time reported is the sum of the domains' own wall times (collect
     python benchmarks/cross_robot.py                       # full budget on CPU (see --help)
     python benchmarks/cross_robot.py --device cuda         # same on a GPU
     python benchmarks/cross_robot.py --iterations 20 --episodes 4 --domains DMC-Cheetah-Run-v0   # smoke test
+    python benchmarks/cross_robot.py --domains DMC-Jaco-ReachSite-v0,DMC-Jaco-LiftBrick-v0 --out DIR   # the arm
 """
 
 from __future__ import annotations
@@ -44,6 +49,11 @@ from rwm_gym.policies.base import RandomPolicy
 from rwm_gym.registration import DMC_SPECS
 from rwm_gym.spec import load_spec
 
+SUITE_IDS = sorted(
+    i for i, name in DMC_SPECS.items() if load_spec(name).extra["dm_control"]["domain"] != "manipulation"
+)
+"""The suite domains, run by default; the Jaco arm's tasks (dm_control.manipulation) join with --domains."""
+
 # name -> (model kind, forecast steps in training; 1 = teacher forcing)
 MODELS: dict[str, tuple[str, int | None]] = {
     "RWM": ("rwm", None),
@@ -61,14 +71,15 @@ class Options:
 
     out: Path = Path("benchmarks/results/cross_robot")
     """Folder for data, results.json, results.md and error_vs_horizon.png."""
-    domains: str = ",".join(sorted(DMC_SPECS))
-    """Comma-separated physics env ids."""
+    domains: str = ",".join(SUITE_IDS)
+    """Comma-separated physics env ids (default: the suite's; any `DMC-*` id, e.g. DMC-Jaco-ReachSite-v0)."""
     models: str = ",".join(MODELS)
     """Comma-separated models to run (default all)."""
     episodes: int = 16
     """Episodes per policy (random and noisy) and domain."""
     episode_steps: int = 400
-    """Length of each collected episode (policy steps); at least 32 + max(horizons)."""
+    """Length of each collected episode (policy steps, at most the task's: 250 for the Jaco tasks); at least
+    32 + max(horizons)."""
     iterations: int = 150
     """Gradient steps per model (the same for every model and domain); 150 fits ~45 min on one CPU core."""
     cpu_minutes: float = 0.0
@@ -97,18 +108,42 @@ class Options:
         )
 
 
-def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0) -> Path:
-    """Random (rho 0.9, sigma 0.5) + noisy (rho 0.98, sigma 1.0: slow, large, often saturated) episodes, merged:
-    `folder/<env_id>.h5` with 2 x `episodes` episodes of `episode_steps` steps (kept if it exists)."""
-    out = folder / f"{env_id}.h5"
-    if out.exists():
-        return out
-    spec = load_spec(DMC_SPECS[env_id])
-    parts = []
-    for k, (rho, sigma) in enumerate(((0.9, 0.5), (0.98, 1.0))):
+REACH_NOISE = (0.0, 0.1, 0.2, 0.5)
+"""Action noise of the scripted reach's episodes in a reach task's mix: clean reaches, hovers, near misses, misses."""
+
+
+def mix_policies(spec, episodes: int) -> list:
+    """The policies of a domain's data mix: random (rho 0.9, sigma 0.5) and noisy (rho 0.98, sigma 1.0: slow, large,
+    often saturated) actions; for a reach task (`[manipulation] goal = "reach"`) also the scripted reach at each
+    `REACH_NOISE`, so the data hold the states near the target that random actions seldom visit."""
+    policies = []
+    for rho, sigma in ((0.9, 0.5), (0.98, 1.0)):
         policy = RandomPolicy(spec, episodes, correlation=rho, scale=sigma)
         policy.name = f"random(rho={rho},sigma={sigma})"
-        path = folder / f"{env_id}.part{k}.h5"
+        policies.append(policy)
+    if spec.extra.get("manipulation", {}).get("goal") == "reach":
+        from rwm_gym.policies.reach import ReachPolicy
+
+        for sigma in REACH_NOISE:
+            policy = ReachPolicy(spec, episodes, action_noise=sigma)
+            policy.name = f"reach(sigma={sigma})"
+            policies.append(policy)
+    return policies
+
+
+def collect_mix(
+    env_id: str, folder: Path, episodes: int, episode_steps: int, seed: int = 0, name: str | None = None
+) -> Path:
+    """The episodes of `mix_policies`, `episodes` per policy of `episode_steps` steps, merged:
+    `folder/<name or env_id>.h5` (kept if it exists). `env_id` is a dm_control physics id or the path of a task
+    spec."""
+    out = folder / f"{name or env_id}.h5"
+    if out.exists():
+        return out
+    spec = load_spec(DMC_SPECS.get(env_id, env_id))
+    parts = []
+    for k, policy in enumerate(mix_policies(spec, episodes)):
+        path = folder / f"{name or env_id}.part{k}.h5"
         collect(
             env_id,
             policy,
@@ -127,17 +162,34 @@ def collect_mix(env_id: str, folder: Path, episodes: int, episode_steps: int, se
     return out
 
 
-@torch.no_grad()
 def horizon_errors(model, dataset: Dataset, val_ids: np.ndarray, options: Options) -> np.ndarray:
     """Mean relative error at every forecast step 1..max(horizons) over held-out windows, (max_horizon,)."""
-    horizon, history = max(int(h) for h in options.horizons.split(",")), options.train_config.history
+    horizon = max(int(h) for h in options.horizons.split(","))
+    return forecast_errors(
+        model,
+        dataset,
+        val_ids,
+        options.train_config.history,
+        horizon,
+        options.eval_windows,
+        options.seed,
+        options.device,
+    )
+
+
+@torch.no_grad()
+def forecast_errors(
+    model, dataset: Dataset, val_ids: np.ndarray, history: int, horizon: int, windows: int, seed: int, device: str
+) -> np.ndarray:
+    """Mean relative error at every forecast step 1..horizon, (horizon,): open-loop mean forecasts from the true
+    actions after `history` true steps, on `windows` held-out windows drawn with `seed` from the episodes `val_ids`."""
     rows = history + horizon
-    windows = WindowData(dataset, Normalizer.from_spec(dataset.spec()), options.device)
-    starts = windows.window_starts(val_ids, rows)
+    data = WindowData(dataset, Normalizer.from_spec(dataset.spec()), device)
+    starts = data.window_starts(val_ids, rows)
     if len(starts) == 0:
         raise ValueError(f"{dataset.path}: no held-out episode has {rows} rows; raise --episode-steps")
-    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(options.seed))[: options.eval_windows]
-    batch = windows.gather(starts[pick.to(starts.device)], rows)
+    pick = torch.randperm(len(starts), generator=torch.Generator().manual_seed(seed))[:windows]
+    batch = data.gather(starts[pick.to(starts.device)], rows)
     model.eval()
     prediction, _ = model.forecast(batch.states[:, :history], batch.actions[:, : rows - 1], horizon, sample=False)
     return relative_error(prediction.state_mean, batch.states[:, history:]).mean(0).cpu().numpy()
@@ -227,8 +279,9 @@ def markdown(results: dict, horizons: list[int], ranks: dict[str, float], wall_s
             f"Relative L1 error of open-loop mean forecasts after {config.history} true steps on held-out episodes "
             f"(lower is better). One recipe for every domain: {budget} x "
             f"{config.batch_size} windows per model, forecast {config.forecast} (RWM-TF: 1), seed {options.seed}, "
-            f"device {options.device}, {options.threads} thread(s). Data per domain: {2 * options.episodes} "
-            f"episodes x {options.episode_steps} steps (random + noisy actions). Total wall time "
+            f"device {options.device}, {options.threads} thread(s). Data per domain: {options.episodes} "
+            f"episodes per policy x {options.episode_steps} steps (random + noisy actions; a reach task also the "
+            f"scripted reach at noise {', '.join(map(str, REACH_NOISE))}). Total wall time "
             f"{wall_s / 60:.1f} min (data collection {collect_s / 60:.1f} min)."
         ),
         "",

@@ -1,10 +1,11 @@
-"""PPO in imagination against PPO in physics on a dm_control suite task, both scored in dm_control physics.
+"""PPO in imagination against PPO in physics on a dm_control task, both scored in dm_control physics.
 
 Imagination: collect random + noisy episodes in physics (the cross-robot benchmark's mix), train RWM with the
 cross-robot recipe (`model_config_for("rwm", spec)`, `TrainConfig` defaults), then train SB3 PPO on
 `RWM-<Domain>-v0`. Physics: the same PPO (`rwm_gym.rl.ppo.make_ppo`, same config and
 seed) on `DMC-<Domain>-<Task>-v0` for the same PPO wall time. Both policies then act deterministically for a full
-suite episode (1000 steps) from fixed seeds in physics; the score is the suite's return (at most 1000).
+episode (the suite's 1000 steps, the Jaco tasks' 250) from fixed seeds in physics; the score is the task's return,
+and for a manipulation task (`DMC-Jaco-ReachSite-v0`, `DMC-Jaco-LiftBrick-v0`) its success rate.
 
 Writes `results.json`, `results.md` and `training.png` (PPO's mean step reward per rollout) to `--out`.
 
@@ -20,7 +21,6 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from rwm_gym.atomic import save_png, write_json, write_text
@@ -28,8 +28,8 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.model import TrainConfig, model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.options import parse_dataclass_args
-from rwm_gym.physics.dmc import make_core
 from rwm_gym.registration import DMC_SPECS
+from rwm_gym.rl.evaluate_dmc import evaluate_episodes
 from rwm_gym.rl.ppo import PPOConfig, learn, make_ppo, save_policy
 from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv, ImaginedSB3VecEnv
 
@@ -58,7 +58,7 @@ class Options:
     n_steps: int = 64
     """Steps per env per PPO update, in both arms."""
     imagined_episode_steps: int = 200
-    """Time limit of an imagined episode (PPO bootstraps at it); physics episodes run the suite's 1000 steps."""
+    """Time limit of an imagined episode (PPO bootstraps at it); physics episodes run the task's full episode."""
     eval_seeds: int = 5
     """Physics episodes (seeds 0..n-1) per policy."""
     seed: int = 0
@@ -69,15 +69,10 @@ class Options:
 
 
 def evaluate(model, env_id: str, seeds: int) -> dict:
-    """Deterministic policy for one full suite episode per seed in physics: the suite's returns."""
-    core = make_core(DMC_SPECS[env_id], seeds)
-    obs = core.reset(np.arange(seeds), list(range(seeds)))
-    returns = np.zeros(seeds)
-    for _ in range(core.spec.episode_steps):
-        action, _ = model.predict(obs, deterministic=True)
-        obs, reward, *_ = core.step(np.clip(action, -1.0, 1.0))
-        returns += reward
-    return {"returns": returns.tolist(), "mean": float(returns.mean()), "std": float(returns.std())}
+    """Deterministic policy for one full episode per seed in physics: the task's returns (and a manipulation task's
+    success rate: the share of episodes ending with the goal met, `rwm_gym.rl.evaluate_dmc`)."""
+    e = evaluate_episodes(model, env_id, seeds=seeds)
+    return {"returns": e.returns, "mean": e.episode_return, "std": e.return_std, "success_rate": e.success_rate}
 
 
 def ppo_config(options: Options) -> PPOConfig:
@@ -113,6 +108,12 @@ def run_arm(where: str, env, options: Options, out: Path) -> dict:
     }
 
 
+def _score(e: dict) -> str:
+    """Return (mean +- std), and the success rate where the task has one."""
+    success = e.get("success_rate")
+    return f"{e['mean']:.1f} +- {e['std']:.1f}" + ("" if success is None else f", success {success:.2f}")
+
+
 def markdown(r: dict, options: Options) -> str:
     imagination, physics = r["imagination"], r["physics"]
     rows = [
@@ -140,17 +141,17 @@ def markdown(r: dict, options: Options) -> str:
             f"{options.seed}) trained {options.ppo_minutes:g} min in imagination ({r['imagined_env']}, world model "
             f"{options.wm_iterations} iterations, imagined episodes {options.imagined_episode_steps} steps) or in "
             f"physics; return of the deterministic policy over {options.eval_seeds} full physics episodes "
-            f"(seeds 0..{options.eval_seeds - 1}, suite reward, max 1000)."
+            f"(seeds 0..{options.eval_seeds - 1}, the task's reward: a suite task's at most 1000, a Jaco task's at "
+            "most 250; success: the share of episodes ending with the goal met)."
         ),
         "",
         "| trained in | physics return (mean +- std) | physics samples | wall time | of which |",
         "|---|---|---|---|---|",
     ]
     e = r["untrained"]["evaluation"]
-    lines.append(f"| (untrained: the initial policy of both) | {e['mean']:.1f} +- {e['std']:.1f} | 0 | - | - |")
+    lines.append(f"| (untrained: the initial policy of both) | {_score(e)} | 0 | - | - |")
     for name, arm, samples, wall, detail in rows:
-        e = arm["evaluation"]
-        lines.append(f"| {name} | {e['mean']:.1f} +- {e['std']:.1f} | {samples} | {wall / 60:.1f} min | {detail} |")
+        lines.append(f"| {name} | {_score(arm['evaluation'])} | {samples} | {wall / 60:.1f} min | {detail} |")
     error = r["wm_val_error"]
     lines.append(
         f"\nWorld model: relative L1 validation error of 8-step forecasts {'-' if error is None else f'{error:.3f}'}."

@@ -76,6 +76,21 @@ def test_cross_robot_writes_table_plot_and_json(tmp_path: Path, capsys) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.slow
+def test_cross_robot_takes_the_jaco_arm_by_id_and_runs_the_suite_by_default(tmp_path: Path) -> None:
+    cross_robot = _script("cross_robot")
+    assert "DMC-Jaco-ReachSite-v0" not in cross_robot.Options().domains.split(",")
+    assert len(cross_robot.Options().domains.split(",")) == 6
+    args = ["--iterations", "1", "--episodes", "2", "--episode-steps", "60", "--horizons", "2,8", "--eval-windows", "4"]
+    out = tmp_path / "arm"
+    assert (
+        cross_robot.main([*args, "--models", "RWM,no-change", "--domains", "DMC-Jaco-ReachSite-v0", "--out", str(out)])
+        == 0
+    )
+    domain = json.loads((out / "results.json").read_text())["domains"]["DMC-Jaco-ReachSite-v0"]
+    assert domain["rows"] == 4 * 61 and domain["action_dim"] == 9 and len(domain["models"]["RWM"]["errors"]) == 8
+
+
 def test_dmc_imagination_trains_both_arms_and_scores_them_in_physics(tmp_path: Path) -> None:
     dmc_imagination = _script("dmc_imagination")
     assert (

@@ -18,7 +18,7 @@ from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.registration import DMC_SPECS, IMAGINED_ENVS
 from rwm_gym.spec import load_spec
-from rwm_gym.task.suite_reward import SuiteReward
+from rwm_gym.task.tasks import state_reward
 from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
 PHYSICS = {load_spec(spec).imagined_env_id: env_id for env_id, spec in DMC_SPECS.items()}
@@ -53,7 +53,7 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_every_dm_control_spec_has_a_registered_imagined_id() -> None:
-    assert set(IDS) <= set(IMAGINED_ENVS) and len(IDS) == 6
+    assert set(IDS) <= set(IMAGINED_ENVS) and len(IDS) == 8
     assert all(env_id in gym.registry for env_id in IDS)
 
 
@@ -77,7 +77,7 @@ def _rollout(env: gym.Env, seed: int, steps: int = 12) -> np.ndarray:
 
 
 @pytest.mark.parametrize("env_id", IDS)
-def test_same_seed_same_rollout_and_the_suite_reward_of_the_prediction(env_id: str, checkpoints) -> None:
+def test_same_seed_same_rollout_and_the_task_reward_of_the_prediction(env_id: str, checkpoints) -> None:
     def make() -> ImaginedEnv:
         return ImaginedEnv(checkpoints[env_id], env_id=env_id, sample_predictions=True)
 
@@ -89,8 +89,8 @@ def test_same_seed_same_rollout_and_the_suite_reward_of_the_prediction(env_id: s
     action = np.full(env.action_space.shape, 0.5, dtype=np.float32)
     _, reward, *_ = env.step(action)
     core = env.core
-    expected = SuiteReward(core.spec)(core.state, core.foot_height, action[None])[0]
-    assert reward == pytest.approx(expected)  # the suite's reward of the predicted next state
+    expected = state_reward(core.spec)(core.state, core.foot_height, action[None])[0]
+    assert reward == pytest.approx(expected)  # the task's reward of the predicted next state
 
 
 @pytest.mark.parametrize("env_id", IDS)

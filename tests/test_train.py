@@ -18,7 +18,7 @@ from rwm_gym.model.checkpoint import CheckpointError, read_meta
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.heads import soft_bound
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.train import train
+from rwm_gym.model.train import learning_rate_factor, train
 from rwm_gym.model.windows import WindowData
 
 TINY = dict(hidden_size=16, num_layers=1, head_hidden=16, transformer_dim=16, transformer_context=6, rssm_latent=4)
@@ -101,6 +101,57 @@ def test_same_seed_same_weights_and_resume_matches_uninterrupted_run(data: Path,
     different = TrainConfig(**{**run.to_dict(), "history": 5})
     with pytest.raises(CheckpointError, match="history"):
         train(data, config, different, out, resume=True, progress=False)
+
+
+def test_schedule_start_restarts_the_learning_rate_on_a_resumed_run(data: Path, tmp_path: Path) -> None:
+    config = model_config_for("rwm", SPEC, **TINY)
+    first = TrainConfig(**{**FAST.to_dict(), "iterations": 6, "val_every": 1, "checkpoint_every": 6})
+    restarted, continued = tmp_path / "restarted.safetensors", tmp_path / "continued.safetensors"
+    for out in (restarted, continued):
+        train(data, config, first, out, progress=False)
+    longer = TrainConfig(**{**first.to_dict(), "iterations": 12})
+    plain = train(data, config, longer, continued, resume=True, progress=False)
+    warm = train(
+        data, config, TrainConfig(**{**longer.to_dict(), "schedule_start": 6}), restarted, resume=True, progress=False
+    )
+    lr = {
+        name: {row["iteration"]: row["lr"] for row in r.stats["log"]} for name, r in (("plain", plain), ("warm", warm))
+    }
+    assert lr["warm"][7] == pytest.approx(longer.lr) and lr["plain"][7] < 0.8 * longer.lr  # the schedule starts over
+    assert lr["warm"][12] == pytest.approx(longer.lr * learning_rate_factor("cosine", 5 / 6))  # its last step
+    assert read_meta(restarted).train_config.schedule_start == 6
+    assert any(not torch.equal(a, b) for a, b in zip(weights(plain.model).values(), weights(warm.model).values()))
+    with pytest.raises(ValueError, match="schedule_start"):
+        TrainConfig(iterations=6, schedule_start=6)
+
+
+def test_forecast_curriculum_trains_each_length_for_its_share(data: Path, tmp_path: Path, monkeypatch) -> None:
+    import rwm_gym.model.train as trainer
+
+    seen, sample = [], trainer.sample_batch
+
+    def spy(windows, starts, config, *args):
+        seen.append(config.forecast)
+        return sample(windows, starts, config, *args)
+
+    monkeypatch.setattr(trainer, "sample_batch", spy)
+    config = model_config_for("rwm", SPEC, **TINY)
+    run = TrainConfig(**{**FAST.to_dict(), "iterations": 6, "forecast_curriculum": [2, 3, 5]})
+    assert run.forecast_curriculum == (2, 3, 5) and run.forecasts == (2, 3, 5)
+    curriculum = train(data, config, run, progress=False)
+    assert seen == [2, 2, 3, 3, 5, 5]
+    seen.clear()
+    constant = train(data, config, TrainConfig(**{**run.to_dict(), "forecast_curriculum": ()}), progress=False)
+    assert seen == [FAST.forecast] * 6
+    assert any(
+        not torch.equal(a, b) for a, b in zip(weights(curriculum.model).values(), weights(constant.model).values())
+    )
+    out = tmp_path / "curriculum.safetensors"
+    args = ["train", "--data", str(data), "--out", str(out), "--iterations", "3", "--history", "6", "--batch-size", "8"]
+    assert (
+        main([*args, "--forecast-curriculum", "2", "4", "--hidden-size", "16", "--head-hidden", "16", "--quiet"]) == 0
+    )
+    assert read_meta(out).train_config.forecast_curriculum == (2, 4)
 
 
 def test_tiny_rwm_beats_no_change(data: Path) -> None:

@@ -22,7 +22,8 @@ class CollectOptions:
     out: Path
     """HDF5 file to write"""
     policy: str = "gait"
-    """'random', 'zero' (stand still), 'gait' or the path of an SB3 .zip"""
+    """'random', 'zero' (stand still), 'gait' (a legged robot's trot), 'reach' (an arm's reach toward its target;
+    --action-noise makes it hover and miss) or the path of an SB3 .zip"""
     episodes: int = 64
     """episodes to collect"""
     seed: int = 0
@@ -30,7 +31,7 @@ class CollectOptions:
     num_envs: int = 8
     """simulations stepped together"""
     action_noise: float = option(0.0, parse=non_negative_float)
-    """Gaussian std added to the policy's actions"""
+    """Gaussian std added to the policy's actions ('reach': correlated, with an aim offset of 0.1 m per unit)"""
     max_steps: int | None = None
     """cap on episode length in policy steps (default: the task's episode length)"""
     physics: str | None = None

@@ -74,6 +74,9 @@ class RunOptions:
     """budget in env steps (default: none; with neither budget, --minutes 8)"""
     minutes: float | None = option(None, parse=non_negative_float)
     """budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)"""
+    env: str | None = None
+    """with --in physics: the physics env id or task spec to train in (default: the shipped legged task); a
+    dm_control task is judged by its return and success"""
     seed: int = 0
     out: Path = Path("policy.zip")
     """SB3 zip to write (JSON and PNG beside)"""
@@ -105,7 +108,7 @@ class EvalOptions:
     eval: bool = True
     """judge the policy in physics after training (--no-eval: skip the physics evaluation)"""
     eval_seeds: int = 3
-    """physics episodes per evaluation command"""
+    """physics episodes per evaluation command (a dm_control task: episodes, seeds 0..N-1)"""
     eval_steps: int | None = None
     """policy steps per evaluation episode (default: the task's episode, 20 s)"""
 
@@ -180,6 +183,7 @@ def _train(args: argparse.Namespace) -> int:
             device=args.device,
             seed=args.seed,
             env_kwargs=env_kwargs,
+            physics_env=args.env,
         )
     except (ValueError, FileNotFoundError) as error:  # a checkpoint or reset data that cannot serve these options
         raise SystemExit(f"rwm-gym ppo: {error}") from None
@@ -210,6 +214,7 @@ def _train(args: argparse.Namespace) -> int:
     report = {
         "where": args.where,
         "checkpoint": args.checkpoint,
+        "env": args.env,
         "seed": args.seed,
         "ppo": config.to_dict(),
         "imagination": imagined,
@@ -247,6 +252,8 @@ def _imagination(args: argparse.Namespace) -> tuple[dict, dict]:
     options = imagination_from_args(args)
     imagined = {**non_default(options), **({"reset_data": str(args.reset_data)} if args.reset_data else {})}
     refused = [k for k in imagined if k != "episode_steps"]  # --in physics has always ignored --episode-steps
+    if args.env is not None and args.where != "physics":
+        raise SystemExit("rwm-gym ppo: --env applies to --in physics (an imagined env's task is its --checkpoint's)")
     if refused and args.where != "imagination":
         raise SystemExit(
             f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in refused)} apply to --in imagination"
@@ -307,10 +314,39 @@ def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
     return warm
 
 
+def _dm_control_task(args: argparse.Namespace):
+    """The task spec trained on (the --checkpoint's in imagination, --env's in physics) when it is a dm_control task
+    (judged by its return and success), else None."""
+    from rwm_gym.registration import resolve_spec, simulator_of
+
+    if args.where == "physics" and args.env is not None:
+        spec = resolve_spec(args.env)
+    elif args.where == "imagination" and args.checkpoint is not None:
+        from rwm_gym.model.checkpoint import read_meta
+
+        spec = read_meta(args.checkpoint).spec
+    else:
+        return None
+    return spec if simulator_of(spec) == "dm_control" else None
+
+
 def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict) -> None:
-    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse."""
+    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse.
+
+    A dm_control task is judged by its own return over full episodes (and its success, for a manipulation task) in
+    its physics env, seeds 0..--eval-seeds - 1 (`rwm_gym.rl.evaluate_dmc`); the legged task by its tracking score."""
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table, plot
 
+    dm_control = _dm_control_task(args)
+    if dm_control is not None:
+        if args.keep_best:
+            raise SystemExit("rwm-gym ppo: --keep-best compares tracking scores, which a dm_control task has not")
+        from rwm_gym.rl.evaluate_dmc import evaluate_episodes
+
+        episodes = evaluate_episodes(model, dm_control, seeds=args.eval_seeds, steps=args.eval_steps)
+        print(f"physics evaluation: {episodes.summary()}")
+        report["evaluation"] = episodes.to_dict()
+        return
     evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
     print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
     print(format_table(evaluation))
@@ -346,6 +382,8 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imag
     if run.resumable and saved != json.loads(json.dumps(config.to_dict())):
         raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
     environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
+    if args.env is not None:
+        environment["env"] = args.env
     if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
         raise SystemExit(
             f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another --run-dir"

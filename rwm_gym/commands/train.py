@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import os
 import sys
+import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
@@ -30,8 +31,12 @@ class TrainOptions:
 
     data: str
     """HDF5 dataset to train on"""
-    model: str | None = option(None, choices=MODEL_KINDS)
-    """model family (default rwm, or --init's)"""
+    model: str | None = option(None, choices=(*MODEL_KINDS, "auto"))
+    """model family (default rwm, or --init's); auto: the kind with the lowest measured error for this data size and
+    --cpu-minutes budget in the shipped table of benchmarks/budget_curve.py (rwm_gym.model.choice)"""
+    cpu_minutes: float | None = None
+    """budget in this process's CPU minutes (time.process_time: other jobs on the machine do not count), in place
+    of --minutes"""
     out: str
     """checkpoint to write (.safetensors)"""
     resume: bool = False
@@ -57,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         TrainConfig,
         defaults_none=True,
         choices={"loss": LOSSES, "schedule": SCHEDULES},
+        nargs={"forecast_curriculum": "+"},
     )
     add_dataclass_options(
         parser.add_argument_group("model options"),
@@ -93,6 +99,25 @@ def _model_config(args: argparse.Namespace, dataset: Dataset) -> ModelConfig:
     return replace(start, **given)
 
 
+def _auto_kind(args: argparse.Namespace, dataset: Dataset) -> str:
+    """`--model auto`: the kind the shipped table picks for the data's rows and the --cpu-minutes budget (one line
+    printed saying which and why); on --resume, the kind of the run being resumed."""
+    from rwm_gym.model.choice import choose_kind, shipped_table
+
+    if args.init is not None:
+        raise ValueError("--model auto picks a kind to train from scratch; with --init the kind is the checkpoint's")
+    if args.resume:
+        kind = read_meta(args.out).model_config.kind
+        print(f"--model auto: {kind}, the kind of the run resumed at {args.out}")
+        return kind
+    if args.cpu_minutes is None:
+        raise ValueError("--model auto picks for a compute budget: give --cpu-minutes")
+    choice = choose_kind(shipped_table(), dataset.num_steps, args.cpu_minutes)
+    if distributed.current_world().is_main:
+        print(choice.reason(args.cpu_minutes, dataset.num_steps))
+    return choice.kind
+
+
 def memory_estimate(model_config: ModelConfig, config: TrainConfig, spec) -> float:
     """Bytes a run needs, roughly: weights, gradients and Adam's two moments (float32), plus the activations of one
     batch (every window's rows through every layer, a few tensors each). Sized on torch's meta device, so a model too
@@ -104,7 +129,9 @@ def memory_estimate(model_config: ModelConfig, config: TrainConfig, spec) -> flo
     with torch.device("meta"):
         params = sum(p.numel() for p in build_model(model_config, spec).parameters())
     width = max(model_config.hidden_size, model_config.head_hidden)
-    activations = config.batch_size * (config.history + config.forecast) * width * (model_config.num_layers + 1) * 8
+    activations = (
+        config.batch_size * (config.history + max(config.forecasts)) * width * (model_config.num_layers + 1) * 8
+    )
     return 4.0 * (4 * params + activations)
 
 
@@ -137,11 +164,17 @@ def run(args: argparse.Namespace) -> int:
         options = _given(args, fields(TrainConfig))
         if args.teacher_forcing:
             options["forecast"] = 1
+        if args.cpu_minutes is not None:
+            if "minutes" in options:
+                raise ValueError("give --minutes (wall clock) or --cpu-minutes (this process's CPU time), not both")
+            options["minutes"] = args.cpu_minutes
         if options.get("minutes") and "iterations" not in options:
             options["iterations"] = 0
         config = TrainConfig(**options)
         dataset = Dataset.load(args.data)  # a missing input is named before anything about the output
         check_output(args.out, inputs=[args.data, args.init], overwrite=args.overwrite or args.resume)
+        if args.model == "auto":
+            args.model = _auto_kind(args, dataset)
         model_config = _model_config(args, dataset)
         check_memory(model_config, config, dataset.spec())
         main_rank = os.environ.get("RANK", "0") == "0"  # only rank 0 writes, so only it holds the lock
@@ -156,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
                 tensorboard=args.tensorboard,
                 init=args.init,
                 overwrite=args.overwrite,
+                clock=time.process_time if args.cpu_minutes is not None else time.monotonic,
             )
     except KeyboardInterrupt:
         return 130

@@ -326,6 +326,9 @@ class ImaginedCore:
             **({"uncertainty": self.uncertainty.copy()} if self.needs_uncertainty else {}),
             **{f"reward/{k}": v for k, v in terms.items()},
         }
+        success = getattr(self.task, "success", None)  # a manipulation task's goal, judged on the prediction
+        if success is not None:
+            info["success"] = success & ~diverged
 
         self.state, self.contact, self.foot_height, self.last_action = next_state, contact, foot_height, actions
         self.steps += 1

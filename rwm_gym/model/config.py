@@ -7,7 +7,7 @@ docstrings double as the `--help` text of `rwm-gym train`.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 MODEL_KINDS = ("rwm", "mlp", "rssm", "transformer", "no_change")
@@ -111,6 +111,13 @@ class TrainConfig:
     """Global gradient-norm clip."""
     schedule: str = "cosine"
     """Learning-rate schedule over the budget: cosine (to 5%), step (x0.1 at 50% and 75%) or constant."""
+    schedule_start: int = 0
+    """Iteration at which the learning-rate schedule (and `forecast_curriculum`) starts over the iteration budget:
+    a resumed run given a larger `iterations` and this set to the iteration it resumes at runs a fresh schedule from
+    `lr` over the added iterations (a warm restart). Applies to the iteration budget, not to `minutes`."""
+    forecast_curriculum: tuple[int, ...] = ()
+    """Forecast lengths F trained with in turn, each for an equal share of the budget (e.g. 8 32 100: short
+    forecasts first); empty: `forecast` throughout. Validation forecasts `forecast` steps."""
     iterations: int = 2000
     """Budget in gradient steps (0: no limit, then `minutes` must be set)."""
     minutes: float = 0.0
@@ -159,6 +166,13 @@ class TrainConfig:
             raise ValueError(f"schedule {self.schedule!r} unknown (choose from {', '.join(SCHEDULES)})")
         if self.iterations <= 0 and self.minutes <= 0:
             raise ValueError("set a budget: iterations > 0 or minutes > 0")
+        if self.schedule_start < 0 or (self.schedule_start and self.schedule_start >= self.iterations):
+            raise ValueError(
+                f"schedule_start must be >= 0 and below iterations ({self.iterations}), got {self.schedule_start}"
+            )
+        object.__setattr__(self, "forecast_curriculum", tuple(int(f) for f in self.forecast_curriculum))
+        if any(f < 1 for f in self.forecast_curriculum):
+            raise ValueError(f"forecast_curriculum lengths must be >= 1, got {list(self.forecast_curriculum)}")
         for name in ("batch_size", "val_every", "checkpoint_every", "val_windows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -169,6 +183,22 @@ class TrainConfig:
                 f"branches ({self.branches}) and branch_stride ({self.branch_stride}) must be >= 1 and "
                 f"divide batch_size ({self.batch_size}) into whole segments"
             )
+
+    @property
+    def forecasts(self) -> tuple[int, ...]:
+        """The forecast lengths trained with, in order: `forecast_curriculum`, or `forecast` alone."""
+        return self.forecast_curriculum or (self.forecast,)
+
+    def stage(self, progress: float) -> TrainConfig:
+        """This config at `progress` in [0, 1] of the schedule: `forecast` set to the curriculum's length there."""
+        if not self.forecast_curriculum:
+            return self
+        index = min(int(progress * len(self.forecast_curriculum)), len(self.forecast_curriculum) - 1)
+        return self.stage_of(self.forecast_curriculum[index])
+
+    def stage_of(self, forecast: int) -> TrainConfig:
+        """This config training `forecast`-step forecasts (one stage of the curriculum)."""
+        return replace(self, forecast=forecast, forecast_curriculum=())
 
     @property
     def segment_rows(self) -> int:
@@ -191,6 +221,8 @@ _TRAIN_LEGACY = {
     "warmup_gradients": True,
     "reset_std_band": False,
     "reset_log_std": -2.3,
+    "schedule_start": 0,
+    "forecast_curriculum": (),
 }
 """TrainConfig fields added after the first checkpoints, with the behaviour of the files written before them."""
 

@@ -40,7 +40,7 @@ from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
 from rwm_gym.progress import BudgetBar
 
-RESUME_MAY_CHANGE = ("iterations", "minutes", "device", "val_every", "checkpoint_every")
+RESUME_MAY_CHANGE = ("iterations", "minutes", "schedule_start", "device", "val_every", "checkpoint_every")
 """TrainConfig fields a resumed run may set differently (the budget and bookkeeping); the others must match."""
 
 
@@ -280,19 +280,24 @@ class _Run:
         self.spec = spec = dataset.spec()
         self.normalizer = Normalizer.from_spec(spec)
         train_ids, val_ids = dataset.split_episodes(config.val_fraction, config.seed)
-        rows = config.history + config.forecast  # a segment starts where a window of H + F rows fits
         torch.manual_seed(config.seed)
         self.sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
         self.model = model = build_model(model_config, spec).to(device).train()
         self.windows = windows = WindowData(dataset, self.normalizer, device)
-        self.train_starts = windows.window_starts(train_ids, rows)
-        if len(self.train_starts) == 0:
-            raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
-        val_starts = windows.window_starts(val_ids, rows)
+        pos_weight = windows.termination_pos_weight(train_ids)
+        # per forecast length F trained with (one, or the curriculum's): where a window of H + F rows starts, and the
+        # loss of its segments
+        self.train_starts: dict[int, torch.Tensor] = {}
+        self.loss_fns: dict[int, SegmentLoss] = {}
+        for forecast in config.forecasts:
+            rows = config.history + forecast
+            self.train_starts[forecast] = windows.window_starts(train_ids, rows)
+            if len(self.train_starts[forecast]) == 0:
+                raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
+            self.loss_fns[forecast] = SegmentLoss(model, config.stage_of(forecast), pos_weight)
+        val_starts = windows.window_starts(val_ids, config.history + config.forecast)
         pick = torch.randperm(len(val_starts), generator=torch.Generator().manual_seed(config.seed))
         self.val_starts = val_starts[pick[: config.val_windows].to(val_starts.device)]
-        pos_weight = windows.termination_pos_weight(train_ids)
-        self.loss_fn = SegmentLoss(model, config, pos_weight)
         self.params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = (
             torch.optim.Adam(self.params, lr=config.lr, weight_decay=config.weight_decay) if self.params else None
@@ -304,7 +309,7 @@ class _Run:
             "dataset_steps": int(dataset.num_steps),
             "train_episodes": [int(i) for i in train_ids],
             "val_episodes": [int(i) for i in val_ids],
-            "train_windows": len(self.train_starts),
+            "train_windows": len(self.train_starts[config.forecasts[-1]]),
             "termination_pos_weight": pos_weight,
         }
         self.stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
@@ -369,7 +374,7 @@ class _Run:
         """Train until the budget is spent (or Ctrl-C, which saves a resumable checkpoint first); validate, log and
         save on the way."""
         config, stats, clock = self.config, self.stats, self.clock
-        compute_loss = distributed.data_parallel(self.loss_fn, self.world)
+        compute_loss = {f: distributed.data_parallel(loss, self.world) for f, loss in self.loss_fns.items()}
         writer = _tensorboard(tensorboard) if self.world.is_main else None
         self.started = clock() - stats["wall_s"]
         self.iteration = stats["iterations"]
@@ -409,18 +414,32 @@ class _Run:
         stats["wall_s"] = clock() - self.started
         return TrainResult(self.model, stats, self.save())
 
-    def _iterate(self, compute_loss: torch.nn.Module) -> float:
-        """One optimiser step at the scheduled learning rate (returned), its loss and parts summed for the log."""
+    def progress(self) -> float:
+        """Where the run is in its schedule, in [0, 1]: the iteration budget's share from `schedule_start`, or the
+        `minutes` budget's, whichever is further."""
         config = self.config
-        by_steps = self.iteration / config.iterations if config.iterations > 0 else 0.0
+        span = config.iterations - config.schedule_start
+        by_steps = (self.iteration - config.schedule_start) / span if config.iterations > 0 else 0.0
         by_time = self.elapsed() / (60 * config.minutes) if config.minutes > 0 else 0.0
-        lr = config.lr * learning_rate_factor(config.schedule, max(by_steps, by_time))
+        return min(max(by_steps, by_time, 0.0), 1.0)
+
+    def _iterate(self, compute_loss: dict[int, torch.nn.Module]) -> float:
+        """One optimiser step at the scheduled learning rate (returned) and forecast length (`forecast_curriculum`),
+        its loss and parts summed for the log."""
+        progress = self.progress()
+        config = self.config.stage(progress)
+        lr = config.lr * learning_rate_factor(config.schedule, progress)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         batch = sample_batch(
-            self.windows, self.train_starts, config, self.model_config.ensemble_size, self.sampler, self.world
+            self.windows,
+            self.train_starts[config.forecast],
+            config,
+            self.model_config.ensemble_size,
+            self.sampler,
+            self.world,
         )
-        loss, parts = train_step(compute_loss, self.optimizer, self.params, batch, config.grad_clip)
+        loss, parts = train_step(compute_loss[config.forecast], self.optimizer, self.params, batch, config.grad_clip)
         self.iteration += 1
         self.running += loss
         for name, value in parts.items():

@@ -1,15 +1,17 @@
-"""dm_control suite tasks (cheetah, walker, hopper, quadruped, humanoid, finger, ...) as rwm-gym physics envs.
+"""dm_control tasks as rwm-gym physics envs: the suite (cheetah, walker, hopper, quadruped, humanoid, finger, ...) and
+the Kinova Jaco arm of `dm_control.manipulation` (reach, lift; see `rwm_gym.physics.dmc_environments`).
 
-`DMCCore` runs N suite environments of one task side by side (a plain loop: the suite's models are small), using
-dm_control's own MJCF models and task code for initial states and rewards. It follows the protocol of
+`DMCCore` runs N environments of one task side by side (a plain loop: the models are small), using dm_control's own
+MJCF models and task code for initial states and rewards. It follows the protocol of
 `rwm_gym.batched_core` (which `rwm_gym.data.collect` drives); `DMCEnv` is the core with N = 1 behind `gymnasium.Env`,
 and the vector envs of `rwm_gym.vector` (`DMCGymVectorEnv`, `DMCSB3VecEnv`) the core with N > 1, so all give
 identical transitions per seed.
 
 The world-model state is read from the physics as the spec declares (see `rwm_gym.physics.dmc_layout`); the policy
-observation is the spec's `[observation]` groups (the state plus the last action). Suite tasks never terminate; an
-episode is truncated after the spec's `episode_steps` (the suite's time limit). Actions in [-1, 1] are mapped
-linearly onto each actuator's control range. The reward is the suite task's reward after the step.
+observation is the spec's `[observation]` groups (the state plus the last action). The tasks never terminate; an
+episode is truncated after the spec's `episode_steps` (dm_control's time limit). Actions in [-1, 1] are mapped
+linearly onto each actuator's control range. The reward is the dm_control task's reward after the step; a
+manipulation task's step also reports `info["success"]` (its goal met, see `rwm_gym.task.manipulation_reward`).
 """
 
 from __future__ import annotations
@@ -21,25 +23,21 @@ import mujoco
 import numpy as np
 
 from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
+from rwm_gym.physics.dmc_environments import MANIPULATION, load_environment
 from rwm_gym.physics.dmc_layout import DMCLayout
 from rwm_gym.spec import SuiteTask, TaskSpec, load_spec
+from rwm_gym.task.manipulation_reward import GOAL_REWARD
 from rwm_gym.task.observation import build_observation
 
 
-def _load(suite_task: SuiteTask):
-    from dm_control import suite
-
-    return suite.load(suite_task.domain, suite_task.task, task_kwargs={"random": None})
-
-
 class DMCCore:
-    """One dm_control suite task for N environments. Arrays are (N, ...) unless said otherwise."""
+    """One dm_control task for N environments. Arrays are (N, ...) unless said otherwise."""
 
     def __init__(self, spec: TaskSpec, num_envs: int = 1):
         self.spec = spec
         self.num_envs = num_envs = check_num_envs(num_envs)
         self.params = SuiteTask.from_spec(spec)
-        self.envs = [_load(self.params) for _ in range(num_envs)]
+        self.envs = [load_environment(self.params.domain, self.params.task) for _ in range(num_envs)]
         physics = self.envs[0].physics
         self.model: mujoco.MjModel = physics.model.ptr
         for field, ours, theirs in (
@@ -59,6 +57,7 @@ class DMCCore:
         self.command = np.zeros((n, 0), dtype=np.float32)
         self.steps = np.zeros(n, dtype=np.int64)
         self.state = np.stack([self.layout.state(env.physics.data.ptr) for env in self.envs])
+        self._reports_success = self.params.domain == MANIPULATION and "manipulation" in spec.extra
 
         high_a = np.ones(a, dtype=np.float32)
         self.single_action_space = gym.spaces.Box(-high_a, high_a, dtype=np.float32)
@@ -71,14 +70,14 @@ class DMCCore:
     def reset(
         self, ids: np.ndarray, seeds: Sequence[int | None] | None = None, commands: np.ndarray | None = None
     ) -> np.ndarray:
-        """Start new episodes in envs `ids` (re-seeding the suite task's generator where a seed is given)."""
+        """Start new episodes in envs `ids` (re-seeding the task's generator where a seed is given)."""
         if commands is not None and np.shape(commands)[-1]:
             raise ValueError(f"{self.spec.name} has no commands")
         ids = np.asarray(ids, dtype=int)
         for i, seed in zip(ids, seeds or [None] * len(ids)):
             env = self.envs[i]
             if seed is not None:
-                env.task.random.seed(np.random.SeedSequence(int(seed)).generate_state(4))
+                env.reseed(seed)
             env.reset()
             self.state[i] = self.layout.state(env.physics.data.ptr)
         self.last_action[ids] = 0.0
@@ -93,17 +92,15 @@ class DMCCore:
         actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
         ctrl = self._ctrl_mid + self._ctrl_half * actions
         reward = np.zeros(self.num_envs)
-        for i, env in enumerate(self.envs):  # what dm_control's Environment.step does, without its auto-reset
-            env.task.before_step(ctrl[i], env.physics)
-            env.physics.step(self.spec.substeps)
-            env.task.after_step(env.physics)
-            reward[i] = env.task.get_reward(env.physics)
+        for i, env in enumerate(self.envs):
+            reward[i] = env.step(ctrl[i], self.spec.substeps)
             self.state[i] = self.layout.state(env.physics.data.ptr)
         self.last_action = actions
         self.steps += 1
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = self.steps >= self.spec.episode_steps
-        return self.observe(), reward, terminated, truncated, {}
+        info = {"success": reward >= GOAL_REWARD} if self._reports_success else {}
+        return self.observe(), reward, terminated, truncated, info
 
     def record(self) -> dict[str, np.ndarray]:
         """The dataset row of every env at the current time (see `rwm_gym.data.dataset` for the layout)."""
@@ -125,10 +122,11 @@ def make_core(spec: str | TaskSpec, num_envs: int = 1) -> DMCCore:
 
 
 class DMCEnv(gym.Env):
-    """A dm_control suite task as a Gymnasium env (e.g. `DMC-Cheetah-Run-v0`).
+    """A dm_control task as a Gymnasium env (e.g. `DMC-Cheetah-Run-v0`, `DMC-Jaco-ReachSite-v0`).
 
     Observation: the spec's `[observation]` groups (state, then last action), float32. Action: [-1, 1]^A, mapped onto
-    the actuators' control ranges. Reward: the suite task's. Never terminates; truncates after `episode_steps`.
+    the actuators' control ranges. Reward: the dm_control task's. Never terminates; truncates after `episode_steps`.
+    Info: `success` (bool) for a manipulation task.
     `render_mode="rgb_array"` renders dm_control's camera `camera` (needs an OpenGL backend, see MUJOCO_GL).
     """
 
@@ -162,8 +160,9 @@ class DMCEnv(gym.Env):
         return self.core.reset(np.array([0]), [seed])[0], {}
 
     def step(self, action):
-        obs, reward, terminated, truncated, _ = self.core.step(np.asarray(action)[None])
-        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), {}
+        obs, reward, terminated, truncated, info = self.core.step(np.asarray(action)[None])
+        info = {k: v[0].item() for k, v in info.items()}
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def record(self) -> dict[str, np.ndarray]:
         return {k: v[0] for k, v in self.core.record().items()}

@@ -11,11 +11,20 @@ A dm_control spec (`envs/dmc_*.toml`) names its state groups from a fixed vocabu
     joint_sin          joint names               1, sin of the angle
     joint_vel          joint names               rad/s (or m/s), qvel of 1-dof joints
     actuator_force     actuator names            N or N·m, force the actuator applied during the last step
+    site_pos           "SITE:axis"               m, world position of a site (a hand's pinch site, a reach target)
+    body_pos           "BODY:axis"               m, world position of a body's frame (a free object, e.g. a brick)
+    body_rot           "BODY:ij", i, j in x,y,z  1, entry (i, j) of the body's rotation matrix (body -> world)
+    body_lin_vel       "BODY:axis"               m/s, world-frame linear velocity of the body's frame origin
+    body_ang_vel       "BODY:axis"               rad/s, world-frame angular velocity of the body
 
 Planar robots (cheetah, walker, hopper) take the x/z components of the linear quantities and y of the angular one; the
-world x position is never part of the state. Contacts: a contact body is in contact when MuJoCo's collision detection
-lists a contact between one of its geoms and a geom of the spec's `[dm_control] contact_partner` body (the floor's
-`world` for robots on the ground). The suite's models have zero geom margins, so a listed contact is a touching one.
+world x position is never part of the state. The site and body groups (for a manipulator and the objects it moves)
+name each column `NAME:component`, e.g. `"jaco_arm/jaco_hand/pinchsite:x"`, `"duplo2x4/:zz"`.
+
+Contacts: a contact body is in contact when MuJoCo's collision detection lists a contact between one of its geoms
+and a geom of the spec's `[dm_control] contact_partner` body (the floor's `world` for robots on the ground, the
+brick for an arm lifting it). The suite's models have zero geom margins, so a listed contact is a touching one; the
+manipulation brick's geoms have 0.1 mm margins, so a listed contact there is within 0.1 mm.
 """
 
 from __future__ import annotations
@@ -28,6 +37,9 @@ import numpy as np
 from rwm_gym.spec import TaskSpec
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+_ROTATION = {i + j: 3 * _AXES[i] + _AXES[j] for i in _AXES for j in _AXES}
+"""Entry "ij" of a rotation matrix -> its index in MuJoCo's row-major 9 (xmat)."""
+_OBJECT_GROUPS = ("site_pos", "body_pos", "body_rot", "body_lin_vel", "body_ang_vel")
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names: tuple[str, ...], spec: TaskSpec, what: str) -> np.ndarray:
@@ -93,7 +105,42 @@ class DMCLayout:
             adr = m.jnt_qposadr[joints]
             fn = {"joint_pos": lambda q: q, "joint_cos": np.cos, "joint_sin": np.sin}[name]
             return lambda d: fn(d.qpos[adr])
+        if name in _OBJECT_GROUPS:
+            return self._object_reader(name, columns)
         raise ValueError(f"task spec {spec.name}: unknown state group {name!r} for a dm_control task")
+
+    def _object_reader(self, name: str, columns: tuple[str, ...]) -> Reader:
+        """A site or body group: columns `NAME:component`, read from the site's or body's world pose or velocity."""
+        m, spec = self.model, self.spec
+        kind = mujoco.mjtObj.mjOBJ_SITE if name == "site_pos" else mujoco.mjtObj.mjOBJ_BODY
+        components = _ROTATION if name == "body_rot" else _AXES
+        objects, index = [], []
+        for column in columns:
+            object_name, sep, component = column.rpartition(":")
+            if not sep or component not in components:
+                raise ValueError(
+                    f"task spec {spec.name}: state group {name!r} column {column!r} is not NAME:component "
+                    f"(components: {', '.join(components)})"
+                )
+            objects.append(object_name)
+            index.append(components[component])
+        ids = _ids(m, kind, tuple(objects), spec, f"state group {name!r} {'site' if name == 'site_pos' else 'body'}")
+        if name == "site_pos":
+            return lambda d: d.site_xpos[ids, index]
+        if name == "body_pos":
+            return lambda d: d.xpos[ids, index]
+        if name == "body_rot":
+            return lambda d: d.xmat[ids, index]
+        offset = 3 if name == "body_lin_vel" else 0
+
+        def velocity(d: mujoco.MjData) -> np.ndarray:
+            out, value = np.zeros(len(ids)), np.zeros(6)
+            for k, (body, component) in enumerate(zip(ids, index)):
+                mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, body, value, 0)  # world-aligned frame
+                out[k] = value[offset + component]
+            return out
+
+        return velocity
 
     def state(self, data: mujoco.MjData) -> np.ndarray:
         """The world-model state, (S,) float32."""

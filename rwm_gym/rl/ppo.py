@@ -415,17 +415,35 @@ def make_env(
     device: str = "cpu",
     seed: int = 0,
     env_kwargs: dict | None = None,
+    physics_env: str | os.PathLike | None = None,
 ) -> VecEnv:
-    """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics."""
+    """The SB3 VecEnv to train in: the imagined env on `checkpoint` (None: the shipped one) or batched physics of
+    `physics_env` (a physics id, spec name or path; None: the shipped legged task), MuJoCo or dm_control."""
     if where == "imagination":
         from rwm_gym.vector.sb3_vec_env import ImaginedSB3VecEnv
 
         env = ImaginedSB3VecEnv(checkpoint=checkpoint, num_envs=num_envs, device=device, **(env_kwargs or {}))
     elif where == "physics":
-        from rwm_gym.vector.sb3_vec_env import LocomotionSB3VecEnv
-
-        env = LocomotionSB3VecEnv(num_envs=num_envs, **(env_kwargs or {}))
+        env = _physics_env(physics_env, num_envs, env_kwargs or {})
     else:
         raise ValueError(f"--in {where!r} unknown (choose from {', '.join(WHERE)})")
     env.seed(seed)
     return env
+
+
+def _physics_env(physics_env: str | os.PathLike | None, num_envs: int, env_kwargs: dict) -> VecEnv:
+    """Batched physics as an SB3 VecEnv: a dm_control task's `DMCSB3VecEnv` or the legged task's MuJoCo one."""
+    from rwm_gym.vector.sb3_vec_env import DMCSB3VecEnv, LocomotionSB3VecEnv
+
+    if physics_env is None:
+        return LocomotionSB3VecEnv(num_envs=num_envs, **env_kwargs)
+    from rwm_gym.registration import resolve_spec, simulator_of
+
+    spec = resolve_spec(physics_env)
+    if simulator_of(spec) == "dm_control":
+        if env_kwargs:
+            raise ValueError(
+                f"{spec.name} is a dm_control task: physics options ({', '.join(env_kwargs)}) do not apply"
+            )
+        return DMCSB3VecEnv(num_envs=num_envs, spec=spec)
+    return LocomotionSB3VecEnv(num_envs=num_envs, spec=spec, **env_kwargs)

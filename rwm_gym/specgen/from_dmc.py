@@ -1,5 +1,7 @@
 """A task spec for any dm_control suite task, read off the suite's own model (`rwm-gym spec --from-dmc DOMAIN-TASK`).
 
+`--from-dmc manipulation-TASK` drafts a `dm_control.manipulation` task instead (`rwm_gym.specgen.from_manipulation`).
+
 The state follows the vocabulary of `rwm_gym.physics.dmc_layout`:
 
 - a floating base (the first body under the world with a free joint, or with two or more joints none of which is
@@ -101,11 +103,19 @@ def base_groups(model: mujoco.MjModel, base: int) -> tuple[list[tuple[str, list[
     return groups, joints
 
 
-def layout(model: mujoco.MjModel) -> tuple[str, list[tuple[str, list[str], str]], list[str]]:
-    """(base body name or "", state groups [(name, columns, unit)], notes on what was chosen)."""
+def layout(
+    model: mujoco.MjModel, objects: tuple[int, ...] = ()
+) -> tuple[str, list[tuple[str, list[str], str]], list[str]]:
+    """(base body name or "", state groups [(name, columns, unit)], notes on what was chosen).
+
+    objects: free bodies a fixed-base manipulator moves (their joints are left out here, and no base is looked for).
+    """
     notes = []
-    base = find_base(model)
+    base = None if objects else find_base(model)
     groups, base_joints = base_groups(model, base) if base is not None else ([], [])
+    base_joints += [
+        j for b in objects for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
+    ]
     base_name = _name(model, mujoco.mjtObj.mjOBJ_BODY, base) if base is not None else ""
     if base is not None:
         notes.append(
@@ -176,10 +186,48 @@ def contacts(model: mujoco.MjModel, base_name: str, feet: list[str] | None) -> t
     return names, list(feet), [note]
 
 
+def task_table_of(values: dict, time_limit_note: str) -> Table:
+    """The [task] table of a dm_control spec, its timing fields annotated (`time_limit_note` for episode_steps)."""
+    return Table(
+        "task",
+        values,
+        {
+            "policy_dt": "s, dm_control's control timestep (checked at load)",
+            "physics_dt": "s, the model's timestep (checked at load)",
+            "episode_steps": time_limit_note,
+        },
+    )
+
+
+def observation_table(groups: list[tuple[str, list[str], str]]) -> Table:
+    """The policy observation of a dm_control spec: every state group, then the last action."""
+    return Table(
+        "observation",
+        {"groups": [g[0] for g in groups] + ["last_action"]},
+        note="Policy observation: the state, then the last action.",
+    )
+
+
+def spec_header(what: str, name: str) -> list[str]:
+    """The comment lines that open a spec written by `rwm-gym spec --from-dmc NAME`."""
+    return [
+        f"Task spec: {what}, written by `rwm-gym spec --from-dmc {name}`.",
+        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
+        "how the world-model state, contacts and observation are read from its physics",
+        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
+    ]
+
+
 def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraft:
     """The spec of suite task `domain`-`task` with placeholder normalisation (see `draft.fill_normalization`)."""
     from dm_control import suite
 
+    from rwm_gym.physics.dmc_environments import MANIPULATION
+
+    if domain == MANIPULATION:
+        from rwm_gym.specgen.from_manipulation import manipulation_draft
+
+        return manipulation_draft(task)
     try:
         env = suite.load(domain, task, task_kwargs={"random": 0})
     except (ValueError, KeyError) as err:
@@ -211,15 +259,7 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
         task_table["base_body"] = base
     actuators = groups[-1][1]
     tables = [
-        Table(
-            "task",
-            task_table,
-            {
-                "policy_dt": "s, dm_control's control timestep (checked at load)",
-                "physics_dt": "s, the model's timestep (checked at load)",
-                "episode_steps": "the suite's time limit; suite tasks never terminate",
-            },
-        ),
+        task_table_of(task_table, "the suite's time limit; suite tasks never terminate"),
         Table("dm_control", {"domain": domain, "task": task, "contact_partner": "world"}),
         Table(
             "actuator",
@@ -252,17 +292,6 @@ def dmc_draft(domain: str, task: str, feet: list[str] | None = None) -> SpecDraf
             note="No termination: suite tasks run to their time limit.",
         )
     )
-    tables.append(
-        Table(
-            "observation",
-            {"groups": [g[0] for g in groups] + ["last_action"]},
-            note="Policy observation: the state, then the last action.",
-        )
-    )
-    header = [
-        f"Task spec: dm_control suite {domain}-{task}, written by `rwm-gym spec --from-dmc {domain}-{task}`.",
-        "dm_control's own MJCF model and task code (initial states, reward) run underneath; this file declares",
-        "how the world-model state, contacts and observation are read from its physics",
-        "(see rwm_gym/physics/dmc_layout.py). Units: SI (m, s, rad, N, N·m).",
-    ]
+    tables.append(observation_table(groups))
+    header = spec_header(f"dm_control suite {domain}-{task}", f"{domain}-{task}")
     return SpecDraft(header, tables, notes + contact_notes)

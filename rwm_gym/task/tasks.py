@@ -6,9 +6,10 @@ samples the commands, runs the feet-air-time timers and composes the reward, so 
 
 - `VelocityTrackingTask` (ANYmal D): velocity commands sampled at reset and on the spec's period, the legged reward of
   `rwm_gym.task.reward`; terminates (on the simulator's termination signal).
-- `SuiteRewardTask` (specs with a `[dm_control]` table): no commands, never terminates (suite tasks only hit their
-  time limit), the suite's reward as a pure function of the state, foot heights and action
-  (`rwm_gym.task.suite_reward`). The dm_control physics env scores with the suite's own `get_reward` instead.
+- `SuiteRewardTask` (specs with a `[dm_control]` table): no commands, never terminates (dm_control tasks only hit
+  their time limit), the task's reward as a pure function of the state, foot heights and action
+  (`rwm_gym.task.suite_reward`; a manipulation task's, and its success, from `rwm_gym.task.manipulation_reward`).
+  The dm_control physics env scores with dm_control's own `get_reward` instead.
 - `FunctionTask` (`rwm_gym.task.function_task`): either of the above, or no commands for a dm_control task, with
   reward and/or termination from functions of the transition, named by the spec's `[imagination]` entry points or
   given as `reward_fn=` / `termination_fn=` (`rwm_gym.task.entry_points`; the imagined env uses them).
@@ -95,23 +96,40 @@ class VelocityTrackingTask:
             self.command[resample] = sample_commands(self.spec.command, [rngs[i] for i in resample])
 
 
+def state_reward(spec: TaskSpec):
+    """The reward of a dm_control spec as a function `(state, foot_height, action) -> (N,)`: a manipulation task's
+    (`ManipulationReward`, which also judges success) or a suite task's (`SuiteReward`)."""
+    from rwm_gym.physics.dmc_environments import MANIPULATION
+
+    if spec.extra.get("dm_control", {}).get("domain") == MANIPULATION:
+        from rwm_gym.task.manipulation_reward import ManipulationReward
+
+        return ManipulationReward(spec)
+    from rwm_gym.task.suite_reward import SuiteReward
+
+    return SuiteReward(spec)
+
+
 class SuiteRewardTask:
-    """A dm_control suite task: no commands, no termination, the suite's reward of the state."""
+    """A dm_control task: no commands, no termination, the task's reward of the state."""
 
     terminates = False
 
     def __init__(self, spec: TaskSpec, num_envs: int):
-        from rwm_gym.task.suite_reward import SuiteReward
-
         self.command = np.zeros((num_envs, 0), dtype=np.float32)
-        self.suite_reward = SuiteReward(spec)
+        self.suite_reward = state_reward(spec)
+        self.success: np.ndarray | None = None
+        """(N,) bool after each reward: the manipulation goal met at that step (None for suite tasks)."""
 
     def reset(self, ids: np.ndarray, rngs: Sequence[np.random.Generator], commands: np.ndarray | None = None) -> None:
         if commands is not None and commands.shape[-1]:
             raise ValueError("a dm_control suite task has no commands")
 
     def reward(self, next_state, state, contact, foot_height, action, last_action):
-        return self.suite_reward(next_state, foot_height, action), {}
+        reward = self.suite_reward(next_state, foot_height, action)
+        if hasattr(self.suite_reward, "success"):
+            self.success = reward >= self.suite_reward.success_reward
+        return reward, {}
 
     def advance(self, steps: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
         pass
