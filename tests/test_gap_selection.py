@@ -14,7 +14,7 @@ import pytest
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, score_fit
+from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import (
     LearnedCorrectionConfig,
@@ -82,6 +82,35 @@ def test_noise_floor_of_exact_simulator_matches_nominal_gap(nominal_data):
     gap = gap_per_window(SPEC, resim.rollout(windows, PhysicsParams()), windows)
     assert 0.4 < gap.mean() / floor.mean() < 2.5
     assert noise_floor(resim, windows, PhysicsParams(), SensorNoise(scale=0.0)).mean() < 1e-6 < floor.mean()
+
+
+def test_fits_made_once_are_taken_again_only_on_the_same_inputs(nominal_data):
+    """The solver check hands its step-1 fits on (`fit.FitMemo`): asked again on the same windows, simulator and
+    base, the memo answers with copies of the same fits and only an effect it has not seen is fitted; on another
+    base it answers nothing."""
+    train, held = make_windows(nominal_data, np.arange(2), 5, 8), make_windows(nominal_data, [2], 25, 5)
+    resim, config, base = Resimulator(SPEC), FitConfig(refine_top=1, max_evaluations=3), PhysicsParams()
+    before = gap_per_window(SPEC, resim.rollout(held, base), held)
+    memo = FitMemo(resim, train, held, base, before, config)
+    names = ("armature", "motor_strength")
+    first = fit_all({n: EFFECTS[n] for n in names}, resim, train, held, base, before, config, False, memo=memo)
+    rollouts = []
+    rollout = resim.rollout
+    resim.rollout = lambda windows, params, **kw: rollouts.append(params) or rollout(windows, params, **kw)
+    effects = {n: EFFECTS[n] for n in (*names, "joint_damping")}
+    again = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    assert rollouts and all(p.joint_damping != 0 or p == base for p in rollouts)  # only the new effect was fitted
+    by_name = {f.effect: f for f in again}
+    assert [json.dumps(dataclasses.asdict(by_name[f.effect])) for f in first] == [
+        json.dumps(dataclasses.asdict(f)) for f in first
+    ]
+    by_name["armature"].values[0] = -1.0  # a caller changing a fit changes no memo
+    third = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    assert next(f for f in third if f.effect == "armature").values[0] != -1.0
+    rollouts.clear()
+    other = PhysicsParams(armature=0.01)
+    fit_all({"armature": EFFECTS["armature"]}, resim, train, held, other, before, config, False, memo=memo)
+    assert rollouts  # another base: fitted afresh, not answered from the memo
 
 
 def test_joint_groups_come_from_the_joint_names():

@@ -9,7 +9,9 @@ state (the noise floor rises). So the first selection step is fitted under both 
 scoped forms of the best joint effects, the same windows), and the converged solve is taken where the best candidate
 under it leaves a held-out gap `MATERIAL` below the best under the sim's own, at p < `SIGNIFICANCE`
 (`fit.paired_p_value` on block means). The report says which was taken and why; the corrected robot then carries the
-converged settings (`PhysicsParams.solver`).
+converged settings (`PhysicsParams.solver`). The fits under the solver taken are handed on (`fit.FitMemo`):
+selection's first step takes them rather than fitting them again, so the check costs one first step, under the
+other solver.
 
 The scoped forms are part of the check because an effect held by a few joints is misfit in its global form under
 either solver, so the global forms alone cannot tell the solvers apart; per group, the fast solve's rough cost leaks
@@ -20,7 +22,7 @@ form then loses to the global one), where the converged solve fits it (5.8, the 
 from __future__ import annotations
 
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, fit_all, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, gap_per_window, paired_p_value
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import scope_candidates
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
@@ -48,15 +50,17 @@ def is_converged(resim: Resimulator) -> bool:
 
 def best_candidate(
     resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams, config: FitConfig, progress: bool
-) -> dict:
+) -> tuple[dict, FitMemo]:
     """Step 1 under `resim`'s solver: every effect but `contact_solver` fitted and scored, and the scoped forms of
     the best joint effects (`scope.scope_candidates`); the best held-out gap {"effect", "scope", "values", "gap",
-    "per_window" (W,)} (the nominal simulator's where no effect lowers it)."""
+    "per_window" (W,)} (the nominal simulator's where no effect lowers it), and the fits, which the selection's first
+    step under this solver takes rather than fitting them again (`fit.FitMemo`)."""
     effects = {n: e for n, e in vocabulary(resim.spec, resim.xml_file, resim.solver).items() if n != "contact_solver"}
     before = gap_per_window(resim.spec, resim.rollout(held, base), held)
     best = {"effect": "none", "scope": None, "values": [], "gap": float(before.mean()), "per_window": before.mean(1)}
-    fits = fit_all(effects, resim, train, held, base, before, config, progress)
-    scoped = scope_candidates(fits, effects, resim.spec, resim, train, held, base, before, config)
+    memo = FitMemo(resim, train, held, base, before, config)
+    fits = fit_all(effects, resim, train, held, base, before, config, progress, memo=memo)
+    scoped = scope_candidates(fits, effects, resim.spec, resim, train, held, base, before, config, memo)
     chosen = None
     for effect, fit in [(effects[f.effect], f) for f in fits] + scoped:
         if fit.status == "ok" and fit.gap_mean < best["gap"]:
@@ -65,7 +69,7 @@ def best_candidate(
     if chosen is not None:
         params = chosen.physics(best["values"], base)
         best["per_window"] = gap_per_window(resim.spec, resim.rollout(held, params), held).mean(1)
-    return best
+    return best, memo
 
 
 def choose_solver(
@@ -75,17 +79,19 @@ def choose_solver(
     base: PhysicsParams,
     config: FitConfig,
     progress: bool = True,
-) -> tuple[Resimulator, dict]:
-    """The re-simulator to run the workflow with (`resim`, the sim env's own solver, or a converged one) and the
-    report's account of the check (see the module docstring)."""
+) -> tuple[Resimulator, dict, FitMemo | None]:
+    """The re-simulator to run the workflow with (`resim`, the sim env's own solver, or a converged one), the
+    report's account of the check (see the module docstring) and the first step's fits under it (`fit.FitMemo`, for
+    `select.select_effects`; None where the check did not run)."""
     if is_converged(resim):
-        return resim, {"checked": False, "taken": "own", "reason": "the sim env's own solver is converged"}
+        return resim, {"checked": False, "taken": "own", "reason": "the sim env's own solver is converged"}, None
     other = Resimulator(resim.spec, resim.xml_file, resim.nthread, converged(resim.solver or SolverSettings()))
-    own_best = best_candidate(resim, train, held, base, config, progress)
+    own_best, own_memo = best_candidate(resim, train, held, base, config, progress)
     try:
-        conv_best = best_candidate(other, train, held, base, config, progress)
+        conv_best, conv_memo = best_candidate(other, train, held, base, config, progress)
     except SimulationDiverged as err:
-        return resim, {"checked": True, "taken": "own", "reason": f"the converged solve blows up ({err.reason})"}
+        reason = f"the converged solve blows up ({err.reason})"
+        return resim, {"checked": True, "taken": "own", "reason": reason}, own_memo
     p = paired_p_value(own_best["per_window"], conv_best["per_window"], held, config.block_rows, SIGNIFICANCE)
     take = conv_best["gap"] <= (1.0 - MATERIAL) * own_best["gap"] and p < SIGNIFICANCE
     summary = {
@@ -99,7 +105,7 @@ def choose_solver(
         f"{own_best['gap']:.4g}; needs {MATERIAL:.0%} lower at p<{SIGNIFICANCE:.2g}, p={p:.2g})"
     )
     check = {"checked": True, "taken": "converged" if take else "own", "reason": reason, "p_value": p, **summary}
-    return (other if take else resim), check
+    return (other, check, conv_memo) if take else (resim, check, own_memo)
 
 
 def solver_settings(resim: Resimulator) -> dict:

@@ -131,8 +131,9 @@ def run_gap(
     held, dropped_held = drop_diverged(resim, held, base, measured)
     train, dropped_train = drop_diverged(resim, train, base, measured)
     solver_check = {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}
+    first_step = None  # the check's fits under the solver it took, which selection's first step takes
     if config.solver_check:
-        resim, solver_check = choose_solver(resim, train, held, base, fit_config, progress)
+        resim, solver_check, first_step = choose_solver(resim, train, held, base, fit_config, progress)
     effects = vocabulary(spec, sim_kwargs.get("xml_file"), resim.solver)
     nominal_sim = resim.rollout(held, base)
     before = gap_per_window(spec, nominal_sim, held)
@@ -144,7 +145,7 @@ def run_gap(
     if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
         cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     selection = select_effects(
-        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
+        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross, first_step
     )
     corrected_params, after = selection.params, selection.gap_after
     spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
