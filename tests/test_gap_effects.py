@@ -8,8 +8,11 @@ import pytest
 
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
+from rwm_gym.gap.effects import vocabulary
+from rwm_gym.gap.fit import FitConfig, fit_all, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows
+from rwm_gym.gap.workflow import GapConfig
 from rwm_gym.physics.locomotion import make_core
 from rwm_gym.physics.params import PhysicsParams, build_model
 from rwm_gym.physics.sensors import SensorBias
@@ -65,6 +68,29 @@ def test_torque_speed_limit_clips_the_drive_force_above_the_knee():
     assert TorqueSpeedLimit.from_model(model, SPEC.actuator.joints, np.zeros(12), np.full(12, 2.0)) is None
     with pytest.raises(ValueError, match="torque_speed_slope"):
         TorqueSpeedLimit.from_model(model, SPEC.actuator.joints, np.full(12, -1.0), np.full(12, 2.0))
+
+
+@pytest.mark.parametrize("name", ["torque_speed_limit", "ground_compliance", "encoder_offset", "base_velocity_bias"])
+def test_effect_is_fitted_from_noisy_measured_windows(tmp_path, name):
+    """Each hidden at its default size (torque-speed limit: 15 N·m per rad/s above 1.5 rad/s) in 6 x 150 steps of
+    excitation data with the default sensor noise, fitted as the workflow's first step fits it (screened, refined,
+    scored on the held-out episodes): its first value comes out within a quarter of the truth, and the fit removes
+    most of the held-out gap. Whether the workflow names it among all effects: test_gap (`slow` for some)."""
+    effect = vocabulary(SPEC)[name]
+    first = effect.parameters[0]
+    true = 15.0 if name == "torque_speed_limit" else first.default
+    path = make_measured(
+        {name: effect.values_from_magnitude(true)}, 6, tmp_path / "m.h5", max_steps=150, progress=False
+    )
+    data, config = Dataset.load(path), GapConfig()
+    train_ids, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
+    train = make_windows(data, train_ids, FitConfig.fit_horizon, config.fit_stride)
+    held = make_windows(data, held_ids, 25, config.eval_stride)
+    resim = Resimulator(SPEC)  # a converged solve, as make-measured's robot
+    before = gap_per_window(SPEC, resim.rollout(held, PhysicsParams()), held)
+    (fit,) = fit_all({name: effect}, resim, train, held, PhysicsParams(), before, FitConfig(), progress=False)
+    assert abs(fit.values[0] - true) <= 0.25 * abs(true - first.nominal), fit.values
+    assert fit.gap_mean <= 0.5 * float(before.mean()) and not np.isnan(fit.uncertainty[0])  # refined, not screened
 
 
 def test_ground_solref_is_the_floors_and_checked():
