@@ -14,7 +14,7 @@ import pytest
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, score_fit
+from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import (
     LearnedCorrectionConfig,
@@ -25,7 +25,7 @@ from rwm_gym.gap.learned import (
 )
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
-from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows
+from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
@@ -34,6 +34,8 @@ from rwm_gym.spec import load_spec
 SPEC = load_spec("anymal_d")
 EFFECTS = vocabulary(SPEC)
 SIM = "AnymalD-MuJoCo-v0"
+CONVERGED = GapConfig(solver=CONVERGED_SOLVER)
+"""A converged re-simulation, as make-measured's robot is solved: no solver to check (see test_gap.CONVERGED)."""
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +84,35 @@ def test_noise_floor_of_exact_simulator_matches_nominal_gap(nominal_data):
     gap = gap_per_window(SPEC, resim.rollout(windows, PhysicsParams()), windows)
     assert 0.4 < gap.mean() / floor.mean() < 2.5
     assert noise_floor(resim, windows, PhysicsParams(), SensorNoise(scale=0.0)).mean() < 1e-6 < floor.mean()
+
+
+def test_fits_made_once_are_taken_again_only_on_the_same_inputs(nominal_data):
+    """The solver check hands its step-1 fits on (`fit.FitMemo`): asked again on the same windows, simulator and
+    base, the memo answers with copies of the same fits and only an effect it has not seen is fitted; on another
+    base it answers nothing."""
+    train, held = make_windows(nominal_data, np.arange(2), 5, 8), make_windows(nominal_data, [2], 25, 5)
+    resim, config, base = Resimulator(SPEC), FitConfig(refine_top=1, max_evaluations=3), PhysicsParams()
+    before = gap_per_window(SPEC, resim.rollout(held, base), held)
+    memo = FitMemo(resim, train, held, base, before, config)
+    names = ("armature", "motor_strength")
+    first = fit_all({n: EFFECTS[n] for n in names}, resim, train, held, base, before, config, False, memo=memo)
+    rollouts = []
+    rollout = resim.rollout
+    resim.rollout = lambda windows, params, **kw: rollouts.append(params) or rollout(windows, params, **kw)
+    effects = {n: EFFECTS[n] for n in (*names, "joint_damping")}
+    again = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    assert rollouts and all(p.joint_damping != 0 or p == base for p in rollouts)  # only the new effect was fitted
+    by_name = {f.effect: f for f in again}
+    assert [json.dumps(dataclasses.asdict(by_name[f.effect])) for f in first] == [
+        json.dumps(dataclasses.asdict(f)) for f in first
+    ]
+    by_name["armature"].values[0] = -1.0  # a caller changing a fit changes no memo
+    third = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    assert next(f for f in third if f.effect == "armature").values[0] != -1.0
+    rollouts.clear()
+    other = PhysicsParams(armature=0.01)
+    fit_all({"armature": EFFECTS["armature"]}, resim, train, held, other, before, config, False, memo=memo)
+    assert rollouts  # another base: fitted afresh, not answered from the memo
 
 
 def test_joint_groups_come_from_the_joint_names():
@@ -153,7 +184,7 @@ def test_what_is_left_is_judged_against_the_corrected_simulators_floor(tmp_path)
     than in the nominal simulator. Named and fitted right, the effect leaves a gap above the nominal floor that is
     noise under the corrected simulator; it is judged against that floor, so no residual torque is learned for it."""
     data = make_measured({"ground_friction": [0.3]}, 9, tmp_path / "m.h5", max_steps=150, policy="gait", progress=False)
-    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    report = run_gap(SIM, data, tmp_path / "report", config=CONVERGED, progress=False)
     assert report["effect"] == "ground_friction", report["reason"]
     assert abs(report["parameters"]["ground_friction"] - 0.3) <= 0.25 * 0.7
     residual, nominal_floor = report["residual"], report["noise_floor"]["floor"]
@@ -171,7 +202,7 @@ def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
     data = make_measured(
         {}, 6, tmp_path / "m.h5", max_steps=150, env_kwargs={"xml_file": str(xml)}, policy="gait", progress=False
     )
-    report = run_gap(SIM, data, tmp_path / "report", progress=False)
+    report = run_gap(SIM, data, tmp_path / "report", config=CONVERGED, progress=False)
     assert report["noise_floor"]["above_floor"] and report["noise_floor"]["ratio"] > 2
     assert report["effect"] == "unexplained" and report["effects"] == [], report["reason"]
     learned = report["learned_correction"]
@@ -250,7 +281,48 @@ def test_solver_settings_are_an_env_option_and_the_gap_default():
     with pytest.raises(ValueError, match="unknown solver setting"):
         make_core("anymal_d", 1, solver={"tolerance": 1e-9})
     assert Resimulator(SPEC).model(PhysicsParams()).opt.iterations == 100
-    assert GapConfig().solver == CONVERGED_SOLVER
+    assert GapConfig().solver is None  # the workflow re-simulates with the sim env's own settings
+
+
+def test_the_gap_is_that_of_the_simulator_as_it_runs(tmp_path):
+    """Data from the package's fast physics on a slippery floor: the sim env's own solver at the true friction
+    reproduces them, with 4 replayed steps; a converged solver does not. The solver's warm start is state outside
+    qpos/qvel that the replayed steps rebuild: with one, a window at a touchdown is left far off (`resim.WARMUP`)."""
+    hidden = {"ground_friction": [0.35]}
+    path = make_measured(
+        hidden, 2, tmp_path / "m.h5", max_steps=60, policy="gait", solver=None, noise=SensorNoise(scale=0.0),
+        progress=False,
+    )  # fmt: skip
+    data = Dataset.load(path)
+    truth = PhysicsParams(ground_friction=0.35)
+
+    def error(solver, warmup: int = 4) -> float:
+        windows = make_windows(data, np.arange(2), 5, 1, warmup)
+        return float(np.abs(Resimulator(SPEC, solver=solver).rollout(windows, truth) - windows.target).max())
+
+    errors = {"own": error(None), "converged": error(CONVERGED_SOLVER), "own, one replayed step": error(None, 1)}
+    assert errors["own"] < 1e-3 < min(errors["converged"], errors["own, one replayed step"]), errors
+
+
+def test_contact_solver_is_an_effect_charged_for_its_parameters(tmp_path):
+    """Nominal: the simulator's own settings; its values change the compiled solver (also through the model cache);
+    fitted on noise-free data of a converged robot, a finer solve is found."""
+    effect = EFFECTS["contact_solver"]
+    assert [p.nominal for p in effect.parameters] == [4, 2, 0.0] and effect.physics(effect.nominal) == PhysicsParams()
+    assert vocabulary(SPEC, solver=CONVERGED_SOLVER)["contact_solver"].parameters[0].nominal == 100
+    params = effect.physics([100, 4, 1])
+    for model in (build_model(SPEC, params=params), Resimulator(SPEC, solver=None).model(params)):
+        assert (model.opt.iterations, model.opt.ls_iterations, model.opt.noslip_iterations) == (100, 50, 4)
+        assert model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    assert PhysicsParams.from_dict(json.loads(json.dumps(params.to_dict()))) == params
+    path = make_measured({}, 2, tmp_path / "m.h5", max_steps=40, noise=SensorNoise(scale=0.0), progress=False)
+    data = Dataset.load(path)
+    windows = make_windows(data, np.arange(2), 5, 6)
+    resim, config = Resimulator(SPEC, solver=None), FitConfig()
+    fit = fit_effect(effect, resim, windows, PhysicsParams(), config, effect.nominal, (4, 100))
+    nominal = float(np.mean(normalised_residual(SPEC, resim.rollout(windows, PhysicsParams()), windows.target) ** 2))
+    assert fit.values[0] > 4 and fit.train_cost < 1e-3 * nominal, (fit.values, fit.train_cost, nominal)
+    assert len(fit.values) == 3  # the score charges penalty_per_parameter for the two beyond the first
 
 
 def test_the_two_best_joint_effects_that_reduce_the_gap_are_fitted_in_their_scopes(monkeypatch):

@@ -35,7 +35,9 @@ class CollectOptions:
     max_steps: int | None = None
     """cap on episode length in policy steps (default: the task's episode length)"""
     physics: str | None = None
-    """JSON dict of physics parameters (see PhysicsParams; default: the MJCF's)"""
+    """JSON dict of physics parameters (see PhysicsParams; default: the MJCF's). The physics is solved with the
+    MJCF's own solver settings (ANYmal D: 4 iterations, pyramidal cone, fast for PPO), as `rwm-gym gap` re-simulates
+    by default; {"solver": {"iterations": 100}} solves each step to convergence"""
 
 
 OPTIONS = (PhysicsEnvOptions, CollectOptions, WorkerOptions, OverwriteOption)

@@ -20,7 +20,6 @@ from rwm_gym.gap.workflow import (
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig
 from rwm_gym.options import dataclass_from_args
-from rwm_gym.physics.params import CONVERGED_SOLVER
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -38,8 +37,10 @@ class GapOptions:
     """report folder"""
     sensor_noise: str | None = None
     """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
-    solver_iterations: int = CONVERGED_SOLVER.iterations
-    """MuJoCo solver iterations per physics step of the re-simulations (0: the MJCF's own)"""
+    solver_iterations: int = 0
+    """MuJoCo solver iterations per physics step of the re-simulations (0: the sim env's own, so the gap is that
+    of the simulator as it runs, unless --solver-check finds a converged solve reproduces the data materially
+    better; 100: each step solved to convergence)"""
     world_model: str = "auto"
     """checkpoint of the nominal-sim world model for the world-model rows; auto: the shipped one for
     AnymalD-MuJoCo-v0 (else none); none: skip them"""
@@ -60,7 +61,7 @@ OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
-    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction"})
+    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check", "bootstrap"})
     add_group(
         parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
     )
@@ -112,7 +113,9 @@ def run(args: argparse.Namespace) -> int:
     for item in report["effects"]:
         print(f"  {item['effect']} ({item['scope']}), {item['share_of_explained_gap']:.0%} of the explained gap")
         for name, value in item["parameters"].items():
-            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}")
+            spread = item.get("bootstrap", {}).get(name)
+            interval = " (bootstrap 95 %: {:.4g} to {:.4g})".format(*spread["interval"]) if spread else ""
+            print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}{interval}")
     print(
         f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
         f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}"

@@ -37,9 +37,12 @@ class MeasuredOptions:
     max_steps: int = 250
     """policy steps per episode"""
     noise_scale: float = 1.0
-    """multiplier on the default sensor noise (0: none)"""
+    """multiplier on the default sensor noise (0: none); `rwm-gym gap` assumes the default and checks it against
+    the data"""
     solver_iterations: int = CONVERGED_SOLVER.iterations
-    """MuJoCo solver iterations per physics step of the hidden robot (0: the MJCF's own)"""
+    """MuJoCo solver iterations per physics step of the hidden robot: the robot stands in for a real one, so by
+    default each step is solved to convergence (100), not with the fast MJCF's settings that `rwm-gym gap`
+    re-simulates with (0: the MJCF's own)"""
     seed: int = 0
     out: Path
 

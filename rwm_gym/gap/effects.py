@@ -6,8 +6,20 @@ one (or several) in a simulator. The effects here act globally (the same value o
 derives per-leg, per-joint-type and per-joint forms of the joint effects. `PhysicsParams` itself takes per-joint
 values, which `make-measured --physics` can hide.
 
-Backlash is a dead band of the position error at the physics rate (`rwm_gym.physics.backlash`); it is the one effect
-the corrected MJCF cannot hold, so it lives in the corrected env options.
+Backlash is a dead band of the position error at the physics rate (`rwm_gym.physics.backlash`), and the torque-speed
+limit a clip of the drive's force that falls with joint speed (`rwm_gym.physics.torque_speed`); the corrected MJCF
+cannot hold either, so they live in the corrected env options. Ground compliance is the floor's MuJoCo solref
+(`PhysicsParams.ground_solref`; its solimp can be hidden with `make-measured --physics`, not fitted).
+
+Two effects act on the measurement, not the dynamics (`rwm_gym.physics.sensors`): an encoder offset on every joint
+position read and a bias of the estimated base linear velocity. The measured data holds readings, as it holds the
+sensor noise; the re-simulation undoes a candidate bias on each measured start state and applies it to each
+simulated one, so a sensor bias is fitted, charged and named like any physical effect.
+
+`contact_solver` is no property of the robot but of the simulator: its constraint solver (iterations, no-slip
+iterations, friction cone) solves contacts and joint friction too coarsely to follow the robot. Its nominal values
+are the simulator's own settings (the `solver` the vocabulary is built for), so the gap of the simulator as the user
+runs it is measured first, and a finer solve must earn its three parameters like any other effect.
 """
 
 from __future__ import annotations
@@ -19,7 +31,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings, build_model
 from rwm_gym.spec import TaskSpec
 
 
@@ -80,13 +92,60 @@ def _payload(v: np.ndarray, spec: TaskSpec) -> dict[str, object]:
     return {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}
 
 
-def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, Effect]:
+TORQUE_SPEED_KNEE = PhysicsParams().torque_speed_knee
+"""rad/s, the knee of the `torque_speed_limit` effect where only its slope is given (`PhysicsParams`' default)."""
+
+SOLVER_ITERATION_STEP = 4
+"""Resolution of the `contact_solver` effect's iteration count (a step of 1 would cost a re-simulation per count)."""
+
+NOSLIP_RANGE = (0, 8, 2)
+"""Lowest, highest and step of the `contact_solver` effect's no-slip iterations."""
+
+
+def solver_effect(model: mujoco.MjModel) -> Effect:
+    """`contact_solver` for a simulator whose compiled `model` holds its solver settings (the nominal values)."""
+    opt = model.opt
+    iterations, noslip = int(opt.iterations), int(opt.noslip_iterations)
+    elliptic = float(opt.cone == CONES["elliptic"])
+    most = max(iterations, int(CONVERGED_SOLVER.iterations))
+    line_search = max(int(opt.ls_iterations), int(CONVERGED_SOLVER.ls_iterations))
+    lo, hi, step = NOSLIP_RANGE
+
+    def apply(v: np.ndarray) -> dict[str, object]:
+        n, slip, cone = round(float(v[0])), round(float(v[1])), float(v[2]) >= 0.5
+        if (n, slip, cone) == (iterations, noslip, bool(elliptic)):
+            return {"solver": None}
+        return {
+            "solver": SolverSettings(
+                iterations=n,
+                ls_iterations=line_search if n != iterations else int(opt.ls_iterations),
+                noslip_iterations=slip,
+                cone="elliptic" if cone else "pyramidal",
+            )
+        }
+
+    return Effect(
+        "contact_solver",
+        "the simulator's constraint solver too coarse: more iterations, no-slip iterations or the elliptic cone",
+        (
+            Parameter("solver_iterations", "1", iterations, iterations, most, most, step=SOLVER_ITERATION_STEP),
+            Parameter("noslip_iterations", "1", noslip, min(lo, noslip), max(hi, noslip), noslip, step=step),
+            Parameter("elliptic_cone", "1", elliptic, 0.0, 1.0, elliptic, step=1.0),
+        ),
+        apply,
+    )
+
+
+def vocabulary(
+    spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None
+) -> dict[str, Effect]:
     """Every effect the workflow knows, with nominal values and ranges resolved against the task spec (effort limit,
-    physics dt) and the robot model (floor friction)."""
+    physics dt), the robot model (floor friction) and the simulator's `solver` (None: the MJCF's)."""
     limit, dt = spec.actuator.effort_limit, spec.physics_dt
-    model = build_model(spec, xml_file)
+    model = build_model(spec, xml_file, solver=solver)
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     mu = float(model.geom_friction[floor, 0]) if floor >= 0 else 1.0
+    solref = [float(x) for x in model.geom_solref[floor]] if floor >= 0 else [0.02, 1.0]
     effects = (
         Effect(
             "action_delay",
@@ -153,6 +212,41 @@ def vocabulary(spec: TaskSpec, xml_file: str | Path | None = None) -> dict[str, 
             (Parameter("backlash", "rad", 0.0, 0.0, 0.08, 0.03),),
             lambda v: {"backlash": float(v[0])},
         ),
+        Effect(
+            "torque_speed_limit",
+            "drive torque limit falling linearly with joint speed above a knee (back-EMF of the motors)",
+            (
+                Parameter("torque_speed_slope", "N·m·s/rad", 0.0, 0.0, 40.0, 15.0),
+                Parameter("torque_speed_knee", "rad/s", TORQUE_SPEED_KNEE, 0.0, 6.0, TORQUE_SPEED_KNEE),
+            ),
+            lambda v: {"torque_speed_slope": float(v[0]), "torque_speed_knee": float(v[1])},
+        ),
+        Effect(
+            "ground_compliance",
+            "soft or springy floor: time constant and damping ratio of MuJoCo's solref of the floor's contacts",
+            (
+                Parameter("ground_timeconst", "s", solref[0], 2 * dt, 0.1, 0.05),
+                Parameter("ground_dampratio", "1", solref[1], 0.2, 2.0, solref[1]),
+            ),
+            lambda v: {"ground_solref": (float(v[0]), float(v[1]))},
+        ),
+        Effect(
+            "encoder_offset",
+            "joint encoders read off their joints' positions by a constant offset (a sensor bias: no dynamics)",
+            (Parameter("encoder_offset", "rad", 0.0, -0.1, 0.1, 0.03),),
+            lambda v: {"encoder_offset": float(v[0])},
+        ),
+        Effect(
+            "base_velocity_bias",
+            "the state estimator's base linear velocity off by a constant, base frame (a sensor bias: no dynamics)",
+            (
+                Parameter("base_velocity_bias_x", "m/s", 0.0, -0.3, 0.3, 0.1),
+                Parameter("base_velocity_bias_y", "m/s", 0.0, -0.3, 0.3, 0.0),
+                Parameter("base_velocity_bias_z", "m/s", 0.0, -0.3, 0.3, 0.0),
+            ),
+            lambda v: {"base_velocity_bias": (float(v[0]), float(v[1]), float(v[2]))},
+        ),
+        solver_effect(model),
     )
     return {e.name: e for e in effects}
 
@@ -168,6 +262,11 @@ EFFECT_NAMES: tuple[str, ...] = (
     "payload",
     "ground_friction",
     "backlash",
+    "torque_speed_limit",
+    "ground_compliance",
+    "encoder_offset",
+    "base_velocity_bias",
+    "contact_solver",
 )
 """The vocabulary's names, in report order (`vocabulary(spec)` has the same keys)."""
 

@@ -2,9 +2,9 @@
 
 Fitting (training episodes): the residual vector is the normalised state error of re-simulated windows over the first
 `fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are
-refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay)
-on their steps, multi-parameter ones by `scipy.optimize.least_squares`. Uncertainty: 1-sigma from the Jacobian at the
-optimum (`mujoco.sysid.calculate_intervals`).
+refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay, the
+solver's iteration counts and cone) on their steps, other multi-parameter ones by `scipy.optimize.least_squares`.
+Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
 step; the explained fraction is 1 - gap_after / gap_before; the score charges `penalty_per_parameter` per extra
@@ -21,7 +21,10 @@ Which candidates are named, and in which order, is `rwm_gym.gap.select`'s call.
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from mujoco import sysid
@@ -223,6 +226,8 @@ def fit_effect(
     if first.step > 0 and len(effect.parameters) == 1:
         steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
+    elif all(p.step > 0 for p in effect.parameters):
+        values = discrete_search(effect, cost, start, (lo, hi))
     elif len(effect.parameters) == 1:
         found = optimize.minimize_scalar(
             lambda x: cost(np.array([x])),
@@ -254,6 +259,19 @@ def fit_effect(
         scope=effect.scope,
         rejected=rejected,
     )
+
+
+def discrete_search(effect: Effect, cost, start: np.ndarray, bracket: tuple[float, float]) -> np.ndarray:
+    """One sweep over the steps of an effect whose every parameter is discrete (the solver's iteration counts and
+    cone): the first within `bracket`, each other over its range, one at a time, the others held at the best so far.
+    Least squares would see no slope there."""
+    values = np.asarray(start, float).copy()
+    for i, p in enumerate(effect.parameters):
+        lo, hi = bracket if i == 0 else (p.low, p.high)
+        steps = np.unique(np.append(np.arange(lo, hi + p.step / 2, p.step), values[i]))
+        trials = [np.concatenate([values[:i], [x], values[i + 1 :]]) for x in steps]
+        values = trials[int(np.argmin([cost(t) for t in trials]))]
+    return values
 
 
 def fit_coordinatewise(
@@ -404,6 +422,72 @@ def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
     )
 
 
+class FitMemo:
+    """Fits on top of one simulator, computed once and handed on.
+
+    The solver check (`gap.solver_check`) fits the first selection step under the solver the workflow then runs with,
+    on the same windows from the same nominal simulator; `select` takes those fits from here rather than fitting them
+    again. Every fit is deterministic given the re-simulator, the windows, `base`, the gap `before` and the config, so
+    a memo answers only calls on exactly those (`covers`) and a hit is what fitting again would give. Results are
+    stored and handed out as copies: callers change the fits they get (shares, scope charges)."""
+
+    def __init__(
+        self,
+        resim: Resimulator,
+        train: Windows,
+        heldout: Windows,
+        base: PhysicsParams,
+        before: np.ndarray,
+        config: FitConfig,
+    ):
+        self.resim, self.train, self.heldout, self.base, self.config = resim, train, heldout, base, config
+        self.before = np.array(before)
+        self._store: dict[Hashable, Any] = {}
+
+    def covers(
+        self,
+        resim: Resimulator,
+        train: Windows,
+        heldout: Windows,
+        base: PhysicsParams,
+        before: np.ndarray,
+        config: FitConfig,
+    ) -> bool:
+        """Whether fits on these inputs are the memo's."""
+        return (
+            resim is self.resim
+            and train is self.train
+            and heldout is self.heldout
+            and base == self.base
+            and config == self.config
+            and np.array_equal(before, self.before)
+        )
+
+    def get(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """A copy of the result stored under `key`, computed (and stored) on the first call."""
+        if key not in self._store:
+            self._store[key] = copy.deepcopy(compute())
+        return copy.deepcopy(self._store[key])
+
+
+def memo_for(
+    memo: FitMemo | None,
+    resim: Resimulator,
+    train: Windows,
+    heldout: Windows,
+    base: PhysicsParams,
+    before: np.ndarray,
+    config: FitConfig,
+) -> FitMemo | None:
+    """`memo` where it covers these inputs, else None (fit afresh)."""
+    return memo if memo is not None and memo.covers(resim, train, heldout, base, before, config) else None
+
+
+def remembered(memo: FitMemo | None, key: Hashable, compute: Callable[[], Any]) -> Any:
+    """`compute()`, through `memo` where there is one."""
+    return compute() if memo is None else memo.get(key, compute)
+
+
 def fit_all(
     effects: dict[str, Effect],
     resim: Resimulator,
@@ -414,41 +498,58 @@ def fit_all(
     config: FitConfig,
     progress: bool = True,
     refine_top: int | None = None,
+    memo: FitMemo | None = None,
 ) -> list[CandidateFit]:
     """Screen every effect (on top of `base`) on a coarse grid, refine the `refine_top` best (default: the config's),
     score all on held-out windows against the per-window gap `before` (W, len(gap_horizons(heldout.horizon))) of
-    `base`.
+    `base`. `memo`: each effect's screening and fit are taken from it where it has them (and stored there), where it
+    covers these inputs (`FitMemo`).
 
     Returns the fits; unrefined ones sit at their best grid point with uncertainty NaN.
     """
     refine_top = config.refine_top if refine_top is None else refine_top
+    memo = memo_for(memo, resim, train, heldout, base, before, config)
     bar = tqdm(total=2 * len(effects) + refine_top, desc="fit effects", unit="step", disable=not progress)
     h = config.fit_horizon
-    nominal_cost = float(
-        np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h), train.target[:, :h]) ** 2)
+    nominal_cost = remembered(
+        memo,
+        ("nominal cost",),
+        lambda: float(
+            np.mean(normalised_residual(resim.spec, resim.rollout(train, base, horizon=h), train.target[:, :h]) ** 2)
+        ),
     )
-    screened, rejected = {}, {name: [] for name in effects}
-    for name, effect in effects.items():
-        screened[name] = screen_effect(effect, resim, train, base, config, nominal_cost, rejected[name])
-        bar.update(1)
-    order = sorted(screened, key=lambda n: screened[n][1])
-    fits = []
-    for name in order:
-        effect, (start, cost, bracket) = effects[name], screened[name]
-        if len(fits) < refine_top and cost < nominal_cost:
-            fit = fit_effect(effect, resim, train, base, config, start, bracket, rejected[name])
+
+    def screen(effect: Effect) -> tuple[np.ndarray, float, tuple[float, float], list[str]]:
+        rejected: list[str] = []
+        return *screen_effect(effect, resim, train, base, config, nominal_cost, rejected), rejected
+
+    def finish(effect: Effect, refine: bool) -> CandidateFit:
+        start, cost, bracket, rejected = screened[effect.name]
+        rejected = list(rejected)
+        if refine:
+            fit = fit_effect(effect, resim, train, base, config, start, bracket, rejected)
         else:
             fit = CandidateFit(
-                name,
+                effect.name,
                 [p.name for p in effect.parameters],
                 [p.unit for p in effect.parameters],
                 [float(v) for v in start],
                 [float("nan")] * len(start),
                 cost,
-                rejected=rejected[name],
+                rejected=rejected,
             )
         score_fit(fit, effect, resim, heldout, base, before, config)
-        fits.append(fit)
+        return fit
+
+    screened = {}
+    for name, effect in effects.items():
+        screened[name] = remembered(memo, ("screen", name), lambda effect=effect: screen(effect))
+        bar.update(1)
+    order = sorted(screened, key=lambda n: screened[n][1])
+    fits = []
+    for name in order:
+        refine = len(fits) < refine_top and screened[name][1] < nominal_cost
+        fits.append(remembered(memo, ("fit", name, refine), lambda name=name, r=refine: finish(effects[name], r)))
         bar.update(2 if len(fits) <= refine_top else 1)
     bar.close()
     return fits

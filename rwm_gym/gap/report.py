@@ -2,8 +2,10 @@
 
 report.json keys: `effect` (the first named effect, `none` or `unexplained`), `reason`, `scope` (of the first:
 `global`, `leg`, `joint_type`, `joint`, or null), `effects` (every named effect in order: scope, parameters, units,
-uncertainty, `share_of_explained_gap`), `parameters` / `units` / `uncertainty` (all named parameters, flat),
-`joint_refit`, `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
+uncertainty, `share_of_explained_gap`, and with `GapConfig.bootstrap` the `bootstrap` std and 95 % interval of each
+parameter), `parameters` / `units` / `uncertainty` (all named parameters, flat), `bootstrap` (`resamples`, and per
+named parameter its `std` and `interval` over resampled fitting episodes, `gap.bootstrap`), `joint_refit`,
+`explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
 1, 5 and 25 steps or fewer where the held-out episodes are shorter, after the named effects),
 `gap_before_per_horizon`, `gap_after_per_horizon`,
 `noise_floor` (the floor, the test of the nominal gap against it, the sensor-noise model), `residual` (the same test
@@ -94,24 +96,56 @@ def _verdict(report: dict) -> list[str]:
             f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n"
         ),
+        *_noise_check(floor.get("noise_check")),
+        *_solver(report.get("solver")),
     ]
+
+
+def _solver(solver: dict | None) -> list[str]:
+    """The solver the re-simulations ran with and why (`gap.solver_check`)."""
+    if not solver:
+        return []
+    check = solver.get("check", {})
+    taken = "a converged solve" if check.get("taken") == "converged" else solver["source"]
+    return [
+        f"Re-simulated with {taken} ({solver['iterations']} iterations, {solver['ls_iterations']} line-search, "
+        f"{solver['noslip_iterations']} no-slip, {solver['cone']} cone): {check.get('reason', '')}.\n"
+    ]
+
+
+def _noise_check(check: dict | None) -> list[str]:
+    """The sensor noise estimated from the data beside the assumed model, one row per quantity."""
+    if not check:
+        return []
+    lines = [
+        "| sensor quantity | assumed std | estimated std | estimate / assumed | resolved | floor uses |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, row in check["quantities"].items():
+        lines.append(
+            f"| {name} | {row['assumed']:.3g} | {row['estimated']:.3g} | {row['ratio']:.2f} | "
+            f"{'yes' if row['resolved'] else 'no (motion dominates)'} | {row['used']} |"
+        )
+    return [*lines, "", f"Noise estimate: {check['method']}.\n"]
 
 
 def _named_effects(report: dict) -> list[str]:
     """One row per parameter of each named effect, in the order named."""
     if not report["effects"]:
         return []
+    boot = report.get("bootstrap", {}).get("parameters", {})
     lines = [
         (
-            "| order | effect | scope | share of explained gap | parameter | value | ± 1σ | unit |\n"
-            "|---|---|---|---|---|---|---|---|"
+            "| order | effect | scope | share of explained gap | parameter | value | ± 1σ | bootstrap 95 % | unit |\n"
+            "|---|---|---|---|---|---|---|---|---|"
         )
     ]
     for i, item in enumerate(report["effects"], 1):
         for name, value in item["parameters"].items():
+            interval = "{:.4g} to {:.4g}".format(*boot[name]["interval"]) if name in boot else "-"
             lines.append(
                 f"| {i} | {item['effect']} | {item['scope']} | {item['share_of_explained_gap']:.0%} | "
-                f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {item['units'][name]} |"
+                f"{name} | {value:.4g} | {item['uncertainty'][name]:.2g} | {interval} | {item['units'][name]} |"
             )
     return [*lines, ""]
 

@@ -2,8 +2,8 @@
 
 A worn gearbox sits in one leg; a seal type sits in one joint type of every leg; fitted with one value for all joints,
 such an effect may explain too little to be named, or be named at a third of its size. So the best-scoring
-one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash; the best
-`FitConfig.scoped_effects` of those whose global form reduces the held-out gap at all) of a selection step are also
+one-parameter joint effects (friction, damping, armature, motor strength, torque limit, backlash, encoder offset; the
+best `FitConfig.scoped_effects` of those whose global form reduces the held-out gap at all) of a selection step are also
 fitted per group (from nominal, `FitConfig.group_sweeps` sweeps of one bounded search per group value,
 `fit.fit_coordinatewise`) and scored on the same held-out windows with the same rule: every parameter beyond the
 first inflates the remaining gap by `FitConfig.penalty_per_parameter`, so a scope with more parameters must explain
@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.effects import Effect, Parameter
-from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_coordinatewise, score_fit
+from rwm_gym.gap.fit import CandidateFit, FitConfig, FitMemo, fit_coordinatewise, memo_for, remembered, score_fit
 from rwm_gym.gap.resim import Resimulator, Windows, normalised_residual
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
@@ -39,6 +39,7 @@ JOINT_EFFECTS: tuple[str, ...] = (
     "motor_strength",
     "torque_limit",
     "backlash",
+    "encoder_offset",
 )
 """Effects of one number applied to every actuated joint (a per-joint `PhysicsParams` field)."""
 
@@ -194,10 +195,11 @@ def scope_candidates(
     base: PhysicsParams,
     before: np.ndarray,
     config: FitConfig,
+    memo: FitMemo | None = None,
 ) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms (`config.scopes`) of the `config.scoped_effects` best-scoring global joint effects among
     `fits` whose global form reduces the held-out gap, each fitted from nominal and scored on the held-out windows;
-    [] if none has a scoped form.
+    [] if none has a scoped form. `memo`: scoped fits taken from it where it has them (`fit.FitMemo`).
 
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
     # Only effects whose global form helps are scoped: scoping every joint effect costs up to 40 % more fitting time
@@ -212,11 +214,22 @@ def scope_candidates(
     )
     out: list[tuple[Effect, CandidateFit]] = []
     top = max((f.score for f in fits if f.status == "ok"), default=-np.inf)
+    memo = memo_for(memo, resim, train, heldout, base, before, config)
     for best in ranked[: config.scoped_effects]:
-        out += _scoped_fits(best, effects[best.effect], spec, resim, train, heldout, base, before, config, top)
+        out += remembered(
+            memo,
+            ("scoped", best.effect, best.score, top),
+            lambda best=best: _scoped_fits(
+                best, effects[best.effect], spec, resim, train, heldout, base, before, config, top
+            ),
+        )
     joint = outlying_joint(spec, resim, train, base) if "joint" in config.scopes else None
     if joint is not None:
-        out += _single_joint_fits(joint, effects, spec, resim, train, heldout, base, before, config)
+        out += remembered(
+            memo,
+            ("single joint", joint, tuple(n for n in JOINT_EFFECTS if n in effects)),
+            lambda: _single_joint_fits(joint, effects, spec, resim, train, heldout, base, before, config),
+        )
     return out
 
 
@@ -231,17 +244,26 @@ def every_scope(
     base: PhysicsParams,
     before: np.ndarray,
     config: FitConfig,
+    memo: FitMemo | None = None,
 ) -> list[tuple[Effect, CandidateFit]]:
-    """The scoped forms of every global joint effect among `fits` not in `scoped`, whatever its global form explains.
+    """The scoped forms of every global joint effect among `fits` not in `scoped`, whatever its global form explains
+    (`memo`: taken from it where it has them, `fit.FitMemo`).
 
     Armature in the hip flexion joints alone: every global form leaves the gap as it was (the fit puts armature into
     the other joints too, or keeps it at nominal), so no joint effect is scoped and the gap stays `unexplained`;
     per joint type it explains most of the gap above the floor. `select`
     runs this only where no candidate can be named otherwise, so only a gap about to be called `unexplained` pays."""
     out: list[tuple[Effect, CandidateFit]] = []
+    memo = memo_for(memo, resim, train, heldout, base, before, config)
     for fit in sorted(fits, key=lambda f: -f.score):
         if fit.scope == "global" and fit.status == "ok" and fit.effect in JOINT_EFFECTS and fit.effect not in scoped:
-            out += _scoped_fits(fit, effects[fit.effect], spec, resim, train, heldout, base, before, config)
+            out += remembered(
+                memo,
+                ("scoped", fit.effect, fit.score, -np.inf),
+                lambda fit=fit: _scoped_fits(
+                    fit, effects[fit.effect], spec, resim, train, heldout, base, before, config
+                ),
+            )
     return out
 
 

@@ -38,7 +38,16 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from rwm_gym.gap.effects import Effect
-from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_all, fit_effect, gap_per_window, paired_p_value, score_fit
+from rwm_gym.gap.fit import (
+    CandidateFit,
+    FitConfig,
+    FitMemo,
+    fit_all,
+    fit_effect,
+    gap_per_window,
+    paired_p_value,
+    score_fit,
+)
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates
@@ -227,6 +236,12 @@ class _Search:
     config: FitConfig
     progress: bool
     cross: Callable[[], CrossFit] | None
+    memo: FitMemo | None = None
+    """Fits of step 1 already made (by the solver check), taken rather than fitted again."""
+
+    def first_step(self, k: int) -> dict:
+        """`memo=` for the fitting calls of step `k` (k = 0 only, where there is a memo), else nothing."""
+        return {"memo": self.memo} if k == 0 and self.memo is not None else {}
 
 
 @dataclass
@@ -257,11 +272,13 @@ def select_effects(
     floor_config: FloorConfig = FloorConfig(),
     progress: bool = True,
     cross: Callable[[], CrossFit] | None = None,
+    memo: FitMemo | None = None,
 ) -> Selection:
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
-    called once if step 1's best candidate needs them (None: the held-out test alone)."""
-    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross)
+    called once if step 1's best candidate needs them (None: the held-out test alone); `memo`: step 1's fits where
+    they were made already (`fit.FitMemo`; the solver check's under the solver it took)."""
+    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross, memo)
     named: list[Candidate] = []
     params, current, steps, reason, earlier = base, before, [], "", []
     for k in range(config.max_effects):
@@ -316,10 +333,29 @@ def _judge_step(
     judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
     config = search.config
     remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in named}}
-    fits = fit_all(remaining, search.resim, search.train, search.held, params, current, config, search.progress)
+    fits = fit_all(
+        remaining,
+        search.resim,
+        search.train,
+        search.held,
+        params,
+        current,
+        config,
+        search.progress,
+        **search.first_step(k),
+    )
     candidates = [(remaining[f.effect], f) for f in fits]
     candidates += scope_candidates(
-        fits, remaining, search.spec, search.resim, search.train, search.held, params, current, config
+        fits,
+        remaining,
+        search.spec,
+        search.resim,
+        search.train,
+        search.held,
+        params,
+        current,
+        config,
+        **search.first_step(k),
     )
     if named and config.joint_candidates:
         candidates = joint_candidates(
@@ -369,7 +405,16 @@ def _refine_every_effect(
     if not _undecided(step) or not config.refine_every_effect or len(remaining) <= config.refine_top:
         return
     fits = fit_all(
-        remaining, search.resim, search.train, search.held, params, current, config, search.progress, len(remaining)
+        remaining,
+        search.resim,
+        search.train,
+        search.held,
+        params,
+        current,
+        config,
+        search.progress,
+        len(remaining),
+        **search.first_step(0),
     )
     refined = {f.effect: f for f in fits}
     step.candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in step.candidates]
@@ -396,6 +441,7 @@ def _fit_every_scope(
         params,
         current,
         search.config,
+        **search.first_step(0),
     )
     if more:
         step.candidates += more

@@ -22,6 +22,7 @@ from rwm_gym import atomic
 from rwm_gym.atomic import write_json
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.bootstrap import bootstrap
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
@@ -29,13 +30,24 @@ from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_windo
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
+from rwm_gym.gap.noise_estimate import (
+    DIFFERENCE_ORDER,
+    MATERIAL_RATIO,
+    channels,
+    estimate_noise,
+    measured_noise,
+    noise_for_floor,
+    quantity_noise,
+)
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
-from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
+from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
+from rwm_gym.gap.solver_check import choose_solver, corrected_solver, solver_settings
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
-from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, SolverSettings
+from rwm_gym.physics.params import PhysicsParams, SolverSettings
+from rwm_gym.physics.robot import RobotLayout
 from rwm_gym.resources import assets_dir
 from rwm_gym.spec import shipped_spec
 
@@ -51,13 +63,21 @@ class GapConfig:
     """Rows between the starts of fitting windows."""
     eval_stride: int = 5
     """Rows between the starts of held-out windows."""
-    warmup: int = 2
-    """Measured steps replayed before each window (fills the actuator delay buffer)."""
+    warmup: int = WARMUP
+    """Measured steps replayed before each window (fills the actuator delay buffer and the solver's warm start)."""
     learned_correction: bool = True
     """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
-    solver: SolverSettings | None = CONVERGED_SOLVER
-    """MuJoCo solver settings of every re-simulation (default: each step solved to convergence, not the fast MJCF's
-    4 iterations; see `resim.Resimulator`); None: the MJCF's own. The corrected MJCF keeps the MJCF's settings."""
+    solver: SolverSettings | None = None
+    """MuJoCo solver settings of every re-simulation, on top of the sim env's (None: the sim env's own, its `solver`
+    kwarg or its MJCF's, so the gap is that of the simulator as it runs; `CONVERGED_SOLVER`: each step solved to
+    convergence). A solver too coarse for the data is the `contact_solver` effect."""
+    solver_check: bool = True
+    """Fit the first selection step under a converged solve too, and re-simulate with it where it reproduces the data
+    materially better than the sim env's own solver (`gap.solver_check`; a no-op where that is converged)."""
+    bootstrap: int = 0
+    """Resamples of the fitting episodes (drawn with replacement) on which the named effects are refitted, for the
+    bootstrap std and 95 % interval of each fitted value in the report (`gap.bootstrap`; 0: none). Each costs about
+    one local fit."""
 
 
 def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
@@ -107,23 +127,30 @@ def run_gap(
     train_ids, held_ids, held = held_out_windows(data, config)
     horizon = held.horizon
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
-    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=config.solver)
-    effects = vocabulary(spec, sim_kwargs.get("xml_file"))
-
+    resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=core.solver.then(config.solver))
     held, dropped_held = drop_diverged(resim, held, base, measured)
     train, dropped_train = drop_diverged(resim, train, base, measured)
+    solver_check = {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}
+    first_step = None  # the check's fits under the solver it took, which selection's first step takes
+    if config.solver_check:
+        resim, solver_check, first_step = choose_solver(resim, train, held, base, fit_config, progress)
+    effects = vocabulary(spec, sim_kwargs.get("xml_file"), resim.solver)
     nominal_sim = resim.rollout(held, base)
     before = gap_per_window(spec, nominal_sim, held)
-    floor = noise_floor(resim, held, base, sensor_noise, floor_config)
+    noise_check = sensor_noise_check(resim, data, held, base, sensor_noise)
+    floor_noise = noise_check.pop("floor_noise")
+    floor = noise_floor(resim, held, base, floor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
     cross = None
     if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
         cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     selection = select_effects(
-        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross
+        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross, first_step
     )
     corrected_params, after = selection.params, selection.gap_after
-    corrected_floor, residual = _residual(resim, held, selection, floor, after, sensor_noise, fit_config, floor_config)
+    spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
+    carried = corrected_params.replace(solver=corrected_solver(resim, solver_check))  # what the corrected env runs
+    corrected_floor, residual = _residual(resim, held, selection, floor, after, floor_noise, fit_config, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
         learned = learned_section(
@@ -133,11 +160,14 @@ def run_gap(
 
     plots, located = _plots(spec, held, horizon, nominal_sim, corrected_sim, before, out)
     report = {
-        **named_section(selection),
+        **named_section(selection, spread),
+        "bootstrap": spread,
         **_gap_numbers(before, after, gap_horizons(horizon)),
         "noise_floor": {
             **floor_test,
             "sensor_noise": dataclasses.asdict(sensor_noise),
+            "floor_sensor_noise": dataclasses.asdict(floor_noise),
+            "noise_check": noise_check,
             "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
             f"model and re-simulated again, mean of {floor_config.draws} draws",
         },
@@ -151,10 +181,11 @@ def run_gap(
         "learned_correction": learned,
         "held_out_episodes": [int(e) for e in held_ids],
         "fit_episodes": [int(e) for e in train_ids],
-        "corrected_physics": corrected_params.to_dict(),
-        "corrected": write_corrected(spec, corrected_params, out, sim_kwargs.get("xml_file"), sim_kwargs),
+        "corrected_physics": carried.to_dict(),
+        "corrected": write_corrected(spec, carried, out, sim_kwargs.get("xml_file"), sim_kwargs),
         "plots": plots,
         "sim": sim,
+        "solver": {**solver_settings(resim), "source": solver_source(config), "check": solver_check},
         "measured": str(measured),
         "config": {
             "gap": dataclasses.asdict(config),
@@ -171,7 +202,7 @@ def run_gap(
             held_ids,
             resim,
             base,
-            corrected_params,
+            carried,
             Path(world_model),
             out,
             wm_config,
@@ -268,6 +299,30 @@ def _gap_numbers(before: np.ndarray, after: np.ndarray, horizons) -> dict:
     }
 
 
+def sensor_noise_check(
+    resim: Resimulator, data: Dataset, held: Windows, base: PhysicsParams, assumed: SensorNoise
+) -> dict:
+    """The measured data's sensor noise estimated from the data (`noise_estimate`) beside the assumed model, and the
+    noise the floor is computed with ("floor_noise", popped by the caller)."""
+    layout = RobotLayout.from_model(resim.model(base), resim.spec)
+    measured = measured_noise(data, layout, np.arange(data.num_episodes))
+    twin = resim.simulate(held, base)
+    leak = quantity_noise(channels(layout, twin["qpos"], twin["qvel"], twin["joint_torque"]))
+    floor_noise, table = noise_for_floor(assumed, estimate_noise(measured, leak))
+    return {
+        "floor_noise": floor_noise,
+        "quantities": table,
+        "method": f"robust std of the order-{DIFFERENCE_ORDER} differences of every measured episode, less (in "
+        "variance) that of the nominal re-simulation of the held-out windows (the motion's own leak); the floor takes "
+        f"a resolved estimate where it differs from the assumed value by more than {MATERIAL_RATIO}x either way",
+    }
+
+
+def solver_source(config: GapConfig) -> str:
+    """Where the solver settings the check started from came from."""
+    return "the sim env's own" if config.solver is None else "the sim env's with --solver-iterations on top"
+
+
 def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object, str | None]:
     """The windows without those where the nominal simulator itself blows up (said in the report, never silent);
     a one-line error if it blows up in most of them."""
@@ -282,9 +337,11 @@ def drop_diverged(resim: Resimulator, windows, params, measured) -> tuple[object
         return windows.subset(~err.windows), f"dropped: the nominal simulator blows up there ({err.reason})"
 
 
-def named_section(selection: Selection) -> dict:
+def named_section(selection: Selection, spread: dict | None = None) -> dict:
     """The report's verdict: `effect` (the first named, `unexplained` or `none`), `effects` in order with their
-    share of the explained gap, and every named parameter flat in `parameters` / `units` / `uncertainty`."""
+    share of the explained gap (and, with a bootstrap `spread`, each parameter's), and every named parameter flat in
+    `parameters` / `units` / `uncertainty`."""
+    boot = (spread or {}).get("parameters", {})
     named = [
         {
             "effect": e.name,
@@ -292,6 +349,7 @@ def named_section(selection: Selection) -> dict:
             "parameters": dict(zip(f.names, f.values)),
             "units": dict(zip(f.names, f.units)),
             "uncertainty": dict(zip(f.names, f.uncertainty)),
+            **({"bootstrap": {n: boot[n] for n in f.names}} if boot else {}),
             "share_of_explained_gap": share,
         }
         for (e, f), share in zip(selection.named, selection.shares)

@@ -53,8 +53,9 @@ class DeadBand:
         joint_ids = model.actuator_trnid[actuators, 0]
         return cls(actuators, model.jnt_qposadr[joint_ids].copy(), 0.5 * width)
 
-    def control(self, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
-        """Rewritten controls (N, nu) for position targets `ctrl` (N, nu) at joint positions `qpos` (N, nq)."""
+    def control(self, ctrl: np.ndarray, qpos: np.ndarray, qvel: np.ndarray | None = None) -> np.ndarray:
+        """Rewritten controls (N, nu) for position targets `ctrl` (N, nu) at joint positions `qpos` (N, nq) (the
+        dead band does not depend on the velocities `qvel`)."""
         out = np.array(ctrl, dtype=np.float64)
         q = qpos[:, self.qpos_adr]
         error = out[:, self.actuator_ids] - q

@@ -18,8 +18,9 @@ import numpy as np
 
 from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
 from rwm_gym.physics.options import PhysicsOptions
-from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, dead_band
+from rwm_gym.physics.params import PhysicsParams, SolverSettings, build_model, drive_rewrites
 from rwm_gym.physics.robot import Measurement, RobotLayout, measure
+from rwm_gym.physics.sensors import SensorBias
 from rwm_gym.physics.simulator import BatchSimulator, SingleSimulator
 from rwm_gym.spec import TaskSpec, load_spec
 from rwm_gym.task.observation import build_observation
@@ -44,12 +45,13 @@ class LocomotionCore:
                 f"{options.xml_file or spec.model_path} steps {self.model.opt.timestep} s"
             )
         self.layout = RobotLayout.from_model(self.model, spec)
-        band = dead_band(spec, self.model, self.params)
+        drives = drive_rewrites(spec, self.model, self.params)
         self.sim = (
-            SingleSimulator(self.model, band)
+            SingleSimulator(self.model, drives)
             if num_envs == 1
-            else BatchSimulator(self.model, num_envs, options.nthread, band)
+            else BatchSimulator(self.model, num_envs, options.nthread, drives)
         )
+        self.sensor_bias = SensorBias.of(self.layout, self.params)
         self.keyframe = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, spec.keyframe)
         if self.keyframe < 0:
             raise ValueError(f"robot model has no keyframe named {spec.keyframe!r} (task spec {spec.name})")
@@ -71,7 +73,15 @@ class LocomotionCore:
         return self.task.command
 
     def _measure(self) -> Measurement:
-        return measure(self.layout, self.spec, **self.sim.arrays())
+        return measure(self.layout, self.spec, **self._read())
+
+    def _read(self) -> dict[str, np.ndarray]:
+        """The simulators' arrays as the robot's sensors read them (qpos and qvel through `sensor_bias`)."""
+        arrays = self.sim.arrays()
+        if self.sensor_bias is not None:
+            qpos, qvel = self.sensor_bias.read(arrays["qpos"], arrays["qvel"])
+            arrays = {**arrays, "qpos": qpos, "qvel": qvel}
+        return arrays
 
     def observe(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         rngs = [self.rngs[i] for i in np.arange(self.num_envs)[ids]] if self.observation_noise else None
@@ -126,8 +136,9 @@ class LocomotionCore:
         return self.observe(), reward.astype(np.float64), terminated, truncated, info
 
     def record(self) -> dict[str, np.ndarray]:
-        """The dataset row of every env at the current time (see `rwm_gym.data.dataset` for the layout)."""
-        arrays = self.sim.arrays()
+        """The dataset row of every env at the current time (see `rwm_gym.data.dataset` for the layout); qpos and qvel
+        as the sensors read them, as a real robot's log holds them."""
+        arrays = self._read()
         return {
             "state": self.current.state.copy(),
             "contact": self.current.contact.copy(),

@@ -4,7 +4,11 @@
 value leaves the model unchanged, so `PhysicsParams()` is the nominal robot. Per-joint fields take one value for all
 actuated joints or one value per joint (spec order). Everything here lands in the compiled `MjModel` (MuJoCo holds
 actuator delay natively), so the single env, the batched env and `mujoco.sysid` all see the same robot, except
-`backlash`, which no MJCF element holds: the simulators apply it (`dead_band`, `rwm_gym.physics.backlash`).
+`backlash` and the torque-speed limit, which no MJCF element holds: the simulators apply them (`drive_rewrites`,
+`rwm_gym.physics.backlash`, `rwm_gym.physics.torque_speed`), and the sensor biases (`encoder_offset`,
+`base_velocity_bias`), which change what the robot reads, not how it moves (`rwm_gym.physics.sensors`). One
+field is not physical: `solver`, how exactly MuJoCo solves the robot's contacts, which the gap workflow fits as the
+effect `contact_solver` (a simulator whose solver is too coarse misses what the robot does).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import mujoco
 import numpy as np
 
 from rwm_gym.physics.backlash import DeadBand
+from rwm_gym.physics.torque_speed import TorqueSpeedLimit
 from rwm_gym.spec import TaskSpec
 
 PerJoint = float | tuple[float, ...]
@@ -52,11 +57,30 @@ class PhysicsParams:
     """Sliding friction coefficient of the floor (1); None keeps the model's."""
     backlash: PerJoint = 0.0
     """Total width of the gear dead band between motor and link (rad); an env option, not MJCF (see `backlash`)."""
+    torque_speed_slope: PerJoint = 0.0
+    """Fall of each drive's torque limit per rad/s of joint speed above `torque_speed_knee` (N·m·s/rad); an env
+    option, not MJCF (see `torque_speed`)."""
+    torque_speed_knee: PerJoint = 1.5
+    """Joint speed above which the drive's torque limit falls (rad/s); nothing falls while the slope is 0. The
+    default is low for a real drive, but excitation data moves a joint faster than 2 rad/s in a tenth of its rows."""
+    ground_solref: tuple[float, float] | None = None
+    """MuJoCo solref of the floor's contacts: time constant (s) and damping ratio (1); None keeps the model's."""
+    ground_solimp: tuple[float, float, float] | None = None
+    """MuJoCo solimp of the floor's contacts: dmin, dmax (1) and width (m); None keeps the model's."""
+    encoder_offset: PerJoint = 0.0
+    """Offset of each joint encoder's reading from the joint's position (rad); a sensor bias (see `sensors`)."""
+    base_velocity_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Bias of the estimated base linear velocity, base frame (m/s); a sensor bias (see `sensors`)."""
+    solver: SolverSettings | None = None
+    """Solver settings applied on top of the env's (`SolverSettings`; None: the env's own). Not physics: the gap
+    workflow's `contact_solver` effect puts a finer solve here."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.solver, Mapping):
+            object.__setattr__(self, "solver", SolverSettings.from_dict(self.solver))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if value is None or isinstance(value, (bool, str)):
+            if value is None or isinstance(value, (bool, str, SolverSettings)):
                 continue
             numbers = np.asarray(value)
             if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):
@@ -74,7 +98,10 @@ class PhysicsParams:
         return cls(**{k: tuple(v) if isinstance(v, (list, np.ndarray)) else v for k, v in values.items()})
 
     def to_dict(self) -> dict[str, object]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        out = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        if out["solver"] is not None:  # only the settings it changes
+            out["solver"] = {k: v for k, v in out["solver"].items() if v is not None}
+        return out
 
     def replace(self, **changes: object) -> PhysicsParams:
         return dataclasses.replace(self, **changes)
@@ -107,6 +134,8 @@ class SolverSettings:
     """Line-search iterations per solver iteration (MuJoCo's default 50)."""
     noslip_iterations: int | None = None
     """No-slip post-solve iterations (0: off)."""
+    cone: str | None = None
+    """Friction cone: "pyramidal" or "elliptic" (MuJoCo's default "pyramidal")."""
 
     @classmethod
     def from_dict(cls, values: Mapping[str, object] | SolverSettings | None) -> SolverSettings:
@@ -119,6 +148,10 @@ class SolverSettings:
         return cls(**dict(values or {}))
 
     def apply(self, mj: mujoco.MjSpec) -> None:
+        if self.cone is not None:
+            if self.cone not in CONES:
+                raise ValueError(f"solver setting cone must be one of {sorted(CONES)}, got {self.cone!r}")
+            mj.option.cone = CONES[self.cone]
         for name in ("iterations", "ls_iterations", "noslip_iterations"):
             value = getattr(self, name)
             if value is not None:
@@ -126,6 +159,21 @@ class SolverSettings:
                     raise ValueError(f"solver setting {name} must be >= 0, got {value}")
                 setattr(mj.option, name, int(value))
 
+    def then(self, other: SolverSettings | None) -> SolverSettings:
+        """These settings with `other`'s (where not None) applied on top."""
+        if other is None:
+            return self
+        changes = {
+            f.name: getattr(other, f.name) for f in dataclasses.fields(other) if getattr(other, f.name) is not None
+        }
+        return dataclasses.replace(self, **changes)
+
+
+CONES: dict[str, int] = {
+    "pyramidal": int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
+    "elliptic": int(mujoco.mjtCone.mjCONE_ELLIPTIC),
+}
+"""MuJoCo's friction cones by name (`mjOption.cone`)."""
 
 CONVERGED_SOLVER = SolverSettings(iterations=100, ls_iterations=50)
 """MuJoCo's default iteration counts (no-slip as in the MJCF): each physics step solved to convergence."""
@@ -205,6 +253,8 @@ def build_spec(
     mj = mujoco.MjSpec.from_file(str(path))
     if solver is not None:
         solver.apply(mj)
+    if params.solver is not None:
+        params.solver.apply(mj)
     figures = JointFigures.of(spec, params)
     for i, name in enumerate(spec.actuator.joints):
         actuator, joint = mj.actuator(name), mj.joint(name)
@@ -227,38 +277,72 @@ def build_spec(
         payload.inertia = [PAYLOAD_INERTIA * params.payload_mass] * 3
         payload.explicitinertial = True
         payload.ipos = [0.0, 0.0, 0.0]  # else the compiler places the mass at 2 x payload_com and to_xml drops it
-    if params.ground_friction is not None:
+    floor_fields = {
+        "ground_friction": params.ground_friction,
+        "ground_solref": params.ground_solref,
+        "ground_solimp": params.ground_solimp,
+    }
+    if any(v is not None for v in floor_fields.values()):
         floor = mj.geom("floor")
         if floor is None:
-            raise ValueError(f"{path}: ground_friction needs a geom named 'floor'")
-        floor.friction[0] = params.ground_friction
-        floor.priority = 1  # MuJoCo mixes two geoms' friction by max; a higher priority makes the floor's count
+            given = ", ".join(k for k, v in floor_fields.items() if v is not None)
+            raise ValueError(f"{path}: {given} needs a geom named 'floor'")
+        # MuJoCo mixes two geoms' friction by max and their solref/solimp by solmix; a higher priority makes the
+        # floor's count alone
+        floor.priority = 1
+        if params.ground_friction is not None:
+            floor.friction[0] = params.ground_friction
+        if params.ground_solref is not None:
+            floor.solref = ground_solref(params.ground_solref)
+        if params.ground_solimp is not None:
+            floor.solimp[:3] = ground_solimp(params.ground_solimp)
     return mj
+
+
+def ground_solref(values: tuple[float, float]) -> list[float]:
+    """Checked solref (time constant s > 0, damping ratio > 0) of the floor."""
+    values = [float(v) for v in np.atleast_1d(values)]
+    if len(values) != 2 or min(values) <= 0:
+        raise ValueError(f"physics parameter 'ground_solref' needs a time constant and damping ratio > 0, got {values}")
+    return values
+
+
+def ground_solimp(values: tuple[float, float, float]) -> list[float]:
+    """Checked solimp (0 < dmin <= dmax < 1, width m > 0) of the floor."""
+    values = [float(v) for v in np.atleast_1d(values)]
+    if len(values) != 3 or not (0 < values[0] <= values[1] < 1 and values[2] > 0):
+        raise ValueError(f"physics parameter 'ground_solimp' needs 0 < dmin <= dmax < 1 and width > 0, got {values}")
+    return values
 
 
 class ModelCache:
     """`build_model` for many parameter sets of one robot, without compiling each.
 
     Fitting a sim-to-real gap re-simulates hundreds of candidate parameter sets, and compiling each took a sixth of a
-    fit's time. Each structure (payload or not, delay in physics steps, floor friction or not) is compiled once; the
-    figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the compiler derives from
-    them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The result equals
-    `build_model(spec, xml_file, params, solver)` field for field, up to rounding (tests/test_physics_params.py).
+    fit's time. Each structure (payload or not, delay in physics steps, which floor fields are set, solver settings) is
+    compiled once; the figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the
+    compiler derives from them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The
+    result equals `build_model(spec, xml_file, params, solver)` field for field, up to rounding
+    (tests/test_physics_params.py).
     """
 
     def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None):
         self.spec, self.xml_file, self.solver = spec, xml_file, solver
-        self._templates: dict[tuple[bool, int, bool], mujoco.MjModel] = {}
+        self._templates: dict[tuple[bool, int, bool, SolverSettings | None], mujoco.MjModel] = {}
 
     def __call__(self, params: PhysicsParams | None = None) -> mujoco.MjModel:
         params = params or PhysicsParams()
         figures = JointFigures.of(self.spec, params)
-        key = (params.payload_mass > 0, figures.delay_steps, params.ground_friction is not None)
+        floor = (params.ground_friction is not None, params.ground_solref is not None, params.ground_solimp is not None)
+        key = (params.payload_mass > 0, figures.delay_steps, floor, params.solver)
         if key not in self._templates:
             structure = PhysicsParams(
                 action_delay=params.action_delay,
                 payload_mass=1.0 if key[0] else 0.0,
-                ground_friction=1.0 if key[2] else None,
+                ground_friction=1.0 if floor[0] else None,
+                ground_solref=(0.02, 1.0) if floor[1] else None,
+                ground_solimp=(0.9, 0.95, 0.001) if floor[2] else None,
+                solver=params.solver,
             )
             self._templates[key] = build_model(self.spec, self.xml_file, structure, self.solver)
         template = self._templates[key]
@@ -278,8 +362,13 @@ class ModelCache:
             model.body_mass[body] = params.payload_mass
             model.body_inertia[body] = PAYLOAD_INERTIA * params.payload_mass
             model.body_pos[body] = params.payload_com
-        if key[2]:
-            model.geom_friction[mujoco.mj_name2id(model, obj.mjOBJ_GEOM, "floor"), 0] = params.ground_friction
+        floor_geom = mujoco.mj_name2id(model, obj.mjOBJ_GEOM, "floor")
+        if floor[0]:
+            model.geom_friction[floor_geom, 0] = params.ground_friction
+        if floor[1]:
+            model.geom_solref[floor_geom] = ground_solref(params.ground_solref)
+        if floor[2]:
+            model.geom_solimp[floor_geom, :3] = ground_solimp(params.ground_solimp)
         mujoco.mj_setConst(model, mujoco.MjData(model))
         # The compiler's statistics that mj_setConst leaves alone; the solver scales its tolerance by meaninertia.
         model.stat.meaninertia = model.dof_M0.mean()
@@ -293,3 +382,20 @@ def dead_band(spec: TaskSpec, model: mujoco.MjModel, params: PhysicsParams | Non
         return None
     width = per_joint(params.backlash, len(spec.actuator.joints), "backlash")
     return DeadBand.from_model(model, spec.actuator.joints, width)
+
+
+def drive_rewrites(
+    spec: TaskSpec, model: mujoco.MjModel, params: PhysicsParams | None
+) -> tuple[DeadBand | TorqueSpeedLimit, ...]:
+    """What the simulators apply to `model`'s controls for `params` before every physics step, in order: the dead
+    band of backlash on the position error, then the torque-speed limit on the force that leaves."""
+    if params is None:
+        return ()
+    n = len(spec.actuator.joints)
+    limit = TorqueSpeedLimit.from_model(
+        model,
+        spec.actuator.joints,
+        per_joint(params.torque_speed_slope, n, "torque_speed_slope"),
+        per_joint(params.torque_speed_knee, n, "torque_speed_knee"),
+    )
+    return tuple(d for d in (dead_band(spec, model, params), limit) if d is not None)

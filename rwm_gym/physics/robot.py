@@ -78,6 +78,14 @@ class Measurement:
     """(N,) bool, a termination body touches something."""
 
 
+def quat_rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
+    """Rotate body-frame vectors into the world frame by unit quaternions (w, x, y, z). Shapes (N, 4), (N, 3) ->
+    (N, 3); the inverse of `quat_rotate_inverse`."""
+    w, xyz = quat[:, :1], quat[:, 1:]
+    t = 2.0 * np.cross(xyz, vec)
+    return vec + w * t + np.cross(xyz, t)
+
+
 def quat_rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
     """Rotate world vectors into the body frames of unit quaternions (w, x, y, z). Shapes (N, 4), (N, 3) -> (N, 3)."""
     w, xyz = quat[:, :1], quat[:, 1:]

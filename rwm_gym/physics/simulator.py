@@ -1,17 +1,27 @@
 """Two interchangeable ways to step N copies of one MuJoCo model: one `MjData` (N = 1) or `mujoco.batch.Batch`.
 
 Both expose the same arrays with a leading batch axis, and both leave every derived quantity computed at the new
-state after a step (`mj_forward`), so the single env and the batched env see bit-identical transitions. With a
-`DeadBand` (gear backlash) both step one physics step at a time and rewrite the controls before each.
+state after a step (`mj_forward`), so the single env and the batched env see bit-identical transitions. With drive
+rewrites (`DeadBand`, gear backlash; `TorqueSpeedLimit`, a drive's torque-speed curve) both step one physics step at a
+time and rewrite the controls before each, in the order given.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
 
 import mujoco
 import numpy as np
 from mujoco import batch as mjbatch
 
-from rwm_gym.physics.backlash import DeadBand
+
+class DriveRewrite(Protocol):
+    """Something a drive does that MuJoCo's actuators cannot hold, applied by rewriting the controls before every
+    physics step (`DeadBand`, `TorqueSpeedLimit`)."""
+
+    def control(self, ctrl: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        """Rewritten controls (N, nu) for controls (N, nu) at qpos (N, nq) and qvel (N, nv)."""
 
 
 class SingleSimulator:
@@ -19,10 +29,10 @@ class SingleSimulator:
 
     num_envs = 1
 
-    def __init__(self, model: mujoco.MjModel, dead_band: DeadBand | None = None):
+    def __init__(self, model: mujoco.MjModel, drives: Sequence[DriveRewrite] = ()):
         self.model = model
         self.data = mujoco.MjData(model)
-        self.dead_band = dead_band
+        self.drives = tuple(drives)
 
     def reset(self, ids: np.ndarray, keyframe: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Reset to `keyframe`, then set qpos (n, nq) and qvel (n, nv) of the simulations `ids` (here: [0])."""
@@ -32,13 +42,13 @@ class SingleSimulator:
         mujoco.mj_forward(self.model, self.data)
 
     def step(self, ctrl: np.ndarray, nstep: int) -> None:
-        """Hold ctrl (1, nu) for nstep physics steps (with backlash: rewritten before each, see `DeadBand`)."""
-        if self.dead_band is None:
+        """Hold ctrl (1, nu) for nstep physics steps (with drive rewrites: rewritten before each)."""
+        if not self.drives:
             self.data.ctrl[:] = ctrl[0]
             mujoco.mj_step(self.model, self.data, nstep)
         else:
             for _ in range(nstep):
-                self.data.ctrl[:] = self.dead_band.control(ctrl, self.data.qpos[None])[0]
+                self.data.ctrl[:] = rewritten(self.drives, ctrl, self.data.qpos[None], self.data.qvel[None])[0]
                 mujoco.mj_step(self.model, self.data)
         mujoco.mj_forward(self.model, self.data)
 
@@ -60,9 +70,9 @@ class SingleSimulator:
 class BatchSimulator:
     """N simulations stepped together on a thread pool (`mujoco.batch.Batch`)."""
 
-    def __init__(self, model: mujoco.MjModel, num_envs: int, nthread: int = 0, dead_band: DeadBand | None = None):
+    def __init__(self, model: mujoco.MjModel, num_envs: int, nthread: int = 0, drives: Sequence[DriveRewrite] = ()):
         self.model = model
-        self.dead_band = dead_band
+        self.drives = tuple(drives)
         self.num_envs = num_envs
         self.batch = mjbatch.Batch(model, nsim=num_envs, nthread=nthread)
         self._bound = {
@@ -77,12 +87,13 @@ class BatchSimulator:
         self.batch.forward(ids)
 
     def step(self, ctrl: np.ndarray, nstep: int) -> None:
-        if self.dead_band is None:
+        if not self.drives:
             self._bound["ctrl"][:] = ctrl
             self.batch.step(nstep=nstep, stage=mujoco.mjtStage.mjSTAGE_ACC)
             return
         for _ in range(nstep):
-            self._bound["ctrl"][:] = self.dead_band.control(ctrl, np.asarray(self._bound["qpos"]))
+            qpos, qvel = np.asarray(self._bound["qpos"]), np.asarray(self._bound["qvel"])
+            self._bound["ctrl"][:] = rewritten(self.drives, ctrl, qpos, qvel)
             self.batch.step(nstep=1, stage=mujoco.mjtStage.mjSTAGE_ACC)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -91,3 +102,10 @@ class BatchSimulator:
     @property
     def time(self) -> np.ndarray:
         return np.asarray(self._bound["time"]).copy()
+
+
+def rewritten(drives: Sequence[DriveRewrite], ctrl: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """`ctrl` (N, nu) through every drive rewrite in turn, at qpos (N, nq) and qvel (N, nv)."""
+    for drive in drives:
+        ctrl = drive.control(ctrl, qpos, qvel)
+    return ctrl

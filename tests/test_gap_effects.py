@@ -1,0 +1,136 @@
+"""The drive and sensor effects outside the MJCF: the torque-speed limit (a control rewrite, like backlash), the floor's
+solref, and the sensor biases (encoder offset, base-velocity bias) that change the readings, not the motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.correct import write_corrected
+from rwm_gym.gap.effects import vocabulary
+from rwm_gym.gap.fit import FitConfig, fit_all, gap_per_window
+from rwm_gym.gap.measured import SensorNoise, make_measured
+from rwm_gym.gap.resim import Resimulator, make_windows
+from rwm_gym.gap.workflow import GapConfig
+from rwm_gym.physics.locomotion import make_core
+from rwm_gym.physics.params import PhysicsParams, build_model
+from rwm_gym.physics.sensors import SensorBias
+from rwm_gym.physics.torque_speed import TorqueSpeedLimit
+from rwm_gym.spec import load_spec
+
+SPEC = load_spec("anymal_d")
+
+HIDDEN = (
+    {"torque_speed_slope": 30.0, "torque_speed_knee": 1.5},
+    {"ground_solref": (0.05, 0.5)},
+    {"encoder_offset": tuple(np.linspace(-0.04, 0.04, 12))},
+    {"base_velocity_bias": (0.1, -0.05, 0.02)},
+)
+
+
+@pytest.mark.parametrize("physics", HIDDEN, ids=lambda p: next(iter(p)))
+def test_resimulation_reproduces_noise_free_data_exactly(tmp_path, physics):
+    path = make_measured(
+        {}, 2, tmp_path / "m.h5", max_steps=40, extra_physics=physics, noise=SensorNoise(scale=0.0), progress=False
+    )
+    windows = make_windows(Dataset.load(path), np.arange(2), 10, 7)
+    resim = Resimulator(SPEC)
+    simulated = resim.rollout(windows, PhysicsParams.from_dict(physics))
+    np.testing.assert_allclose(simulated, windows.target, atol=1e-4)  # state is stored as float32
+    nominal = resim.rollout(windows, PhysicsParams())
+    assert np.abs(nominal - windows.target).max() > 1e-2  # and the nominal simulator does not
+
+
+def test_torque_speed_limit_clips_the_drive_force_above_the_knee():
+    model = build_model(SPEC)
+    limit = TorqueSpeedLimit.from_model(model, SPEC.actuator.joints, np.full(12, 20.0), np.full(12, 2.0))
+    assert limit.limit(np.array([[0.0, 2.0, 3.0, -4.0, 9.0] + [0.0] * 7]))[0, :5].tolist() == [80, 80, 60, 40, 0]
+    rng = np.random.default_rng(0)
+    qpos, qvel = rng.normal(0, 1, (64, model.nq)), rng.normal(0, 3, (64, model.nv))
+    ctrl = rng.normal(0, 1, (64, model.nu))
+    q, qdot = qpos[:, limit.qpos_adr], qvel[:, limit.dof_adr]
+
+    def force(c: np.ndarray) -> np.ndarray:
+        b = limit.bias
+        return limit.gain * c[:, limit.actuator_ids] + b[:, 0] + b[:, 1] * q + b[:, 2] * qdot
+
+    cap = limit.limit(qdot)
+    np.testing.assert_allclose(force(limit.control(ctrl, qpos, qvel)), np.clip(force(ctrl), -cap, cap), atol=1e-9)
+    runs = []
+    for physics in ({}, {"torque_speed_slope": 40.0, "torque_speed_knee": 1.0}):
+        core = make_core("anymal_d", 2, physics=physics, nthread=1)
+        core.reset(np.arange(2), [1, 2])
+        for t in range(20):
+            core.step(np.full((2, 12), 0.8 * (-1) ** (t // 3)))
+        runs.append(core.record()["qpos"])
+    assert np.abs(runs[0] - runs[1]).max() > 1e-2  # a drive that weakens with speed moves the robot differently
+    assert TorqueSpeedLimit.from_model(model, SPEC.actuator.joints, np.zeros(12), np.full(12, 2.0)) is None
+    with pytest.raises(ValueError, match="torque_speed_slope"):
+        TorqueSpeedLimit.from_model(model, SPEC.actuator.joints, np.full(12, -1.0), np.full(12, 2.0))
+
+
+@pytest.mark.parametrize("name", ["torque_speed_limit", "ground_compliance", "encoder_offset", "base_velocity_bias"])
+def test_effect_is_fitted_from_noisy_measured_windows(tmp_path, name):
+    """Each hidden at its default size (torque-speed limit: 15 N·m per rad/s above 1.5 rad/s) in 6 x 150 steps of
+    excitation data with the default sensor noise, fitted as the workflow's first step fits it (screened, refined,
+    scored on the held-out episodes): its first value comes out within a quarter of the truth, and the fit removes
+    most of the held-out gap. Whether the workflow names it among all effects: test_gap (`slow` for some)."""
+    effect = vocabulary(SPEC)[name]
+    first = effect.parameters[0]
+    true = 15.0 if name == "torque_speed_limit" else first.default
+    path = make_measured(
+        {name: effect.values_from_magnitude(true)}, 6, tmp_path / "m.h5", max_steps=150, progress=False
+    )
+    data, config = Dataset.load(path), GapConfig()
+    train_ids, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
+    train = make_windows(data, train_ids, FitConfig.fit_horizon, config.fit_stride)
+    held = make_windows(data, held_ids, 25, config.eval_stride)
+    resim = Resimulator(SPEC)  # a converged solve, as make-measured's robot
+    before = gap_per_window(SPEC, resim.rollout(held, PhysicsParams()), held)
+    (fit,) = fit_all({name: effect}, resim, train, held, PhysicsParams(), before, FitConfig(), progress=False)
+    assert abs(fit.values[0] - true) <= 0.25 * abs(true - first.nominal), fit.values
+    assert fit.gap_mean <= 0.5 * float(before.mean()) and not np.isnan(fit.uncertainty[0])  # refined, not screened
+
+
+def test_ground_solref_is_the_floors_and_checked():
+    model = build_model(SPEC, params=PhysicsParams(ground_solref=(0.05, 0.5), ground_solimp=(0.8, 0.9, 0.002)))
+    floor = model.geom("floor")
+    assert floor.solref.tolist() == [0.05, 0.5] and floor.solimp[:3].tolist() == [0.8, 0.9, 0.002]
+    assert floor.priority[0] == 1  # the floor's parameters, not a mix with the foot's
+    with pytest.raises(ValueError, match="ground_solref"):
+        build_model(SPEC, params=PhysicsParams(ground_solref=(0.0, 1.0)))
+    with pytest.raises(ValueError, match="ground_solimp"):
+        build_model(SPEC, params=PhysicsParams(ground_solimp=(0.95, 0.9, 0.001)))
+
+
+def test_sensor_bias_changes_the_readings_not_the_motion():
+    params = PhysicsParams(encoder_offset=0.02, base_velocity_bias=(0.1, 0.0, -0.05))
+    cores = [make_core("anymal_d", 2, physics=p, nthread=1) for p in (PhysicsParams(), params)]
+    rows = []
+    for core in cores:
+        core.reset(np.arange(2), [3, 4])
+        for _ in range(15):
+            core.step(np.full((2, 12), 0.3))
+        rows.append(core.record())
+        truth = core.sim.arrays()
+    np.testing.assert_array_equal(rows[0]["qpos"][:, :7], rows[1]["qpos"][:, :7])  # the same motion
+    layout = cores[1].layout
+    np.testing.assert_allclose(rows[1]["qpos"][:, layout.qpos_adr] - rows[0]["qpos"][:, layout.qpos_adr], 0.02)
+    np.testing.assert_allclose(rows[1]["qpos"], SensorBias.of(layout, params).read(truth["qpos"], truth["qvel"])[0])
+    vel = SPEC.state_slices["base_lin_vel"]
+    np.testing.assert_allclose(rows[1]["state"][:, vel] - rows[0]["state"][:, vel], [[0.1, 0.0, -0.05]] * 2, atol=1e-5)
+    bias = SensorBias.of(layout, params)
+    back = bias.unread(*bias.read(truth["qpos"], truth["qvel"]))
+    np.testing.assert_allclose(back[0], truth["qpos"]) and np.testing.assert_allclose(back[1], truth["qvel"])
+    assert SensorBias.of(layout, PhysicsParams()) is None
+    with pytest.raises(ValueError, match="base_velocity_bias"):
+        SensorBias.of(layout, PhysicsParams(base_velocity_bias=(0.1, 0.0)))
+
+
+def test_corrected_physics_holds_what_the_mjcf_cannot(tmp_path):
+    params = PhysicsParams(torque_speed_slope=10.0, encoder_offset=0.01, ground_solref=(0.04, 1.0))
+    paths = write_corrected(SPEC, params, tmp_path)
+    note = open(paths["mjcf"]).read().split("<mujoco")[0]
+    assert "torque-speed" in note and "encoder offset" in note
+    assert 'priority="1" solref="0.04' in open(paths["mjcf"]).read()  # the floor's compliance is MJCF
