@@ -44,6 +44,9 @@ PPO_SHARED = [
 ]
 """What every PPO recipe shares: the shipped from-scratch recipe's imagined episodes and policy start."""
 
+HISTORY = ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"]
+"""The history recipe's own options: 1024 robots, fall tilt 30, half the restarts commanded by their history."""
+
 RECIPES: dict[str, tuple[str, str, list[str]]] = {
     "reference": ("PPO, 4096 envs, fp32, 1 thread (the shipped recipe)", "ppo", ["--num-envs=4096"]),
     "fast": (
@@ -83,7 +86,7 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
     "history": (
         "PPO, 1024 envs, fall tilt 30, half the restarts commanded by their history, bf16 model",
         "ppo",
-        ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
+        HISTORY,
     ),
     "history_bf16_update": (
         "the same with PPO's update in bf16",
@@ -99,34 +102,22 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
     "history_ep100": (
         "the history recipe with 2-s imagined episodes",
         "ppo",
-        [
-            "--num-envs=1024",
-            "--fall-tilt=30",
-            "--command-from-history=0.5",
-            "--matmul-precision=bfloat16",
-            "--episode-steps=100",
-        ],
+        [*HISTORY, "--episode-steps=100"],
     ),
     "history_ep200": (
         "the history recipe with 4-s imagined episodes",
         "ppo",
-        [
-            "--num-envs=1024",
-            "--fall-tilt=30",
-            "--command-from-history=0.5",
-            "--matmul-precision=bfloat16",
-            "--episode-steps=200",
-        ],
+        [*HISTORY, "--episode-steps=200"],
     ),
     "history_own_data": (
         "the history recipe in the model taught its own policies' physics episodes",
         "ppo",
-        ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
+        HISTORY,
     ),
     "history_taught": (
         "the history recipe in the model taught two rounds of its own policies' episodes (the quick start)",
         "ppo",
-        ["--num-envs=1024", "--fall-tilt=30", "--command-from-history=0.5", "--matmul-precision=bfloat16"],
+        HISTORY,
     ),
     "shac": (
         "SHAC, 1024 envs, horizon 16, fall tilt 30",
