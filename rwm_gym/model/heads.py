@@ -17,6 +17,14 @@ def soft_bound(x: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.
     return low + F.softplus(x - low)
 
 
+def members_variance(means: torch.Tensor) -> torch.Tensor:
+    """(k, N, S) -> (N, S): the members' variance (biased), in two passes. `Tensor.var(dim=0)` over the leading dim
+    of a contiguous tensor took 6.4 ms on (5, 1024, 45) on the 2-core CPU, this 0.26 ms: a quarter of the imagined
+    step went there."""
+    centred = means - means.mean(dim=0)
+    return centred.square().mean(dim=0)
+
+
 class EnsembleLinear(nn.Module):
     """k independent linear layers applied at once: (k, N, in) -> (k, N, out)."""
 
@@ -63,16 +71,17 @@ class StateHead(nn.Module):
         residual, raw_log_std = out.split(self.state_dim, dim=-1)
         means = last_state.unsqueeze(0) + residual
         stds = soft_bound(raw_log_std, self.min_log_std, self.max_log_std).exp()
+        spread = members_variance(means)  # (N, S)
         if self.k == 1:
             uncertainty = torch.zeros(features.shape[0], device=features.device, dtype=features.dtype)
         else:
-            uncertainty = means.std(dim=0, unbiased=False).mean(dim=-1)
+            uncertainty = spread.sqrt().mean(dim=-1)
         if member is not None:
             rows = torch.arange(features.shape[0], device=features.device)
             return means[member, rows], stds[member, rows], uncertainty
         if self.k == 1:
             return means[0], stds[0], uncertainty
-        variance = stds.square().mean(dim=0) + means.var(dim=0, unbiased=False)
+        variance = stds.square().mean(dim=0) + spread
         return means.mean(dim=0), variance.sqrt(), uncertainty
 
     def _own_heads(
