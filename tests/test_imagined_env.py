@@ -350,7 +350,12 @@ def test_cached_warm_ups_give_the_numbers_of_fresh_ones(checkpoint):
     core = ImaginedSB3VecEnv(checkpoint, 4).core
     assert core.warm_up_cache is not None and not core.warm_up_cache.filled.any()
     core.reset(np.arange(4), [0, 1, 2, 3])
-    assert 1 <= int(core.warm_up_cache.filled.sum()) <= 4  # the drawn windows, each once
+    cache = core.warm_up_cache
+    filled = int(cache.filled.sum())
+    assert 2 <= filled <= 8  # the drawn windows, each once, and as many undrawn ones (the env count) ahead
+    assert cache.filled[: filled - 4].all()  # prefetched in index order
+    core.reset(np.arange(4), [0, 1, 2, 3])
+    assert int(cache.filled.sum()) == filled  # drawn again: no warm-up, nothing fetched
     assert ImaginedSB3VecEnv(checkpoint, 4, warm_up_cache_mb=0.0).core.warm_up_cache is None
 
 

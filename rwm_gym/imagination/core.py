@@ -178,7 +178,7 @@ class ImaginedCore:
             not self.model.warm_hidden_reads_member
             and WarmUpCache.nbytes(self.reset_windows, template) <= self.options.warm_up_cache_mb * 2**20
         ):
-            self.warm_up_cache = WarmUpCache(self.reset_windows, template)
+            self.warm_up_cache = WarmUpCache(self.reset_windows, template, prefetch=n)
         self.single_action_space = gym.spaces.Box(-np.ones(a, np.float32), np.ones(a, np.float32), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.spec.observation_dim,), np.float32)
 
