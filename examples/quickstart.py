@@ -167,18 +167,20 @@ def ppo_options(recipe: dict) -> list[str]:
     """`rwm-gym ppo` options of the recipe, read from its JSON (its numbers live there once)."""
     from rwm_gym.resources import shipped_file
 
-    options = [
-        "--checkpoint",
-        str(shipped_file(recipe["world_model"]["checkpoint"])),
-        f"--log-std-init={recipe['ppo']['log_std_init']}",
-    ]
+    options = ["--checkpoint", str(shipped_file(recipe["world_model"]["checkpoint"]))]
     for name, value in recipe["env"]["imagination"].items():
         if value is not None:  # reset_data None: the windows the checkpoint names
             options.append(f"--{name.replace('_', '-')}={value}")
-    if recipe["ppo"]["positive_reward_only"]:
-        options.append("--positive-reward-only")
-    if recipe["ppo"].get("lr_anneal_fraction"):  # absent from the JSONs of recipes older than the anneal
-        options.append(f"--lr-anneal-fraction={recipe['ppo']['lr_anneal_fraction']}")
+    for name, value in recipe["ppo"].items():
+        flag = f"--{name.replace('_', '-')}"
+        if name == "num_envs":  # the quick start's --num-envs decides
+            continue
+        if isinstance(value, bool):
+            options.append(flag if value else f"--no-{flag[2:]}")
+        elif isinstance(value, list):
+            options += [flag, *map(str, value)]
+        else:
+            options.append(f"{flag}={value}")
     return options
 
 
