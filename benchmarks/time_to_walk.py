@@ -115,7 +115,7 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
         HISTORY,
     ),
     "history_taught": (
-        "the history recipe in the model taught two rounds of its own policies' episodes",
+        "the history recipe in the model taught two rounds of its own policies' episodes (the quick start)",
         "ppo",
         HISTORY,
     ),
@@ -123,11 +123,6 @@ RECIPES: dict[str, tuple[str, str, list[str]]] = {
         "the same with 3 epochs per update instead of 5",
         "ppo",
         [*HISTORY, "--n-epochs=3"],
-    ),
-    "history_taught3": (
-        "the history recipe in the model taught three rounds of its own policies' episodes (the quick start)",
-        "ppo",
-        HISTORY,
     ),
     "shac": (
         "SHAC, 1024 envs, horizon 16, fall tilt 30",
@@ -141,15 +136,12 @@ RECIPE_MODELS = {
     "history_own_data": "assets/checkpoints/anymal_d_rwm_cover_history.safetensors",
     "history_taught": "assets/checkpoints/anymal_d_rwm_taught.safetensors",
     "history_taught_3epochs": "assets/checkpoints/anymal_d_rwm_taught.safetensors",
-    "history_taught3": "assets/checkpoints/anymal_d_rwm_taught3.safetensors",
 }
 """Recipes trained in another world model than MODEL, each one MBPO data step further
 (`examples/make_coverage_model.py`: 32 physics episodes of up to 1000 steps per policy at action noise 0 and 0.26,
 then a 600-step fine-tune). `anymal_d_rwm_cover_history`: `MODEL` taught four policies of the history recipes (seed 0
 of `history` at 14.0 M steps, seeds 0 / 1 / 2 of `history_ep100` at 10.3 / 13.5 / 11.3 M). `anymal_d_rwm_taught`: that
-model taught four policies of `history_own_data` (seed 0 at 9.3 M, seed 1 at 10.3 and 11.3 M, seed 2 at 10.3 M).
-`anymal_d_rwm_taught3`: that model taught four policies of `history_taught` (seeds 0, 1 and 2 at 7.1 M, seed 2 at
-9.4 M)."""
+model taught four policies of `history_own_data` (seed 0 at 9.3 M, seed 1 at 10.3 and 11.3 M, seed 2 at 10.3 M)."""
 
 
 def train(recipe: str, seed: int, minutes: float, threads: int, run_dir: Path, snapshot_every: int) -> None:

@@ -2,7 +2,7 @@
 
     pip install . && python examples/quickstart.py
 
-1. PPO (`rwm-gym ppo`) trains a fresh policy in the world model `anymal_d_rwm_taught3` with the recipe of
+1. PPO (`rwm-gym ppo`) trains a fresh policy in the world model `anymal_d_rwm_taught` with the recipe of
    `assets/policies/anymal_d_ppo_quickstart.json`: 1024 imagined ANYmal D robots stepped in one forward pass, 1 s
    episodes restarted from real histories (half of them commanded at the velocity their history moves at), a fall at
    30 degrees of tilt, the ensemble-disagreement penalty and halt, the torque halt; the world model's products in
