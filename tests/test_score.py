@@ -175,7 +175,8 @@ def test_shipped_imagination_policy_names_its_seeds_and_a_shipped_world_model(na
 @pytest.mark.parametrize("name", ["anymal_d_ppo_imagination", "anymal_d_ppo_quickstart"])
 def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_knows(name):
     """Every option `ppo_options` reads from a recipe JSON the quick start runs is one `rwm-gym ppo` parses to the
-    JSON's value; the learning-rate anneal is passed only where the recipe has one."""
+    JSON's value: each PPO setting the JSON states (num_envs aside: --num-envs decides), also where it differs from
+    PPO's default, and none it does not state (the anneal of a recipe older than it stays unset)."""
     import argparse
     import json
 
@@ -189,13 +190,15 @@ def test_the_quick_start_passes_the_shipped_recipe_to_rwm_gym_ppo_as_options_it_
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     for anneal in (0.25, 0.0, None):
-        ppo = {k: v for k, v in {**meta["ppo"], "lr_anneal_fraction": anneal}.items() if v is not None}
-        options = quickstart.ppo_options({**meta, "ppo": ppo})
-        args = parser.parse_args(options)
-        assert args.lr_anneal_fraction == (anneal or None)
+        changed = {"lr_anneal_fraction": anneal, "n_epochs": 3, "positive_reward_only": False}
+        ppo = {k: v for k, v in {**meta["ppo"], **changed}.items() if v is not None}
+        args = parser.parse_args(quickstart.ppo_options({**meta, "ppo": ppo}))
+        assert args.lr_anneal_fraction == anneal
         for option, value in meta["env"]["imagination"].items():
             assert getattr(args, option) == value, option
-        assert args.log_std_init == meta["ppo"]["log_std_init"] and args.positive_reward_only is True
+        for option, value in ppo.items():
+            if option != "num_envs":
+                assert getattr(args, option) == value, option
 
 
 def _numbers(value, path=""):
