@@ -5,6 +5,7 @@ command (`--overwrite`, `--device`, `--tensorboard`, `--run-dir`, ...) is writte
 from __future__ import annotations
 
 import argparse
+import json
 from collections.abc import Iterable
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -99,3 +100,32 @@ class PhysicsEnvOptions:
     """registered physics env id, or the path of a task spec (.toml)"""
     xml_file: Path | None = None
     """another MJCF of the robot"""
+
+
+def parse_physics(text: str, flag: str = "--physics") -> dict:
+    """A robot's physical parameters from a flag: a JSON dict of `PhysicsParams` fields, or the path of a JSON file
+    holding one, bare or as env kwargs `{"physics": {...}}` (`rwm-gym gap`'s corrected_physics.json). Checked here:
+    ValueError (one line) for bad JSON, unknown names or values that are not finite numbers."""
+    from rwm_gym.physics.params import PhysicsParams
+
+    def no_constant(name: str):
+        raise ValueError(f"{flag}: {name} is not a physics value (give finite numbers)")
+
+    source = Path(text)
+    is_file = not text.lstrip().startswith("{") and source.is_file()
+    try:
+        values = json.loads(source.read_text() if is_file else text, parse_constant=no_constant)
+    except json.JSONDecodeError as err:
+        where = f"{source} is" if is_file else "is"
+        raise ValueError(f"{flag} {where} not valid JSON ({err})") from None
+    except OSError as err:
+        raise ValueError(f"{flag}: {source}: {err.strerror}") from None
+    if isinstance(values, dict) and set(values) == {"physics"}:
+        values = values["physics"]
+    if not isinstance(values, dict):
+        raise ValueError(f"{flag} must be a JSON object of physics parameters, got {type(values).__name__}")
+    try:
+        PhysicsParams.from_dict(values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{flag}: {err}") from None
+    return values

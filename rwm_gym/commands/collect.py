@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import rwm_gym
-from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, WorkerOptions, add_group
+from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, WorkerOptions, add_group, parse_physics
 from rwm_gym.data.collect import collect
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.options import non_negative_float, option
@@ -35,9 +35,9 @@ class CollectOptions:
     max_steps: int | None = None
     """cap on episode length in policy steps (default: the task's episode length)"""
     physics: str | None = None
-    """JSON dict of physics parameters (see PhysicsParams; default: the MJCF's). The physics is solved with the
-    MJCF's own solver settings (ANYmal D: 4 iterations, pyramidal cone, fast for PPO), as `rwm-gym gap` re-simulates
-    by default; {"solver": {"iterations": 100}} solves each step to convergence"""
+    """JSON dict of physics parameters (see PhysicsParams), or a JSON file of one (default: the MJCF's). The physics
+    is solved with the MJCF's own solver settings (ANYmal D: 4 iterations, pyramidal cone, fast for PPO), as `rwm-gym
+    gap` re-simulates by default; {"solver": {"iterations": 100}} solves each step to convergence"""
 
 
 OPTIONS = (PhysicsEnvOptions, CollectOptions, WorkerOptions, OverwriteOption)
@@ -50,24 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         add_group(parser, group)
 
 
-def _no_constant(name: str):
-    raise ValueError(f"--physics: {name} is not a physics value (give finite numbers)")
-
-
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym collect`: 2 with a one-line error on bad input, 130 on Ctrl-C (finished episodes are kept)."""
-    import json
-
     env_kwargs: dict[str, object] = {}
     replacing = args.out.exists()  # an interrupted --overwrite run leaves the old file as it was
     if args.xml_file:
         env_kwargs["xml_file"] = str(args.xml_file)
     try:
         if args.physics:
-            try:
-                env_kwargs["physics"] = json.loads(args.physics, parse_constant=_no_constant)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"--physics is not valid JSON ({err})") from None
+            env_kwargs["physics"] = parse_physics(args.physics)
         path = collect(
             args.env,
             args.policy,

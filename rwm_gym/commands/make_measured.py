@@ -7,7 +7,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, add_group
+from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, add_group, parse_physics
 from rwm_gym.data.collect import make_physics_core
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import parse_effects
@@ -29,7 +29,7 @@ class MeasuredOptions:
     magnitude: tuple[str, ...] = option((), append=True)
     """its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)"""
     physics: str | None = None
-    """JSON dict of further PhysicsParams to hide (per-joint ok)"""
+    """JSON dict of further PhysicsParams to hide (per-joint ok), or a JSON file of one"""
     policy: str = "excitation"
     """what drives the robot: excitation (made for identification), gait, random, or the path of an SB3 .zip (an
     ordinary walking policy, as in a real robot's log)"""
@@ -59,8 +59,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """`rwm-gym make-measured`: 0, or 2 with one line on stderr on bad input."""
-    import json
-
     env_kwargs = {"xml_file": str(args.xml_file)} if args.xml_file else {}
     spec = make_physics_core(args.env, 1, **env_kwargs).spec
     try:
@@ -82,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
             args.out,
             env_id=args.env,
             env_kwargs=env_kwargs,
-            extra_physics=json.loads(args.physics) if args.physics else None,
+            extra_physics=parse_physics(args.physics) if args.physics else None,
             seed=args.seed,
             max_steps=args.max_steps,
             noise=SensorNoise(scale=args.noise_scale),

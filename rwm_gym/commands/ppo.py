@@ -22,6 +22,7 @@ from rwm_gym.commands._options import (
     TorchOptions,
     WorldModelOptions,
     add_group,
+    parse_physics,
 )
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int, option
@@ -37,6 +38,7 @@ from rwm_gym.rl.ppo import (
     learn,
     make_env,
     make_ppo,
+    start_from,
     update_callbacks,
     warm_up_critic,
 )
@@ -83,6 +85,12 @@ class RunOptions:
     record_every: int = 0
     """with --run-dir --in physics: write the episodes of every N-th env to experience/ as world-model data
     (0: none)"""
+    physics: str | None = None
+    """with --in physics: the robot trained on (and judged on after training), a JSON dict of PhysicsParams or a JSON
+    file of one, e.g. `rwm-gym gap`'s corrected_physics.json (default: the MJCF's robot)"""
+    init_policy: Path | None = None
+    """SB3 zip whose network the policy starts from, instead of a fresh one (fine-tuning, e.g. in a corrected
+    simulator); same observation, action and network sizes; the PPO settings are this command's"""
 
 
 @dataclass(frozen=True)
@@ -154,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     from rwm_gym.tensorboard import check_tensorboard
 
     check_tensorboard(args.tensorboard, "rwm-gym ppo")
-    inputs = [args.checkpoint, args.reset_data, *(args.bc_data or [])]
+    inputs = [args.checkpoint, args.reset_data, args.init_policy, *(args.bc_data or [])]
     try:
         check_output(args.out, inputs=inputs, overwrite=args.overwrite or args.run_dir is not None)
         with claim(args.out):
@@ -187,9 +195,11 @@ def _train(args: argparse.Namespace) -> int:
         )
     except (ValueError, FileNotFoundError) as error:  # a checkpoint or reset data that cannot serve these options
         raise SystemExit(f"rwm-gym ppo: {error}") from None
+    if args.init_policy is not None and args.bc_data:
+        raise SystemExit("rwm-gym ppo: --init-policy and --bc-data both set the starting actor; give one")
     if args.run_dir is not None:
-        return run_resumable(args, config, env, imagined)
-    model = make_ppo(env, config, seed=args.seed, device=args.device)
+        return run_resumable(args, config, env, imagined, env_kwargs.get("physics"))
+    model = _fresh_model(args, env, config)
     warm = _behaviour_clone(args, model)
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
@@ -215,6 +225,8 @@ def _train(args: argparse.Namespace) -> int:
         "where": args.where,
         "checkpoint": args.checkpoint,
         "env": args.env,
+        "physics": env_kwargs.get("physics") if args.where == "physics" else None,
+        "init_policy": None if args.init_policy is None else str(args.init_policy),
         "seed": args.seed,
         "ppo": config.to_dict(),
         "imagination": imagined,
@@ -232,9 +244,21 @@ def _train(args: argparse.Namespace) -> int:
         f"({report['physics_samples_source']})"
     )
     if args.eval:
-        _judge(args, model, out, warm, report)
+        _judge(args, model, out, warm, report, env_kwargs if args.where == "physics" else {})
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
+
+
+def _fresh_model(args: argparse.Namespace, env: VecEnv, config: PPOConfig):
+    """A new PPO learner on `env`: a fresh network, or --init-policy's weights."""
+    model = make_ppo(env, config, seed=args.seed, device=args.device)
+    if args.init_policy is not None:
+        try:
+            start_from(model, args.init_policy)
+        except (ValueError, FileNotFoundError) as err:
+            raise SystemExit(f"rwm-gym ppo: {err}") from None
+        print(f"starting from the network of {args.init_policy}")
+    return model
 
 
 def _tensorboard(args: argparse.Namespace, model) -> tuple:
@@ -258,8 +282,13 @@ def _imagination(args: argparse.Namespace) -> tuple[dict, dict]:
         raise SystemExit(
             f"rwm-gym ppo: {', '.join('--' + k.replace('_', '-') for k in refused)} apply to --in imagination"
         )
+    if args.physics is not None and args.where != "physics":
+        raise SystemExit("rwm-gym ppo: --physics applies to --in physics (a world model is the robot it learnt)")
     if args.where != "imagination":
-        return {}, {}
+        try:
+            return ({"physics": parse_physics(args.physics)} if args.physics else {}), {}
+        except ValueError as err:
+            raise SystemExit(f"rwm-gym ppo: {err}") from None
     return {"options": options, "reset_data": args.reset_data}, imagined
 
 
@@ -330,8 +359,11 @@ def _dm_control_task(args: argparse.Namespace):
     return spec if simulator_of(spec) == "dm_control" else None
 
 
-def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict) -> None:
-    """The physics evaluation after PPO into `report`; with --keep-best, the clone as --out if PPO made it worse.
+def _judge(
+    args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict, env_kwargs: dict | None = None
+) -> None:
+    """The physics evaluation after PPO into `report`, on the robot trained on (`env_kwargs`: its physics, with
+    --in physics --physics); with --keep-best, the clone as --out if PPO made it worse.
 
     A dm_control task is judged by its own return over full episodes (and its success, for a manipulation task) in
     its physics env, seeds 0..--eval-seeds - 1 (`rwm_gym.rl.evaluate_dmc`); the legged task by its tracking score."""
@@ -347,7 +379,7 @@ def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report:
         print(f"physics evaluation: {episodes.summary()}")
         report["evaluation"] = episodes.to_dict()
         return
-    evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+    evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps, env_kwargs=env_kwargs)
     print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
     print(format_table(evaluation))
     report["evaluation"] = evaluation.to_dict()
@@ -370,7 +402,9 @@ def _judge(args: argparse.Namespace, model, out: Path, warm: _WarmStart, report:
     print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
 
 
-def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict) -> int:
+def run_resumable(
+    args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict, physics: dict | None = None
+) -> int:
     """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
     from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
 
@@ -384,6 +418,10 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imag
     environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
     if args.env is not None:
         environment["env"] = args.env
+    if physics:
+        environment["physics"] = physics
+    if args.init_policy is not None:
+        environment["init_policy"] = str(args.init_policy)
     if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
         raise SystemExit(
             f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another --run-dir"
@@ -406,7 +444,7 @@ def run_resumable(args: argparse.Namespace, config: PPOConfig, env: VecEnv, imag
         model = resume_model(run, PositiveReward(env) if config.positive_reward_only else env, args.device)
         print(f"resuming {run.folder} at {model.num_timesteps:,} steps (restart {state['restarts'] + 1})")
     else:
-        model = make_ppo(env, config, seed=args.seed, device=args.device)
+        model = _fresh_model(args, env, config)
     checkpoint = RunCheckpoint(
         run,
         config,

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.atomic import write_json, write_text
-from rwm_gym.commands._options import OverwriteOption, WorkerOptions, add_group
+from rwm_gym.commands._options import OverwriteOption, WorkerOptions, add_group, parse_physics
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
 from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
@@ -36,6 +36,10 @@ class ScoreOptions:
     """random commands in the set, beside standing and 1 m/s forward (default: 16)"""
     video: bool = False
     """also write walk.gif and walk.png (needs offscreen GL)"""
+    physics: str | None = None
+    """the robot scored on: a JSON dict of PhysicsParams, or a JSON file of one (e.g. a robot with hidden effects
+    standing in for a measured one, or `rwm-gym gap`'s corrected_physics.json; default: the MJCF's robot). The zero
+    floor is scored on the same robot"""
 
 
 OPTIONS = (ScoreOptions, WorkerOptions, OverwriteOption)
@@ -56,6 +60,12 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("rwm-gym score: --seeds, --steps and --workers must be >= 1, --commands >= 0")
     if uses_workers(args.workers, args.backend) and args.checkpoint is not None:
         raise SystemExit("rwm-gym score: --workers splits physics episodes; a --checkpoint scores in one process")
+    if args.physics is not None and args.checkpoint is not None:
+        raise SystemExit("rwm-gym score: --physics sets the robot in physics; a --checkpoint scores in a world model")
+    try:
+        args.physics = None if args.physics is None else parse_physics(args.physics)
+    except ValueError as err:
+        raise SystemExit(f"rwm-gym score: {err}") from None
     try:
         check_backend(args.backend)
     except RayMissing as err:
@@ -84,6 +94,8 @@ def _score(args: argparse.Namespace) -> int:
     if args.reset_data is not None and not args.reset_data.is_file():
         raise SystemExit(f"rwm-gym score: --reset-data {args.reset_data}: no such file")
     where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
+    if args.physics:
+        where += " with " + ", ".join(f"{k}={v}" for k, v in args.physics.items())
     if args.reset_data is not None:
         where += f" from {args.reset_data}"
     options = dict(
@@ -94,6 +106,7 @@ def _score(args: argparse.Namespace) -> int:
         reset_data=args.reset_data,
         workers=args.workers,
         backend=args.backend,
+        physics=args.physics,
     )
     in_workers = uses_workers(args.workers, args.backend)
     if in_workers:  # each worker loads the policy itself
@@ -118,6 +131,7 @@ def _score(args: argparse.Namespace) -> int:
     report = {
         "policy": str(args.policy),
         "where": where,
+        "physics": args.physics,
         "tracking": result.tracking,
         "return": result.episode_return,
         "falls": result.falls,
@@ -128,7 +142,7 @@ def _score(args: argparse.Namespace) -> int:
     }
     write_json(args.out / "score.json", report)
     if args.video:
-        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png")
+        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png", physics=args.physics)
         print(f"video: {gif}, still: {still}")
     print(f"wrote {args.out / 'score.json'}")
     return 0

@@ -80,7 +80,7 @@ class PhysicsParams:
             object.__setattr__(self, "solver", SolverSettings.from_dict(self.solver))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if value is None or isinstance(value, (bool, str, SolverSettings)):
+            if value is None or isinstance(value, SolverSettings):
                 continue
             numbers = np.asarray(value)
             if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):

@@ -253,6 +253,24 @@ def load_ppo(path, env: VecEnv, config: PPOConfig, *, device: str = "cpu") -> PP
     return model
 
 
+def start_from(model: PPO, path: str | os.PathLike) -> None:
+    """Give `model` the network of the policy saved at `path` (actor, critic, action std and observation scale):
+    fine-tuning with `model`'s own PPO settings. ValueError (one line) when the two networks differ in shape."""
+    from rwm_gym.policy_zip import load_policy
+
+    source = load_policy(path, device=str(model.device)).policy.state_dict()  # runs no code from the file
+    target = model.policy.state_dict()
+    mismatched = sorted(
+        k for k in set(source) | set(target) if k not in source or k not in target or source[k].shape != target[k].shape
+    )
+    if mismatched:
+        raise ValueError(
+            f"{path}: its network does not fit this policy's ({', '.join(mismatched[:3])}"
+            f"{' ...' if len(mismatched) > 3 else ''}); give the same --net-arch and task"
+        )
+    model.policy.load_state_dict(source)
+
+
 def annealed_fraction(timesteps: int, end: int, anneal_steps: float, rollout: int) -> float:
     """Share of the learning rate left for the update after the rollout that ended at `timesteps`: 1 until the last
     `anneal_steps` of a budget that ends at `end`, then falling linearly to `rollout / anneal_steps` at the last

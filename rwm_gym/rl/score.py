@@ -79,6 +79,7 @@ def score(
     spec: str = "anymal_d",
     workers: int = 1,
     backend: str = "processes",
+    physics: dict | None = None,
 ) -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
     world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's).
@@ -86,6 +87,7 @@ def score(
     workers > 1 (or backend "ray"): the physics episodes split over that many workers of `backend` ("processes" or
     "ray", `rwm_gym.workers`; `policy` then a name or a path); the figures are those of one process, exactly for the
     scripted policies; an SB3 network acting on a smaller batch rounds differently (about 1e-9 relative, tested).
+    `physics`: the robot's `PhysicsParams` (a dict of its fields; None: the MJCF's).
     """
     commands = scoring_commands(spec, num_random)
     if uses_workers(workers, backend):
@@ -93,9 +95,11 @@ def score(
             raise ValueError("workers score in physics; a world model scores in one process")
         if not isinstance(policy, (str, os.PathLike)):
             raise ValueError("score in workers needs the policy as a name or a path, not an object")
-        return _score_in_workers(str(policy), commands, seeds, steps, spec, workers, backend)
+        return _score_in_workers(str(policy), commands, seeds, steps, spec, workers, backend, physics)
     policy = resolve_policy(policy, len(commands) * seeds, spec)
     core = None
+    if checkpoint is not None and physics:
+        raise ValueError("physics parameters apply in physics; a world model scores as it was trained")
     if checkpoint is not None:
         from rwm_gym.imagination.core import ImaginationOptions, ImaginedCore
 
@@ -105,11 +109,14 @@ def score(
             reset_data=reset_data,
             options=ImaginationOptions(resample_commands=False, report_uncertainty=True),
         )
-    return evaluate_policy(policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core)
+    env_kwargs = {"physics": physics} if physics else None
+    return evaluate_policy(
+        policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core, env_kwargs=env_kwargs
+    )
 
 
 def _score_in_workers(
-    policy: str, commands, seeds: int, steps: int | None, spec: str, workers: int, backend: str
+    policy: str, commands, seeds: int, steps: int | None, spec: str, workers: int, backend: str, physics: dict | None
 ) -> Evaluation:
     """`score` in physics with the (command, seed) episodes in `workers` consecutive blocks, one worker each; their
     tallies joined in order, so the means are taken over the same arrays as in one process."""
@@ -118,18 +125,19 @@ def _score_in_workers(
     bounds = np.linspace(0, len(pairs), min(workers, len(pairs)) + 1).round().astype(int)
     blocks = [range(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
     threads = threads_per_worker(len(blocks), backend)
-    job = functools.partial(_score_block, policy, pairs, steps, spec, threads)
+    job = functools.partial(_score_block, policy, pairs, steps, spec, threads, physics)
     tallies = list(run_in_workers(job, blocks, len(blocks), backend))
     return summarize(_Tally.concatenate(tallies), commands, pairs, time.monotonic() - started)
 
 
-def _score_block(policy: str, pairs, steps: int | None, spec: str, threads: int, block: range):
+def _score_block(policy: str, pairs, steps: int | None, spec: str, threads: int, physics: dict | None, block: range):
     """A worker's share: the episodes of `pairs[block]` in one physics core of `threads` threads."""
     import torch
 
     torch.set_num_threads(threads)
     act = resolve_policy(policy, len(block), spec, first=block.start)
-    return run_episodes(act, [pairs[k] for k in block], steps=steps, spec=spec, env_kwargs={"nthread": threads})
+    env_kwargs = {"nthread": threads, **({"physics": physics} if physics else {})}
+    return run_episodes(act, [pairs[k] for k in block], steps=steps, spec=spec, env_kwargs=env_kwargs)
 
 
 def record_walk(
@@ -141,15 +149,19 @@ def record_walk(
     fps: int = 15,
     size: tuple[int, int] = (400, 272),
     spec: str = "anymal_d",
+    physics: dict | None = None,
 ) -> tuple[Path, Path]:
-    """Render `policy` in physics through `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
+    """Render `policy` in physics (of the robot `physics`, a dict of `PhysicsParams` fields; None: the MJCF's) through
+    `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
     from PIL import Image, ImageDraw
 
     from rwm_gym.physics.locomotion import LocomotionEnv
 
     act = resolve_policy(policy, 1, spec)
     # the video's commands, not the task's random ones
-    env = LocomotionEnv(spec, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False)
+    env = LocomotionEnv(
+        spec, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False, physics=physics
+    )
     try:
         obs, _ = env.reset(seed=0)
         core = env.core
