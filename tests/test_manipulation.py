@@ -116,9 +116,15 @@ def test_reach_from_collection_to_ppo_in_imagination_judged_by_success_in_physic
     evaluate = ["evaluate", "--checkpoint", str(ckpt), "--data", str(data), "--history", "4", "--horizons", "2"]
     assert main([*evaluate, "--max-horizon", "4", "--all-episodes", "--quiet"]) == 0
     imagined = gym.make("RWM-Jaco-ReachSite-v0", checkpoint=str(ckpt))
-    imagined.reset(seed=0)
+    start, _ = imagined.reset(seed=0)
+    observations = [imagined.step(imagined.action_space.sample())[0] for _ in range(5)]
     info = imagined.step(imagined.action_space.sample())[-1]
     assert isinstance(info["success"], (bool, np.bool_))  # judged on the predicted state
+    spec = load_spec(SPECS[REACH])
+    target = [spec.state_columns.index(f"site_pos/target_site:{c}") for c in "xyz"]
+    hand = [spec.state_columns.index(f"site_pos/jaco_arm/jaco_hand/pinchsite:{c}") for c in "xyz"]
+    assert all(np.array_equal(obs[target], start[target]) for obs in observations)  # the goal is held, not predicted
+    assert not np.array_equal(observations[-1][hand], start[hand])  # the hand is the model's
     ppo = ["ppo", "--checkpoint", str(ckpt), "--timesteps", "64", "--num-envs", "4", "--n-steps", "16"]
     assert main([*ppo, "--net-arch", "16", "--eval-seeds", "2", "--eval-steps", "10", "--out", str(policy)]) == 0
     evaluation = json.loads(policy.with_suffix(".json").read_text())["evaluation"]

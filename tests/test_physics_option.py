@@ -9,8 +9,8 @@ import torch
 
 from rwm_gym.cli import main
 from rwm_gym.commands._options import parse_physics
-from rwm_gym.rl.ppo import PPOConfig, make_env, make_ppo, start_from
 from rwm_gym.rl.policy_file import save_policy
+from rwm_gym.rl.ppo import PPOConfig, make_env, make_ppo, start_from
 
 TINY = PPOConfig(num_envs=4, n_steps=8, net_arch=(16, 16), num_minibatches=2, n_epochs=1)
 

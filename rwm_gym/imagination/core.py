@@ -288,6 +288,9 @@ class ImaginedCore:
         diverged = ~np.isfinite(next_norm).all(axis=1) | (np.abs(next_norm) > self.options.divergence_bound).any(axis=1)
         next_state = self.norm.denormalize_state(next_norm).astype(np.float32)
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
+        held = getattr(self.task, "held_columns", ())
+        if held:  # the task's fixed goal (a reach's target) is not the model's to move
+            next_state[:, held] = self.state[:, held]
         contact = host_parts[1] > 0.5
         foot_height = self.norm.denormalize_foot_height(host_parts[2]).astype(np.float32)
         terminated = diverged.copy()

@@ -97,11 +97,17 @@ class ManipulationReward:
     success_reward = GOAL_REWARD
     """The reward at which a step counts as a success."""
 
+    held_columns: tuple[int, ...] = ()
+    """State columns the goal fixes for a whole episode (a reach's target site): the imagined env holds them at their
+    value in the real history an episode starts from, as it holds a legged robot's command, instead of letting the
+    model's prediction drift (the arm's dynamics do not depend on them)."""
+
     def __init__(self, spec: TaskSpec):
         self.spec, self.goal = spec, manipulation_goal(spec)
         if isinstance(self.goal, ReachGoal):
             self._hand = _columns(spec, "site_pos", self.goal.hand_site, "xyz")
             self._target = _columns(spec, "site_pos", self.goal.target_site, "xyz")
+            self.held_columns = tuple(self._target)
         else:
             self._height = _columns(spec, "body_pos", self.goal.prop_body, "z")[0]
             self._up = _columns(spec, "body_rot", self.goal.prop_body, ("zx", "zy", "zz"))

@@ -118,6 +118,8 @@ class SuiteRewardTask:
     def __init__(self, spec: TaskSpec, num_envs: int):
         self.command = np.zeros((num_envs, 0), dtype=np.float32)
         self.suite_reward = state_reward(spec)
+        self.held_columns: tuple[int, ...] = getattr(self.suite_reward, "held_columns", ())
+        """State columns the imagined env holds through an episode (a reach's target; `ManipulationReward`)."""
         self.success: np.ndarray | None = None
         """(N,) bool after each reward: the manipulation goal met at that step (None for suite tasks)."""
 
