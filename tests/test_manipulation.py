@@ -16,6 +16,7 @@ import pytest
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.physics.dmc import make_core
 from rwm_gym.policies.factory import make_policy
 from rwm_gym.spec import load_spec, parse_spec
@@ -124,7 +125,20 @@ def test_reach_from_collection_to_ppo_in_imagination_judged_by_success_in_physic
     target = [spec.state_columns.index(f"site_pos/target_site:{c}") for c in "xyz"]
     hand = [spec.state_columns.index(f"site_pos/jaco_arm/jaco_hand/pinchsite:{c}") for c in "xyz"]
     assert all(np.array_equal(obs[target], start[target]) for obs in observations)  # the goal is held, not predicted
-    assert not np.array_equal(observations[-1][hand], start[hand])  # the hand is the model's
+    assert not np.array_equal(observations[-1][hand], start[hand])  # the hand moves
+    # angles and the hand are the arm's kinematics of the predicted velocities: closing the step again changes nothing
+    from rwm_gym.imagination.kinematics import KinematicClosure
+
+    closure, s = KinematicClosure.of(spec), spec.state_dim
+    closed = observations[1][None, :s].astype(np.float64)
+    closure.apply(observations[0][None, :s].astype(np.float64), closed)
+    assert np.allclose(closed[0], observations[1][:s], atol=1e-5)
+    free = gym.make("RWM-Jaco-ReachSite-v0", checkpoint=str(ckpt), options=ImaginationOptions(kinematics=False))
+    free.reset(seed=0)
+    first, second = (free.step(action)[0] for action in [imagined.action_space.sample()] * 2)
+    reclosed = second[None, :s].astype(np.float64)
+    closure.apply(first[None, :s].astype(np.float64), reclosed)
+    assert not np.allclose(reclosed[0], second[:s], atol=1e-5)  # without it, the model's own prediction
     ppo = ["ppo", "--checkpoint", str(ckpt), "--timesteps", "64", "--num-envs", "4", "--n-steps", "16"]
     assert main([*ppo, "--net-arch", "16", "--eval-seeds", "2", "--eval-steps", "10", "--out", str(policy)]) == 0
     evaluation = json.loads(policy.with_suffix(".json").read_text())["evaluation"]

@@ -19,6 +19,7 @@ import torch
 
 from rwm_gym.batched_core import check_actions, check_num_envs
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.imagination.kinematics import KinematicClosure
 from rwm_gym.imagination.options import MATMUL_PRECISION_NAMES, ImaginationOptions
 from rwm_gym.imagination.reset_data import ResetWindows, WarmUpCache
 from rwm_gym.model.checkpoint import load_checkpoint
@@ -95,6 +96,8 @@ class ImaginedCore:
             source=f"the spec in checkpoint {self.checkpoint}",
         )
         self._check_state_groups()
+        self.kinematics = KinematicClosure.of(self.spec) if self.options.kinematics else None
+        """A fixed-base arm's angles and sites, computed rather than predicted (None: other robots)."""
         self._allocate(num_envs)
 
     def _load_model(self, env_id: str | None) -> None:
@@ -288,6 +291,8 @@ class ImaginedCore:
         diverged = ~np.isfinite(next_norm).all(axis=1) | (np.abs(next_norm) > self.options.divergence_bound).any(axis=1)
         next_state = self.norm.denormalize_state(next_norm).astype(np.float32)
         next_state[diverged] = self.state[diverged]  # never hand NaN to the learner
+        if self.kinematics is not None:
+            self.kinematics.apply(self.state, next_state)
         held = getattr(self.task, "held_columns", ())
         if held:  # the task's fixed goal (a reach's target) is not the model's to move
             next_state[:, held] = self.state[:, held]

@@ -51,6 +51,10 @@ class ImaginationOptions:
     and yaw rate, within the command range) instead of a fresh draw: the episode starts mid-gait with that gait's
     own goal (reference-state initialisation), so a young policy is paid for keeping a gait before it has found one
     (0: every command drawn; needs commands named vx, vy, yaw_rate)."""
+    kinematics: bool = True
+    """Compute what a fixed-base arm's MJCF fixes instead of predicting it: joint angles integrate the predicted joint
+    velocities, sites on the arm follow by forward kinematics (`rwm_gym.imagination.kinematics`; dm_control's
+    manipulation arms only, no effect on other robots)."""
     push_interval_s: float = 0.0
     """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
     push_velocity: float = 0.5
