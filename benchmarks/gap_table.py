@@ -1,10 +1,11 @@
 """The gap workflow over a grid of hidden cases, on excitation data and on an ordinary walking policy's data.
 
 The grid: every effect of the vocabulary at 0.5x, 1x and 2x its realistic default; per-leg and per-joint-type
-variants (values in some joints only, hidden through per-joint `PhysicsParams`); pairs of effects; effects outside the
-vocabulary (a torsion spring in one joint type, edited into the MJCF directly, `measured.write_spring_model`); and
-no effect. Every case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait`
-or an SB3 `.zip` for the walking policy) and run through `rwm-gym gap --world-model none`.
+variants (values in some joints only, hidden through per-joint `PhysicsParams`); pairs and triples of effects; effects
+outside the vocabulary (a torsion spring in one joint type, edited into the MJCF directly,
+`measured.write_spring_model`); and no effect, also with half and twice the sensor noise the workflow assumes. Every
+case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait` or an SB3 `.zip` for
+the walking policy) and run through `rwm-gym gap --world-model none`.
 
 Per case: the named effects (order, scope), the fitted magnitude's error relative to the true distance from nominal,
 the explained fraction of the held-out gap (and the learned correction's where one was fitted), whether what the named
@@ -55,10 +56,12 @@ class Case:
 
     name: str
     kind: str
-    """single, leg, joint_type, joint, pair, outside, none."""
+    """single, leg, joint_type, joint, pair, triple, outside, none."""
     truth: dict[str, list[float]] = field(default_factory=dict)
     per_joint: tuple[str, str, str, float] | None = None
     spring: tuple[str, float] | None = None
+    noise_scale: float = 1.0
+    """The measured data's sensor noise, a multiple of the package's default (the workflow assumes 1 and checks it)."""
     episodes: int | None = None
     """Measured episodes when the case needs more than `--episodes` (the per-joint scope is tried only with
     `scope.MIN_WINDOWS_PER_PARAMETER` fitting windows per parameter: 12 episodes give 8 x 18 = 144 for 12 joints)."""
@@ -112,6 +115,23 @@ def grid() -> list[Case]:
         ),
         Case("spring_HFE_20", "outside", spring=("HFE", 20.0)),
         Case("none_seed1", "none"),
+        Case("none_noise_0.5x", "none", noise_scale=0.5),
+        Case("none_noise_2x", "none", noise_scale=2.0),
+        Case(
+            "delay+payload+ground",
+            "triple",
+            {n: magnitude(n, 1.0) for n in ("action_delay", "payload", "ground_friction")},
+        ),
+        Case(
+            "strength+friction+encoder",
+            "triple",
+            {n: magnitude(n, 1.0) for n in ("motor_strength", "joint_friction", "encoder_offset")},
+        ),
+        Case(
+            "armature+damping+compliance",
+            "triple",
+            {n: magnitude(n, 1.0) for n in ("armature", "joint_damping", "ground_compliance")},
+        ),
     ]
     return first + rest
 
@@ -142,6 +162,7 @@ def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> Pat
         policy=source,
         env_kwargs=env_kwargs,
         extra_physics=hidden_physics(case),
+        noise=SensorNoise(scale=case.noise_scale),
         progress=False,
         overwrite=True,
     )
@@ -277,7 +298,7 @@ def summarise(rows: list[dict]) -> dict:
     out = {}
     for source in sorted({r["source"] for r in rows}):
         rs = [r for r in rows if r["source"] == source and "error" not in r]
-        effect = [r for r in rs if r["kind"] in ("single", "leg", "joint_type", "joint", "pair")]
+        effect = [r for r in rs if r["kind"] in ("single", "leg", "joint_type", "joint", "pair", "triple")]
         named_right = [r for r in effect if r["correct"]]
         errs = [e for r in named_right for e in r["magnitude_error"].values()]
         explained = [r["explained_fraction"] for r in named_right]
@@ -299,6 +320,7 @@ def summarise(rows: list[dict]) -> dict:
             "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
             "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
             "both_named_in_pairs": frac([r["correct"] for r in rs if r["kind"] == "pair"]),
+            "all_three_named_in_triples": frac([r["correct"] for r in rs if r["kind"] == "triple"]),
             "scope_right_where_grouped": frac([r["scope_correct"] for r in rs if r.get("scope_correct") is not None]),
             "false_namings": sum(len(r["false_namings"]) for r in rs),
             "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
@@ -390,7 +412,7 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    kinds = ["single", "leg", "joint_type", "joint", "pair", "outside", "none"]
+    kinds = ["single", "leg", "joint_type", "joint", "pair", "triple", "outside", "none"]
     sources = sorted({r["source"] for r in rows})
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     for i, source in enumerate(sources):

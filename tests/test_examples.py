@@ -464,3 +464,40 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
     (out / "own" / "part_1.h5").replace(out / "own" / "part_0.h5")  # a part from another seed is refused
     with pytest.raises(SystemExit, match="is not part 0"):
         example.main(argv)
+
+
+SIMS = ("nominal", "corrected", "true")
+
+
+def test_gap_policy_fine_tunes_in_each_simulator_and_scores_on_the_hidden_robot(tmp_path):
+    """`gap_policy.py` on tiny budgets, its gap report given: the nominal policy and its three fine-tunes (nominal,
+    corrected and true simulator) scored on the robot, the corrected one trained on the report's physics."""
+    from rwm_gym.cli import main as rwm_gym
+
+    bench = load_script(BENCHMARKS / "gap_policy.py", "script_gap_policy_chain")
+    nominal = tmp_path / "nominal.zip"
+    tiny = ["--num-envs", "4", "--n-steps", "16", "--threads", "1", "--no-eval"]
+    assert rwm_gym(["ppo", "--in", "physics", "--timesteps", "64", *tiny, "--out", str(nominal)]) == 0
+    report = tmp_path / "weak_leg_delay" / "gap"
+    report.mkdir(parents=True)
+    (report / "corrected_physics.json").write_text(json.dumps({"physics": {"action_delay": 0.02}}))
+    named = {"effect": "action_delay", "effects": [{"effect": "action_delay", "scope": "global"}]}
+    (report / "report.json").write_text(json.dumps(named))
+    argv = ["--out", str(tmp_path), "--robots", "weak_leg_delay", "--policy", str(nominal), "--timesteps", "64"]
+    assert bench.main([*argv, "--num-envs", "4", "--n-steps", "16", "--episodes", "2", "--score-steps", "20"]) == 0
+    row = json.loads((tmp_path / "summary.json").read_text())["weak_leg_delay"]
+    assert set(row["scores"]) == {"before", "nominal", "corrected", "true"}
+    assert row["named"] == ["action_delay (global)"]
+    scores = {k: v["tracking"] for k, v in row["scores"].items()}
+    if scores["true"] > scores["before"]:
+        expected = (scores["corrected"] - scores["before"]) / (scores["true"] - scores["before"])
+        assert math.isclose(row["recovered"], expected)
+    folder = tmp_path / "weak_leg_delay"
+    runs = {sim: json.loads((folder / f"run_{sim}" / "state.json").read_text())["env"] for sim in SIMS}
+    assert {sim: env.get("physics") for sim, env in runs.items()} == {
+        "nominal": None,
+        "corrected": {"action_delay": 0.02},
+        "true": bench.ROBOTS["weak_leg_delay"][1],
+    }
+    assert all(env["init_policy"] == str(nominal) for env in runs.values())
+    assert "left front leg at half strength" in (tmp_path / "gap_policy.md").read_text()
