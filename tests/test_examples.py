@@ -501,3 +501,16 @@ def test_gap_policy_fine_tunes_in_each_simulator_and_scores_on_the_hidden_robot(
     }
     assert all(env["init_policy"] == str(nominal) for env in runs.values())
     assert "left front leg at half strength" in (tmp_path / "gap_policy.md").read_text()
+
+
+def test_reach_in_imagination_runs_every_stage_and_gives_a_verdict(tmp_path, capsys):
+    example = load_example("reach_in_imagination")
+    tiny = ["--random-episodes", "2", "--reach-episodes", "1", "--iterations", "3", "--timesteps", "512"]
+    assert example.main(["--out", str(tmp_path), *tiny, "--num-envs", "8", "--eval-episodes", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "random actions:" in printed and "over 2 episodes of 250 steps" in printed
+    assert "VERDICT: it" in printed and (tmp_path / "policy.zip").is_file()
+    mix = tmp_path / "mix.h5"
+    stamp = mix.stat().st_mtime_ns
+    assert example.main(["--out", str(tmp_path), *tiny, "--num-envs", "8", "--eval-episodes", "2"]) == 0
+    assert mix.stat().st_mtime_ns == stamp  # a second run reuses what the first one made
