@@ -7,7 +7,7 @@ would be), the chain a user runs with the package's commands:
 2. `rwm-gym gap --measured ... --world-model none`: the named effects, written as `corrected_physics.json`;
 3. `rwm-gym ppo --in physics --init-policy NOMINAL --physics SIM`: the nominal policy fine-tuned by PPO for the same
    budget in three simulators: the nominal one (does fine-tuning alone help?), the corrected one, and the true one
-   (the robot's parameters in the fast simulator: the ceiling);
+   (the robot's own physics: the ceiling);
 4. `rwm-gym score --policy P --physics ROBOT`: every policy's tracking score (54 episodes, falls counted) on the
    robot.
 
@@ -42,8 +42,8 @@ ROBOTS: dict[str, tuple[str, dict]] = {
 """Hidden robots on which the shipped model-free policy degrades (tracking 0.923 on the nominal robot)."""
 
 CONVERGED = {"solver": {"iterations": 100}}
-"""The robot is solved to convergence (as `make-measured` does by default); the simulators trained in are the fast
-MJCF's."""
+"""The robot is solved to convergence (as `make-measured` does by default); the nominal simulator is the fast MJCF's,
+the corrected one what the gap report says (its solver included), the true one the robot's own."""
 
 NOMINAL_POLICY = "assets/policies/anymal_d_ppo_physics.zip"
 SIMULATORS = ("nominal", "corrected", "true")
@@ -76,7 +76,7 @@ def run_robot(name: str, robot: dict, args: argparse.Namespace) -> dict:
         _run(["gap", "--measured", str(measured), "--world-model", "none", "--out", str(report)])
     gap = json.loads((report / "report.json").read_text())
     corrected = json.loads((report / "corrected_physics.json").read_text())["physics"]
-    sims = {"nominal": {}, "corrected": corrected, "true": robot}
+    sims = {"nominal": {}, "corrected": corrected, "true": {**robot, **CONVERGED}}
     scoring = [] if args.score_steps is None else ["--seeds", "1", "--commands", "0", "--steps", str(args.score_steps)]
     row = {
         "robot": robot,
