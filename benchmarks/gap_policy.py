@@ -11,8 +11,9 @@ would be), the chain a user runs with the package's commands:
 4. `rwm-gym score --policy P --physics ROBOT`: every policy's tracking score (54 episodes, falls counted) on the
    robot.
 
-The share of the loss recovered is (corrected - nominal) / (true - nominal) in tracking on the robot. Each stage's
-output is kept under `--out` and reused when it exists (a killed run continues where it stopped).
+The share of the loss recovered is (corrected - before) / (true - before) in tracking on the robot, `before` being the
+nominal policy's own score there (above 100 % where the ceiling's fine-tune ends below the corrected one's). Each
+stage's output is kept under `--out` and reused when it exists (a killed run continues where it stopped).
 
     python benchmarks/gap_policy.py --out results/gap_policy                       # both robots, 3 M steps each
     python benchmarks/gap_policy.py --out results/gap_policy --robots weak_leg_delay --timesteps 1000000
