@@ -10,12 +10,19 @@ the walking policy) and run through `rwm-gym gap --world-model none`.
 Per case: the named effects (order, scope), the fitted magnitude's error relative to the true distance from nominal,
 the explained fraction of the held-out gap (and the learned correction's where one was fitted), whether what the named
 effects leave is at the corrected simulator's own noise floor (`rest_at_floor`), false namings.
+
+The robot stands in for a real one in two ways (`--robots`): `converged` solves each of its physics steps to
+convergence; `fast` is the package's own physics as users train in it (the MJCF's solver settings), the case of a user
+who checks the workflow with `rwm-gym collect --physics`. Either way the workflow judges `AnymalD-MuJoCo-v0` as
+configured. A row's `source` is the policy, with `-fast` appended for the fast robot.
+
 Each finished case is kept in `<out>/cases/<source>__<case>.json` and reused when its settings match (resume; run
-disjoint `--shard i/n` processes in parallel). The summary (`summary.json`, `gap_table.md`, `gap_table.png`) covers
+disjoint `--shard i/n` processes in parallel). Jobs run case by case, every source and robot of a case together, so
+a partial run compares like with like. The summary (`summary.json`, `gap_table.md`, `gap_table.png`) covers
 whatever cases have finished.
 
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
-        [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
+        [--robots converged fast] [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
         [--reuse-above-floor results/gap_v12]
     python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
@@ -41,11 +48,19 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.resim import Resimulator
 from rwm_gym.gap.scope import joint_groups
 from rwm_gym.gap.workflow import GapConfig, drop_diverged, held_out_windows, run_gap
+from rwm_gym.physics.params import CONVERGED_SOLVER
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
 EFFECTS = vocabulary(SPEC)
 SIM = "AnymalD-MuJoCo-v0"
+ROBOT_SOLVERS = {"converged": CONVERGED_SOLVER, "fast": None}
+"""How the stand-in robot's physics is solved (`make_measured`'s solver): to convergence, or as the sim env is."""
+
+
+def label(source: str, robot: str) -> str:
+    """A row's source: the policy's name, `-fast` appended for data from the package's own fast physics."""
+    return Path(source).stem + ("" if robot == "converged" else f"-{robot}")
 
 
 @dataclass(frozen=True)
@@ -147,8 +162,8 @@ def hidden_physics(case: Case) -> dict:
     return {EFFECTS[name].apply(np.array([p.default])).popitem()[0]: values.tolist()}
 
 
-def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> Path:
-    """The case's measured data from `source` (the same file for the same settings)."""
+def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot: str = "converged") -> Path:
+    """The case's measured data from `source` on the `robot` solver (the same file for the same settings)."""
     env_kwargs = {}
     if case.spring:
         env_kwargs["xml_file"] = str(write_spring_model(SPEC, tmp / f"{case.name}.xml", *case.spring))
@@ -156,24 +171,25 @@ def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> Pat
     return make_measured(
         case.truth,
         case.episodes or args.episodes,
-        tmp / f"{source}_{case.name}.h5",
+        tmp / f"{label(source, robot)}_{case.name}.h5",
         max_steps=args.steps,
         seed=seed,
         policy=source,
         env_kwargs=env_kwargs,
         extra_physics=hidden_physics(case),
         noise=SensorNoise(scale=case.noise_scale),
+        solver=ROBOT_SOLVERS[robot],
         progress=False,
         overwrite=True,
     )
 
 
-def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict:
-    """Measure the case from `source`, run the workflow, score the verdict."""
+def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot: str = "converged") -> dict:
+    """Measure the case from `source` on the `robot` solver, run the workflow, score the verdict."""
     start = time.time()
-    data = measure(case, source, args, tmp)
+    data = measure(case, source, args, tmp, robot)
     try:
-        report = run_gap(SIM, data, tmp / f"{source}_{case.name}", progress=False)
+        report = run_gap(SIM, data, tmp / f"{label(source, robot)}_{case.name}", progress=False)
     except ValueError as err:  # e.g. a robot that falls at once: no episode long enough for held-out windows
         return {"case": case.name, "kind": case.kind, "source": source, "error": str(err), "settings": settings(args)}
     named = [(e["effect"], e["scope"]) for e in report["effects"]]
@@ -290,7 +306,11 @@ def settings(args: argparse.Namespace) -> dict:
     #             (`rest_at_floor`); only the residual test and the learned correction after named effects can differ
     # version 18: a lone named effect of several parameters is refitted by least squares, kept if the held-out gap
     #             does not grow (FitConfig.refit_single_effect); only such runs can differ from version 17
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 18}
+    # version 19: the workflow re-simulates with the sim env's own solver and checks it against a converged solve
+    #             (gap.solver_check); the noise floor uses the noise estimated from the data where it disagrees with
+    #             the assumed model (gap.noise_estimate); the vocabulary has the drive, floor and sensor effects and the
+    #             contact solver; every case reruns
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 19}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -325,6 +345,23 @@ def summarise(rows: list[dict]) -> dict:
             "false_namings": sum(len(r["false_namings"]) for r in rs),
             "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
         }
+    return out
+
+
+def fast_vs_converged(rows: list[dict]) -> dict:
+    """Per policy: the share of cases judged right on data of the fast robot and of the converged one, over the cases
+    both finished (the aim: the fast robot's within 5 points of the converged one's)."""
+    by = {(r["source"], r["case"]): r for r in rows if "error" not in r}
+    out = {}
+    for source in sorted({s for s, _ in by if not s.endswith("-fast")}):
+        both = [c for s, c in by if s == source and (f"{source}-fast", c) in by]
+        if both:
+            out[source] = {
+                "cases": len(both),
+                "converged_correct": float(np.mean([by[source, c]["correct"] for c in both])),
+                "fast_correct": float(np.mean([by[f"{source}-fast", c]["correct"] for c in both])),
+                "differ": sorted(c for c in both if by[source, c]["correct"] != by[f"{source}-fast", c]["correct"]),
+            }
     return out
 
 
@@ -368,6 +405,12 @@ def markdown(rows: list[dict], summary: dict) -> str:
                 else str(v)
             )
         lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    for source, c in fast_vs_converged(rows).items():
+        lines += [
+            "",
+            f"{source}: judged right on {c['converged_correct']:.0%} of {c['cases']} cases from the converged robot, "
+            f"{c['fast_correct']:.0%} from the fast one; differ: {', '.join(c['differ']) or 'none'}.",
+        ]
     reused = sorted({r["reused_version"] for r in rows if "reused_version" in r})
     if reused:
         count = sum("reused_version" in r for r in rows)
@@ -423,7 +466,8 @@ def plot(rows: list[dict], path: Path) -> None:
             )
             for k in kinds
         ]
-        axes[0].bar(np.arange(len(kinds)) + 0.4 * i - 0.2, acc, 0.4, label=source)
+        width = 0.8 / len(sources)
+        axes[0].bar(np.arange(len(kinds)) + width * (i + 0.5) - 0.4, acc, width, label=source)
         pts = [
             (r["explained_fraction"], r["learned_total_explained"] or r["explained_fraction"])
             for r in rows
@@ -490,6 +534,13 @@ def main() -> None:
         default=["excitation", "gait"],
         help="policies that produce the measured data (excitation, gait, random, an SB3 .zip)",
     )
+    parser.add_argument(
+        "--robots",
+        nargs="*",
+        choices=sorted(ROBOT_SOLVERS),
+        default=["converged", "fast"],
+        help="how the stand-in robot is solved: to convergence, or as the package's own (fast) physics",
+    )
     parser.add_argument("--cases", nargs="*", default=None, help="case names (default: the whole grid)")
     parser.add_argument("--shard", default="0/1", help="i/n: run every n-th case starting at i")
     parser.add_argument("--seed", type=int, default=0)
@@ -510,22 +561,26 @@ def main() -> None:
         "row keeps its version in `reused_version`",
     )
     args = parser.parse_args()
+    unknown = sorted(set(args.cases or []) - {c.name for c in grid()})
+    if unknown:
+        parser.error(f"unknown case(s): {', '.join(unknown)}")
     cases = [c for c in grid() if args.cases is None or c.name in args.cases]
     shard, shards = (int(x) for x in args.shard.split("/"))
-    jobs = [(c, s) for c in cases for s in args.sources][shard::shards]
+    jobs = [(c, s, r) for c in cases for r in args.robots for s in args.sources][shard::shards]
     if args.oracle:
-        return run_oracle([(c, s) for c, s in jobs if c.truth or c.per_joint], args)
+        return run_oracle([(c, s) for c, s, r in jobs if (c.truth or c.per_joint) and r == "converged"], args)
     folder = args.out / "cases"
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
-        for case, source in [] if args.summary_only else jobs:
-            path = folder / f"{Path(source).stem}__{case.name}.json"
+        for case, source, robot in [] if args.summary_only else jobs:
+            path = folder / f"{label(source, robot)}__{case.name}.json"
             if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
                 continue
             if args.reuse_above_floor and reuse_above_floor(args.reuse_above_floor / "cases" / path.name, path, args):
                 continue
-            row = run_case(case, source, args, Path(tmp))
-            row["source"] = Path(source).stem
+            row = run_case(case, source, args, Path(tmp), robot)
+            row["source"] = label(source, robot)
+            row["robot"] = robot
             write_json(path, row)
             print(
                 f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
@@ -539,8 +594,9 @@ def main() -> None:
         args.out / "summary.json",
         {
             "summary": summary,
+            "fast_vs_converged": fast_vs_converged(rows),
             "cases_finished": len(rows),
-            "cases_in_grid": len(grid()) * len(args.sources),
+            "cases_in_grid": len(grid()) * len(args.sources) * len(args.robots),
             "rows": rows,
         },
     )
