@@ -135,3 +135,21 @@ def test_ppo_refuses_physics_in_imagination_and_two_starting_actors(tmp_path):
     with pytest.raises(SystemExit, match=r"rwm-gym ppo: --physics: unknown physics parameter"):
         main(_ppo(tmp_path, "--physics", '{"mass": 1}', "--out", str(tmp_path / "p.zip")))
     assert not (tmp_path / "p.zip").exists()
+
+
+def test_a_cloned_actor_is_judged_on_the_robot_ppo_trains_on(tmp_path):
+    """`--bc-data` with `--in physics --physics`: the clone's own evaluation (which `--keep-best` compares with PPO's)
+    runs on the given robot, not on the nominal one."""
+    data = tmp_path / "gait.h5"
+    assert main(["collect", "--policy", "gait", "--episodes", "1", "--max-steps", "40", "--out", str(data)]) == 0
+    heavy = {"payload_mass": 30.0}
+    out = tmp_path / "clone.zip"
+    args = _ppo(tmp_path, "--physics", json.dumps(heavy), "--bc-data", str(data), "--bc-steps", "20", "--out", str(out))
+    assert main([*args[: args.index("--timesteps")], "--timesteps", "0", *args[args.index("--timesteps") + 2 :]]) == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    cloned = report["behaviour_cloning"]["evaluation"]
+    assert cloned["tracking"] == report["evaluation"]["tracking"]  # no PPO step: the same actor on the same robot
+    from rwm_gym.rl.evaluate_policy import evaluate_policy
+
+    nominal = evaluate_policy(str(out), seeds=[0], steps=10)
+    assert not np.isclose(nominal.tracking, cloned["tracking"])

@@ -200,7 +200,8 @@ def _train(args: argparse.Namespace) -> int:
     if args.run_dir is not None:
         return run_resumable(args, config, env, imagined, env_kwargs.get("physics"))
     model = _fresh_model(args, env, config)
-    warm = _behaviour_clone(args, model)
+    judged_on = env_kwargs if args.where == "physics" else {}  # the robot trained on, which every evaluation uses
+    warm = _behaviour_clone(args, model, judged_on)
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
         warmup = warm_up_critic(model, config.critic_warmup_steps)
@@ -244,7 +245,7 @@ def _train(args: argparse.Namespace) -> int:
         f"({report['physics_samples_source']})"
     )
     if args.eval:
-        _judge(args, model, out, warm, report, env_kwargs if args.where == "physics" else {})
+        _judge(args, model, out, warm, report, judged_on)
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
     return 0
 
@@ -310,8 +311,10 @@ class _WarmStart:
         }
 
 
-def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
-    """With --bc-data: clone the demonstrator's actions into the actor and judge the clone alone in physics."""
+def _behaviour_clone(args: argparse.Namespace, model, env_kwargs: dict | None = None) -> _WarmStart:
+    """With --bc-data: clone the demonstrator's actions into the actor and judge the clone alone in physics, on the
+    robot PPO trains on (`env_kwargs`: its physics, with --in physics --physics), so --keep-best compares like with
+    like."""
     from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
 
     if not args.bc_data:
@@ -334,7 +337,9 @@ def _behaviour_clone(args: argparse.Namespace, model) -> _WarmStart:
         f"in {cloned.wall_s:.0f} s"
     )
     if args.eval:  # the warm start alone, so the effect of PPO is plain to see
-        warm.evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps)
+        warm.evaluation = evaluate_policy(
+            model, seeds=range(args.eval_seeds), steps=args.eval_steps, env_kwargs=env_kwargs
+        )
         print("physics evaluation of the cloned actor, before PPO:")
         print(format_table(warm.evaluation))
         save_policy(model, out_bc := args.out.with_name(args.out.stem + "_bc.zip"))
