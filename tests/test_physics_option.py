@@ -153,3 +153,19 @@ def test_a_cloned_actor_is_judged_on_the_robot_ppo_trains_on(tmp_path):
 
     nominal = evaluate_policy(str(out), seeds=[0], steps=10)
     assert not np.isclose(nominal.tracking, cloned["tracking"])
+
+
+def test_a_resumable_run_is_judged_and_reported_like_a_single_one(tmp_path):
+    """`--run-dir`: the finished policy is judged in physics on the robot trained on, and the report lies beside it."""
+    run, out = tmp_path / "run", tmp_path / "run" / "final.zip"
+    heavy = {"payload_mass": 30.0}
+    assert main(_ppo(tmp_path, "--physics", json.dumps(heavy), "--run-dir", str(run), "--out", str(out))) == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["physics"] == heavy and report["run_dir"] == str(run)
+    assert report["train"]["timesteps"] == 64 and report["physics_samples"] == 64
+    from rwm_gym.rl.evaluate_policy import evaluate_policy
+
+    again = evaluate_policy(str(out), seeds=[0], steps=10, env_kwargs={"physics": heavy})
+    assert np.isclose(again.tracking, report["evaluation"]["tracking"])
+    with pytest.raises(SystemExit, match="--bc-data warm-starts a run without --run-dir"):
+        main(_ppo(tmp_path, "--run-dir", str(run), "--bc-data", "d.h5", "--out", str(tmp_path / "p.zip")))

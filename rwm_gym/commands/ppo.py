@@ -173,8 +173,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     """Build the env and the learner, warm-start, train, save, judge in physics and write the report."""
-    from rwm_gym.atomic import write_json
-
     config = dataclass_from_args(PPOConfig, args)
     if args.threads:
         import torch
@@ -197,10 +195,12 @@ def _train(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym ppo: {error}") from None
     if args.init_policy is not None and args.bc_data:
         raise SystemExit("rwm-gym ppo: --init-policy and --bc-data both set the starting actor; give one")
-    if args.run_dir is not None:
-        return run_resumable(args, config, env, imagined, env_kwargs.get("physics"))
-    model = _fresh_model(args, env, config)
     judged_on = env_kwargs if args.where == "physics" else {}  # the robot trained on, which every evaluation uses
+    if args.run_dir is not None:
+        if args.bc_data:
+            raise SystemExit("rwm-gym ppo: --bc-data warm-starts a run without --run-dir (give --init-policy)")
+        return run_resumable(args, config, env, imagined, judged_on)
+    model = _fresh_model(args, env, config)
     warm = _behaviour_clone(args, model, judged_on)
     warmup = None
     if config.critic_warmup_steps and not (args.timesteps == 0 or args.minutes == 0):
@@ -222,32 +222,47 @@ def _train(args: argparse.Namespace) -> int:
         f"trained {stats.timesteps:,} {args.where} steps in {stats.wall_s:.0f} s ({stats.steps_per_s:.0f} steps/s); "
         f"wrote {out}"
     )
+    report = _report(args, config, judged_on, imagined, warm, stats.timesteps + (warmup.timesteps if warmup else 0))
+    report["critic_warmup"] = None if warmup is None else asdict(warmup)
+    report["train"] = asdict(stats)
+    _judge_and_write(args, model, out, warm, report, judged_on)
+    return 0
+
+
+def _report(
+    args: argparse.Namespace, config: PPOConfig, judged_on: dict, imagined: dict, warm: _WarmStart, steps: int
+) -> dict:
+    """The report's settings and the physics samples behind a policy trained for `steps` steps (printed)."""
     report = {
         "where": args.where,
         "checkpoint": args.checkpoint,
         "env": args.env,
-        "physics": env_kwargs.get("physics") if args.where == "physics" else None,
+        "physics": judged_on.get("physics"),
         "init_policy": None if args.init_policy is None else str(args.init_policy),
         "seed": args.seed,
         "ppo": config.to_dict(),
         "imagination": imagined,
         "behaviour_cloning": warm.report(args),
-        "critic_warmup": None if warmup is None else asdict(warmup),
-        "train": asdict(stats),
-        "kept": "ppo",
-    }  # which policy --out holds; --keep-best may hand back the clone
-    report["physics_samples"], report["physics_samples_source"] = physics_samples(
-        args.where, args.checkpoint, stats.timesteps + (warmup.timesteps if warmup else 0)
-    )
+        "kept": "ppo",  # which policy --out holds; --keep-best may hand back the clone
+    }
+    report["physics_samples"], report["physics_samples_source"] = physics_samples(args.where, args.checkpoint, steps)
     samples = report["physics_samples"]
     print(
         f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
         f"({report['physics_samples_source']})"
     )
+    return report
+
+
+def _judge_and_write(
+    args: argparse.Namespace, model, out: Path, warm: _WarmStart, report: dict, judged_on: dict
+) -> None:
+    """Judge the policy in physics (unless --no-eval) and write the report beside --out."""
+    from rwm_gym.atomic import write_json
+
     if args.eval:
         _judge(args, model, out, warm, report, judged_on)
     print(f"report: {write_json(out.with_suffix('.json'), report)}")
-    return 0
 
 
 def _fresh_model(args: argparse.Namespace, env: VecEnv, config: PPOConfig):
@@ -408,9 +423,10 @@ def _judge(
 
 
 def run_resumable(
-    args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict, physics: dict | None = None
+    args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict, judged_on: dict | None = None
 ) -> int:
-    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process."""
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process, then judge
+    the policy in physics (on `judged_on`'s robot, the one trained on) and write the report beside --out."""
     from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
 
     if not args.timesteps:
@@ -423,8 +439,9 @@ def run_resumable(
     environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
     if args.env is not None:
         environment["env"] = args.env
-    if physics:
-        environment["physics"] = physics
+    judged_on = judged_on or {}
+    if judged_on.get("physics"):
+        environment["physics"] = judged_on["physics"]
     if args.init_policy is not None:
         environment["init_policy"] = str(args.init_policy)
     if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
@@ -480,4 +497,13 @@ def run_resumable(
             recorder.close()
     out = save_policy(model, args.out)
     print(f"{run.folder}: {model.num_timesteps:,} steps in all; wrote {out}")
+    report = _report(args, config, judged_on, imagined, _WarmStart(), model.num_timesteps)
+    state = run.state()
+    report["run_dir"] = str(run.folder)
+    report["train"] = {
+        "timesteps": int(model.num_timesteps),
+        "wall_s": state.get("wall_s"),
+        "restarts": state.get("restarts"),
+    }
+    _judge_and_write(args, model, out, _WarmStart(), report, judged_on)
     return 0
