@@ -9,7 +9,7 @@ import pytest
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, fit_all, gap_per_window
+from rwm_gym.gap.fit import FitConfig, FitInputs, fit_all, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows
 from rwm_gym.gap.workflow import GapConfig
@@ -88,7 +88,8 @@ def test_effect_is_fitted_from_noisy_measured_windows(tmp_path, name):
     held = make_windows(data, held_ids, 25, config.eval_stride)
     resim = Resimulator(SPEC)  # a converged solve, as make-measured's robot
     before = gap_per_window(SPEC, resim.rollout(held, PhysicsParams()), held)
-    (fit,) = fit_all({name: effect}, resim, train, held, PhysicsParams(), before, FitConfig(), progress=False)
+    inputs = FitInputs(resim, train, held, PhysicsParams(), before, FitConfig())
+    (fit,) = fit_all({name: effect}, inputs, progress=False)
     assert abs(fit.values[0] - true) <= 0.25 * abs(true - first.nominal), fit.values
     assert fit.gap_mean <= 0.5 * float(before.mean()) and not np.isnan(fit.uncertainty[0])  # refined, not screened
 

@@ -14,7 +14,7 @@ import pytest
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
+from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import (
     LearnedCorrectionConfig,
@@ -93,25 +93,26 @@ def test_fits_made_once_are_taken_again_only_on_the_same_inputs(nominal_data):
     train, held = make_windows(nominal_data, np.arange(2), 5, 8), make_windows(nominal_data, [2], 25, 5)
     resim, config, base = Resimulator(SPEC), FitConfig(refine_top=1, max_evaluations=3), PhysicsParams()
     before = gap_per_window(SPEC, resim.rollout(held, base), held)
-    memo = FitMemo(resim, train, held, base, before, config)
+    inputs = FitInputs(resim, train, held, base, before, config)
+    memo = FitMemo(inputs)
     names = ("armature", "motor_strength")
-    first = fit_all({n: EFFECTS[n] for n in names}, resim, train, held, base, before, config, False, memo=memo)
+    first = fit_all({n: EFFECTS[n] for n in names}, inputs, False, memo=memo)
     rollouts = []
     rollout = resim.rollout
     resim.rollout = lambda windows, params, **kw: rollouts.append(params) or rollout(windows, params, **kw)
     effects = {n: EFFECTS[n] for n in (*names, "joint_damping")}
-    again = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    again = fit_all(effects, inputs, False, memo=memo)
     assert rollouts and all(p.joint_damping != 0 or p == base for p in rollouts)  # only the new effect was fitted
     by_name = {f.effect: f for f in again}
     assert [json.dumps(dataclasses.asdict(by_name[f.effect])) for f in first] == [
         json.dumps(dataclasses.asdict(f)) for f in first
     ]
     by_name["armature"].values[0] = -1.0  # a caller changing a fit changes no memo
-    third = fit_all(effects, resim, train, held, base, before, config, False, memo=memo)
+    third = fit_all(effects, inputs, False, memo=memo)
     assert next(f for f in third if f.effect == "armature").values[0] != -1.0
     rollouts.clear()
     other = PhysicsParams(armature=0.01)
-    fit_all({"armature": EFFECTS["armature"]}, resim, train, held, other, before, config, False, memo=memo)
+    fit_all({"armature": EFFECTS["armature"]}, dataclasses.replace(inputs, base=other), False, memo=memo)
     assert rollouts  # another base: fitted afresh, not answered from the memo
 
 
@@ -259,7 +260,7 @@ def test_friction_in_one_joint_is_found_at_that_joint(tmp_path):
     resim, base, config = Resimulator(SPEC), PhysicsParams(), FitConfig()
     assert outlying_joint(SPEC, resim, train, base) == knee
     before = gap_per_window(SPEC, resim.rollout(held, base), held)
-    forms = scope_candidates([], EFFECTS, SPEC, resim, train, held, base, before, config)
+    forms = scope_candidates([], EFFECTS, FitInputs(resim, train, held, base, before, config))
     assert {(e.name, f.scope) for e, f in forms} == {(name, "joint") for name in JOINT_EFFECTS}
     best = max((f for _, f in forms), key=lambda f: f.score)
     assert (best.effect, best.names) == ("joint_friction", ["joint_friction_LF_KFE"])
@@ -348,13 +349,15 @@ def test_the_two_best_joint_effects_that_reduce_the_gap_are_fitted_in_their_scop
     tried = []
     monkeypatch.setattr(scope, "_scoped_fits", lambda best, effect, *args: tried.append(effect.name) or [])
     monkeypatch.setattr(scope, "outlying_joint", lambda *args: None)
-    scope.scope_candidates(fits, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig())
+    no_sim = SimpleNamespace(spec=SPEC)  # nothing is simulated: the fits are stubbed
+    scope.scope_candidates(fits, EFFECTS, FitInputs(no_sim, None, None, PhysicsParams(), None, FitConfig()))
     assert tried == ["joint_damping", "joint_friction"]
     tried.clear()
-    scope.scope_candidates(fits, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig(scoped_effects=5))
+    inputs = FitInputs(no_sim, None, None, PhysicsParams(), None, FitConfig(scoped_effects=5))
+    scope.scope_candidates(fits, EFFECTS, inputs)
     assert tried == ["joint_damping", "joint_friction", "motor_strength"]  # not armature: it explains nothing
     tried.clear()
-    scope.scope_candidates(fits, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig(scoped_effects=1))
+    scope.scope_candidates(fits, EFFECTS, dataclasses.replace(inputs, config=FitConfig(scoped_effects=1)))
     assert tried == ["joint_damping"]
 
 
@@ -688,7 +691,10 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
         fitted("backlash", 0.0, status="rejected: blew up"),
         fitted("joint_friction", 0.2),
     ]
-    scope.every_scope(fits, {"joint_friction"}, EFFECTS, SPEC, None, None, None, PhysicsParams(), None, FitConfig())
+    no_sim = SimpleNamespace(spec=SPEC)  # nothing is simulated: the fits are stubbed
+    scope.every_scope(
+        fits, {"joint_friction"}, EFFECTS, FitInputs(no_sim, None, None, PhysicsParams(), None, FitConfig())
+    )
     assert tried == ["joint_damping", "armature"]
 
     above = [True]
@@ -769,7 +775,7 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
 
     refine_calls = []
 
-    def fit_all(effects, resim, train, held, params, gap, config, progress=True, refine_top=None):
+    def fit_all(effects, inputs, progress=True, refine_top=None):
         refine_calls.append(refine_top)
         if refine_top is None:  # the usual step: the ground friction fit is a coarse grid point
             return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.1 * len(effects) / 4)]
@@ -941,9 +947,8 @@ def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, 
     monkeypatch.setattr(scope, "fit_coordinatewise", fake_fit)
     monkeypatch.setattr(scope, "score_fit", fake_score)
     best = CandidateFit("joint_friction", ["f"], ["N m"], [1.0], [0.1], 0.0, score=0.6)
-    out = scope._scoped_fits(
-        best, EFFECTS["joint_friction"], SPEC, None, [], None, PhysicsParams(), None, FitConfig(), to_beat
-    )
+    inputs = FitInputs(SimpleNamespace(spec=SPEC), [], None, PhysicsParams(), None, FitConfig())
+    out = scope._scoped_fits(best, EFFECTS["joint_friction"], inputs, to_beat)
     assert fitted == fitted_scopes and [f.scope for _, f in out] == fitted_scopes
 
 

@@ -22,6 +22,7 @@ Which candidates are named, and in which order, is `rwm_gym.gap.select`'s call.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
@@ -422,46 +423,51 @@ def paired_test(windows: Windows, block_rows: int, significance: float) -> str:
     )
 
 
+@dataclass(frozen=True)
+class FitInputs:
+    """What fitting effects on top of one simulator reads: the re-simulator, the windows fitted on (`train`) and scored
+    on (`heldout`), the simulator fitted on top of (`base`), its held-out gap per window (`before`, (W,
+    len(gap_horizons(heldout.horizon)))) and the fit settings. A fit is deterministic given these."""
+
+    resim: Resimulator
+    train: Windows
+    heldout: Windows
+    base: PhysicsParams
+    before: np.ndarray
+    config: FitConfig
+
+    @property
+    def spec(self):
+        return self.resim.spec
+
+    def same_as(self, other: FitInputs) -> bool:
+        """Whether fits on `other` are fits on these (the same re-simulator and windows, equal base, gap and config)."""
+        return (
+            other.resim is self.resim
+            and other.train is self.train
+            and other.heldout is self.heldout
+            and other.base == self.base
+            and other.config == self.config
+            and np.array_equal(other.before, self.before)
+        )
+
+
 class FitMemo:
     """Fits on top of one simulator, computed once and handed on.
 
     The solver check (`gap.solver_check`) fits the first selection step under the solver the workflow then runs with,
     on the same windows from the same nominal simulator; `select` takes those fits from here rather than fitting them
-    again. Every fit is deterministic given the re-simulator, the windows, `base`, the gap `before` and the config, so
-    a memo answers only calls on exactly those (`covers`) and a hit is what fitting again would give. Results are
-    stored and handed out as copies: callers change the fits they get (shares, scope charges)."""
+    again. Every fit is deterministic given its `FitInputs`, so a memo answers only calls on exactly those (`covers`)
+    and a hit is what fitting again would give. Results are stored and handed out as copies: callers change the fits
+    they get (shares, scope charges)."""
 
-    def __init__(
-        self,
-        resim: Resimulator,
-        train: Windows,
-        heldout: Windows,
-        base: PhysicsParams,
-        before: np.ndarray,
-        config: FitConfig,
-    ):
-        self.resim, self.train, self.heldout, self.base, self.config = resim, train, heldout, base, config
-        self.before = np.array(before)
+    def __init__(self, inputs: FitInputs):
+        self.inputs = dataclasses.replace(inputs, before=np.array(inputs.before))
         self._store: dict[Hashable, Any] = {}
 
-    def covers(
-        self,
-        resim: Resimulator,
-        train: Windows,
-        heldout: Windows,
-        base: PhysicsParams,
-        before: np.ndarray,
-        config: FitConfig,
-    ) -> bool:
+    def covers(self, inputs: FitInputs) -> bool:
         """Whether fits on these inputs are the memo's."""
-        return (
-            resim is self.resim
-            and train is self.train
-            and heldout is self.heldout
-            and base == self.base
-            and config == self.config
-            and np.array_equal(before, self.before)
-        )
+        return self.inputs.same_as(inputs)
 
     def get(self, key: Hashable, compute: Callable[[], Any]) -> Any:
         """A copy of the result stored under `key`, computed (and stored) on the first call."""
@@ -470,17 +476,9 @@ class FitMemo:
         return copy.deepcopy(self._store[key])
 
 
-def memo_for(
-    memo: FitMemo | None,
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
-) -> FitMemo | None:
+def memo_for(memo: FitMemo | None, inputs: FitInputs) -> FitMemo | None:
     """`memo` where it covers these inputs, else None (fit afresh)."""
-    return memo if memo is not None and memo.covers(resim, train, heldout, base, before, config) else None
+    return memo if memo is not None and memo.covers(inputs) else None
 
 
 def remembered(memo: FitMemo | None, key: Hashable, compute: Callable[[], Any]) -> Any:
@@ -490,25 +488,21 @@ def remembered(memo: FitMemo | None, key: Hashable, compute: Callable[[], Any]) 
 
 def fit_all(
     effects: dict[str, Effect],
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
+    inputs: FitInputs,
     progress: bool = True,
     refine_top: int | None = None,
     memo: FitMemo | None = None,
 ) -> list[CandidateFit]:
-    """Screen every effect (on top of `base`) on a coarse grid, refine the `refine_top` best (default: the config's),
-    score all on held-out windows against the per-window gap `before` (W, len(gap_horizons(heldout.horizon))) of
-    `base`. `memo`: each effect's screening and fit are taken from it where it has them (and stored there), where it
-    covers these inputs (`FitMemo`).
+    """Screen every effect (on top of `inputs.base`) on a coarse grid, refine the `refine_top` best (default: the
+    config's), score all on the held-out windows against the gap `inputs.before`. `memo`: each effect's screening and
+    fit are taken from it where it has them (and stored there), where it covers these inputs (`FitMemo`).
 
     Returns the fits; unrefined ones sit at their best grid point with uncertainty NaN.
     """
+    resim, train, heldout, base = inputs.resim, inputs.train, inputs.heldout, inputs.base
+    before, config = inputs.before, inputs.config
     refine_top = config.refine_top if refine_top is None else refine_top
-    memo = memo_for(memo, resim, train, heldout, base, before, config)
+    memo = memo_for(memo, inputs)
     bar = tqdm(total=2 * len(effects) + refine_top, desc="fit effects", unit="step", disable=not progress)
     h = config.fit_horizon
     nominal_cost = remembered(

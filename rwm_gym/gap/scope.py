@@ -27,7 +27,15 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.effects import Effect, Parameter
-from rwm_gym.gap.fit import CandidateFit, FitConfig, FitMemo, fit_coordinatewise, memo_for, remembered, score_fit
+from rwm_gym.gap.fit import (
+    CandidateFit,
+    FitInputs,
+    FitMemo,
+    fit_coordinatewise,
+    memo_for,
+    remembered,
+    score_fit,
+)
 from rwm_gym.gap.resim import Resimulator, Windows, normalised_residual
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
@@ -186,19 +194,11 @@ def _charge_scope(fit: CandidateFit, choices: int = 0) -> CandidateFit:
 
 
 def scope_candidates(
-    fits: list[CandidateFit],
-    effects: dict[str, Effect],
-    spec: TaskSpec,
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
-    memo: FitMemo | None = None,
+    fits: list[CandidateFit], effects: dict[str, Effect], inputs: FitInputs, memo: FitMemo | None = None
 ) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms (`config.scopes`) of the `config.scoped_effects` best-scoring global joint effects among
-    `fits` whose global form reduces the held-out gap, each fitted from nominal and scored on the held-out windows;
+    `fits` whose global form reduces the held-out gap, each fitted on top of `inputs.base` and scored on the held-out
+    windows;
     [] if none has a scoped form. `memo`: scoped fits taken from it where it has them (`fit.FitMemo`).
 
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
@@ -214,21 +214,23 @@ def scope_candidates(
     )
     out: list[tuple[Effect, CandidateFit]] = []
     top = max((f.score for f in fits if f.status == "ok"), default=-np.inf)
-    memo = memo_for(memo, resim, train, heldout, base, before, config)
-    for best in ranked[: config.scoped_effects]:
+    memo = memo_for(memo, inputs)
+    for best in ranked[: inputs.config.scoped_effects]:
         out += remembered(
             memo,
             ("scoped", best.effect, best.score, top),
-            lambda best=best: _scoped_fits(
-                best, effects[best.effect], spec, resim, train, heldout, base, before, config, top
-            ),
+            lambda best=best: _scoped_fits(best, effects[best.effect], inputs, top),
         )
-    joint = outlying_joint(spec, resim, train, base) if "joint" in config.scopes else None
+    joint = (
+        outlying_joint(inputs.spec, inputs.resim, inputs.train, inputs.base)
+        if "joint" in inputs.config.scopes
+        else None
+    )
     if joint is not None:
         out += remembered(
             memo,
             ("single joint", joint, tuple(n for n in JOINT_EFFECTS if n in effects)),
-            lambda: _single_joint_fits(joint, effects, spec, resim, train, heldout, base, before, config),
+            lambda: _single_joint_fits(joint, effects, inputs),
         )
     return out
 
@@ -237,13 +239,7 @@ def every_scope(
     fits: list[CandidateFit],
     scoped: set[str],
     effects: dict[str, Effect],
-    spec: TaskSpec,
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
+    inputs: FitInputs,
     memo: FitMemo | None = None,
 ) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms of every global joint effect among `fits` not in `scoped`, whatever its global form explains
@@ -254,31 +250,21 @@ def every_scope(
     per joint type it explains most of the gap above the floor. `select`
     runs this only where no candidate can be named otherwise, so only a gap about to be called `unexplained` pays."""
     out: list[tuple[Effect, CandidateFit]] = []
-    memo = memo_for(memo, resim, train, heldout, base, before, config)
+    memo = memo_for(memo, inputs)
     for fit in sorted(fits, key=lambda f: -f.score):
         if fit.scope == "global" and fit.status == "ok" and fit.effect in JOINT_EFFECTS and fit.effect not in scoped:
             out += remembered(
                 memo,
                 ("scoped", fit.effect, fit.score, -np.inf),
-                lambda fit=fit: _scoped_fits(
-                    fit, effects[fit.effect], spec, resim, train, heldout, base, before, config
-                ),
+                lambda fit=fit: _scoped_fits(fit, effects[fit.effect], inputs),
             )
     return out
 
 
-def _single_joint_fits(
-    joint: int,
-    effects: dict[str, Effect],
-    spec: TaskSpec,
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
-) -> list[tuple[Effect, CandidateFit]]:
+def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs) -> list[tuple[Effect, CandidateFit]]:
     """Every joint effect fitted at `joint` alone (from nominal, one bounded search) and scored on held-out windows."""
+    spec, resim, train, heldout, base = inputs.spec, inputs.resim, inputs.train, inputs.heldout, inputs.base
+    before, config = inputs.before, inputs.config
     out: list[tuple[Effect, CandidateFit]] = []
     for name in JOINT_EFFECTS:
         form = single_joint(effects[name], spec, joint) if name in effects else None
@@ -294,20 +280,13 @@ def _single_joint_fits(
 
 
 def _scoped_fits(
-    best: CandidateFit,
-    effect: Effect,
-    spec: TaskSpec,
-    resim: Resimulator,
-    train: Windows,
-    heldout: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    config: FitConfig,
-    to_beat: float = -np.inf,
+    best: CandidateFit, effect: Effect, inputs: FitInputs, to_beat: float = -np.inf
 ) -> list[tuple[Effect, CandidateFit]]:
     """`effect` (whose global fit is `best`) fitted per leg and per joint type, and per joint where a group form beat
     the global one and the data suffice. A form is not fitted where its best possible score (no gap left, less its
     charge) cannot beat `to_beat`, the step's best candidate so far: it could never be named."""
+    spec, resim, train, heldout, base = inputs.spec, inputs.resim, inputs.train, inputs.heldout, inputs.base
+    before, config = inputs.before, inputs.config
     p = effect.parameters[0]
     out: list[tuple[Effect, CandidateFit]] = []
     for scope in (s for s in config.scopes if s != "joint"):

@@ -41,6 +41,7 @@ from rwm_gym.gap.effects import Effect
 from rwm_gym.gap.fit import (
     CandidateFit,
     FitConfig,
+    FitInputs,
     FitMemo,
     fit_all,
     fit_effect,
@@ -239,6 +240,10 @@ class _Search:
     memo: FitMemo | None = None
     """Fits of step 1 already made (by the solver check), taken rather than fitted again."""
 
+    def on_top_of(self, params: PhysicsParams, current: np.ndarray) -> FitInputs:
+        """What a fit on top of the simulator `params` (held-out gap `current`) reads."""
+        return FitInputs(self.resim, self.train, self.held, params, current, self.config)
+
     def first_step(self, k: int) -> dict:
         """`memo=` for the fitting calls of step `k` (k = 0 only, where there is a memo), else nothing."""
         return {"memo": self.memo} if k == 0 and self.memo is not None else {}
@@ -333,30 +338,10 @@ def _judge_step(
     judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
     config = search.config
     remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in named}}
-    fits = fit_all(
-        remaining,
-        search.resim,
-        search.train,
-        search.held,
-        params,
-        current,
-        config,
-        search.progress,
-        **search.first_step(k),
-    )
+    inputs = search.on_top_of(params, current)
+    fits = fit_all(remaining, inputs, search.progress, **search.first_step(k))
     candidates = [(remaining[f.effect], f) for f in fits]
-    candidates += scope_candidates(
-        fits,
-        remaining,
-        search.spec,
-        search.resim,
-        search.train,
-        search.held,
-        params,
-        current,
-        config,
-        **search.first_step(k),
-    )
+    candidates += scope_candidates(fits, remaining, inputs, **search.first_step(k))
     if named and config.joint_candidates:
         candidates = joint_candidates(
             candidates, named, earlier, search.resim, search.train, search.held, search.base, current, config
@@ -404,18 +389,8 @@ def _refine_every_effect(
     config = search.config
     if not _undecided(step) or not config.refine_every_effect or len(remaining) <= config.refine_top:
         return
-    fits = fit_all(
-        remaining,
-        search.resim,
-        search.train,
-        search.held,
-        params,
-        current,
-        config,
-        search.progress,
-        len(remaining),
-        **search.first_step(0),
-    )
+    inputs = search.on_top_of(params, current)
+    fits = fit_all(remaining, inputs, search.progress, len(remaining), **search.first_step(0))
     refined = {f.effect: f for f in fits}
     step.candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in step.candidates]
     step.fits = fits
@@ -430,19 +405,7 @@ def _fit_every_scope(
     if not _undecided(step) or not search.config.every_scope:
         return
     scoped = {f.effect for _, f in step.candidates if f.scope != "global"}
-    more = every_scope(
-        step.fits,
-        scoped,
-        remaining,
-        search.spec,
-        search.resim,
-        search.train,
-        search.held,
-        params,
-        current,
-        search.config,
-        **search.first_step(0),
-    )
+    more = every_scope(step.fits, scoped, remaining, search.on_top_of(params, current), **search.first_step(0))
     if more:
         step.candidates += more
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)

@@ -22,7 +22,7 @@ form then loses to the global one), where the converged solve fits it (5.8, the 
 from __future__ import annotations
 
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, gap_per_window, paired_p_value
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import scope_candidates
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
@@ -58,9 +58,10 @@ def best_candidate(
     effects = {n: e for n, e in vocabulary(resim.spec, resim.xml_file, resim.solver).items() if n != "contact_solver"}
     before = gap_per_window(resim.spec, resim.rollout(held, base), held)
     best = {"effect": "none", "scope": None, "values": [], "gap": float(before.mean()), "per_window": before.mean(1)}
-    memo = FitMemo(resim, train, held, base, before, config)
-    fits = fit_all(effects, resim, train, held, base, before, config, progress, memo=memo)
-    scoped = scope_candidates(fits, effects, resim.spec, resim, train, held, base, before, config, memo)
+    inputs = FitInputs(resim, train, held, base, before, config)
+    memo = FitMemo(inputs)
+    fits = fit_all(effects, inputs, progress, memo=memo)
+    scoped = scope_candidates(fits, effects, inputs, memo)
     chosen = None
     for effect, fit in [(effects[f.effect], f) for f in fits] + scoped:
         if fit.status == "ok" and fit.gap_mean < best["gap"]:
