@@ -314,7 +314,9 @@ def settings(args: argparse.Namespace) -> dict:
     # version 19: the workflow re-simulates with the sim env's own solver and checks it against a converged solve
     #             (gap.solver_check); the noise floor uses the noise estimated from the data where it disagrees with
     #             the assumed model (gap.noise_estimate); the vocabulary has the drive, floor and sensor effects and the
-    #             contact solver; every case reruns
+    #             contact solver; every case reruns. Also in 19: an unrelated candidate is a rival only if it
+    #             explains FitConfig.rival_excess_explained itself (rows run before it differ only if they end
+    #             `ambiguous`, and those were run again)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 19}
 
 

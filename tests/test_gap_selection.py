@@ -928,6 +928,39 @@ def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_expl
     assert ("ambiguous" in reason) == ambiguous
 
 
+def test_a_candidate_that_explains_nothing_is_no_rival_of_a_penalised_one():
+    """A base-velocity bias (three parameters) on walking data explained 20 % of a gap 1.75x the floor (47 % of what
+    lies above it); charged for its two extra parameters, its penalised remaining gap came within 25 % of that of an
+    action delay that explained nothing, and the gap was called `unexplained`. A rival must explain something."""
+    from rwm_gym.gap.fit import CandidateFit
+    from rwm_gym.gap.select import judge
+
+    def fitted(name, explained, parameters, p_value):
+        score = 1.0 - (1.0 - explained) * (1.0 + FitConfig().penalty_per_parameter * (parameters - 1))
+        return (
+            EFFECTS[name],
+            CandidateFit(
+                name,
+                [name],
+                ["1"],
+                [0.0] * parameters,
+                [0.1] * parameters,
+                0.0,
+                gap_mean=1.0 - explained,
+                explained_fraction=explained,
+                score=score,
+                p_value=p_value,
+            ),
+        )
+
+    gap, floor = 1.0, 1.0 / 1.75
+    bias, delay = fitted("base_velocity_bias", 0.2, 3, 1e-4), fitted("action_delay", 0.0, 1, 1.0)
+    pick, reason, rival = judge([bias, delay], gap, floor, FitConfig(), 0.01)
+    assert pick is bias and rival is None, reason
+    pick, reason, rival = judge([bias, delay], gap, floor, FitConfig(rival_excess_explained=0.0), 0.01)
+    assert pick is None and rival[1] is delay[1] and "ambiguous" in reason  # the rule it replaces
+
+
 @pytest.mark.parametrize("to_beat,fitted_scopes", [(-1.0, ["leg", "joint_type"]), (0.87, ["joint_type"]), (0.95, [])])
 def test_a_scope_that_cannot_beat_the_best_candidate_is_not_fitted(monkeypatch, to_beat, fitted_scopes):
     """A scoped form scores at most 1 less its charge (per leg 4 values: 0.85, per joint type 3: 0.90) even if it left

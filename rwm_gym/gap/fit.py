@@ -65,6 +65,9 @@ class FitConfig:
     ambiguity_ratio: float = 0.25
     """A different effect whose penalised remaining gap above the noise floor is within this factor of the best's makes
     it `unexplained`."""
+    rival_excess_explained: float = 0.15
+    """... if that effect itself explains at least this share of the gap above the floor: one that explains nothing is
+    no rival, even where the penalty for the best's parameters leaves the two penalised gaps alike."""
     block_rows: int = 25
     """Rows of an episode pooled into one sample of the significance test."""
     refine_top: int = 3

@@ -13,8 +13,9 @@ its scopes (`scope.scope_candidates`), and the best-scoring candidate is named w
 - its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
 - it explains `min_excess_explained` of the gap above the floor (the floor itself no effect can remove; measured
   against the whole gap, an effect near the floor could never reach it),
-- no unrelated candidate (not the same effect in another scope, not nesting it) leaves a penalised remaining gap
-  within `ambiguity_ratio` of the best's.
+- no unrelated candidate (not the same effect in another scope, not nesting it) that itself explains
+  `rival_excess_explained` of the gap above the floor leaves a penalised remaining gap within `ambiguity_ratio` of
+  the best's.
 
 Before step 1 calls a gap above the floor `unexplained`, every effect is refined (not only the best screened,
 `FitConfig.refine_every_effect`) and every joint effect is fitted in its scopes too (`scope.every_scope`), also those
@@ -101,7 +102,8 @@ def name_step(
     candidates: list[Candidate], config: FitConfig, significance: float, gap: float, floor: float
 ) -> tuple[Candidate | None, str, Candidate | None]:
     """The candidate this step names, or None, why, and an unrelated rival that explains the gap alike (then the
-    pick is None); `gap` and `floor` are the means of the step's gap and of its noise floor. Alike: the rival's
+    pick is None); `gap` and `floor` are the means of the step's gap and of its noise floor. Alike: the rival explains
+    `rival_excess_explained` of the gap above the floor and its
     penalised remaining gap above the floor is within `ambiguity_ratio` of the best's (measured from zero, an effect
     that explains a third of a gap twice the floor had every candidate that explains nothing as its rival)."""
     ranked = sorted((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, reverse=True)
@@ -125,9 +127,9 @@ def name_step(
         return (1.0 - fit.score) * gap - floor
 
     for other_effect, other in ranked[1:]:
-        if not _related(effect, other_effect) and left_above_floor(other) < left_above_floor(best) * (
-            1.0 + config.ambiguity_ratio
-        ):
+        alike = left_above_floor(other) < left_above_floor(best) * (1.0 + config.ambiguity_ratio)
+        explains = other.excess_explained >= config.rival_excess_explained
+        if not _related(effect, other_effect) and alike and explains:
             return (
                 None,
                 (
