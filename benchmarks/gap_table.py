@@ -315,8 +315,10 @@ def settings(args: argparse.Namespace) -> dict:
     #             (gap.solver_check); the noise floor uses the noise estimated from the data where it disagrees with
     #             the assumed model (gap.noise_estimate); the vocabulary has the drive, floor and sensor effects and the
     #             contact solver; every case reruns. Also in 19: an unrelated candidate is a rival only if it
-    #             explains FitConfig.rival_excess_explained itself (rows run before it differ only if they end
-    #             `ambiguous`, and those were run again)
+    #             explains FitConfig.rival_excess_explained itself, and a rival that the best holds (the best
+    #             still explains enough on top of it, not the other way round) is resolved for the best
+    #             (select.resolve_rivals); rows run before these differ only if they end `ambiguous`, and those ran
+    #             again
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 19}
 
 

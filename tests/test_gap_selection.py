@@ -1014,3 +1014,36 @@ def test_learned_torque_is_the_groups_linear_law_and_round_trips(tmp_path):
     save_file({"weights": weights}, str(tmp_path / "w.safetensors"))
     with pytest.raises(ValueError, match="not a learned correction"):
         load_correction(tmp_path / "w.safetensors", SPEC)
+
+
+@pytest.mark.parametrize("delay_on_armature, named", [(0.40, True), (0.47, False)])
+def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay_on_armature, named):
+    """An action delay and armature explain a step's gap alike (they mimic each other). Armature refitted on top of
+    the delay explains little more; if the delay on top of armature still explains a third of the rest above the
+    floor, the delay holds all armature explains and is named; if it too explains little, the two are confusable."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def gap_of(params):  # a stand-in simulator: each effect's held-out gap, from 1.0 with neither
+        delay, armature = params.action_delay > 0, params.armature > 0
+        return {(False, False): 1.0, (True, False): 0.40, (False, True): 0.50, (True, True): None}[delay, armature]
+
+    def score(fit, effect, resim, held, on_top, after, config):
+        both = {"armature": 0.38, "action_delay": delay_on_armature}[effect.name]  # refitted on top of the other
+        fit.gap_mean, fit.p_value, fit.status = both, 1e-4 if float(after.mean()) - both > 0.05 else 0.3, "ok"
+
+    monkeypatch.setattr(select, "fit_effect", lambda effect, resim, train, base, config, start, bracket: fitted(effect))
+    monkeypatch.setattr(select, "score_fit", score)
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, params, held: np.full((10, 3), gap_of(params)))
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
+
+    def fitted(effect):
+        return CandidateFit(effect.name, [effect.name], ["1"], [effect.parameters[0].default], [0.1], 0.0)
+
+    delay, armature = EFFECTS["action_delay"], EFFECTS["armature"]
+    best, rival = (delay, fitted(delay)), (armature, fitted(armature))
+    floor = np.full((10, 3), 0.2)
+    out = select.resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
+    assert (out is not None) == named
+    if named:
+        assert out[0] is best and "action_delay is named" in out[1]

@@ -205,24 +205,49 @@ def resolve_rivals(
     floor: np.ndarray,
     config: FitConfig,
 ) -> tuple[Candidate, str] | None:
-    """Two unrelated effects explain the gap alike: both present (a pair), or confusable? Fit the rival on top of the
-    best; if it still explains `min_excess_explained` of the gap above the floor, significantly, the best is named
-    (the rival is fitted again at the next step); else None (confusable: `unexplained`)."""
-    effect, fit = rival
-    on_top = best[0].physics(best[1].values, params)
-    after_best = gap_per_window(resim.spec, resim.rollout(held, on_top), held)
-    values = np.asarray(fit.values)
-    p = effect.parameters[0]
-    refit = fit_effect(effect, resim, train, on_top, config, values, (p.low, p.high))
-    score_fit(refit, effect, resim, held, on_top, after_best, config)
-    excess = float(after_best.mean() - np.nanmean(floor))
-    share = (float(after_best.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
-    if refit.status == "ok" and refit.p_value < config.significance and share >= config.min_excess_explained:
+    """Two unrelated effects explain the gap alike: both present (a pair), one standing in for part of the other, or
+    confusable? Fit the rival on top of the best; if it still explains `min_excess_explained` of the gap above the
+    floor, significantly, the best is named (the rival is fitted again at the next step). Else fit the best on top of
+    the rival: if the best still explains that much and the rival nothing more on top of it, the best holds all the
+    rival explains and more, and it is named. Else None (confusable: `unexplained`)."""
+    rival_on_best = _explains_on_top(rival, best, resim, train, held, params, floor, config)
+    if rival_on_best is not None:
         return best, (
-            f"{best[1].effect} and {fit.effect} explain the gap alike, and {fit.effect} still explains "
-            f"{share:.0%} of the rest above the floor on top of {best[1].effect}: both are present"
+            f"{best[1].effect} and {rival[1].effect} explain the gap alike, and {rival[1].effect} still explains "
+            f"{rival_on_best:.0%} of the rest above the floor on top of {best[1].effect}: both are present"
+        )
+    best_on_rival = _explains_on_top(best, rival, resim, train, held, params, floor, config)
+    if best_on_rival is not None:
+        return best, (
+            f"{best[1].effect} and {rival[1].effect} explain the gap alike, but on top of {rival[1].effect}, "
+            f"{best[1].effect} still explains {best_on_rival:.0%} of the rest above the floor, and "
+            f"{rival[1].effect} on top of {best[1].effect} too little: {best[1].effect} is named"
         )
     return None
+
+
+def _explains_on_top(
+    candidate: Candidate,
+    under: Candidate,
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    params: PhysicsParams,
+    floor: np.ndarray,
+    config: FitConfig,
+) -> float | None:
+    """The share of the gap above the floor that `candidate`, refitted on top of `params` with `under` at its values,
+    still explains, where it is significant and at least `min_excess_explained`; else None."""
+    effect, fit = candidate
+    on_top = under[0].physics(under[1].values, params)
+    after = gap_per_window(resim.spec, resim.rollout(held, on_top), held)
+    p = effect.parameters[0]
+    refit = fit_effect(effect, resim, train, on_top, config, np.asarray(fit.values), (p.low, p.high))
+    score_fit(refit, effect, resim, held, on_top, after, config)
+    excess = float(after.mean() - np.nanmean(floor))
+    share = (float(after.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
+    significant = refit.status == "ok" and refit.p_value < config.significance
+    return share if significant and share >= config.min_excess_explained else None
 
 
 @dataclass(frozen=True)
