@@ -137,6 +137,8 @@ def grid() -> list[Case]:
         Case("none_seed1", "none"),
         Case("none_noise_0.5x", "none", noise_scale=0.5),
         Case("none_noise_2x", "none", noise_scale=2.0),
+    ]
+    triples = [
         Case(
             "delay+payload+ground",
             "triple",
@@ -153,7 +155,7 @@ def grid() -> list[Case]:
             {n: magnitude(n, 1.0) for n in ("armature", "joint_damping", "ground_compliance")},
         ),
     ]
-    return first + rest
+    return first + triples + rest
 
 
 def hidden_physics(case: Case) -> dict:
