@@ -249,6 +249,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "floor_ratio": report["noise_floor"]["ratio"],
         "above_floor": report["noise_floor"]["above_floor"],
         "identifiable": {k: v["identifiable"] for k, v in report["identifiability"].items()},
+        "signal_to_floor": {k: v["signal_to_floor"] for k, v in report["identifiability"].items()},
         "rejected_points": len(report["rejected"]),
         "wall_s": time.time() - start,
         "settings": settings(args),
@@ -376,6 +377,19 @@ def fast_vs_converged(rows: list[dict]) -> dict:
     return out
 
 
+def identifiability_table(rows: list[dict]) -> str:
+    """Each effect's signal at its default over the noise floor on the nominal robot's data, per source: which data
+    could reveal which effect (`gap.identifiability`; the `none` case's report)."""
+    nominal = {r["source"]: r["signal_to_floor"] for r in rows if r["case"] == "none" and "signal_to_floor" in r}
+    if not nominal:
+        return ""
+    sources = sorted(nominal)
+    lines = ["| effect at its default: signal / floor | " + " | ".join(sources) + " |", "|---|" + "---|" * len(sources)]
+    for name in nominal[sources[0]]:
+        lines.append(f"| {name} | " + " | ".join(f"{nominal[s][name]:.1f}" for s in sources) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def excess_explained(row: dict) -> float:
     """Share of the gap above the noise floor that the named effects remove (the floor itself cannot be removed)."""
     before, floor = row["gap_before"], row["floor"]
@@ -422,6 +436,9 @@ def markdown(rows: list[dict], summary: dict) -> str:
             f"{source}: judged right on {c['converged_correct']:.0%} of {c['cases']} cases from the converged robot, "
             f"{c['fast_correct']:.0%} from the fast one; differ: {', '.join(c['differ']) or 'none'}.",
         ]
+    table = identifiability_table(rows)
+    if table:
+        lines += ["", table.rstrip("\n")]
     reused = sorted({r["reused_version"] for r in rows if "reused_version" in r})
     if reused:
         count = sum("reused_version" in r for r in rows)
