@@ -373,6 +373,33 @@ def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactl
     assert not row["true_rest_above_its_floor"]
 
 
+def test_gap_table_measures_a_case_on_the_fast_robot_and_compares_like_with_like(tmp_path):
+    """`--robots fast`: the case's data come from the package's own physics (the sim env's solver, not a converged
+    one), and the fast/converged comparison counts only cases both robots finished."""
+    import argparse
+
+    import numpy as np
+
+    from rwm_gym.data.dataset import Dataset
+
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_robots")
+    case = next(c for c in gap_table.grid() if c.name == "payload_1x")
+    args = argparse.Namespace(seed=0, episodes=2, steps=20)
+    fast, converged = (gap_table.measure(case, "excitation", args, tmp_path, robot) for robot in ("fast", "converged"))
+    assert fast.name.startswith("excitation-fast_") and converged.name.startswith("excitation_")
+    a, b = Dataset.load(fast), Dataset.load(converged)
+    assert not np.allclose(a["state"], b["state"])  # two solvers, two robots
+    rows = [
+        {"source": "gait", "case": "x", "correct": True},
+        {"source": "gait-fast", "case": "x", "correct": False},
+        {"source": "gait", "case": "y", "correct": True},  # the fast robot has not run y: left out
+    ]
+    assert gap_table.fast_vs_converged(rows) == {
+        "gait": {"cases": 1, "converged_correct": 1.0, "fast_correct": 0.0, "differ": ["x"]}
+    }
+    assert "contact_solver_1x" not in {c.name for c in gap_table.grid()}  # no robot hides the simulator's solver
+
+
 def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp_path):
     """One part per (policy, noise level) from its own seeds, merged after the base; the fine-tune keeps the start
     model's training settings except budget, lr and seed; the written model carries no optimizer state and counts
