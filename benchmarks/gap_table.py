@@ -320,8 +320,8 @@ def settings(args: argparse.Namespace) -> dict:
     #             contact solver; every case reruns. Also in 19: an unrelated candidate is a rival only if it
     #             explains FitConfig.rival_excess_explained itself, and a rival that the best holds (the best
     #             still explains enough on top of it, not the other way round) is resolved for the best
-    #             (select.resolve_rivals); rows run before these differ only if they end `ambiguous`, and those ran
-    #             again
+    #             (select.resolve_rivals), each test cross-fitted on every episode where the held-out third alone is
+    #             not significant; rows run before these differ only if they end `ambiguous`, and those ran again
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 19}
 
 

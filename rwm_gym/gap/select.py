@@ -204,19 +204,22 @@ def resolve_rivals(
     current: np.ndarray,
     floor: np.ndarray,
     config: FitConfig,
+    cross: Callable[[], CrossFit] | None = None,
 ) -> tuple[Candidate, str] | None:
     """Two unrelated effects explain the gap alike: both present (a pair), one standing in for part of the other, or
     confusable? Fit the rival on top of the best; if it still explains `min_excess_explained` of the gap above the
     floor, significantly, the best is named (the rival is fitted again at the next step). Else fit the best on top of
     the rival: if the best still explains that much and the rival nothing more on top of it, the best holds all the
-    rival explains and more, and it is named. Else None (confusable: `unexplained`)."""
-    rival_on_best = _explains_on_top(rival, best, resim, train, held, params, floor, config)
+    rival explains and more, and it is named. Else None (confusable: `unexplained`). What is left on top of another
+    effect is small, so where the held-out third alone is not significant, the test runs again on every episode
+    (`cross`: the swapped windows, `cross_fitted_p_value`)."""
+    rival_on_best = _explains_on_top(rival, best, resim, train, held, params, floor, config, cross)
     if rival_on_best is not None:
         return best, (
             f"{best[1].effect} and {rival[1].effect} explain the gap alike, and {rival[1].effect} still explains "
             f"{rival_on_best:.0%} of the rest above the floor on top of {best[1].effect}: both are present"
         )
-    best_on_rival = _explains_on_top(best, rival, resim, train, held, params, floor, config)
+    best_on_rival = _explains_on_top(best, rival, resim, train, held, params, floor, config, cross)
     if best_on_rival is not None:
         return best, (
             f"{best[1].effect} and {rival[1].effect} explain the gap alike, but on top of {rival[1].effect}, "
@@ -235,9 +238,11 @@ def _explains_on_top(
     params: PhysicsParams,
     floor: np.ndarray,
     config: FitConfig,
+    cross: Callable[[], CrossFit] | None = None,
 ) -> float | None:
     """The share of the gap above the floor that `candidate`, refitted on top of `params` with `under` at its values,
-    still explains, where it is significant and at least `min_excess_explained`; else None."""
+    still explains, where it is significant (on the held-out windows, or else cross-fitted on every episode where
+    `cross` gives the swapped windows) and at least `min_excess_explained`; else None."""
     effect, fit = candidate
     on_top = under[0].physics(under[1].values, params)
     after = gap_per_window(resim.spec, resim.rollout(held, on_top), held)
@@ -246,8 +251,14 @@ def _explains_on_top(
     score_fit(refit, effect, resim, held, on_top, after, config)
     excess = float(after.mean() - np.nanmean(floor))
     share = (float(after.mean()) - refit.gap_mean) / excess if excess > 0 else 0.0
-    significant = refit.status == "ok" and refit.p_value < config.significance
-    return share if significant and share >= config.min_excess_explained else None
+    if refit.status != "ok" or share < config.min_excess_explained:
+        return None
+    significant = refit.p_value < config.significance or (
+        cross is not None
+        and cross_fitted_p_value((effect, refit), resim, held, cross(), on_top, after, config, config.significance)
+        < config.significance
+    )
+    return share if significant else None
 
 
 @dataclass(frozen=True)
@@ -467,6 +478,7 @@ def _decide(
             current,
             search.floor,
             search.config,
+            search.cross,
         )
         if resolved is not None:
             return resolved

@@ -141,9 +141,8 @@ def run_gap(
     floor_noise = noise_check.pop("floor_noise")
     floor = noise_floor(resim, held, base, floor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
-    cross = None
-    if not floor_test["above_floor"]:  # near the floor, step 1 may test its best candidate on every episode
-        cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
+    # near the floor, step 1 may test its best candidate on every episode, and so may the test of two rivals
+    cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     selection = select_effects(
         effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross, first_step
     )
@@ -227,20 +226,19 @@ def _cross_fit_windows(
     fit_config: FitConfig,
 ) -> Callable[[], CrossFit]:
     """The swapped windows for 2-fold cross-fitting (fit on the held-out episodes, score on the fitting ones), built
-    only if a candidate needs them (a nominal case's best explains nothing)."""
+    only if a test needs them (step 1's best near the floor, or what one of two rivals adds on top of the other).
+    Built once."""
+
+    built: list[CrossFit] = []
 
     def cross() -> CrossFit:
-        return CrossFit(
-            drop_diverged(
-                resim,
-                make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride, config.warmup),
-                base,
-                measured,
-            )[0],
-            drop_diverged(
-                resim, make_windows(data, train_ids, horizon, config.eval_stride, config.warmup), base, measured
-            )[0],
-        )
+        if not built:
+            fit = make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
+            score = make_windows(data, train_ids, horizon, config.eval_stride, config.warmup)
+            built.append(
+                CrossFit(drop_diverged(resim, fit, base, measured)[0], drop_diverged(resim, score, base, measured)[0])
+            )
+        return built[0]
 
     return cross
 
