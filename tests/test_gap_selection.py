@@ -1047,3 +1047,17 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
     assert (out is not None) == named
     if named:
         assert out[0] is best and "action_delay is named" in out[1]
+
+    # where the held-out third alone is not significant, the test runs again on every episode (cross-fitted)
+    monkeypatch.setattr(select, "cross_fitted_p_value", lambda candidate, *args: 1e-3)
+    weak = {"armature": 0.38, "action_delay": delay_on_armature}  # as above, but every held-out p 0.3
+
+    def score_weakly(fit, effect, resim, held, on_top, after, config):
+        fit.gap_mean, fit.p_value, fit.status = weak[effect.name], 0.3, "ok"
+
+    monkeypatch.setattr(select, "score_fit", score_weakly)
+    no_cross = select.resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
+    crossed = select.resolve_rivals(
+        best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig(), cross=lambda: "swapped windows"
+    )
+    assert no_cross is None and (crossed is not None) == named
