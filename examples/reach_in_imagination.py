@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     imagined = ["--episode-steps", "100", "--random-first-episode-length", "--log-std-init", "-1.0"]
     sizes = ["--num-envs", str(args.num_envs), "--n-steps", "32", "--timesteps", str(args.timesteps)]
     run = ["--run-dir", str(out / "run"), "--threads", args.threads, "--seed", str(args.seed), "--out", str(policy)]
-    _run(rwm, ["ppo", "--checkpoint", str(model), *imagined, *sizes, *run])
+    _run(rwm, ["ppo", "--checkpoint", str(model), *imagined, *sizes, *run, "--no-eval"])  # judged below, 100 episodes
 
     from rwm_gym.rl.evaluate_dmc import evaluate_episodes
 
