@@ -23,7 +23,7 @@ whatever cases have finished.
 
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
         [--robots converged fast] [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
-        [--reuse-above-floor results/gap_v12]
+        [--reuse nothing-named results/gap_v19]
     python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
 
@@ -322,7 +322,10 @@ def settings(args: argparse.Namespace) -> dict:
     #             still explains enough on top of it, not the other way round) is resolved for the best
     #             (select.resolve_rivals), each test cross-fitted on every episode where the held-out third alone is
     #             not significant; rows run before these differ only if they end `ambiguous`, and those ran again
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 19}
+    # version 20: a step after the first tests the gap against the noise floor of the simulator with the effects named
+    #             so far, not the nominal one's (select.select_effects, floor_of); only runs where step 1 named an
+    #             effect can differ from version 19 (`--reuse nothing-named`)
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 20}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -344,7 +347,7 @@ def summarise(rows: list[dict]) -> dict:
             "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
             "mean_explained_where_named": float(np.mean(explained)) if explained else None,
             "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
-            # rows reused from before version 17 (`--reuse-above-floor`) have no rest_at_floor
+            # rows reused from before version 17 (`--reuse above-floor`) have no rest_at_floor
             "explained_ge_70pct_or_rest_at_its_floor_where_named": frac(
                 [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]
             ),
@@ -444,8 +447,8 @@ def markdown(rows: list[dict], summary: dict) -> str:
         count = sum("reused_version" in r for r in rows)
         lines += [
             "",
-            f"{count} of {len(rows)} cases (gap above the noise floor) were run at version "
-            f"{', '.join(map(str, reused))} and reused (`--reuse-above-floor`).",
+            f"{count} of {len(rows)} cases were run at version {', '.join(map(str, reused))} and reused "
+            "(`--reuse`: the change cannot reach them).",
         ]
     return "\n".join(lines) + "\n"
 
@@ -515,16 +518,24 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def reuse_above_floor(earlier: Path, path: Path, args: argparse.Namespace) -> bool:
-    """Copy an earlier run's finished case to `path` if its nominal gap was above the noise floor and its settings
-    differ from these in the version only; the row keeps the version it ran at (`reused_version`)."""
+REUSABLE = {
+    "above-floor": lambda row: bool(row.get("above_floor")),
+    "nothing-named": lambda row: "named" in row and not row["named"],
+}
+"""`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
+floor (a change to gaps near the floor), or one where step 1 named nothing (a change to the steps after it)."""
+
+
+def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) -> bool:
+    """Copy an earlier run's finished case to `path` if `REUSABLE[when]` holds for it and its settings differ from
+    these in the version only; the row keeps the version it ran at (`reused_version`)."""
     if not earlier.is_file():
         return False
     row = json.loads(earlier.read_text())
     old, new = row.get("settings", {}), settings(args)
-    if not row.get("above_floor") or {**old, "version": new["version"]} != new:
+    if not REUSABLE[when](row) or {**old, "version": new["version"]} != new:
         return False
-    write_json(path, {**row, "settings": new, "reused_version": old["version"]})
+    write_json(path, {**row, "settings": new, "reused_version": row.get("reused_version", old["version"])})
     return True
 
 
@@ -580,15 +591,16 @@ def main() -> None:
         "(<out>/oracle/, oracle.md): how much any correction can explain on these data",
     )
     parser.add_argument(
-        "--reuse-above-floor",
-        type=Path,
+        "--reuse",
+        nargs=2,
         default=None,
-        metavar="DIR",
-        help="take the cases whose nominal gap was above the noise floor from an earlier run's "
-        "DIR/cases (for a version whose change reaches only gaps near the floor); each reused "
-        "row keeps its version in `reused_version`",
+        metavar=("WHEN", "DIR"),
+        help=f"take the cases a version's change cannot reach from an earlier run's DIR/cases; WHEN: "
+        f"{' or '.join(REUSABLE)} (see REUSABLE); each reused row keeps its version in `reused_version`",
     )
     args = parser.parse_args()
+    if args.reuse and args.reuse[0] not in REUSABLE:
+        parser.error(f"--reuse: unknown WHEN {args.reuse[0]!r} (one of: {', '.join(REUSABLE)})")
     unknown = sorted(set(args.cases or []) - {c.name for c in grid()})
     if unknown:
         parser.error(f"unknown case(s): {', '.join(unknown)}")
@@ -604,7 +616,7 @@ def main() -> None:
             path = folder / f"{label(source, robot)}__{case.name}.json"
             if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
                 continue
-            if args.reuse_above_floor and reuse_above_floor(args.reuse_above_floor / "cases" / path.name, path, args):
+            if args.reuse and reuse_row(Path(args.reuse[1]) / "cases" / path.name, path, args, args.reuse[0]):
                 continue
             row = run_case(case, source, args, Path(tmp), robot)
             row["source"] = label(source, robot)

@@ -541,3 +541,29 @@ def test_reach_in_imagination_runs_every_stage_and_gives_a_verdict(tmp_path, cap
     stamp = mix.stat().st_mtime_ns
     assert example.main(["--out", str(tmp_path), *tiny, "--num-envs", "8", "--eval-episodes", "2"]) == 0
     assert mix.stat().st_mtime_ns == stamp  # a second run reuses what the first one made
+
+
+def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path):
+    """`--reuse nothing-named DIR`: a row where step 1 named nothing is copied from the earlier run (keeping the
+    version it ran at); one with a named effect, or with other settings than the version, runs again."""
+    import argparse
+    import json
+
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_reuse")
+    args = argparse.Namespace(seed=0, episodes=9, steps=150)
+    old = {**gap_table.settings(args), "version": 19}
+    rows = {
+        "none": {"named": [], "above_floor": False, "settings": old},
+        "named": {"named": [["payload", "global"]], "above_floor": True, "settings": old},
+        "shorter": {"named": [], "above_floor": False, "settings": {**old, "steps": 100}},
+    }
+    for name, row in rows.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(row))
+    reused = {
+        name: gap_table.reuse_row(tmp_path / f"{name}.json", tmp_path / f"new_{name}.json", args, "nothing-named")
+        for name in rows
+    }
+    assert reused == {"none": True, "named": False, "shorter": False}
+    copied = json.loads((tmp_path / "new_none.json").read_text())
+    assert copied["settings"] == gap_table.settings(args) and copied["reused_version"] == 19
+    assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "x.json", args, "above-floor")

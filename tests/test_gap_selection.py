@@ -1061,3 +1061,75 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
         best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig(), cross=lambda: "swapped windows"
     )
     assert no_cross is None and (crossed is not None) == named
+
+
+@pytest.mark.parametrize("own_floor,named", [(True, ["joint_damping", "armature"]), (False, ["joint_damping"])])
+def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monkeypatch, own_floor, named):
+    """Armature + damping + ground compliance on excitation data: the damped robot carries start noise a quarter as far
+    as the nominal one, so after damping and compliance the 0.0029 left looked under the nominal floor (0.0049, ratio
+    0.6) while it stood 2.5x above the corrected simulator's own (0.0012), and armature was never fitted. Step 2 tests
+    the gap of the simulator with the named effects against that simulator's floor."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    level = [1.0]  # the held-out gap of the simulator with the effects named so far
+    explains = {"joint_damping": 0.5, "armature": 0.5}
+
+    def fits(effects, *args):
+        first = next(iter(effects), None)
+        out = []
+        for name in effects:
+            share = explains[name] if name == first else 0.0
+            gap_mean = level[0] * (1.0 - share)
+            out.append(CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=1e-4))
+            out[-1].explained_fraction = out[-1].score = share
+        return out
+
+    def name(search, pick, named, params):
+        named.append(pick)
+        level[0] *= 1.0 - explains[pick[0].name]
+        return params.replace(joint_damping=float(len(named))), np.full((20, 3), level[0])
+
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, floor, *args: {
+            "gap": float(gap.mean()),
+            "floor": float(floor.mean()),
+            "ratio": float(gap.mean() / floor.mean()),
+            "p_value": 1e-4,
+            "above_floor": gap.mean() > 1.2 * floor.mean(),
+        },
+    )
+    monkeypatch.setattr(select, "fit_all", fits)
+    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
+    monkeypatch.setattr(select, "every_scope", lambda *args: [])
+    monkeypatch.setattr(select, "joint_candidates", lambda candidates, *args: candidates)
+    monkeypatch.setattr(select, "_name", name)
+    monkeypatch.setattr(
+        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    )
+    monkeypatch.setattr(select, "effect_shares", lambda *args: {})
+    asked = []
+
+    def floor_of(params):  # the damped simulator's floor is a third of the nominal one
+        asked.append(params.joint_damping)
+        return np.full((20, 3), 0.15)
+
+    selection = select.select_effects(
+        {n: EFFECTS[n] for n in explains},
+        SPEC,
+        SimpleNamespace(spec=SPEC, rollout=lambda held, params: None),
+        None,
+        None,
+        PhysicsParams(),
+        np.ones((20, 3)),
+        np.full((20, 3), 0.45),  # 0.5 left after damping: under 1.2x the nominal floor
+        FitConfig(),
+        progress=False,
+        floor_of=floor_of if own_floor else None,
+    )
+    assert [e.name for e, _ in selection.named] == named, selection.reason
+    assert asked == ([1.0, 2.0] if own_floor else [])  # each later step asks the floor of its own simulator
+    if own_floor:
+        assert selection.steps[1]["floor_test"]["floor"] == pytest.approx(0.15)

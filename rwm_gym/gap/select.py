@@ -1,18 +1,19 @@
 """Name the effects behind a gap: forward selection over the vocabulary and its scopes, then a joint refit.
 
-Step k starts from the simulator with the k-1 effects named so far. If its held-out gap is not significantly above the
-sensor-noise floor (`noise_floor`), selection stops, except at step 1: a test of the whole gap against the floor is
-weak where an effect shows in a few windows only (a 0.5x torque limit, a small backlash), so step 1 fits the
-candidates anyway and asks each one's own held-out reduction, at `FitConfig.significance` divided by the number of
-candidates (Bonferroni). One held-out third of the episodes holds few blocks, so the best candidate, if it fails only
-that test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold cross-fitting); the test
-then runs on every measured episode, each scored by a fit that did not see it. If none passes, the verdict is `none`.
-Otherwise every effect not yet named is fitted and scored on top of it (`fit.fit_all`), the best joint effect also in
-its scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
+Step k starts from the simulator with the k-1 effects named so far. If its held-out gap is not significantly above that
+simulator's own sensor-noise floor (`noise_floor`: a damped joint carries start noise less far than the nominal robot;
+the nominal robot started from offset encoder readings carries it further), selection stops, except at step 1: a test of
+the whole gap against the floor is weak where an effect shows in a few windows only (a 0.5x torque limit, a small
+backlash), so step 1 fits the candidates anyway and asks each one's own held-out reduction, at `FitConfig.significance`
+divided by the number of candidates (Bonferroni). One held-out third of the episodes holds few blocks, so the best
+candidate, if it fails only that test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold
+cross-fitting); the test then runs on every measured episode, each scored by a fit that did not see it. If none passes,
+the verdict is `none`. Otherwise every effect not yet named is fitted and scored on top of it (`fit.fit_all`), the best
+joint effect also in its scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
 
 - its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
-- it explains `min_excess_explained` of the gap above the floor (the floor itself no effect can remove; measured
-  against the whole gap, an effect near the floor could never reach it),
+- it explains `min_excess_explained` of the gap above the step's floor (the floor itself no effect can remove;
+  measured against the whole gap, an effect near the floor could never reach it),
 - no unrelated candidate (not the same effect in another scope, not nesting it) that itself explains
   `rival_excess_explained` of the gap above the floor leaves a penalised remaining gap within `ambiguity_ratio` of
   the best's.
@@ -272,11 +273,18 @@ class _Search:
     held: Windows
     base: PhysicsParams
     floor: np.ndarray
+    """The nominal simulator's noise floor (W, 3): step 1's."""
     config: FitConfig
     progress: bool
     cross: Callable[[], CrossFit] | None
     memo: FitMemo | None = None
     """Fits of step 1 already made (by the solver check), taken rather than fitted again."""
+    floor_of: Callable[[PhysicsParams], np.ndarray] | None = None
+    """The noise floor of a simulator on the held-out windows (None: the nominal floor at every step)."""
+
+    def floor_at(self, k: int, params: PhysicsParams) -> np.ndarray:
+        """The floor step `k` tests against: that of `params`, the simulator with the effects named so far."""
+        return self.floor if k == 0 or self.floor_of is None else self.floor_of(params)
 
     def on_top_of(self, params: PhysicsParams, current: np.ndarray) -> FitInputs:
         """What a fit on top of the simulator `params` (held-out gap `current`) reads."""
@@ -300,6 +308,8 @@ class _Step:
     rival: Candidate | None
     significance: float
     tested: int
+    floor: np.ndarray
+    """The noise floor the step judges against (`_Search.floor_at`)."""
 
 
 def select_effects(
@@ -316,16 +326,19 @@ def select_effects(
     progress: bool = True,
     cross: Callable[[], CrossFit] | None = None,
     memo: FitMemo | None = None,
+    floor_of: Callable[[PhysicsParams], np.ndarray] | None = None,
 ) -> Selection:
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
     called once if step 1's best candidate needs them (None: the held-out test alone); `memo`: step 1's fits where
-    they were made already (`fit.FitMemo`; the solver check's under the solver it took)."""
-    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross, memo)
+    they were made already (`fit.FitMemo`; the solver check's under the solver it took); `floor_of`: the noise floor
+    of a simulator, for the steps after the first (None: the nominal `floor` at every step)."""
+    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of)
     named: list[Candidate] = []
     params, current, steps, reason, earlier = base, before, [], "", []
     for k in range(config.max_effects):
-        test = compare_with_floor(current, floor, held, config.block_rows, floor_config)
+        step_floor = search.floor_at(k, params)
+        test = compare_with_floor(current, step_floor, held, config.block_rows, floor_config)
         step: dict = {"gap": float(current.mean()), "floor_test": test, "candidates": [], "named": None}
         steps.append(step)
         below = not test["above_floor"]
@@ -333,7 +346,7 @@ def select_effects(
             reason = _below_floor(test)
             if k > 0:
                 break
-        judged = _judge_step(search, k, below, named, earlier, params, current)
+        judged = _judge_step(search, k, below, named, earlier, params, current, step_floor)
         earlier = _ranked(judged.candidates)
         step["candidates"] = [asdict(f) for _, f in sorted(judged.candidates, key=lambda c: c[1].score, reverse=True)]
         pick, reason = _decide(search, judged, below, reason, named, params, current)
@@ -371,6 +384,7 @@ def _judge_step(
     earlier: list[Candidate],
     params: PhysicsParams,
     current: np.ndarray,
+    floor: np.ndarray,
 ) -> _Step:
     """Fit every effect not yet named on top of `params` (and in its scopes, and jointly with the named ones), and
     judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
@@ -386,7 +400,9 @@ def _judge_step(
         )
     tested = sum(f.status == "ok" for _, f in candidates)
     significance = config.significance / max(tested, 1) if below else config.significance
-    step = _Step(candidates, fits, *_judge(search, candidates, current, significance), significance, tested)
+    step = _Step(
+        candidates, fits, *_judge(search, candidates, current, significance, floor), significance, tested, floor
+    )
     if k == 0 and below:
         _cross_fit_near_the_floor(search, step, params, current)
     elif k == 0:
@@ -396,10 +412,10 @@ def _judge_step(
 
 
 def _judge(
-    search: _Search, candidates: list[Candidate], current: np.ndarray, significance: float
+    search: _Search, candidates: list[Candidate], current: np.ndarray, significance: float, floor: np.ndarray
 ) -> tuple[Candidate | None, str, Candidate | None]:
-    """`judge` on the step's gap `current` and the mean noise floor."""
-    return judge(candidates, float(current.mean()), float(np.nanmean(search.floor)), search.config, significance)
+    """`judge` on the step's gap `current` and the mean of its noise floor."""
+    return judge(candidates, float(current.mean()), float(np.nanmean(floor)), search.config, significance)
 
 
 def _undecided(step: _Step) -> bool:
@@ -416,7 +432,7 @@ def _cross_fit_near_the_floor(search: _Search, step: _Step, params: PhysicsParam
         best[1].cross_fitted_p_value = cross_fitted_p_value(
             best, search.resim, search.held, search.cross(), params, current, search.config, step.significance
         )
-        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
 
 
 def _refine_every_effect(
@@ -432,7 +448,7 @@ def _refine_every_effect(
     refined = {f.effect: f for f in fits}
     step.candidates = [(e, refined[f.effect]) if f.scope == "global" else (e, f) for e, f in step.candidates]
     step.fits = fits
-    step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+    step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
 
 
 def _fit_every_scope(
@@ -446,7 +462,7 @@ def _fit_every_scope(
     more = every_scope(step.fits, scoped, remaining, search.on_top_of(params, current), **search.first_step(0))
     if more:
         step.candidates += more
-        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance)
+        step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
 
 
 def _decide(
@@ -476,7 +492,7 @@ def _decide(
             search.held,
             named_params(named, best, search.base, params),
             current,
-            search.floor,
+            step.floor,
             search.config,
             search.cross,
         )

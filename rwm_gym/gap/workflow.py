@@ -144,7 +144,20 @@ def run_gap(
     # near the floor, step 1 may test its best candidate on every episode, and so may the test of two rivals
     cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     selection = select_effects(
-        effects, spec, resim, train, held, base, before, floor, fit_config, floor_config, progress, cross, first_step
+        effects,
+        spec,
+        resim,
+        train,
+        held,
+        base,
+        before,
+        floor,
+        fit_config,
+        floor_config,
+        progress,
+        cross,
+        first_step,
+        floor_of=lambda params: noise_floor(resim, held, params, floor_noise, floor_config),
     )
     corrected_params, after = selection.params, selection.gap_after
     spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
