@@ -323,8 +323,9 @@ def settings(args: argparse.Namespace) -> dict:
     #             (select.resolve_rivals), each test cross-fitted on every episode where the held-out third alone is
     #             not significant; rows run before these differ only if they end `ambiguous`, and those ran again
     # version 20: a step after the first tests the gap against the noise floor of the simulator with the effects named
-    #             so far, not the nominal one's (select.select_effects, floor_of); only runs where step 1 named an
-    #             effect can differ from version 19 (`--reuse nothing-named`)
+    #             so far, not the nominal one's (select.select_effects, floor_of); a named effect gives way to a
+    #             simpler one it holds that fits alike (select.prefer_simpler: PD gains -> motor strength); only runs
+    #             where step 1 named an effect can differ from version 19 (`--reuse nothing-named`)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 20}
 
 

@@ -1133,3 +1133,51 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     assert asked == ([1.0, 2.0] if own_floor else [])  # each later step asks the floor of its own simulator
     if own_floor:
         assert selection.steps[1]["floor_test"]["floor"] == pytest.approx(0.15)
+    else:  # a lone effect's reason also says why step 2 stopped
+        assert selection.reason.startswith("explains 91%") and "; then: held-out gap 0.5 is not" in selection.reason
+
+
+@pytest.mark.parametrize("alike,named", [(True, "motor_strength"), (False, "pd_gains")])
+def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monkeypatch, alike, named):
+    """Motor strength 0.8 + joint friction + encoder offsets on excitation data: PD gains (kp 0.80, kd 1.05) were
+    named in place of the weaker motor, the extra parameter absorbing part of the friction. The simpler effect,
+    fitted in its place and refitted with the others, is named where its held-out gap is not significantly larger."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def fitted(name, values):
+        return CandidateFit(name, [name] * len(values), ["1"] * len(values), values, [0.1] * len(values), 0.0)
+
+    refits = []
+
+    def joint_refit(named, resim, train, held, base, current, config):
+        refits.append([e.name for e, _ in named])
+        return named, base.replace(motor_strength=0.8), np.full((20, 3), 0.21), None
+
+    monkeypatch.setattr(select, "fit_all", lambda effects, *args, **kw: [fitted(n, [0.8]) for n in effects])
+    monkeypatch.setattr(select, "joint_refit", joint_refit)
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.3))
+    monkeypatch.setattr(select, "paired_p_value", lambda larger, smaller, *args: 0.4 if alike else 1e-4)
+    effects = {n: EFFECTS[n] for n in ("encoder_offset", "pd_gains", "motor_strength")}
+    search = select._Search(
+        effects,
+        SPEC,
+        SimpleNamespace(spec=SPEC, rollout=lambda held, params: None),
+        None,
+        None,
+        PhysicsParams(),
+        np.full((20, 3), 0.1),
+        FitConfig(),
+        False,
+        None,
+    )
+    found = [
+        (EFFECTS["encoder_offset"], fitted("encoder_offset", [0.03])),
+        (EFFECTS["pd_gains"], fitted("pd_gains", [0.8, 1.05])),
+    ]
+    result, params, gap, checks = select.prefer_simpler(found, search, PhysicsParams(), np.full((20, 3), 0.2))
+    assert refits == [["encoder_offset", "motor_strength"]]  # fitted in place, beside the other named effect
+    assert [e.name for e, _ in result] == ["encoder_offset", named]
+    assert [(c["effect"], c["simpler"], c["named"]) for c in checks] == [("pd_gains", "motor_strength", named)]
+    assert checks[0]["gap_simpler"] == pytest.approx(0.21) and checks[0]["gap"] == pytest.approx(0.2)
+    assert (params.motor_strength == 0.8) == alike and (gap.mean() == pytest.approx(0.21)) == alike

@@ -78,6 +78,8 @@ class Selection:
     steps: list[dict] = field(default_factory=list)
     """Per step: the floor test of the gap it started from, its candidates and what it decided."""
     joint_refit: dict | None = None
+    simpler_forms: list[dict] = field(default_factory=list)
+    """Each named effect's test against a simpler one it holds (`prefer_simpler`)."""
 
 
 def combine(named: list[Candidate]) -> Effect:
@@ -535,18 +537,82 @@ def _selection(
         named, params, current, refit = joint_refit(
             named, search.resim, search.train, search.held, base, current, config
         )
+    named, params, current, simpler = prefer_simpler(named, search, params, current)
     shares = effect_shares(named, search.resim, search.held, base, before)
-    summary = ", ".join(f"{e.name} ({e.scope})" for e, _ in named)
     return Selection(
         named[0][0].name,
-        f"named in order: {summary}; {reason}" if len(named) > 1 else steps[0]["decision"],
+        _why(named, steps, reason),
         named,
         params,
         current,
         shares,
         steps,
         refit,
+        simpler,
     )
+
+
+def prefer_simpler(
+    named: list[Candidate], search: _Search, params: PhysicsParams, current: np.ndarray
+) -> tuple[list[Candidate], PhysicsParams, np.ndarray, list[dict]]:
+    """A named effect that holds a simpler one of the vocabulary as a special case (`Effect.nested_in`: a weak motor
+    is both PD gains scaled alike) gives way to it where the simpler one, fitted in its place and refitted with the
+    other named effects, leaves a held-out gap not significantly larger (`FitConfig.significance`): alike there, the
+    simpler one is named. Beside other effects, the extra parameter absorbs part of them (strength 0.8 with joint
+    friction and encoder offsets: kp 0.80, kd 1.05), which the step's charge per parameter does not see."""
+    config, checks = search.config, []
+    for i, (effect, _) in enumerate(list(named)):
+        for simpler in (e for e in search.effects.values() if effect.name in e.nested_in and effect.scope == "global"):
+            swapped = _in_place_of(search, named, i, simpler)
+            if swapped is None:
+                continue
+            p_value = paired_p_value(
+                swapped[2].mean(1), current.mean(1), search.held, config.block_rows, config.significance
+            )
+            alike = p_value >= config.significance
+            checks.append(
+                {
+                    "effect": effect.name,
+                    "simpler": simpler.name,
+                    "gap": float(current.mean()),
+                    "gap_simpler": float(swapped[2].mean()),
+                    "p_value": p_value,
+                    "named": simpler.name if alike else effect.name,
+                }
+            )
+            if alike:
+                named, params, current = swapped
+                break
+    return named, params, current, checks
+
+
+def _in_place_of(
+    search: _Search, named: list[Candidate], i: int, simpler: Effect
+) -> tuple[list[Candidate], PhysicsParams, np.ndarray] | None:
+    """`simpler` fitted on top of the named effects but the i-th, then every parameter refitted together
+    (`joint_refit`): the named effects, the simulator and its held-out gap; None if its fit is rejected."""
+    spec, resim, held, base = search.spec, search.resim, search.held, search.base
+    others = [*named[:i], *named[i + 1 :]]
+    under = combine(others).physics(np.concatenate([f.values for _, f in others]), base) if others else base
+    [fit] = fit_all(
+        {simpler.name: simpler},
+        search.on_top_of(under, gap_per_window(spec, resim.rollout(held, under), held)),
+        progress=False,
+    )
+    if fit.status != "ok":
+        return None
+    swapped = [*named[:i], (simpler, fit), *named[i + 1 :]]
+    start = combine(swapped).physics(np.concatenate([f.values for _, f in swapped]), base)
+    sequential = gap_per_window(spec, resim.rollout(held, start), held)
+    refitted, params, gap, _ = joint_refit(swapped, resim, search.train, held, base, sequential, search.config)
+    return refitted, params, gap
+
+
+def _why(named: list[Candidate], steps: list[dict], stop: str) -> str:
+    """The verdict's reason: the named effects (or the one's own reason) and why selection stopped there."""
+    if len(named) > 1:
+        return f"named in order: {', '.join(f'{e.name} ({e.scope})' for e, _ in named)}; {stop}"
+    return f"{steps[0]['decision']}; then: {stop}" if len(steps) > 1 else steps[0]["decision"]
 
 
 def named_params(

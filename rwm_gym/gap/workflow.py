@@ -375,6 +375,7 @@ def named_section(selection: Selection, spread: dict | None = None) -> dict:
         "effects": named,
         **flat,
         "joint_refit": selection.joint_refit,
+        "simpler_forms": selection.simpler_forms,
     }
 
 
