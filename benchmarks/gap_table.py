@@ -23,7 +23,7 @@ whatever cases have finished.
 
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
         [--robots converged fast] [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
-        [--reuse nothing-named results/gap_v19]
+        [--reuse nothing-named results/gap_v19 ...]
     python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
 
@@ -326,7 +326,10 @@ def settings(args: argparse.Namespace) -> dict:
     #             so far, not the nominal one's (select.select_effects, floor_of); a named effect gives way to a
     #             simpler one it holds that fits alike (select.prefer_simpler: PD gains -> motor strength); only runs
     #             where step 1 named an effect can differ from version 19 (`--reuse nothing-named`)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 20}
+    # version 21: from two named effects on, they are refitted together after each naming, before the next step
+    #             (select.select_effects); only runs that named two or more can differ from version 20
+    #             (`--reuse at-most-one-named`)
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 21}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -522,9 +525,11 @@ def plot(rows: list[dict], path: Path) -> None:
 REUSABLE = {
     "above-floor": lambda row: bool(row.get("above_floor")),
     "nothing-named": lambda row: "named" in row and not row["named"],
+    "at-most-one-named": lambda row: "named" in row and len(row["named"]) <= 1,
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
-floor (a change to gaps near the floor), or one where step 1 named nothing (a change to the steps after it)."""
+floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), or one
+that named at most one effect (a change to what follows a second)."""
 
 
 def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) -> bool:
@@ -594,14 +599,17 @@ def main() -> None:
     parser.add_argument(
         "--reuse",
         nargs=2,
-        default=None,
+        action="append",
+        default=[],
         metavar=("WHEN", "DIR"),
         help=f"take the cases a version's change cannot reach from an earlier run's DIR/cases; WHEN: "
-        f"{' or '.join(REUSABLE)} (see REUSABLE); each reused row keeps its version in `reused_version`",
+        f"{' or '.join(REUSABLE)} (see REUSABLE); repeat to try several runs in order; each reused row keeps "
+        "its version in `reused_version`",
     )
     args = parser.parse_args()
-    if args.reuse and args.reuse[0] not in REUSABLE:
-        parser.error(f"--reuse: unknown WHEN {args.reuse[0]!r} (one of: {', '.join(REUSABLE)})")
+    for when, _ in args.reuse:
+        if when not in REUSABLE:
+            parser.error(f"--reuse: unknown WHEN {when!r} (one of: {', '.join(REUSABLE)})")
     unknown = sorted(set(args.cases or []) - {c.name for c in grid()})
     if unknown:
         parser.error(f"unknown case(s): {', '.join(unknown)}")
@@ -617,7 +625,7 @@ def main() -> None:
             path = folder / f"{label(source, robot)}__{case.name}.json"
             if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
                 continue
-            if args.reuse and reuse_row(Path(args.reuse[1]) / "cases" / path.name, path, args, args.reuse[0]):
+            if any(reuse_row(Path(d) / "cases" / path.name, path, args, when) for when, d in args.reuse):
                 continue
             row = run_case(case, source, args, Path(tmp), robot)
             row["source"] = label(source, robot)

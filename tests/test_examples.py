@@ -551,7 +551,7 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
 
     gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_reuse")
     args = argparse.Namespace(seed=0, episodes=9, steps=150)
-    old = {**gap_table.settings(args), "version": 19}
+    old = {**gap_table.settings(args), "version": 17}
     rows = {
         "none": {"named": [], "above_floor": False, "settings": old},
         "named": {"named": [["payload", "global"]], "above_floor": True, "settings": old},
@@ -565,5 +565,6 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     }
     assert reused == {"none": True, "named": False, "shorter": False}
     copied = json.loads((tmp_path / "new_none.json").read_text())
-    assert copied["settings"] == gap_table.settings(args) and copied["reused_version"] == 19
+    assert copied["settings"] == gap_table.settings(args) and copied["reused_version"] == 17
     assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "x.json", args, "above-floor")
+    assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "y.json", args, "at-most-one-named")

@@ -1068,7 +1068,8 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     """Armature + damping + ground compliance on excitation data: the damped robot carries start noise a quarter as far
     as the nominal one, so after damping and compliance the 0.0029 left looked under the nominal floor (0.0049, ratio
     0.6) while it stood 2.5x above the corrected simulator's own (0.0012), and armature was never fitted. Step 2 tests
-    the gap of the simulator with the named effects against that simulator's floor."""
+    the gap of the simulator with the named effects against that simulator's floor; from two named effects on, that
+    simulator has them refitted together."""
     from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
@@ -1106,9 +1107,13 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     monkeypatch.setattr(select, "every_scope", lambda *args: [])
     monkeypatch.setattr(select, "joint_candidates", lambda candidates, *args: candidates)
     monkeypatch.setattr(select, "_name", name)
-    monkeypatch.setattr(
-        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
-    )
+    refits = []
+
+    def joint_refit(named, resim, train, held, base, current, config):
+        refits.append(len(named))
+        return named, base.replace(joint_damping=float(len(named))), current, None
+
+    monkeypatch.setattr(select, "joint_refit", joint_refit)
     monkeypatch.setattr(select, "effect_shares", lambda *args: {})
     asked = []
 
@@ -1131,6 +1136,7 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     )
     assert [e.name for e, _ in selection.named] == named, selection.reason
     assert asked == ([1.0, 2.0] if own_floor else [])  # each later step asks the floor of its own simulator
+    assert refits == ([2] if own_floor else [])  # two named effects are refitted together before step 3
     if own_floor:
         assert selection.steps[1]["floor_test"]["floor"] == pytest.approx(0.15)
     else:  # a lone effect's reason also says why step 2 stopped

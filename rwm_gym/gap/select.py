@@ -24,9 +24,11 @@ whose global form explained nothing.
 
 At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
 of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
-A significant gap that no candidate explains at step 1 is `unexplained`. With two or more named effects, or one of
-several parameters (`FitConfig.refit_single_effect`), all their parameters are refitted together (least squares from
-the sequential values), kept if the held-out gap does not grow.
+A significant gap that no candidate explains at step 1 is `unexplained`. From two named effects on, all their
+parameters are refitted together after each naming (least squares from the sequential values, kept if the held-out
+gap does not grow), so the next step starts from the best simulator with them: fitted one after the other, two effects
+that trade off (armature and an action delay) leave a misfit that a third, spurious one would take up. A lone named
+effect of several parameters (`FitConfig.refit_single_effect`) is refitted so at the end.
 Each named effect's share of the explained gap is its held-out gap reduction when the effects are added in order at
 their final values.
 """
@@ -337,7 +339,7 @@ def select_effects(
     of a simulator, for the steps after the first (None: the nominal `floor` at every step)."""
     search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of)
     named: list[Candidate] = []
-    params, current, steps, reason, earlier = base, before, [], "", []
+    params, current, steps, reason, earlier, refit = base, before, [], "", [], None
     for k in range(config.max_effects):
         step_floor = search.floor_at(k, params)
         test = compare_with_floor(current, step_floor, held, config.block_rows, floor_config)
@@ -357,7 +359,9 @@ def select_effects(
             break
         step["named"] = f"{pick[0].name} ({pick[0].scope})"
         params, current = _name(search, pick, named, params)
-    return _selection(search, named, steps, reason, before, params, current)
+        if len(named) > 1:
+            named, params, current, refit = joint_refit(named, resim, train, held, base, current, config)
+    return _selection(search, named, steps, reason, before, params, current, refit)
 
 
 def _below_floor(test: dict) -> str:
@@ -525,15 +529,16 @@ def _selection(
     before: np.ndarray,
     params: PhysicsParams,
     current: np.ndarray,
+    refit: dict | None,
 ) -> Selection:
-    """The verdict: `none` or `unexplained` if nothing was named; else the named effects, jointly refitted where
-    there are several parameters (`joint_refit`), with their shares of the explained gap."""
+    """The verdict: `none` or `unexplained` if nothing was named; else the named effects (several: refitted jointly
+    after the last naming, `refit`; a lone one of several parameters: refitted here), with their shares of the
+    explained gap."""
     config, base = search.config, search.base
     if not named:
         verdict = "none" if not steps[0]["floor_test"]["above_floor"] else "unexplained"
         return Selection(verdict, reason, [], base, before, steps=steps)
-    refit = None
-    if len(named) > 1 or (config.refit_single_effect and len(named[0][0].parameters) > 1):
+    if len(named) == 1 and config.refit_single_effect and len(named[0][0].parameters) > 1:
         named, params, current, refit = joint_refit(
             named, search.resim, search.train, search.held, base, current, config
         )
