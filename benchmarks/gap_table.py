@@ -328,7 +328,9 @@ def settings(args: argparse.Namespace) -> dict:
     #             where step 1 named an effect can differ from version 19 (`--reuse nothing-named`)
     # version 21: from two named effects on, they are refitted together after each naming, before the next step
     #             (select.select_effects); only runs that named two or more can differ from version 20
-    #             (`--reuse at-most-one-named`)
+    #             (`--reuse at-most-one-named`); rows of version 19 that named one effect of one parameter and left
+    #             the rest at the corrected floor stop at step 2 of versions 20 and 21 alike
+    #             (`--reuse one-effect-left-at-its-floor`)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 21}
 
 
@@ -526,10 +528,18 @@ REUSABLE = {
     "above-floor": lambda row: bool(row.get("above_floor")),
     "nothing-named": lambda row: "named" in row and not row["named"],
     "at-most-one-named": lambda row: "named" in row and len(row["named"]) <= 1,
+    "one-effect-left-at-its-floor": lambda row: (
+        len(row.get("named", [])) == 1
+        and row["named"][0][1] == "global"
+        and len(EFFECTS[row["named"][0][0]].parameters) == 1
+        and row.get("rest_at_floor") is True
+    ),
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
-floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), or one
-that named at most one effect (a change to what follows a second)."""
+floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
+named at most one effect (a change to what follows a second), or one that named one effect of one parameter and left
+a gap not above the corrected simulator's floor (`rest_at_floor`: with nothing refitted, that is the test a step 2
+against its own simulator's floor makes, so it stops there too)."""
 
 
 def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) -> bool:

@@ -568,3 +568,9 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     assert copied["settings"] == gap_table.settings(args) and copied["reused_version"] == 17
     assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "x.json", args, "above-floor")
     assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "y.json", args, "at-most-one-named")
+    # one effect of one parameter, what it left at the corrected floor: a step 2 against that floor stops there too
+    left = {"named": [["joint_damping", "global"]], "rest_at_floor": True}
+    assert gap_table.REUSABLE["one-effect-left-at-its-floor"](left)
+    assert not gap_table.REUSABLE["one-effect-left-at-its-floor"]({**left, "rest_at_floor": False})
+    assert not gap_table.REUSABLE["one-effect-left-at-its-floor"]({**left, "named": [["payload", "global"]]})
+    assert not gap_table.REUSABLE["one-effect-left-at-its-floor"]({**left, "named": [["joint_damping", "leg"]]})
