@@ -514,7 +514,8 @@ def plot(rows: list[dict], path: Path) -> None:
             axes[1].scatter(*zip(*pts), label=source, alpha=0.7)
     axes[0].set_xticks(range(len(kinds)), kinds)
     axes[0].set_ylabel("verdict correct (fraction of cases)")
-    axes[0].legend()
+    axes[0].set_ylim(0, 1.25)  # room above the bars for the legend
+    axes[0].legend(loc="upper center", ncol=len(sources), fontsize="small")
     axes[1].set_xlabel("explained by named effects")
     axes[1].set_ylabel("explained with the learned correction")
     axes[1].plot([0, 1], [0, 1], "k:", lw=0.8)
