@@ -5,7 +5,7 @@ paper's 64 windows of 32 + 8 rows) of each run is drawn too, so the spread betwe
 Writes `<out>.png` and `<out>.md` (error at 2.5 / 5 / 7.5 / 10 minutes, iterations, windows per second of the run's
 throughput rounds where it measured them).
 
-    python benchmarks/trainer_compare.py results/trainer19a results/trainer19d --out benchmarks/figures/trainer
+    python benchmarks/trainer_compare.py results/trainer_a results/trainer_b --out benchmarks/figures/trainer
 """
 
 from __future__ import annotations
