@@ -1187,3 +1187,19 @@ def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monk
     assert [(c["effect"], c["simpler"], c["named"]) for c in checks] == [("pd_gains", "motor_strength", named)]
     assert checks[0]["gap_simpler"] == pytest.approx(0.21) and checks[0]["gap"] == pytest.approx(0.2)
     assert (params.motor_strength == 0.8) == alike and (gap.mean() == pytest.approx(0.21)) == alike
+
+
+def test_the_floor_of_a_simulator_is_computed_once_for_the_step_and_the_residual_test(monkeypatch):
+    """The residual test asks for the floor of the simulator the last selection step tested: it is not simulated
+    again; another simulator's is."""
+    from rwm_gym.gap import workflow
+
+    computed = []
+    monkeypatch.setattr(
+        workflow, "noise_floor", lambda resim, held, params, noise, config: computed.append(params) or np.ones((4, 3))
+    )
+    floor_of = workflow._floor_of(None, None, SensorNoise(), None)
+    damped = PhysicsParams(joint_damping=1.0)
+    for params in (damped, PhysicsParams(joint_damping=1.0), PhysicsParams(joint_damping=2.0)):
+        floor_of(params)
+    assert computed == [damped, PhysicsParams(joint_damping=2.0)]

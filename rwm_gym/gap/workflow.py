@@ -143,6 +143,7 @@ def run_gap(
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
     # near the floor, step 1 may test its best candidate on every episode, and so may the test of two rivals
     cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
+    floor_of = _floor_of(resim, held, floor_noise, floor_config)
     selection = select_effects(
         effects,
         spec,
@@ -157,12 +158,12 @@ def run_gap(
         progress,
         cross,
         first_step,
-        floor_of=lambda params: noise_floor(resim, held, params, floor_noise, floor_config),
+        floor_of=floor_of,
     )
     corrected_params, after = selection.params, selection.gap_after
     spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
     carried = corrected_params.replace(solver=corrected_solver(resim, solver_check))  # what the corrected env runs
-    corrected_floor, residual = _residual(resim, held, selection, floor, after, floor_noise, fit_config, floor_config)
+    corrected_floor, residual = _residual(held, selection, floor, after, floor_of, fit_config, floor_config)
     learned = None
     if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
         learned = learned_section(
@@ -256,22 +257,34 @@ def _cross_fit_windows(
     return cross
 
 
+def _floor_of(
+    resim: Resimulator, held: Windows, noise: SensorNoise, floor_config: FloorConfig
+) -> Callable[[PhysicsParams], np.ndarray]:
+    """`noise_floor` of a simulator on the held-out windows, the last one kept: the residual test asks again for the
+    simulator whose floor the last selection step tested, unless a refit changed it."""
+    last: list = []
+
+    def floor_of(params: PhysicsParams) -> np.ndarray:
+        if not last or last[0] != params:
+            last[:] = [params, noise_floor(resim, held, params, noise, floor_config)]
+        return last[1]
+
+    return floor_of
+
+
 def _residual(
-    resim: Resimulator,
-    held,
+    held: Windows,
     selection: Selection,
     floor: np.ndarray,
     after: np.ndarray,
-    sensor_noise: SensorNoise,
+    floor_of: Callable[[PhysicsParams], np.ndarray],
     fit_config: FitConfig,
     floor_config: FloorConfig,
 ) -> tuple[np.ndarray, dict]:
-    """The floor of the corrected simulator, and the test of what is left against it."""
+    """The floor of the corrected simulator (`floor_of`), and the test of what is left against it."""
     # what is left is judged against the corrected simulator's own floor: a slippery floor or a soft joint carries
     # the same sensor noise further than the nominal simulator does (ground friction 0.3 on walking data: 2.9x)
-    corrected_floor = (
-        noise_floor(resim, held, selection.params, sensor_noise, floor_config) if selection.named else floor
-    )
+    corrected_floor = floor_of(selection.params) if selection.named else floor
     residual = {
         **compare_with_floor(after, corrected_floor, held, fit_config.block_rows, floor_config),
         "floor_of": "the corrected simulator" if selection.named else "the nominal simulator",
