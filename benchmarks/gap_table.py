@@ -23,7 +23,7 @@ whatever cases have finished.
 
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
         [--robots converged fast] [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
-        [--reuse nothing-named results/gap_v19 ...]
+        [--reuse no-later-step-near-its-floor results/gap_v21 ...]
     python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
 
@@ -331,7 +331,11 @@ def settings(args: argparse.Namespace) -> dict:
     #             (`--reuse at-most-one-named`); rows of version 19 that named one effect of one parameter and left
     #             the rest at the corrected floor stop at step 2 of versions 20 and 21 alike
     #             (`--reuse one-effect-left-at-its-floor`)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 21}
+    # version 22: a step after the first whose gap is not significantly above its floor still fits the candidates and
+    #             tests each one's own reduction, the best cross-fitted on every episode (as step 1 does;
+    #             FitConfig.near_the_floor_after_naming); only runs that stopped so can differ from version 21
+    #             (`--reuse no-later-step-near-its-floor`)
+    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -535,12 +539,27 @@ REUSABLE = {
         and len(EFFECTS[row["named"][0][0]].parameters) == 1
         and row.get("rest_at_floor") is True
     ),
+    "no-later-step-near-its-floor": lambda row: "named" in row and not stopped_near_a_later_floor(row),
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
-named at most one effect (a change to what follows a second), or one that named one effect of one parameter and left
+named at most one effect (a change to what follows a second), one that named one effect of one parameter and left
 a gap not above the corrected simulator's floor (`rest_at_floor`: with nothing refitted, that is the test a step 2
-against its own simulator's floor makes, so it stops there too)."""
+against its own simulator's floor makes, so it stops there too), or one where no step after a naming stopped at its
+floor test (a change to such steps)."""
+
+
+def stopped_near_a_later_floor(row: dict) -> bool:
+    """Whether selection named an effect, then stopped at a step whose gap was not significantly above its floor (read
+    from the row's reason: what follows the first step's decision, or the list of named effects)."""
+    named = row.get("named", [])
+    if not named or len(named) >= FitConfig().max_effects:
+        return False
+    marker = "; then: " if len(named) == 1 else "; "
+    if marker not in row["reason"]:
+        return False
+    stop = row["reason"].split(marker, 1)[1]
+    return stop.startswith("held-out gap") and "not significantly above" in stop
 
 
 def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) -> bool:

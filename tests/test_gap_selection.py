@@ -516,8 +516,9 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("backlash", "joint_friction", "armature", "payload")}
+    config = FitConfig(near_the_floor_after_naming=False)  # step 1 is tested here
     selection = select.select_effects(
-        effects, SPEC, resim, None, None, PhysicsParams(), before, floor, FitConfig(), progress=False
+        effects, SPEC, resim, None, None, PhysicsParams(), before, floor, config, progress=False
     )
     assert selection.verdict == ("backlash" if named else "none" if not above else "unexplained"), selection.reason
     if not above:
@@ -590,7 +591,7 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
         PhysicsParams(),
         np.ones((20, 3)),
         np.full((20, 3), 0.8),
-        FitConfig(),
+        FitConfig(near_the_floor_after_naming=False),  # step 1 is tested here
         progress=False,
         cross=cross,
     )
@@ -599,6 +600,75 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     assert built == ([1] if needed else [])  # the swapped windows are built once, and only when the test needs them
     assert selection.verdict == ("torque_limit" if named else "none"), selection.reason
     assert ("cross-fitted p=" in selection.reason) == needed
+
+
+@pytest.mark.parametrize("after_naming", [True, False])
+def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypatch, after_naming):
+    """A triple's third effect in 9 walking episodes: after two named, the rest was 3x its floor, but the held-out
+    third gave p = 0.017 and selection stopped. A step after the first near its floor is judged as step 1 is: each
+    candidate's own test over the step's candidates, the best cross-fitted on every episode."""
+    from rwm_gym.gap import select
+    from rwm_gym.gap.fit import CandidateFit
+
+    def fits(effects, inputs, *args, **kwargs):
+        out = []
+        for name in effects:
+            gap = float(inputs.before.mean())
+            gap_mean, p_value = {
+                "torque_limit": (0.5, 1e-5),
+                "joint_friction": (0.7 * gap, 5e-3),
+            }.get(name, (gap, 1.0))
+            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=p_value)
+            fit.explained_fraction = fit.score = 1.0 - gap_mean / gap
+            out.append(fit)
+        return out
+
+    def gap_of(spec, params, held):
+        return np.full((20, 3), 0.35 if params.joint_friction else 0.5 if params.torque_limit else 1.0)
+
+    tested = []
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, floor, *args: {
+            "gap": float(gap.mean()),
+            "floor": float(floor.mean()),
+            "ratio": float(gap.mean() / floor.mean()),
+            "p_value": 0.02,
+            "above_floor": gap.mean() > 0.9,
+        },
+    )
+    monkeypatch.setattr(select, "fit_all", fits)
+    monkeypatch.setattr(select, "scope_candidates", lambda *args, **kwargs: [])
+    monkeypatch.setattr(select, "gap_per_window", gap_of)
+    monkeypatch.setattr(
+        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    )
+    monkeypatch.setattr(
+        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or 1e-5
+    )
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
+    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
+    selection = select.select_effects(
+        effects,
+        SPEC,
+        resim,
+        None,
+        None,
+        PhysicsParams(),
+        np.ones((20, 3)),
+        np.full((20, 3), 0.3),
+        FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming),
+        progress=False,
+        cross=lambda: select.CrossFit(None, None),
+        floor_of=lambda params: np.full((20, 3), 0.3),
+    )
+    named = [e.name for e, _ in selection.named]
+    if after_naming:  # 0.15 of the 0.2 above the floor; p = 5e-3 on the held-out third, 1e-5 on every episode
+        assert named == ["torque_limit", "joint_friction"] and tested == ["joint_friction"]
+        assert "Bonferroni" in selection.steps[1]["decision"] and "cross-fitted p=" in selection.steps[1]["decision"]
+    else:
+        assert named == ["torque_limit"] and tested == []
 
 
 def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):
@@ -730,7 +800,7 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("armature", "joint_damping", "payload")}
 
-    def run(config=FitConfig()):
+    def run(config=FitConfig(near_the_floor_after_naming=False)):  # step 1 is tested here
         return select.select_effects(
             effects,
             SPEC,
@@ -746,8 +816,9 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
 
     selection = run()
     assert (selection.verdict, selection.named[0][1].scope) == ("armature", "joint_type")
-    assert calls == [[]]  # once, at step 1; step 2 starts below the floor and stops
-    assert run(FitConfig(every_scope=False)).verdict == "unexplained" and len(calls) == 1
+    assert calls == [[]]  # once, at step 1
+    assert run(FitConfig(every_scope=False, near_the_floor_after_naming=False)).verdict == "unexplained"
+    assert len(calls) == 1
     above[0] = False
     assert run().verdict == "none" and len(calls) == 1
 
@@ -810,12 +881,12 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
             PhysicsParams(),
             np.ones((20, 3)),
             np.full((20, 3), 0.01),
-            config or FitConfig(),
+            dataclasses.replace(config or FitConfig(), near_the_floor_after_naming=False),  # step 1 is tested here
             progress=False,
         )
 
     selection = run()
-    assert selection.verdict == "ground_friction" and refine_calls == [None, 4]  # step 2 starts below the floor
+    assert selection.verdict == "ground_friction" and refine_calls == [None, 4]
     assert run(FitConfig(refine_every_effect=False)).verdict == "unexplained" and refine_calls == [None]
     assert run(FitConfig(refine_top=4)).verdict == "unexplained" and refine_calls == [None]  # all were refined
 
@@ -881,7 +952,7 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
             PhysicsParams(),
             np.ones((20, 3)),
             np.full((20, 3), 0.01),
-            config,
+            dataclasses.replace(config, near_the_floor_after_naming=False),  # one effect is named
             progress=False,
         )
 
@@ -1130,7 +1201,7 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
         PhysicsParams(),
         np.ones((20, 3)),
         np.full((20, 3), 0.45),  # 0.5 left after damping: under 1.2x the nominal floor
-        FitConfig(),
+        FitConfig(near_the_floor_after_naming=False),  # the floor test alone decides whether step 2 fits
         progress=False,
         floor_of=floor_of if own_floor else None,
     )

@@ -1,15 +1,18 @@
 """Name the effects behind a gap: forward selection over the vocabulary and its scopes, then a joint refit.
 
-Step k starts from the simulator with the k-1 effects named so far. If its held-out gap is not significantly above that
+Step k starts from the simulator with the k-1 effects named so far, and tests its held-out gap against that
 simulator's own sensor-noise floor (`noise_floor`: a damped joint carries start noise less far than the nominal robot;
-the nominal robot started from offset encoder readings carries it further), selection stops, except at step 1: a test of
-the whole gap against the floor is weak where an effect shows in a few windows only (a 0.5x torque limit, a small
-backlash), so step 1 fits the candidates anyway and asks each one's own held-out reduction, at `FitConfig.significance`
-divided by the number of candidates (Bonferroni). One held-out third of the episodes holds few blocks, so the best
-candidate, if it fails only that test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold
-cross-fitting); the test then runs on every measured episode, each scored by a fit that did not see it. If none passes,
-the verdict is `none`. Otherwise every effect not yet named is fitted and scored on top of it (`fit.fit_all`), the best
-joint effect also in its scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
+the nominal robot started from offset encoder readings carries it further). That test of the whole gap is weak where
+an effect shows in a few windows only (a 0.5x torque limit, a small backlash), or where the held-out third holds few
+blocks (a triple's third effect in 9 walking episodes: 3x the floor at p = 0.017). So a step whose gap is not
+significantly above its floor fits the candidates anyway and asks each one's own held-out reduction, at
+`FitConfig.significance` divided by the number of candidates (Bonferroni). The best candidate, if it fails only that
+test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold cross-fitting); the test then runs
+on every measured episode, each scored by a fit that did not see it. If none passes, selection stops (at step 1: the
+verdict is `none`; `FitConfig.near_the_floor_after_naming` off: a later step stops at once).
+
+At each step every effect not yet named is fitted and scored on top of the named ones (`fit.fit_all`), the best joint
+effects also in their scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
 
 - its held-out reduction is significant (`FitConfig.significance`, Wilcoxon on block means),
 - it explains `min_excess_explained` of the gap above the step's floor (the floor itself no effect can remove;
@@ -174,19 +177,22 @@ def cross_fitted_p_value(
     before: np.ndarray,
     config: FitConfig,
     significance: float,
+    under: PhysicsParams | None = None,
 ) -> float:
     """One-sided p that `candidate` lowers the gap (`before` (W, 3): held-out, of `params`) on every measured episode:
     the held-out windows at its values, the fitting episodes' windows at its values fitted again on the held-out
     episodes. 2-fold cross-fitting: no window is scored by a fit that saw it, and the test has about three times the
-    blocks of the held-out third alone."""
+    blocks of the held-out third alone. `under`: the simulator the candidate is added to, where it is not `params`
+    (a joint candidate's, with the named effects at the values refitted with it)."""
     effect, fit = candidate
+    under = params if under is None else under
     first = effect.parameters[0]
-    refit = fit_effect(effect, resim, cross.fit, params, config, np.asarray(fit.values), (first.low, first.high))
+    refit = fit_effect(effect, resim, cross.fit, under, config, np.asarray(fit.values), (first.low, first.high))
     try:
-        after = gap_per_window(resim.spec, resim.rollout(held, effect.physics(fit.values, params)), held)
+        after = gap_per_window(resim.spec, resim.rollout(held, effect.physics(fit.values, under)), held)
         nominal = gap_per_window(resim.spec, resim.rollout(cross.score, params), cross.score)
         swapped = gap_per_window(
-            resim.spec, resim.rollout(cross.score, effect.physics(refit.values, params)), cross.score
+            resim.spec, resim.rollout(cross.score, effect.physics(refit.values, under)), cross.score
         )
     except SimulationDiverged:
         return 1.0
@@ -348,7 +354,7 @@ def select_effects(
         below = not test["above_floor"]
         if below:
             reason = _below_floor(test)
-            if k > 0:
+            if k > 0 and not config.near_the_floor_after_naming:
                 break
         judged = _judge_step(search, k, below, named, earlier, params, current, step_floor)
         earlier = _ranked(judged.candidates)
@@ -409,8 +415,8 @@ def _judge_step(
     step = _Step(
         candidates, fits, *_judge(search, candidates, current, significance, floor), significance, tested, floor
     )
-    if k == 0 and below:
-        _cross_fit_near_the_floor(search, step, params, current)
+    if below:
+        _cross_fit_near_the_floor(search, step, named, params, current)
     elif k == 0:
         _refine_every_effect(search, step, remaining, params, current)
         _fit_every_scope(search, step, remaining, params, current)
@@ -428,15 +434,18 @@ def _undecided(step: _Step) -> bool:
     return step.pick is None and step.rival is None
 
 
-def _cross_fit_near_the_floor(search: _Search, step: _Step, params: PhysicsParams, current: np.ndarray) -> None:
-    """Step 1, gap near the floor, nothing named: if the best candidate explains enough of the gap, test it again on
-    every measured episode (`cross_fitted_p_value`), and judge again."""
+def _cross_fit_near_the_floor(
+    search: _Search, step: _Step, named: list[Candidate], params: PhysicsParams, current: np.ndarray
+) -> None:
+    """A gap near the floor, nothing named at this step: if the best candidate explains enough of the gap, test it
+    again on every measured episode (`cross_fitted_p_value`), and judge again."""
     if not _undecided(step) or search.cross is None:
         return
     best = _best(step.candidates)
     if best is not None and best[1].excess_explained >= search.config.min_excess_explained:
+        under = named_params(named, best, search.base, params)
         best[1].cross_fitted_p_value = cross_fitted_p_value(
-            best, search.resim, search.held, search.cross(), params, current, search.config, step.significance
+            best, search.resim, search.held, search.cross(), params, current, search.config, step.significance, under
         )
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
 
