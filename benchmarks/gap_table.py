@@ -334,7 +334,9 @@ def settings(args: argparse.Namespace) -> dict:
     # version 22: a step after the first whose gap is not significantly above its floor still fits the candidates and
     #             tests each one's own reduction, the best cross-fitted on every episode (as step 1 does;
     #             FitConfig.near_the_floor_after_naming); only runs that stopped so can differ from version 21
-    #             (`--reuse no-later-step-near-its-floor`)
+    #             (`--reuse no-later-step-near-its-floor`). Also in 22: before step 1 calls a gap `unexplained`, a
+    #             best candidate that explains enough but fails only its held-out test is tested cross-fitted; only
+    #             `unexplained` rows whose reason says so can differ (two of version 21, run again by name)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 

@@ -23,7 +23,9 @@ effects also in their scopes (`scope.scope_candidates`), and the best-scoring ca
 
 Before step 1 calls a gap above the floor `unexplained`, every effect is refined (not only the best screened,
 `FitConfig.refine_every_effect`) and every joint effect is fitted in its scopes too (`scope.every_scope`), also those
-whose global form explained nothing.
+whose global form explained nothing; a best candidate that then explains enough but fails only its held-out test is
+tested again cross-fitted on every episode (a torque limit 2x on walking data explained 89 % of a gap 300x the floor
+at p = 0.034 on the held-out third).
 
 At later steps some candidates are also fitted together with the effects named so far (`joint_candidates`: the best
 of this step and of the step before); one that scores better so is judged (and named) with those refitted values.
@@ -416,10 +418,11 @@ def _judge_step(
         candidates, fits, *_judge(search, candidates, current, significance, floor), significance, tested, floor
     )
     if below:
-        _cross_fit_near_the_floor(search, step, named, params, current)
+        _cross_fit_the_best(search, step, named, params, current)
     elif k == 0:
         _refine_every_effect(search, step, remaining, params, current)
         _fit_every_scope(search, step, remaining, params, current)
+        _cross_fit_the_best(search, step, named, params, current)
     return step
 
 
@@ -434,11 +437,12 @@ def _undecided(step: _Step) -> bool:
     return step.pick is None and step.rival is None
 
 
-def _cross_fit_near_the_floor(
+def _cross_fit_the_best(
     search: _Search, step: _Step, named: list[Candidate], params: PhysicsParams, current: np.ndarray
 ) -> None:
-    """A gap near the floor, nothing named at this step: if the best candidate explains enough of the gap, test it
-    again on every measured episode (`cross_fitted_p_value`), and judge again."""
+    """Nothing named at this step (a gap near the floor, or step 1 about to call one above it `unexplained`): if the
+    best candidate explains enough of the gap, test it again on every measured episode (`cross_fitted_p_value`), and
+    judge again."""
     if not _undecided(step) or search.cross is None:
         return
     best = _best(step.candidates)
