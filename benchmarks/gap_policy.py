@@ -9,7 +9,7 @@ would be), the chain a user runs with the package's commands:
    budget in three simulators: the nominal one (does fine-tuning alone help?), the corrected one, and the true one
    (the robot's own physics: the ceiling);
 4. `rwm-gym score --policy P --physics ROBOT`: every policy's tracking score (54 episodes, falls counted) on the
-   robot.
+   robot, beside standing still there (zero actions, the same episodes).
 
 The share of the loss recovered is (corrected - before) / (true - before) in tracking on the robot, `before` being the
 nominal policy's own score there (above 100 % where the ceiling's fine-tune ends below the corrected one's). Each
@@ -62,7 +62,8 @@ def _score(policy: str, robot: dict, out: Path, scoring: list[str]) -> dict:
         physics = json.dumps({**robot, **CONVERGED})
         _run(["score", "--policy", policy, "--physics", physics, *scoring, "--out", str(out)])
     report = json.loads((out / "score.json").read_text())
-    return {"tracking": report["tracking"], "falls": report["falls"], "episodes": report["episodes"]}
+    floor = {"tracking": report["floor"]["tracking"], "falls": report["floor"]["falls"]}
+    return {"tracking": report["tracking"], "falls": report["falls"], "episodes": report["episodes"], "floor": floor}
 
 
 def run_robot(name: str, robot: dict, args: argparse.Namespace) -> dict:
@@ -87,6 +88,7 @@ def run_robot(name: str, robot: dict, args: argparse.Namespace) -> dict:
         "timesteps": args.timesteps,
         "scores": {"before": _score(args.policy, robot, folder / "score_before", scoring)},
     }
+    row["standing_still"] = row["scores"]["before"]["floor"]  # zero actions on the same robot, same episodes
     for sim in SIMULATORS:
         tuned = folder / f"tuned_{sim}.zip"
         if not tuned.is_file():
@@ -108,16 +110,18 @@ def run_robot(name: str, robot: dict, args: argparse.Namespace) -> dict:
 
 
 def table(rows: dict[str, dict]) -> str:
-    """Markdown: tracking (falls in 54) on each robot of the nominal policy and of its three fine-tunes."""
+    """Markdown: tracking (falls in 54) on each robot of standing still, of the nominal policy and of its three
+    fine-tunes."""
     lines = [
-        "| robot | named effects | nominal policy | fine-tuned: nominal sim | corrected sim | true sim (ceiling) "
-        "| loss recovered |",
-        "|---|---|---|---|---|---|---|",
+        "| robot | named effects | standing still | nominal policy | fine-tuned: nominal sim | corrected sim "
+        "| true sim (ceiling) | loss recovered |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, row in rows.items():
-        cells = [f"{row['scores'][k]['tracking']:.3f} ({row['scores'][k]['falls']})" for k in ("before", *SIMULATORS)]
+        scores = [row["standing_still"], *(row["scores"][k] for k in ("before", *SIMULATORS))]
+        cells = " | ".join(f"{score['tracking']:.3f} ({score['falls']})" for score in scores)
         recovered = "-" if row["recovered"] is None else f"{100 * row['recovered']:.0f} %"
-        lines.append(f"| {ROBOTS[name][0]} | {', '.join(row['named']) or 'none'} | {' | '.join(cells)} | {recovered} |")
+        lines.append(f"| {ROBOTS[name][0]} | {', '.join(row['named']) or 'none'} | {cells} | {recovered} |")
     return "\n".join(lines) + "\n"
 
 

@@ -527,7 +527,9 @@ def test_gap_policy_fine_tunes_in_each_simulator_and_scores_on_the_hidden_robot(
         "true": {**bench.ROBOTS["weak_leg_delay"][1], **bench.CONVERGED},
     }
     assert all(env["init_policy"] == str(nominal) for env in runs.values())
+    assert set(row["standing_still"]) == {"tracking", "falls"}  # zero actions on the same robot
     assert "left front leg at half strength" in (tmp_path / "gap_policy.md").read_text()
+    assert "| standing still |" in (tmp_path / "gap_policy.md").read_text()
 
 
 def test_reach_in_imagination_runs_every_stage_and_gives_a_verdict(tmp_path, capsys):
