@@ -602,11 +602,12 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     assert ("cross-fitted p=" in selection.reason) == needed
 
 
-@pytest.mark.parametrize("after_naming", [True, False])
-def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypatch, after_naming):
+@pytest.mark.parametrize("after_naming,own_floor", [(True, 0.3), (False, 0.3), (True, 0.1)])
+def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypatch, after_naming, own_floor):
     """A triple's third effect in 9 walking episodes: after two named, the rest was 3x its floor, but the held-out
     third gave p = 0.017 and selection stopped. A step after the first near its floor is judged as step 1 is: each
-    candidate's own test over the step's candidates, the best cross-fitted on every episode."""
+    candidate's own test over the step's candidates, the best cross-fitted on every episode. A pick that lowers the
+    gap only by lowering its simulator's floor (a contact solver after friction and a payload) is not named."""
     from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
@@ -661,10 +662,13 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypat
         FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming),
         progress=False,
         cross=lambda: select.CrossFit(None, None),
-        floor_of=lambda params: np.full((20, 3), 0.3),
+        floor_of=lambda params: np.full((20, 3), own_floor if params.joint_friction else 0.3),
     )
     named = [e.name for e, _ in selection.named]
-    if after_naming:  # 0.15 of the 0.2 above the floor; p = 5e-3 on the held-out third, 1e-5 on every episode
+    if own_floor < 0.3:  # 0.35 left, 0.25 above its own floor: more than the 0.2 the step's gap had above its floor
+        assert named == ["torque_limit"] and tested == ["joint_friction"]
+        assert "against its own noise floor 0.1" in selection.steps[1]["decision"]
+    elif after_naming:  # 0.15 of the 0.2 above the floor; p = 5e-3 on the held-out third, 1e-5 on every episode
         assert named == ["torque_limit", "joint_friction"] and tested == ["joint_friction"]
         assert "Bonferroni" in selection.steps[1]["decision"] and "cross-fitted p=" in selection.steps[1]["decision"]
     else:
@@ -1316,7 +1320,7 @@ def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monk
 
 def test_the_floor_of_a_simulator_is_computed_once_for_the_step_and_the_residual_test(monkeypatch):
     """The residual test asks for the floor of the simulator the last selection step tested: it is not simulated
-    again; another simulator's is."""
+    again, nor after one more simulator's floor was asked (a pick checked against its own floor); a third one's is."""
     from rwm_gym.gap import workflow
 
     computed = []
@@ -1325,6 +1329,7 @@ def test_the_floor_of_a_simulator_is_computed_once_for_the_step_and_the_residual
     )
     floor_of = workflow._floor_of(None, None, SensorNoise(), None)
     damped = PhysicsParams(joint_damping=1.0)
-    for params in (damped, PhysicsParams(joint_damping=1.0), PhysicsParams(joint_damping=2.0)):
+    stiff, slow = PhysicsParams(joint_damping=2.0), PhysicsParams(action_delay=0.02)
+    for params in (damped, PhysicsParams(joint_damping=1.0), stiff, damped, slow, damped):
         floor_of(params)
-    assert computed == [damped, PhysicsParams(joint_damping=2.0)]
+    assert computed == [damped, stiff, slow, damped]  # the last two are kept

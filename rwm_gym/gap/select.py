@@ -8,8 +8,11 @@ blocks (a triple's third effect in 9 walking episodes: 3x the floor at p = 0.017
 significantly above its floor fits the candidates anyway and asks each one's own held-out reduction, at
 `FitConfig.significance` divided by the number of candidates (Bonferroni). The best candidate, if it fails only that
 test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold cross-fitting); the test then runs
-on every measured episode, each scored by a fit that did not see it. If none passes, selection stops (at step 1: the
-verdict is `none`; `FitConfig.near_the_floor_after_naming` off: a later step stops at once).
+on every measured episode, each scored by a fit that did not see it. After a naming, such a step's pick must also
+leave `min_excess_explained` less above its own simulator's floor than the step's gap lies above the step's floor: near
+the floor, a candidate that changes how far sensor noise carries (another contact solver) lowers the gap by lowering
+the floor. If none passes, selection stops (at step 1: the verdict is `none`; `FitConfig.near_the_floor_after_naming`
+off: a later step stops at once).
 
 At each step every effect not yet named is fitted and scored on top of the named ones (`fit.fit_all`), the best joint
 effects also in their scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
@@ -419,6 +422,8 @@ def _judge_step(
     )
     if below:
         _cross_fit_the_best(search, step, named, params, current)
+        if named:
+            _against_its_own_floor(search, step, named, params, current)
     elif k == 0:
         _refine_every_effect(search, step, remaining, params, current)
         _fit_every_scope(search, step, remaining, params, current)
@@ -452,6 +457,33 @@ def _cross_fit_the_best(
             best, search.resim, search.held, search.cross(), params, current, search.config, step.significance, under
         )
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
+
+
+def _against_its_own_floor(
+    search: _Search, step: _Step, named: list[Candidate], params: PhysicsParams, current: np.ndarray
+) -> None:
+    """A later step near its floor: the pick must leave `min_excess_explained` less above its own simulator's noise
+    floor than the step's gap lies above the step's floor. Near the floor, a candidate that changes how far sensor
+    noise carries (another contact solver, more damping) lowers the gap by lowering the floor, not by explaining
+    anything: after joint friction and a payload on excitation data, a contact solver took a gap 1.16x its floor to
+    half that floor, and was named. No pick, or no floor to ask (`floor_of`): nothing to check."""
+    if step.pick is None or search.floor_of is None:
+        return
+    effect, fit = step.pick
+    own = float(
+        np.nanmean(search.floor_of(effect.physics(fit.values, named_params(named, step.pick, search.base, params))))
+    )
+    excess = float(current.mean()) - float(np.nanmean(step.floor))
+    share = 1.0 - (fit.gap_mean - own) / excess if excess > 0 else float("nan")
+    if not share >= search.config.min_excess_explained:
+        step.pick, step.decision = (
+            None,
+            (
+                f"best candidate {fit.effect} ({fit.scope}) leaves {fit.gap_mean:.4g} against its own noise floor "
+                f"{own:.4g}: {share:.0%} of the gap above the step's floor explained, measured so (needs "
+                f"{search.config.min_excess_explained:.0%}); before that check: {step.decision}"
+            ),
+        )
 
 
 def _refine_every_effect(

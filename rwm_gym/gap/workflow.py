@@ -260,14 +260,17 @@ def _cross_fit_windows(
 def _floor_of(
     resim: Resimulator, held: Windows, noise: SensorNoise, floor_config: FloorConfig
 ) -> Callable[[PhysicsParams], np.ndarray]:
-    """`noise_floor` of a simulator on the held-out windows, the last one kept: the residual test asks again for the
-    simulator whose floor the last selection step tested, unless a refit changed it."""
-    last: list = []
+    """`noise_floor` of a simulator on the held-out windows, the last two kept: the residual test asks again for the
+    simulator whose floor the last selection step tested (unless a refit changed it), and a step that checks its pick
+    against the pick's own floor asks for one more before it."""
+    kept: list[tuple[PhysicsParams, np.ndarray]] = []
 
     def floor_of(params: PhysicsParams) -> np.ndarray:
-        if not last or last[0] != params:
-            last[:] = [params, noise_floor(resim, held, params, noise, floor_config)]
-        return last[1]
+        for known, floor in kept:
+            if known == params:
+                return floor
+        kept[:] = [*kept[-1:], (params, noise_floor(resim, held, params, noise, floor_config))]
+        return kept[-1][1]
 
     return floor_of
 
