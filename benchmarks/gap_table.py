@@ -23,7 +23,7 @@ whatever cases have finished.
 
     python benchmarks/gap_table.py --out results/gap_table [--episodes 9] [--steps 150] [--sources excitation gait]
         [--robots converged fast] [--cases none friction_1x ...] [--shard 0/2] [--summary-only]
-        [--reuse no-later-step-near-its-floor results/gap_v21 ...]
+        [--reuse cross-fitting-cannot-change results/gap_v21 ...]
     python benchmarks/gap_table.py --out results/gap_table --oracle [--cases ...]   # the true simulator's share
 """
 
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -334,9 +335,10 @@ def settings(args: argparse.Namespace) -> dict:
     # version 22: a step after the first whose gap is not significantly above its floor still fits the candidates and
     #             tests each one's own reduction, the best cross-fitted on every episode (as step 1 does;
     #             FitConfig.near_the_floor_after_naming); only runs that stopped so can differ from version 21
-    #             (`--reuse no-later-step-near-its-floor`). Also in 22: before step 1 calls a gap `unexplained`, a
+    #             (`--reuse cross-fitting-cannot-change`). Also in 22: before step 1 calls a gap `unexplained`, a
     #             best candidate that explains enough but fails only its held-out test is tested cross-fitted; only
-    #             `unexplained` rows whose reason says so can differ (two of version 21, run again by name)
+    #             `unexplained` rows whose reason says so can differ (the same rule). And a later step's pick near
+    #             its floor must leave less above its own simulator's floor (select._against_its_own_floor)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 
@@ -541,14 +543,17 @@ REUSABLE = {
         and len(EFFECTS[row["named"][0][0]].parameters) == 1
         and row.get("rest_at_floor") is True
     ),
-    "no-later-step-near-its-floor": lambda row: "named" in row and not stopped_near_a_later_floor(row),
+    "cross-fitting-cannot-change": lambda row: (
+        "named" in row and not stopped_near_a_later_floor(row) and not unexplained_by_its_held_out_test(row)
+    ),
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
 named at most one effect (a change to what follows a second), one that named one effect of one parameter and left
 a gap not above the corrected simulator's floor (`rest_at_floor`: with nothing refitted, that is the test a step 2
-against its own simulator's floor makes, so it stops there too), or one where no step after a naming stopped at its
-floor test (a change to such steps)."""
+against its own simulator's floor makes, so it stops there too), or one that neither stopped at the floor test of a
+step after a naming nor was called `unexplained` where its best candidate failed only its held-out test (a change to
+what such steps test)."""
 
 
 def stopped_near_a_later_floor(row: dict) -> bool:
@@ -562,6 +567,15 @@ def stopped_near_a_later_floor(row: dict) -> bool:
         return False
     stop = row["reason"].split(marker, 1)[1]
     return stop.startswith("held-out gap") and "not significantly above" in stop
+
+
+def unexplained_by_its_held_out_test(row: dict) -> bool:
+    """Whether step 1 called the gap `unexplained` where its best candidate explained enough of it and failed only the
+    held-out test (read from the row's reason)."""
+    if row.get("verdict") != "unexplained":
+        return False
+    found = re.match(r"best candidate .* explains (-?[\d.]+)% .*\(p=", row["reason"])
+    return found is not None and float(found.group(1)) >= 100 * FitConfig().min_excess_explained
 
 
 def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) -> bool:
