@@ -525,6 +525,72 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
         assert "Bonferroni" in selection.reason and "p < 0.0025" in selection.reason
 
 
+def _fit_of(name: str, gap: float, gap_mean: float, p_value: float):
+    """A fitted candidate of one parameter that takes a held-out gap of mean `gap` to `gap_mean`."""
+    from rwm_gym.gap.fit import CandidateFit
+
+    fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=p_value)
+    fit.explained_fraction = fit.score = 1.0 - gap_mean / gap
+    return fit
+
+
+def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[str]:
+    """Selection's fits, floor test, re-simulated gaps and cross-fitted test stubbed: `fits(name, gap)` gives each
+    effect's (gap_mean, p_value) on top of a simulator of held-out gap `gap`, `above(gap)` the floor test's verdict,
+    `gap_of(params)` a simulator's held-out gap; returns the effects the cross-fitted test is asked about."""
+    from rwm_gym.gap import select
+
+    def fit_all(effects, inputs, *args, **kwargs):
+        gap = float(inputs.before.mean())
+        return [_fit_of(name, gap, *fits(name, gap)) for name in effects]
+
+    tested = []
+    monkeypatch.setattr(
+        select,
+        "compare_with_floor",
+        lambda gap, floor, *args: {
+            "gap": float(gap.mean()),
+            "floor": float(floor.mean()),
+            "ratio": float(gap.mean() / floor.mean()),
+            "p_value": 0.02,
+            "above_floor": above(float(gap.mean())),
+        },
+    )
+    monkeypatch.setattr(select, "fit_all", fit_all)
+    monkeypatch.setattr(select, "scope_candidates", lambda *args, **kwargs: [])
+    monkeypatch.setattr(select, "every_scope", lambda *args, **kwargs: [])
+    monkeypatch.setattr(select, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
+    monkeypatch.setattr(
+        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    )
+    monkeypatch.setattr(
+        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p
+    )
+    return tested
+
+
+def _select(floor: float, config: FitConfig, **kwargs):
+    """`select_effects` over four effects from a nominal held-out gap of 1 and a noise floor `floor`, resimulation
+    stubbed (`_stub_selection`)."""
+    from rwm_gym.gap import select
+
+    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
+    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
+    return select.select_effects(
+        effects,
+        SPEC,
+        resim,
+        None,
+        None,
+        PhysicsParams(),
+        np.ones((20, 3)),
+        np.full((20, 3), floor),
+        config,
+        progress=False,
+        **kwargs,
+    )
+
+
 @pytest.mark.parametrize(
     "cross_p,with_cross,named,best_gap",
     [
@@ -541,60 +607,14 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     p < 0.01 over the step's candidates. The best candidate is then tested on every episode (2-fold cross-fitting),
     and named if that test passes at the same Bonferroni level; the reason says which test decided."""
     from rwm_gym.gap import select
-    from rwm_gym.gap.fit import CandidateFit
 
-    def fits(effects, *args):
-        out = []
-        for i, name in enumerate(effects):
-            fit = CandidateFit(
-                name,
-                [name],
-                ["1"],
-                [1.0],
-                [0.1],
-                0.0,
-                gap_mean=best_gap if i == 0 else 1.0,
-                p_value=5e-3 if i == 0 else 1.0,
-            )
-            fit.explained_fraction = fit.score = 1.0 - fit.gap_mean
-            out.append(fit)
-        return out
+    def fits(name, gap):
+        return (best_gap, 5e-3) if name == "torque_limit" else (1.0, 1.0)
 
-    tested = []
-    monkeypatch.setattr(
-        select,
-        "compare_with_floor",
-        lambda gap, *args: {
-            "gap": float(gap.mean()),
-            "floor": 0.8,
-            "ratio": 1.25,
-            "p_value": 0.3,
-            "above_floor": False,
-        },
-    )
-    monkeypatch.setattr(select, "fit_all", fits)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.75))
-    monkeypatch.setattr(
-        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p
-    )
-    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
-    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
+    tested = _stub_selection(monkeypatch, fits, lambda gap: False, lambda params: 0.75, cross_p)
     built = []
     cross = (lambda: built.append(1) or select.CrossFit(None, None)) if with_cross else None
-    selection = select.select_effects(
-        effects,
-        SPEC,
-        resim,
-        None,
-        None,
-        PhysicsParams(),
-        np.ones((20, 3)),
-        np.full((20, 3), 0.8),
-        FitConfig(near_the_floor_after_naming=False),  # step 1 is tested here
-        progress=False,
-        cross=cross,
-    )
+    selection = _select(0.8, FitConfig(near_the_floor_after_naming=False), cross=cross)  # step 1 is tested here
     needed = with_cross and best_gap < 1.0
     assert tested == (["torque_limit"] if needed else [])
     assert built == ([1] if needed else [])  # the swapped windows are built once, and only when the test needs them
@@ -609,58 +629,17 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypat
     candidate's own test over the step's candidates, the best cross-fitted on every episode. A pick that lowers the
     gap only by lowering its simulator's floor (a contact solver after friction and a payload) is not named."""
     from rwm_gym.gap import select
-    from rwm_gym.gap.fit import CandidateFit
 
-    def fits(effects, inputs, *args, **kwargs):
-        out = []
-        for name in effects:
-            gap = float(inputs.before.mean())
-            gap_mean, p_value = {
-                "torque_limit": (0.5, 1e-5),
-                "joint_friction": (0.7 * gap, 5e-3),
-            }.get(name, (gap, 1.0))
-            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=p_value)
-            fit.explained_fraction = fit.score = 1.0 - gap_mean / gap
-            out.append(fit)
-        return out
+    def fits(name, gap):
+        return {"torque_limit": (0.5, 1e-5), "joint_friction": (0.7 * gap, 5e-3)}.get(name, (gap, 1.0))
 
-    def gap_of(spec, params, held):
-        return np.full((20, 3), 0.35 if params.joint_friction else 0.5 if params.torque_limit else 1.0)
+    def gap_of(params):
+        return 0.35 if params.joint_friction else 0.5 if params.torque_limit else 1.0
 
-    tested = []
-    monkeypatch.setattr(
-        select,
-        "compare_with_floor",
-        lambda gap, floor, *args: {
-            "gap": float(gap.mean()),
-            "floor": float(floor.mean()),
-            "ratio": float(gap.mean() / floor.mean()),
-            "p_value": 0.02,
-            "above_floor": gap.mean() > 0.9,
-        },
-    )
-    monkeypatch.setattr(select, "fit_all", fits)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args, **kwargs: [])
-    monkeypatch.setattr(select, "gap_per_window", gap_of)
-    monkeypatch.setattr(
-        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
-    )
-    monkeypatch.setattr(
-        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or 1e-5
-    )
-    resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
-    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
-    selection = select.select_effects(
-        effects,
-        SPEC,
-        resim,
-        None,
-        None,
-        PhysicsParams(),
-        np.ones((20, 3)),
-        np.full((20, 3), 0.3),
+    tested = _stub_selection(monkeypatch, fits, lambda gap: gap > 0.9, gap_of, 1e-5)
+    selection = _select(
+        0.3,
         FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming),
-        progress=False,
         cross=lambda: select.CrossFit(None, None),
         floor_of=lambda params: np.full((20, 3), own_floor if params.joint_friction else 0.3),
     )
@@ -681,50 +660,13 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
     third (a few windows carry it), and the gap was called `unexplained`. Before that, the best candidate is tested
     again on every episode, cross-fitted; one that explains too little is not."""
     from rwm_gym.gap import select
-    from rwm_gym.gap.fit import CandidateFit
 
-    def fits(effects, *args, **kwargs):
-        out = []
-        for name in effects:
-            gap_mean, p_value = (0.11, 0.034) if name == "torque_limit" else (1.0, 1.0)
-            fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=p_value)
-            fit.explained_fraction = fit.score = 1.0 - gap_mean
-            out.append(fit)
-        return out
+    def fits(name, gap):
+        return (0.11, 0.034) if name == "torque_limit" else (1.0, 1.0)
 
-    tested = []
-    monkeypatch.setattr(
-        select,
-        "compare_with_floor",
-        lambda gap, floor, *args: {
-            "gap": float(gap.mean()),
-            "floor": float(floor.mean()),
-            "ratio": 300.0,
-            "p_value": 1e-4,
-            "above_floor": gap.mean() > 0.9,
-        },
-    )
-    monkeypatch.setattr(select, "fit_all", fits)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args, **kwargs: [])
-    monkeypatch.setattr(select, "every_scope", lambda *args, **kwargs: [])
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.11))
-    monkeypatch.setattr(
-        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p
-    )
-    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
-    selection = select.select_effects(
-        effects,
-        SPEC,
-        SimpleNamespace(spec=SPEC, rollout=lambda held, params: None),
-        None,
-        None,
-        PhysicsParams(),
-        np.ones((20, 3)),
-        np.full((20, 3), 1.0 / 300),
-        FitConfig(near_the_floor_after_naming=False),
-        progress=False,
-        cross=lambda: select.CrossFit(None, None),
-    )
+    tested = _stub_selection(monkeypatch, fits, lambda gap: gap > 0.9, lambda params: 0.11, cross_p)
+    config = FitConfig(near_the_floor_after_naming=False)
+    selection = _select(1.0 / 300, config, cross=lambda: select.CrossFit(None, None))
     assert selection.verdict == verdict and tested == ["torque_limit"], selection.reason
     assert "cross-fitted p=" in selection.steps[0]["decision"]
 
