@@ -338,7 +338,9 @@ def settings(args: argparse.Namespace) -> dict:
     #             (`--reuse cross-fitting-cannot-change`). Also in 22: before step 1 calls a gap `unexplained`, a
     #             best candidate that explains enough but fails only its held-out test is tested cross-fitted; only
     #             `unexplained` rows whose reason says so can differ (the same rule). And a later step's pick near
-    #             its floor must leave less above its own simulator's floor (select._against_its_own_floor)
+    #             its floor must leave less above its own simulator's floor (select._against_its_own_floor); an
+    #             effect a named one holds is no candidate after it (motor strength after PD gains): rows that named
+    #             PD gains ran again
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 

@@ -526,10 +526,12 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
 
 
 def _fit_of(name: str, gap: float, gap_mean: float, p_value: float):
-    """A fitted candidate of one parameter that takes a held-out gap of mean `gap` to `gap_mean`."""
+    """A fitted candidate (every parameter at 0.7) that takes a held-out gap of mean `gap` to `gap_mean`."""
     from rwm_gym.gap.fit import CandidateFit
 
-    fit = CandidateFit(name, [name], ["1"], [1.0], [0.1], 0.0, gap_mean=gap_mean, p_value=p_value)
+    size = len(EFFECTS[name].parameters)
+    fit = CandidateFit(name, [name] * size, ["1"] * size, [0.7] * size, [0.1] * size, 0.0, gap_mean=gap_mean)
+    fit.p_value = p_value
     fit.explained_fraction = fit.score = 1.0 - gap_mean / gap
     return fit
 
@@ -569,12 +571,12 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     return tested
 
 
-def _select(floor: float, config: FitConfig, **kwargs):
-    """`select_effects` over four effects from a nominal held-out gap of 1 and a noise floor `floor`, resimulation
+def _select(floor: float, config: FitConfig, names=("torque_limit", "joint_friction", "armature", "payload"), **kwargs):
+    """`select_effects` over `names` from a nominal held-out gap of 1 and a noise floor `floor`, resimulation
     stubbed (`_stub_selection`)."""
     from rwm_gym.gap import select
 
-    effects = {n: EFFECTS[n] for n in ("torque_limit", "joint_friction", "armature", "payload")}
+    effects = {n: EFFECTS[n] for n in names}
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
     return select.select_effects(
         effects,
@@ -669,6 +671,29 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
     selection = _select(1.0 / 300, config, cross=lambda: select.CrossFit(None, None))
     assert selection.verdict == verdict and tested == ["torque_limit"], selection.reason
     assert "cross-fitted p=" in selection.steps[0]["decision"]
+
+
+@pytest.mark.parametrize("first,fitted_after", [("pd_gains", {"payload"}), ("motor_strength", {"pd_gains", "payload"})])
+def test_an_effect_a_named_one_holds_is_no_candidate_after_it(monkeypatch, first, fitted_after):
+    """PD gains with kp at 0.7 on walking data: once PD gains are named, motor strength on top of them only refits
+    them (a strength scales kp and kd alike), and it was named beside them. It is not fitted after them; other
+    effects are, and PD gains are still fitted after motor strength (they hold more)."""
+    from rwm_gym.gap import select
+
+    asked = []
+
+    def fits(name, gap):
+        asked.append((name, gap))
+        return (0.2, 1e-5) if name == first else (gap, 1.0)
+
+    def gap_of(params):
+        return 0.6 if params.kp_scale != 1 or params.motor_strength != 1 else 1.0
+
+    _stub_selection(monkeypatch, fits, lambda gap: gap > 0.5, gap_of, 1.0)
+    monkeypatch.setattr(select, "prefer_simpler", lambda named, search, params, current: (named, params, current, []))
+    selection = _select(0.01, FitConfig(joint_candidates=0), ("pd_gains", "motor_strength", "payload"))
+    assert [e.name for e, _ in selection.named] == [first]
+    assert {name for name, gap in asked if gap < 1.0} == fitted_after
 
 
 def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):
