@@ -340,7 +340,9 @@ def settings(args: argparse.Namespace) -> dict:
     #             `unexplained` rows whose reason says so can differ (the same rule). And a later step's pick near
     #             its floor must leave less above its own simulator's floor (select._against_its_own_floor); an
     #             effect a named one holds is no candidate after it (motor strength after PD gains): rows that named
-    #             PD gains ran again
+    #             PD gains ran again. And a later step near its floor goes on only where its gap is above the
+    #             floor on every episode too (select._floor_test_on_every_episode): it can only stop a step that
+    #             would name something, so rows whose verdict is version 21's ran again only where it differed
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 

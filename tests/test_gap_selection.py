@@ -538,7 +538,8 @@ def _fit_of(name: str, gap: float, gap_mean: float, p_value: float):
 
 def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[str]:
     """Selection's fits, floor test, re-simulated gaps and cross-fitted test stubbed: `fits(name, gap)` gives each
-    effect's (gap_mean, p_value) on top of a simulator of held-out gap `gap`, `above(gap)` the floor test's verdict,
+    effect's (gap_mean, p_value) on top of a simulator of held-out gap `gap`, `above(gap, windows)` the floor test's
+    verdict,
     `gap_of(params)` a simulator's held-out gap; returns the effects the cross-fitted test is asked about."""
     from rwm_gym.gap import select
 
@@ -550,12 +551,12 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     monkeypatch.setattr(
         select,
         "compare_with_floor",
-        lambda gap, floor, *args: {
+        lambda gap, floor, windows, *args: {
             "gap": float(gap.mean()),
             "floor": float(floor.mean()),
             "ratio": float(gap.mean() / floor.mean()),
             "p_value": 0.02,
-            "above_floor": above(float(gap.mean())),
+            "above_floor": above(float(gap.mean()), windows),
         },
     )
     monkeypatch.setattr(select, "fit_all", fit_all)
@@ -571,7 +572,10 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     return tested
 
 
-def _select(floor: float, config: FitConfig, names=("torque_limit", "joint_friction", "armature", "payload"), **kwargs):
+EFFECTS_OF_STUBS = ("torque_limit", "joint_friction", "armature", "payload")
+
+
+def _select(floor: float, config: FitConfig, names=EFFECTS_OF_STUBS, held=None, **kwargs):
     """`select_effects` over `names` from a nominal held-out gap of 1 and a noise floor `floor`, resimulation
     stubbed (`_stub_selection`)."""
     from rwm_gym.gap import select
@@ -583,7 +587,7 @@ def _select(floor: float, config: FitConfig, names=("torque_limit", "joint_frict
         SPEC,
         resim,
         None,
-        None,
+        held,
         PhysicsParams(),
         np.ones((20, 3)),
         np.full((20, 3), floor),
@@ -613,7 +617,7 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     def fits(name, gap):
         return (best_gap, 5e-3) if name == "torque_limit" else (1.0, 1.0)
 
-    tested = _stub_selection(monkeypatch, fits, lambda gap: False, lambda params: 0.75, cross_p)
+    tested = _stub_selection(monkeypatch, fits, lambda gap, windows: False, lambda params: 0.75, cross_p)
     built = []
     cross = (lambda: built.append(1) or select.CrossFit(None, None)) if with_cross else None
     selection = _select(0.8, FitConfig(near_the_floor_after_naming=False), cross=cross)  # step 1 is tested here
@@ -624,12 +628,18 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     assert ("cross-fitted p=" in selection.reason) == needed
 
 
-@pytest.mark.parametrize("after_naming,own_floor", [(True, 0.3), (False, 0.3), (True, 0.1)])
-def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypatch, after_naming, own_floor):
+@pytest.mark.parametrize(
+    "after_naming,own_floor,above_on_every_episode",
+    [(True, 0.3, True), (False, 0.3, True), (True, 0.1, True), (True, 0.3, False)],
+)
+def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(
+    monkeypatch, after_naming, own_floor, above_on_every_episode
+):
     """A triple's third effect in 9 walking episodes: after two named, the rest was 3x its floor, but the held-out
-    third gave p = 0.017 and selection stopped. A step after the first near its floor is judged as step 1 is: each
-    candidate's own test over the step's candidates, the best cross-fitted on every episode. A pick that lowers the
-    gap only by lowering its simulator's floor (a contact solver after friction and a payload) is not named."""
+    third gave p = 0.017 and selection stopped. A step after the first near its floor tests its gap again on every
+    episode; above the floor there, it is judged as step 1 is near the floor: each candidate's own test over the
+    step's candidates, the best cross-fitted on every episode. A pick that lowers the gap only by lowering its
+    simulator's floor (a contact solver after friction and a payload) is not named."""
     from rwm_gym.gap import select
 
     def fits(name, gap):
@@ -638,15 +648,21 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(monkeypat
     def gap_of(params):
         return 0.35 if params.joint_friction else 0.5 if params.torque_limit else 1.0
 
-    tested = _stub_selection(monkeypatch, fits, lambda gap: gap > 0.9, gap_of, 1e-5)
+    def above(gap, windows):
+        return gap > 0.9 or (windows == "every episode" and above_on_every_episode)
+
+    tested = _stub_selection(monkeypatch, fits, above, gap_of, 1e-5)
     selection = _select(
         0.3,
         FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming),
+        held=SimpleNamespace(join=lambda other: "every episode"),
         cross=lambda: select.CrossFit(None, None),
-        floor_of=lambda params: np.full((20, 3), own_floor if params.joint_friction else 0.3),
+        floor_of=lambda params, windows=None: np.full((20, 3), own_floor if params.joint_friction else 0.3),
     )
     named = [e.name for e, _ in selection.named]
-    if own_floor < 0.3:  # 0.35 left, 0.25 above its own floor: more than the 0.2 the step's gap had above its floor
+    if not above_on_every_episode:  # the rest is not above the floor on every episode either: nothing is fitted
+        assert named == ["torque_limit"] and tested == [] and "; on every episode: gap 0.5 is not" in selection.reason
+    elif own_floor < 0.3:  # 0.35 left, 0.25 above its own floor: more than the 0.2 the step's gap had above its floor
         assert named == ["torque_limit"] and tested == ["joint_friction"]
         assert "against its own noise floor 0.1" in selection.steps[1]["decision"]
     elif after_naming:  # 0.15 of the 0.2 above the floor; p = 5e-3 on the held-out third, 1e-5 on every episode
@@ -666,7 +682,7 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
     def fits(name, gap):
         return (0.11, 0.034) if name == "torque_limit" else (1.0, 1.0)
 
-    tested = _stub_selection(monkeypatch, fits, lambda gap: gap > 0.9, lambda params: 0.11, cross_p)
+    tested = _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.9, lambda params: 0.11, cross_p)
     config = FitConfig(near_the_floor_after_naming=False)
     selection = _select(1.0 / 300, config, cross=lambda: select.CrossFit(None, None))
     assert selection.verdict == verdict and tested == ["torque_limit"], selection.reason
@@ -689,7 +705,7 @@ def test_an_effect_a_named_one_holds_is_no_candidate_after_it(monkeypatch, first
     def gap_of(params):
         return 0.6 if params.kp_scale != 1 or params.motor_strength != 1 else 1.0
 
-    _stub_selection(monkeypatch, fits, lambda gap: gap > 0.5, gap_of, 1.0)
+    _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.5, gap_of, 1.0)
     monkeypatch.setattr(select, "prefer_simpler", lambda named, search, params, current: (named, params, current, []))
     selection = _select(0.01, FitConfig(joint_candidates=0), ("pd_gains", "motor_strength", "payload"))
     assert [e.name for e, _ in selection.named] == [first]

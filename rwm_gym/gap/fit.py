@@ -98,10 +98,11 @@ class FitConfig:
     can
     leave part of the effect in the wrong groups."""
     near_the_floor_after_naming: bool = True
-    """A step after the first whose gap is not significantly above its floor also fits the candidates and tests each
-    one's own reduction, as step 1 does near the floor (Bonferroni, the best cross-fitted on every episode): the test of
-    the whole gap on the held-out third has few blocks, and a third effect of a triple in 9 walking episodes left 3x
-    its floor at p = 0.017. Off: such a step stops selection without fitting."""
+    """A step after the first whose gap is not significantly above its floor on the held-out episodes tests it again
+    on every episode; where it is above the floor there, the step fits the candidates and tests each one's own
+    reduction, as step 1 does near the floor (Bonferroni, the best cross-fitted on every episode): the held-out third
+    has few blocks, and a third effect of a triple in 9 walking episodes left 3x its floor at p = 0.017. Off: such a
+    step stops selection without fitting."""
     joint_candidates: int = 2
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second

@@ -4,15 +4,18 @@ Step k starts from the simulator with the k-1 effects named so far, and tests it
 simulator's own sensor-noise floor (`noise_floor`: a damped joint carries start noise less far than the nominal robot;
 the nominal robot started from offset encoder readings carries it further). That test of the whole gap is weak where
 an effect shows in a few windows only (a 0.5x torque limit, a small backlash), or where the held-out third holds few
-blocks (a triple's third effect in 9 walking episodes: 3x the floor at p = 0.017). So a step whose gap is not
-significantly above its floor fits the candidates anyway and asks each one's own held-out reduction, at
+blocks (a triple's third effect in 9 walking episodes: 3x the floor at p = 0.017). So step 1, where its gap is not
+significantly above its floor, fits the candidates anyway and asks each one's own held-out reduction, at
 `FitConfig.significance` divided by the number of candidates (Bonferroni). The best candidate, if it fails only that
 test, is fitted again on the held-out episodes and scored on the fitting ones (2-fold cross-fitting); the test then runs
-on every measured episode, each scored by a fit that did not see it. After a naming, such a step's pick must also
-leave `min_excess_explained` less above its own simulator's floor than the step's gap lies above the step's floor: near
-the floor, a candidate that changes how far sensor noise carries (another contact solver) lowers the gap by lowering
-the floor. If none passes, selection stops (at step 1: the verdict is `none`; `FitConfig.near_the_floor_after_naming`
-off: a later step stops at once).
+on every measured episode, each scored by a fit that did not see it. If none passes, the verdict is `none`.
+
+A later step whose gap is not significantly above its floor tests it again on every episode (the fitting ones too,
+where the named effects were fitted: a conservative test) and stops where it is not above the floor there either
+(at once where `FitConfig.near_the_floor_after_naming` is off); otherwise it judges its candidates as step 1 does near
+the floor. Its pick must also leave `min_excess_explained` less above its own simulator's floor than the step's gap
+lies above the step's floor: near the floor, a candidate that changes how far sensor noise carries (another contact
+solver) lowers the gap by lowering the floor.
 
 At each step every effect not yet named is fitted and scored on top of the named ones (`fit.fit_all`), the best joint
 effects also in their scopes (`scope.scope_candidates`), and the best-scoring candidate is named when
@@ -294,8 +297,10 @@ class _Search:
     cross: Callable[[], CrossFit] | None
     memo: FitMemo | None = None
     """Fits of step 1 already made (by the solver check), taken rather than fitted again."""
-    floor_of: Callable[[PhysicsParams], np.ndarray] | None = None
-    """The noise floor of a simulator on the held-out windows (None: the nominal floor at every step)."""
+    floor_of: Callable[..., np.ndarray] | None = None
+    """The noise floor of a simulator on the held-out windows, or on the windows given (None: the nominal floor at
+    every step)."""
+    floor_config: FloorConfig = FloorConfig()
 
     def floor_at(self, k: int, params: PhysicsParams) -> np.ndarray:
         """The floor step `k` tests against: that of `params`, the simulator with the effects named so far."""
@@ -341,14 +346,16 @@ def select_effects(
     progress: bool = True,
     cross: Callable[[], CrossFit] | None = None,
     memo: FitMemo | None = None,
-    floor_of: Callable[[PhysicsParams], np.ndarray] | None = None,
+    floor_of: Callable[..., np.ndarray] | None = None,
 ) -> Selection:
     """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
     nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
     called once if step 1's best candidate needs them (None: the held-out test alone); `memo`: step 1's fits where
     they were made already (`fit.FitMemo`; the solver check's under the solver it took); `floor_of`: the noise floor
     of a simulator, for the steps after the first (None: the nominal `floor` at every step)."""
-    search = _Search(effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of)
+    search = _Search(
+        effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of, floor_config
+    )
     named: list[Candidate] = []
     params, current, steps, reason, earlier, refit = base, before, [], "", [], None
     for k in range(config.max_effects):
@@ -359,8 +366,12 @@ def select_effects(
         below = not test["above_floor"]
         if below:
             reason = _below_floor(test)
-            if k > 0 and not config.near_the_floor_after_naming:
-                break
+            if k > 0:
+                wide = _floor_test_on_every_episode(search, params, current, step_floor)
+                step["floor_test_every_episode"] = wide
+                if wide is None or not wide["above_floor"]:
+                    reason += "" if wide is None else f"; on every episode: {_below_floor(wide, 'gap')}"
+                    break
         judged = _judge_step(search, k, below, named, earlier, params, current, step_floor)
         earlier = _ranked(judged.candidates)
         step["candidates"] = [asdict(f) for _, f in sorted(judged.candidates, key=lambda c: c[1].score, reverse=True)]
@@ -375,10 +386,33 @@ def select_effects(
     return _selection(search, named, steps, reason, before, params, current, refit)
 
 
-def _below_floor(test: dict) -> str:
+def _floor_test_on_every_episode(
+    search: _Search, params: PhysicsParams, current: np.ndarray, floor: np.ndarray
+) -> dict | None:
+    """A later step's floor test again on every measured episode: the held-out windows (gap `current`, floor
+    `floor`) and the fitting episodes' at the held-out horizon (`CrossFit.score`). The named effects were fitted on
+    the latter, so their gap there is if anything smaller, and the test conservative. None where it is not made
+    (`FitConfig.near_the_floor_after_naming` off, no swapped windows or no floor to ask) or the simulation diverged."""
+    if not search.config.near_the_floor_after_naming or search.cross is None or search.floor_of is None:
+        return None
+    score = search.cross().score
+    try:
+        gap = gap_per_window(search.spec, search.resim.rollout(score, params), score)
+    except SimulationDiverged:
+        return None
+    return compare_with_floor(
+        np.concatenate([current, gap]),
+        np.concatenate([floor, search.floor_of(params, score)]),
+        search.held.join(score),
+        search.config.block_rows,
+        search.floor_config,
+    )
+
+
+def _below_floor(test: dict, gap: str = "held-out gap") -> str:
     """Why a gap is not above the noise floor, from `compare_with_floor`'s test."""
     return (
-        f"held-out gap {test['gap']:.4g} is not significantly above the sensor-noise floor "
+        f"{gap} {test['gap']:.4g} is not significantly above the sensor-noise floor "
         f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})"
     )
 

@@ -260,12 +260,14 @@ def _cross_fit_windows(
 def _floor_of(
     resim: Resimulator, held: Windows, noise: SensorNoise, floor_config: FloorConfig
 ) -> Callable[[PhysicsParams], np.ndarray]:
-    """`noise_floor` of a simulator on the held-out windows, the last two kept: the residual test asks again for the
-    simulator whose floor the last selection step tested (unless a refit changed it), and a step that checks its pick
-    against the pick's own floor asks for one more before it."""
+    """`noise_floor` of a simulator on the held-out windows (or on `windows`, not kept), the last two kept: the
+    residual test asks again for the simulator whose floor the last selection step tested (unless a refit changed
+    it), and a step that checks its pick against the pick's own floor asks for one more before it."""
     kept: list[tuple[PhysicsParams, np.ndarray]] = []
 
-    def floor_of(params: PhysicsParams) -> np.ndarray:
+    def floor_of(params: PhysicsParams, windows: Windows | None = None) -> np.ndarray:
+        if windows is not None:
+            return noise_floor(resim, windows, params, noise, floor_config)
         for known, floor in kept:
             if known == params:
                 return floor
