@@ -332,17 +332,13 @@ def settings(args: argparse.Namespace) -> dict:
     #             (`--reuse at-most-one-named`); rows of version 19 that named one effect of one parameter and left
     #             the rest at the corrected floor stop at step 2 of versions 20 and 21 alike
     #             (`--reuse one-effect-left-at-its-floor`)
-    # version 22: a step after the first whose gap is not significantly above its floor still fits the candidates and
-    #             tests each one's own reduction, the best cross-fitted on every episode (as step 1 does;
-    #             FitConfig.near_the_floor_after_naming); only runs that stopped so can differ from version 21
-    #             (`--reuse cross-fitting-cannot-change`). Also in 22: before step 1 calls a gap `unexplained`, a
-    #             best candidate that explains enough but fails only its held-out test is tested cross-fitted; only
-    #             `unexplained` rows whose reason says so can differ (the same rule). And a later step's pick near
-    #             its floor must leave less above its own simulator's floor (select._against_its_own_floor); an
-    #             effect a named one holds is no candidate after it (motor strength after PD gains): rows that named
-    #             PD gains ran again. And a later step near its floor goes on only where its gap is above the
-    #             floor on every episode too (select._floor_test_on_every_episode): it can only stop a step that
-    #             would name something, so rows whose verdict is version 21's ran again only where it differed
+    # version 22: a step after the first whose gap is not significantly above its floor tests it again on every
+    #             episode, and where it is above the floor there, fits the candidates and tests each one's own
+    #             reduction, the best cross-fitted on every episode (as step 1 does; FitConfig.near_the_floor_after_
+    #             naming); its pick must leave less above its own simulator's floor (select._against_its_own_floor).
+    #             Before step 1 calls a gap `unexplained`, a best candidate that explains enough but fails only its
+    #             held-out test is tested cross-fitted. Only rows that stopped at a later step's floor test, or were
+    #             `unexplained` so, can differ from version 21 (`--reuse cross-fitting-cannot-change`)
     return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
 
 

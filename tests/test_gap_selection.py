@@ -689,29 +689,6 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
     assert "cross-fitted p=" in selection.steps[0]["decision"]
 
 
-@pytest.mark.parametrize("first,fitted_after", [("pd_gains", {"payload"}), ("motor_strength", {"pd_gains", "payload"})])
-def test_an_effect_a_named_one_holds_is_no_candidate_after_it(monkeypatch, first, fitted_after):
-    """PD gains with kp at 0.7 on walking data: once PD gains are named, motor strength on top of them only refits
-    them (a strength scales kp and kd alike), and it was named beside them. It is not fitted after them; other
-    effects are, and PD gains are still fitted after motor strength (they hold more)."""
-    from rwm_gym.gap import select
-
-    asked = []
-
-    def fits(name, gap):
-        asked.append((name, gap))
-        return (0.2, 1e-5) if name == first else (gap, 1.0)
-
-    def gap_of(params):
-        return 0.6 if params.kp_scale != 1 or params.motor_strength != 1 else 1.0
-
-    _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.5, gap_of, 1.0)
-    monkeypatch.setattr(select, "prefer_simpler", lambda named, search, params, current: (named, params, current, []))
-    selection = _select(0.01, FitConfig(joint_candidates=0), ("pd_gains", "motor_strength", "payload"))
-    assert [e.name for e, _ in selection.named] == [first]
-    assert {name for name, gap in asked if gap < 1.0} == fitted_after
-
-
 def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):
     """The swapped fit is made on the held-out episodes' windows and scored on the fitting episodes' ones; the test
     pools both, so it runs on the blocks of every episode."""

@@ -438,12 +438,9 @@ def _judge_step(
     floor: np.ndarray,
 ) -> _Step:
     """Fit every effect not yet named on top of `params` (and in its scopes, and jointly with the named ones), and
-    judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up.
-    An effect that a named one holds as a special case (`Effect.nested_in`: motor strength, once PD gains are named)
-    is no candidate: on top of it, it can only refit it."""
+    judge the candidates; at step 1 (k = 0), where none is named and no rival found, look harder before giving up."""
     config = search.config
-    taken = {e.name for e, _ in named}
-    remaining = {n: e for n, e in search.effects.items() if n not in taken and not taken.intersection(e.nested_in)}
+    remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in named}}
     inputs = search.on_top_of(params, current)
     fits = fit_all(remaining, inputs, search.progress, **search.first_step(k))
     candidates = [(remaining[f.effect], f) for f in fits]
