@@ -141,7 +141,7 @@ def run_gap(
     floor_noise = noise_check.pop("floor_noise")
     floor = noise_floor(resim, held, base, floor_noise, floor_config)
     floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
-    # near the floor, step 1 may test its best candidate on every episode, and so may the test of two rivals
+    # a step may test its best candidate, or a later step its gap, on every episode, and so may the test of two rivals
     cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
     floor_of = _floor_of(resim, held, floor_noise, floor_config)
     selection = select_effects(
@@ -240,8 +240,8 @@ def _cross_fit_windows(
     fit_config: FitConfig,
 ) -> Callable[[], CrossFit]:
     """The swapped windows for 2-fold cross-fitting (fit on the held-out episodes, score on the fitting ones), built
-    only if a test needs them (step 1's best near the floor, or what one of two rivals adds on top of the other).
-    Built once."""
+    only if a test needs them (a step's best that fails only its held-out test, a later step's floor test on every
+    episode, or what one of two rivals adds on top of the other). Built once."""
 
     built: list[CrossFit] = []
 
