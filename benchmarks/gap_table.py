@@ -81,6 +81,8 @@ class Case:
     episodes: int | None = None
     """Measured episodes when the case needs more than `--episodes` (the per-joint scope is tried only with
     `scope.MIN_WINDOWS_PER_PARAMETER` fitting windows per parameter: 12 episodes give 8 x 18 = 144 for 12 joints)."""
+    steps: int | None = None
+    """Policy steps per measured episode when the case needs more than `--steps`."""
 
     def true_names(self) -> set[str]:
         return set(self.truth) | ({self.per_joint[0]} if self.per_joint else set())
@@ -89,6 +91,26 @@ class Case:
 ROBOT_EFFECTS = tuple(n for n in EFFECT_NAMES if n != "contact_solver")
 """The effects a robot can hide: `contact_solver` is the simulator's own accuracy, measured by the `--robots` axis
 (a converged robot judged by the fast simulator), not a property of a robot."""
+
+
+LONGER_DATA = {"episodes": 16, "steps": 250}
+"""The measured data of the cases that need more than 9 episodes of 150 steps: effects that act in a few windows only
+(a torque-speed limit, at high joint speed) or below the sensor noise of each sample (a base-velocity bias), and
+triples, which split the data's evidence three ways. At 9 x 150 the workflow named the torque-speed limit in 4 of 12
+such cases, the base-velocity bias in 9 of 12 and all three of a triple in 4 of 12."""
+
+SPARSE_EFFECTS = ("torque_speed_limit", "base_velocity_bias")
+"""Effects whose single cases are measured on `LONGER_DATA`."""
+
+
+def single(name: str, scale: float) -> Case:
+    """The effect `name` alone at `scale` x its default distance from nominal."""
+    return Case(f"{name}_{scale}x", "single", {name: magnitude(name, scale)}, **data_for(name))
+
+
+def data_for(*names: str) -> dict:
+    """`LONGER_DATA` where one of the effects `names` needs it, else the grid's own."""
+    return LONGER_DATA if set(names) & set(SPARSE_EFFECTS) else {}
 
 
 def magnitude(name: str, scale: float) -> list[float]:
@@ -104,7 +126,7 @@ def grid() -> list[Case]:
     first = [
         Case("none", "none"),
         Case("spring_KFE_30", "outside", spring=("KFE", 30.0)),
-        Case("action_delay_1x", "single", {"action_delay": magnitude("action_delay", 1.0)}),
+        single("action_delay", 1),
         Case("friction_KFE_4", "joint_type", per_joint=("joint_friction", "joint_type", "KFE", 4.0)),
         Case(
             "friction+payload",
@@ -119,8 +141,8 @@ def grid() -> list[Case]:
             {"action_delay": magnitude("action_delay", 1.0), "armature": magnitude("armature", 1.0)},
         ),
     ]
-    first += [Case(f"{n}_1x", "single", {n: magnitude(n, 1.0)}) for n in ROBOT_EFFECTS if n != "action_delay"]
-    rest = [Case(f"{n}_{s}x", "single", {n: magnitude(n, s)}) for s in (0.5, 2.0) for n in ROBOT_EFFECTS]
+    first += [single(n, 1) for n in ROBOT_EFFECTS if n != "action_delay"]
+    rest = [single(n, s) for s in (0.5, 2.0) for n in ROBOT_EFFECTS]
     rest += [
         Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
         Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),
@@ -144,19 +166,25 @@ def grid() -> list[Case]:
             "delay+payload+ground",
             "triple",
             {n: magnitude(n, 1.0) for n in ("action_delay", "payload", "ground_friction")},
+            **LONGER_DATA,
         ),
         Case(
             "strength+friction+encoder",
             "triple",
             {n: magnitude(n, 1.0) for n in ("motor_strength", "joint_friction", "encoder_offset")},
+            **LONGER_DATA,
         ),
         Case(
             "armature+damping+compliance",
             "triple",
             {n: magnitude(n, 1.0) for n in ("armature", "joint_damping", "ground_compliance")},
+            **LONGER_DATA,
         ),
     ]
     return first + triples + rest
+
+
+CASES = {case.name: case for case in grid()}
 
 
 def hidden_physics(case: Case) -> dict:
@@ -180,7 +208,7 @@ def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot:
         case.truth,
         case.episodes or args.episodes,
         tmp / f"{label(source, robot)}_{case.name}.h5",
-        max_steps=args.steps,
+        max_steps=case.steps or args.steps,
         seed=seed,
         policy=source,
         env_kwargs=env_kwargs,
@@ -199,7 +227,13 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
     try:
         report = run_gap(SIM, data, tmp / f"{label(source, robot)}_{case.name}", progress=False)
     except ValueError as err:  # e.g. a robot that falls at once: no episode long enough for held-out windows
-        return {"case": case.name, "kind": case.kind, "source": source, "error": str(err), "settings": settings(args)}
+        return {
+            "case": case.name,
+            "kind": case.kind,
+            "source": source,
+            "error": str(err),
+            "settings": settings(args, case),
+        }
     named = [(e["effect"], e["scope"]) for e in report["effects"]]
     true = case.true_names()
     errors = {}
@@ -222,6 +256,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "source": source,
         "true": sorted(true),
         "episodes": case.episodes or args.episodes,
+        "steps": case.steps or args.steps,
         "truth": case.truth,
         "per_joint": case.per_joint,
         "spring": case.spring,
@@ -253,7 +288,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "signal_to_floor": {k: v["signal_to_floor"] for k, v in report["identifiability"].items()},
         "rejected_points": len(report["rejected"]),
         "wall_s": time.time() - start,
-        "settings": settings(args),
+        "settings": settings(args, case),
     }
 
 
@@ -279,11 +314,12 @@ def oracle(case: Case, source: str, args: argparse.Namespace, tmp: Path) -> dict
         "true_explained": float(1.0 - after.mean() / before.mean()),
         "true_floor": rest["floor"],
         "true_rest_above_its_floor": rest["above_floor"],
-        "settings": settings(args),
+        "settings": settings(args, case),
     }
 
 
-def settings(args: argparse.Namespace) -> dict:
+def settings(args: argparse.Namespace, case: Case) -> dict:
+    """What a row of `case` was run with: its measured data and the workflow's version."""
     # version 2: make-measured and the re-simulations solve each physics step to convergence (CONVERGED_SOLVER)
     # version 3: the two best joint effects are fitted in their scopes (FitConfig.scoped_effects)
     # version 4: ... of those whose global form reduces the held-out gap, one sweep per group fit
@@ -339,7 +375,15 @@ def settings(args: argparse.Namespace) -> dict:
     #             Before step 1 calls a gap `unexplained`, a best candidate that explains enough but fails only its
     #             held-out test is tested cross-fitted. Only rows that stopped at a later step's floor test, or were
     #             `unexplained` so, can differ from version 21 (`--reuse cross-fitting-cannot-change`)
-    return {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "version": 22}
+    # version 23: the torque-speed limit, base-velocity bias and triple cases are measured on 16 episodes of 250
+    #             steps (LONGER_DATA); the settings hold each case's own episodes and steps, and no other row can
+    #             differ from version 22 (`--reuse same-measured-data`)
+    return {
+        "episodes": case.episodes or args.episodes,
+        "steps": case.steps or args.steps,
+        "seed": args.seed,
+        "version": 23,
+    }
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -546,6 +590,7 @@ REUSABLE = {
     "cross-fitting-cannot-change": lambda row: (
         "named" in row and not stopped_near_a_later_floor(row) and not unexplained_by_its_held_out_test(row)
     ),
+    "same-measured-data": lambda row: "named" in row,
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
@@ -553,7 +598,8 @@ named at most one effect (a change to what follows a second), one that named one
 a gap not above the corrected simulator's floor (`rest_at_floor`: with nothing refitted, that is the test a step 2
 against its own simulator's floor makes, so it stops there too), or one that neither stopped at the floor test of a
 step after a naming nor was called `unexplained` where its best candidate failed only its held-out test (a change to
-what such steps test)."""
+what such steps test), or any finished row where the change is to some cases' measured data only (the settings of
+those cases differ, so they run again)."""
 
 
 def stopped_near_a_later_floor(row: dict) -> bool:
@@ -584,7 +630,10 @@ def reuse_row(earlier: Path, path: Path, args: argparse.Namespace, when: str) ->
     if not earlier.is_file():
         return False
     row = json.loads(earlier.read_text())
-    old, new = row.get("settings", {}), settings(args)
+    new = settings(args, CASES[row["case"]])
+    # rows before version 23 hold the grid's episodes in their settings, and their own in the row
+    old = row.get("settings", {})
+    old = {**old, "episodes": row.get("episodes", old.get("episodes")), "steps": row.get("steps", old.get("steps"))}
     if not REUSABLE[when](row) or {**old, "version": new["version"]} != new:
         return False
     write_json(path, {**row, "settings": new, "reused_version": row.get("reused_version", old["version"])})
@@ -598,7 +647,7 @@ def run_oracle(jobs: list[tuple[Case, str]], args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for case, source in jobs:
             path = folder / f"{Path(source).stem}__{case.name}.json"
-            if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args)):
+            if not (path.is_file() and json.loads(path.read_text()).get("settings") == settings(args, case)):
                 write_json(path, {**oracle(case, source, args, Path(tmp)), "source": Path(source).stem})
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
     lines = [
@@ -669,7 +718,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for case, source, robot in [] if args.summary_only else jobs:
             path = folder / f"{label(source, robot)}__{case.name}.json"
-            if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args):
+            if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args, case):
                 continue
             if any(reuse_row(Path(d) / "cases" / path.name, path, args, when) for when, d in args.reuse):
                 continue
@@ -683,7 +732,11 @@ def main() -> None:
                 flush=True,
             )
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
-    rows = [r for r in rows if r.get("settings") == settings(args) or "error" in r]
+    rows = [
+        r
+        for r in rows
+        if (r["case"] in CASES and r.get("settings") == settings(args, CASES[r["case"]])) or "error" in r
+    ]
     summary = summarise(rows)
     write_json(
         args.out / "summary.json",

@@ -553,11 +553,12 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
 
     gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_reuse")
     args = argparse.Namespace(seed=0, episodes=9, steps=150)
-    old = {**gap_table.settings(args), "version": 17}
+    case = gap_table.CASES["payload_1x"]
+    old = {**gap_table.settings(args, case), "version": 17}
     rows = {
-        "none": {"named": [], "above_floor": False, "settings": old},
-        "named": {"named": [["payload", "global"]], "above_floor": True, "settings": old},
-        "shorter": {"named": [], "above_floor": False, "settings": {**old, "steps": 100}},
+        "none": {"case": case.name, "named": [], "above_floor": False, "settings": old, "episodes": 9},
+        "named": {"case": case.name, "named": [["payload", "global"]], "above_floor": True, "settings": old},
+        "shorter": {"case": case.name, "named": [], "above_floor": False, "settings": {**old, "steps": 100}},
     }
     for name, row in rows.items():
         (tmp_path / f"{name}.json").write_text(json.dumps(row))
@@ -567,7 +568,7 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     }
     assert reused == {"none": True, "named": False, "shorter": False}
     copied = json.loads((tmp_path / "new_none.json").read_text())
-    assert copied["settings"] == gap_table.settings(args) and copied["reused_version"] == 17
+    assert copied["settings"] == gap_table.settings(args, case) and copied["reused_version"] == 17
     assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "x.json", args, "above-floor")
     assert gap_table.reuse_row(tmp_path / "named.json", tmp_path / "y.json", args, "at-most-one-named")
     # one effect of one parameter, what it left at the corrected floor: a step 2 against that floor stops there too
@@ -590,3 +591,13 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     failed = "best candidate torque_limit (global) explains 89% of the gap above the noise floor (p=0.034; needs 30%"
     assert not reach({"named": [], "verdict": "unexplained", "reason": failed})
     assert reach({"named": [], "verdict": "unexplained", "reason": failed.replace("89%", "21%")})
+    # a change to some cases' measured data: those run again on their own data, every other row is taken
+    sparse = gap_table.CASES["torque_speed_limit_1x"]
+    assert gap_table.settings(args, sparse)["steps"] == gap_table.LONGER_DATA["steps"] > args.steps
+    for name, value in (("payload_1x", True), ("torque_speed_limit_1x", False)):
+        row = {"case": name, "named": [], "episodes": 9, "settings": {**old, "version": 22}}
+        (tmp_path / f"{name}.json").write_text(json.dumps(row))
+        taken = gap_table.reuse_row(
+            tmp_path / f"{name}.json", tmp_path / f"v23_{name}.json", args, "same-measured-data"
+        )
+        assert taken == value, name
