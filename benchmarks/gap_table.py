@@ -104,13 +104,9 @@ SPARSE_EFFECTS = ("torque_speed_limit", "base_velocity_bias")
 
 
 def single(name: str, scale: float) -> Case:
-    """The effect `name` alone at `scale` x its default distance from nominal."""
-    return Case(f"{name}_{scale}x", "single", {name: magnitude(name, scale)}, **data_for(name))
-
-
-def data_for(*names: str) -> dict:
-    """`LONGER_DATA` where one of the effects `names` needs it, else the grid's own."""
-    return LONGER_DATA if set(names) & set(SPARSE_EFFECTS) else {}
+    """The effect `name` alone at `scale` x its default distance from nominal (on `LONGER_DATA` if it is sparse)."""
+    data = LONGER_DATA if name in SPARSE_EFFECTS else {}
+    return Case(f"{name}_{scale}x", "single", {name: magnitude(name, scale)}, **data)
 
 
 def magnitude(name: str, scale: float) -> list[float]:
