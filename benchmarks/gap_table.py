@@ -374,11 +374,13 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 23: the torque-speed limit, base-velocity bias and triple cases are measured on 16 episodes of 250
     #             steps (LONGER_DATA); the settings hold each case's own episodes and steps, and no other row can
     #             differ from version 22 (`--reuse same-measured-data`)
+    # version 24: a multi-parameter effect's least-squares fit starts from a Brent search of its first parameter
+    #             within the screening bracket (fit.first_along_bracket); every row can differ from version 23
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 23,
+        "version": 24,
     }
 
 

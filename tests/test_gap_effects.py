@@ -9,7 +9,7 @@ import pytest
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitInputs, fit_all, gap_per_window
+from rwm_gym.gap.fit import FitConfig, FitInputs, first_along_bracket, fit_all, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows
 from rwm_gym.gap.workflow import GapConfig
@@ -135,3 +135,21 @@ def test_corrected_physics_holds_what_the_mjcf_cannot(tmp_path):
     note = open(paths["mjcf"]).read().split("<mujoco")[0]
     assert "torque-speed" in note and "encoder offset" in note
     assert 'priority="1" solref="0.04' in open(paths["mjcf"]).read()  # the floor's compliance is MJCF
+
+
+def test_a_multi_parameter_fit_first_searches_its_first_parameter_within_the_screening_bracket():
+    """A torque-speed limit's cost with a narrow valley in the slope (true 7.5), flat beside it: from the screened
+    slope 5.0, least squares' finite-difference step sees no slope; the search along the bracket [0, 10] finds the
+    valley with the knee held, and keeps the start where the bracket holds nothing better than it."""
+    effect = vocabulary(SPEC)["torque_speed_limit"]
+    calls = []
+
+    def cost(values: np.ndarray) -> float:
+        calls.append(values.copy())
+        return 1.0 - 0.9 * max(0.0, 1.0 - abs(values[0] - 7.5) / 0.5) + (values[1] - 1.5) ** 2
+
+    start = np.array([5.0, 1.5])
+    found = first_along_bracket(effect, cost, start, (0.0, 10.0), evaluations=12)
+    assert abs(found[0] - 7.5) < 0.2 and found[1] == 1.5
+    assert len(calls) <= 12 + 1 and all(c[1] == 1.5 for c in calls)
+    assert np.array_equal(first_along_bracket(effect, cost, start, (0.0, 6.0), evaluations=12), start)

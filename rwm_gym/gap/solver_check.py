@@ -4,7 +4,7 @@ The workflow judges the simulator as the user runs it, so it re-simulates with t
 (ANYmal D: 4 warm-started iterations, fast for PPO). Data from that same fast physics are reproduced exactly only so.
 A real robot's physics is no unfinished solve, though, and on its data the fast solver does harm beyond its own small
 gap: each step's solve stops after a few iterations, so a re-simulated window is a rough function of the parameters
-(a least-squares fit of two PD gains stalls 10 % off the truth, where one motor strength fits) and of the noisy start
+(least squares stalls in a narrow valley, which `fit.first_along_bracket` searches first) and of the noisy start
 state (the noise floor rises). So the first selection step is fitted under both solvers (`fit.fit_all` and the
 scoped forms of the best joint effects, the same windows), and the converged solve is taken where the best candidate
 under it leaves a held-out gap `MATERIAL` below the best under the sim's own, at p < `SIGNIFICANCE`
