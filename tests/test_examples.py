@@ -601,3 +601,18 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
             tmp_path / f"{name}.json", tmp_path / f"v23_{name}.json", args, "same-measured-data"
         )
         assert taken == value, name
+
+
+def test_gap_table_shards_split_the_grid_by_case():
+    """Two shards cover every (case, source, robot) job once, each case's rows in one shard, and both data sources
+    in each shard (round-robin over jobs gave one shard every excitation row)."""
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_shards")
+    cases, robots, sources = gap_table.grid(), ["converged", "fast"], ["excitation", "gait"]
+    shards = [gap_table.shard_jobs(cases, robots, sources, f"{i}/2") for i in range(2)]
+    everything = [(c.name, s, r) for c in cases for r in robots for s in sources]
+    assert sorted(j for shard in shards for j in [(c.name, s, r) for c, s, r in shard]) == sorted(everything)
+    for shard in shards:
+        assert {s for _, s, _ in shard} == set(sources)
+        names = {c.name for c, _, _ in shard}
+        assert len(shard) == len(names) * len(robots) * len(sources)
+    assert not {c.name for c, _, _ in shards[0]} & {c.name for c, _, _ in shards[1]}
