@@ -14,6 +14,7 @@ import pytest
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap import solver_check
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import EFFECT_NAMES, combined_physics, parse_effects, vocabulary
 from rwm_gym.gap.fit import FitConfig
@@ -272,7 +273,7 @@ def test_workflow_defaults_fit_two_pd_gains_under_the_sim_envs_own_solver(tmp_pa
 
 
 class _StubResimulator:
-    """What `choose_solver` reads of a re-simulator; its best candidate comes from `_stub_bests`."""
+    """What `choose_solver` reads of a re-simulator (its best candidate is stubbed in the test)."""
 
     def __init__(self, spec=None, xml_file="robot.xml", nthread=1, solver=None):
         self.spec, self.xml_file, self.nthread, self.solver = spec, xml_file, nthread, solver
@@ -283,8 +284,6 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     """Each held-out window's gap is 1.0 under the sim env's own solver; under a converged one `converged_gap`. Half
     the gap is taken (the corrected robot carries the converged settings and the selection the converged fits); 10 %
     less is within `MATERIAL` and the sim env's own solver stays."""
-    from rwm_gym.gap import solver_check
-
     held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
     gaps = {False: 1.0, True: converged_gap}
 
