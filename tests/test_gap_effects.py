@@ -9,7 +9,14 @@ import pytest
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitInputs, first_along_bracket, fit_all, gap_per_window
+from rwm_gym.gap.fit import (
+    FitConfig,
+    FitInputs,
+    cheapest_least_squares,
+    first_along_bracket,
+    fit_all,
+    gap_per_window,
+)
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows
 from rwm_gym.gap.workflow import GapConfig
@@ -153,3 +160,18 @@ def test_a_multi_parameter_fit_first_searches_its_first_parameter_within_the_scr
     assert abs(found[0] - 7.5) < 0.2 and found[1] == 1.5
     assert len(calls) <= 12 + 1 and all(c[1] == 1.5 for c in calls)
     assert np.array_equal(first_along_bracket(effect, cost, start, (0.0, 6.0), evaluations=12), start)
+
+
+def test_least_squares_from_several_starts_keeps_the_cheapest_end():
+    """A cost with two valleys, the deeper at (-1, 0) and a shallower one near (2, 0): least squares from (2.5, 0.3)
+    alone ends in the shallower; from that start and (-0.5, 0.3), in either order, it ends in the deeper."""
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return np.array([(x[0] + 1.0) * (x[0] - 2.0), 0.3 * (x[0] + 1.0), x[1]])
+
+    lows, highs = np.array([-3.0, -1.0]), np.array([3.0, 1.0])
+    shallow, deep = np.array([2.5, 0.3]), np.array([-0.5, 0.3])
+    assert cheapest_least_squares(residual, [shallow], lows, highs, 50)[0] > 1.5
+    for starts in ([shallow, deep], [deep, shallow]):
+        found = cheapest_least_squares(residual, starts, lows, highs, 50)
+        assert np.allclose(found, [-1.0, 0.0], atol=1e-3)

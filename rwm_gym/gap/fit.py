@@ -4,7 +4,8 @@ Fitting (training episodes): the residual vector is the normalised state error o
 `fit_horizon` steps. Every effect is screened on a coarse grid of its first parameter; the `refine_top` best are
 refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay, the
 solver's iteration counts and cone) on their steps, other multi-parameter ones by a Brent search of the first parameter
-within its screening bracket and then `scipy.optimize.least_squares`.
+within its screening bracket and then `scipy.optimize.least_squares`, from that point and from the screened one if the
+search moved it (the cheaper end is kept: on a cost with two valleys either start can land in the worse).
 Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
@@ -250,16 +251,10 @@ def fit_effect(
     else:
         lows = np.array([p.low for p in effect.parameters])
         highs = np.array([p.high for p in effect.parameters])
-        values = first_along_bracket(effect, cost, np.clip(start, lows, highs), bracket, SCALAR_FIRST_EVALUATIONS)
-        found = optimize.least_squares(
-            residual,
-            values,
-            bounds=(lows, highs),
-            x_scale=highs - lows,
-            diff_step=1e-2,
-            max_nfev=max(budget // 2, 1),
-        )
-        values = found.x
+        screened = np.clip(start, lows, highs)
+        along = first_along_bracket(effect, cost, screened, bracket, SCALAR_FIRST_EVALUATIONS)
+        starts = [along] if np.array_equal(along, screened) else [along, screened]
+        values = cheapest_least_squares(residual, starts, lows, highs, max(budget // 2, 1))
     r_star = residual(values)
     return CandidateFit(
         effect.name,
@@ -299,6 +294,21 @@ def first_along_bracket(
         options={"xatol": 5e-3 * (first.high - first.low), "maxiter": evaluations},
     )
     return np.concatenate([[found.x], start[1:]]) if found.fun < cost(start) else start
+
+
+def cheapest_least_squares(
+    residual, starts: list[np.ndarray], lows: np.ndarray, highs: np.ndarray, evaluations: int
+) -> np.ndarray:
+    """The cheapest end of `scipy.optimize.least_squares` run from each of `starts` within the bounds. On a cost with
+    two valleys either start can land in the worse one (a base-velocity bias at 1x on walking data: 0.130 m/s from the
+    bracket's best point, training cost 0.00219; 0.105 from the screened point, 0.00214; the truth 0.1)."""
+    ends = [
+        optimize.least_squares(
+            residual, x0, bounds=(lows, highs), x_scale=highs - lows, diff_step=1e-2, max_nfev=evaluations
+        )
+        for x0 in starts
+    ]
+    return min(ends, key=lambda found: found.cost).x
 
 
 def discrete_search(effect: Effect, cost, start: np.ndarray, bracket: tuple[float, float]) -> np.ndarray:
