@@ -1232,11 +1232,20 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
         assert selection.reason.startswith("explains 91%") and "; then: held-out gap 0.5 is not" in selection.reason
 
 
-@pytest.mark.parametrize("alike,named", [(True, "motor_strength"), (False, "pd_gains")])
-def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monkeypatch, alike, named):
-    """Motor strength 0.8 + joint friction + encoder offsets on excitation data: PD gains (kp 0.80, kd 1.05) were
+@pytest.mark.parametrize(
+    "p_value,costs,named",
+    [
+        (0.4, (0.30, 0.34), "motor_strength"),  # held-out gaps alike
+        (1e-4, (0.30, 0.32), "motor_strength"),  # the extra parameter fits the training windows less than its charge
+        (1e-4, (0.30, 0.34), "pd_gains"),  # and more
+    ],
+)
+def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monkeypatch, p_value, costs, named):
+    """Motor strength 0.8 + joint friction + encoder offsets on excitation data: PD gains (kp 0.77, kd 1.00) were
     named in place of the weaker motor, the extra parameter absorbing part of the friction. The simpler effect,
-    fitted in its place and refitted with the others, is named where its held-out gap is not significantly larger."""
+    fitted in its place and refitted with the others, is named where its held-out gap is not significantly larger,
+    or where its training cost is within the charge for the parameter it lacks (`costs`: named set's, simpler
+    set's; 10 % per parameter)."""
     from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
@@ -1252,7 +1261,8 @@ def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monk
     monkeypatch.setattr(select, "fit_all", lambda effects, *args, **kw: [fitted(n, [0.8]) for n in effects])
     monkeypatch.setattr(select, "joint_refit", joint_refit)
     monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.3))
-    monkeypatch.setattr(select, "paired_p_value", lambda larger, smaller, *args: 0.4 if alike else 1e-4)
+    monkeypatch.setattr(select, "paired_p_value", lambda larger, smaller, *args: p_value)
+    monkeypatch.setattr(select, "training_cost", lambda search, params: costs[params.motor_strength == 0.8])
     effects = {n: EFFECTS[n] for n in ("encoder_offset", "pd_gains", "motor_strength")}
     search = select._Search(
         effects,
@@ -1275,6 +1285,8 @@ def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monk
     assert [e.name for e, _ in result] == ["encoder_offset", named]
     assert [(c["effect"], c["simpler"], c["named"]) for c in checks] == [("pd_gains", "motor_strength", named)]
     assert checks[0]["gap_simpler"] == pytest.approx(0.21) and checks[0]["gap"] == pytest.approx(0.2)
+    assert (checks[0]["training_cost"], checks[0]["training_cost_simpler"]) == costs
+    alike = named == "motor_strength"
     assert (params.motor_strength == 0.8) == alike and (gap.mean() == pytest.approx(0.21)) == alike
 
 
@@ -1293,3 +1305,19 @@ def test_the_floor_of_a_simulator_is_computed_once_for_the_step_and_the_residual
     for params in (damped, PhysicsParams(joint_damping=1.0), stiff, damped, slow, damped):
         floor_of(params)
     assert computed == [damped, stiff, slow, damped]  # the last two are kept
+
+
+def test_the_training_cost_of_a_simulator_is_what_the_fits_minimise(tmp_path):
+    """`select.training_cost` of the simulator with an effect at given values is that effect's fit cost there, and
+    lower at the hidden truth (a weak motor) than at the nominal robot."""
+    from rwm_gym.gap import select
+
+    data = Dataset.load(make_measured({"motor_strength": [0.8]}, 2, tmp_path / "m.h5", max_steps=40, progress=False))
+    config = FitConfig()
+    train = make_windows(data, np.arange(2), config.fit_horizon, 8)
+    resim = Resimulator(SPEC)
+    search = select._Search(EFFECTS, SPEC, resim, train, None, PhysicsParams(), None, config, False, None)
+    effect = EFFECTS["motor_strength"]
+    fit = fit_effect(effect, resim, train, PhysicsParams(), config, np.array([0.8]), (0.75, 0.85))
+    assert select.training_cost(search, effect.physics(np.array(fit.values))) == pytest.approx(fit.train_cost)
+    assert select.training_cost(search, effect.physics(np.array([0.8]))) < select.training_cost(search, PhysicsParams())
