@@ -377,9 +377,7 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 24: a multi-parameter effect's least-squares fit starts from a Brent search of its first parameter
     #             within the screening bracket (fit.first_along_bracket); every row can differ from version 23
     # version 25: where that search moved the start, least squares also runs from the screened point and the cheaper
-    #             end is kept (fit.cheapest_least_squares); a named effect also gives way to a simpler one it holds
-    #             where the simpler one's training cost is within the charge for the parameters it lacks
-    #             (select.prefer_simpler); every row can differ from version 24
+    #             end is kept (fit.cheapest_least_squares); every row can differ from version 24
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,

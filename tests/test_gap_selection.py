@@ -1236,16 +1236,14 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     "p_value,costs,named",
     [
         (0.4, (0.30, 0.34), "motor_strength"),  # held-out gaps alike
-        (1e-4, (0.30, 0.32), "motor_strength"),  # the extra parameter fits the training windows less than its charge
-        (1e-4, (0.30, 0.34), "pd_gains"),  # and more
+        (1e-4, (0.30, 0.29), "pd_gains"),  # the training costs are recorded; the held-out test decides
     ],
 )
 def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monkeypatch, p_value, costs, named):
     """Motor strength 0.8 + joint friction + encoder offsets on excitation data: PD gains (kp 0.77, kd 1.00) were
     named in place of the weaker motor, the extra parameter absorbing part of the friction. The simpler effect,
-    fitted in its place and refitted with the others, is named where its held-out gap is not significantly larger,
-    or where its training cost is within the charge for the parameter it lacks (`costs`: named set's, simpler
-    set's; 10 % per parameter)."""
+    fitted in its place and refitted with the others, is named where its held-out gap is not significantly larger;
+    both sets' training costs (`costs`: named, simpler) are recorded beside."""
     from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
