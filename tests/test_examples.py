@@ -578,12 +578,14 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     assert not gap_table.REUSABLE["one-effect-left-at-its-floor"]({**left, "named": [["payload", "global"]]})
     assert not gap_table.REUSABLE["one-effect-left-at-its-floor"]({**left, "named": [["joint_damping", "leg"]]})
     # a step after a naming that stopped at its floor test fits the candidates now; other stops cannot differ
-    below = "held-out gap 0.05 is not significantly above the sensor-noise floor 0.01 (ratio 4.3, p=0.019)"
+    below = "held-out gap 0.05 is not above the sensor-noise floor 0.01 (p=0.019 >= 0.01)"
+    old_wording = "held-out gap 0.05 is not significantly above the sensor-noise floor 0.01 (ratio 4.3, p=0.019)"
     step_1 = "explains 90% of the gap above the noise floor (p=0.001)"
     reach = gap_table.REUSABLE["cross-fitting-cannot-change"]
     one = {"named": [["payload", "global"]], "reason": f"{step_1}; then: {below}"}
     two = {"named": [["payload", "global"], ["armature", "global"]], "reason": f"named in order: a, b; {below}"}
     assert not reach(one) and not reach(two)
+    assert not reach({**one, "reason": f"{step_1}; then: {old_wording}"})  # rows written before the wording changed
     assert reach({**one, "reason": f"{step_1}; then: best candidate armature (global) explains 7%"})
     assert reach({**two, "named": [*two["named"], ["joint_damping", "global"]]})  # no step after the third
     assert reach({"named": [], "reason": below})

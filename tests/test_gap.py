@@ -416,9 +416,11 @@ def test_cli_without_effect_says_none(tmp_path, capsys):
     assert main(["gap", "--sim", SIM, "--measured", str(measured), "--out", str(out), "--world-model", "none"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["effect"] == "none" and report["parameters"] == {} and report["effects"] == []
-    floor = report["noise_floor"]  # no effect: the gap is not significantly above the sensor-noise floor
+    floor = report["noise_floor"]  # no effect: the gap is not above the sensor-noise floor
     assert not floor["above_floor"] and floor["floor"] > 0 and "Wilcoxon" in floor["test"]
-    assert "not significantly above the sensor-noise floor" in report["reason"]
+    assert "is not above the sensor-noise floor" in report["reason"]
+    assert ("< 1.2" in report["reason"]) == (floor["ratio"] < 1.2)  # the reason names the parts of the test that failed
+    assert (">= 0.01" in report["reason"]) == (floor["p_value"] >= 0.01)
     assert report["learned_correction"] is None and set(report["identifiability"]) == set(EFFECT_NAMES)
     assert report["solver"]["check"]["checked"]  # the defaults: the sim env's own solver, checked
     missing = tmp_path / "missing.safetensors"

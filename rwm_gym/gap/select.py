@@ -365,12 +365,12 @@ def select_effects(
         steps.append(step)
         below = not test["above_floor"]
         if below:
-            reason = _below_floor(test)
+            reason = _below_floor(test, floor_config)
             if k > 0:
                 wide = _floor_test_on_every_episode(search, params, current, step_floor)
                 step["floor_test_every_episode"] = wide
                 if wide is None or not wide["above_floor"]:
-                    reason += "" if wide is None else f"; on every episode: {_below_floor(wide, 'gap')}"
+                    reason += "" if wide is None else f"; on every episode: {_below_floor(wide, floor_config, 'gap')}"
                     break
         judged = _judge_step(search, k, below, named, earlier, params, current, step_floor)
         earlier = _ranked(judged.candidates)
@@ -409,12 +409,12 @@ def _floor_test_on_every_episode(
     )
 
 
-def _below_floor(test: dict, gap: str = "held-out gap") -> str:
-    """Why a gap is not above the noise floor, from `compare_with_floor`'s test."""
-    return (
-        f"{gap} {test['gap']:.4g} is not significantly above the sensor-noise floor "
-        f"{test['floor']:.4g} (ratio {test['ratio']:.2f}, p={test['p_value']:.2g})"
-    )
+def _below_floor(test: dict, config: FloorConfig, gap: str = "held-out gap") -> str:
+    """Why a gap is not above the noise floor, from `compare_with_floor`'s test: the parts of it that failed."""
+    failed = [f"ratio {test['ratio']:.2f} < {config.min_ratio}"] if not test["ratio"] >= config.min_ratio else []
+    if not test["p_value"] < config.significance:
+        failed.append(f"p={test['p_value']:.2g} >= {config.significance}")
+    return f"{gap} {test['gap']:.4g} is not above the sensor-noise floor {test['floor']:.4g} ({'; '.join(failed)})"
 
 
 def _ranked(candidates: list[Candidate]) -> list[Candidate]:
