@@ -378,11 +378,15 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             within the screening bracket (fit.first_along_bracket); every row can differ from version 23
     # version 25: where that search moved the start, least squares also runs from the screened point and the cheaper
     #             end is kept (fit.cheapest_least_squares); every row can differ from version 24
+    # version 26: where the solver check kept the sim env's own solver and effects were named, they are refitted
+    #             together under a converged solve, and the selection runs again under it where that fits
+    #             materially better (solver_check.recheck_with_named); only rows that named an effect can differ
+    #             from version 25
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 25,
+        "version": 26,
     }
 
 

@@ -4,6 +4,7 @@ magnitudes, `slow`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -302,11 +303,53 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     monkeypatch.setattr(solver_check, "is_converged", lambda resim: False)
     monkeypatch.setattr(solver_check, "Resimulator", _StubResimulator)
     own = _StubResimulator()
-    resim, check, memo = solver_check.choose_solver(own, None, held, PhysicsParams(), FitConfig(), progress=False)
+    choice = solver_check.choose_solver(own, None, held, PhysicsParams(), FitConfig(), progress=False)
+    check = choice.check
     assert check["checked"] and check["taken"] == taken, check["reason"]
-    assert (resim is own) == (taken == "own")
-    assert memo == f"memo of {gaps[taken == 'converged']}"
-    assert solver_check.corrected_solver(resim, check) == (resim.solver if taken == "converged" else None)
+    assert (choice.resim is own) == (taken == "own")
+    assert choice.first_step == f"memo of {gaps[taken == 'converged']}"
+    assert (choice.converged is None) == (taken == "converged")
+    assert solver_check.corrected_solver(choice.resim, check) == (choice.resim.solver if taken == "converged" else None)
+
+
+@pytest.mark.parametrize(("converged_gap", "taken"), [(0.6, "converged"), (0.9, "own")])
+def test_solver_recheck_takes_a_converged_solve_where_the_named_effects_fit_materially_better(
+    monkeypatch, converged_gap, taken
+):
+    """The check kept the sim env's own solver; the selection under it named two effects, which leave a held-out
+    gap of 1.0 per window. Refitted together under the converged solve (from their values under the own) they leave
+    `converged_gap`: 40 % less takes the converged solve and its first step's fits, 10 % less keeps the own; the
+    check records the test either way."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+    ripple = 1 + 0.1 * (np.arange(len(held.start)) % 3)
+    starts = []
+
+    def fit_effect(effect, resim, train, base, config, start, bracket, max_evaluations=None):
+        starts.append(np.asarray(start))
+        return SimpleNamespace(status="ok", values=np.asarray(start) * 1.1)
+
+    class Converged(_StubResimulator):
+        def rollout(self, windows, params):
+            return params
+
+    monkeypatch.setattr(solver_check, "fit_effect", fit_effect)
+    monkeypatch.setattr(
+        solver_check, "gap_per_window", lambda spec, sim, held: np.outer(converged_gap * ripple, [1, 1])
+    )
+    own, other = _StubResimulator(), Converged()
+    choice = solver_check.SolverChoice(own, {"checked": True, "taken": "own", "reason": "fitted alone"}, "own memo")
+    choice = dataclasses.replace(choice, converged=(other, "converged memo"))
+    vocab = vocabulary(SPEC, None, None)
+    named = [(vocab[n], SimpleNamespace(values=v)) for n, v in (("joint_friction", [2.0]), ("motor_strength", [0.8]))]
+    gap_after = np.outer(ripple, [1, 1])
+    rechecked = solver_check.recheck_with_named(choice, named, None, held, PhysicsParams(), gap_after, FitConfig())
+    np.testing.assert_allclose(starts[0], [2.0, 0.8])
+    named_set = rechecked.check["named_set"]
+    assert named_set["effects"] == ["joint_friction", "motor_strength"] and named_set["taken"] == taken
+    assert rechecked.check["taken"] == taken, named_set["reason"]
+    assert (rechecked.resim is other, rechecked.first_step) == (
+        (True, "converged memo") if taken == "converged" else (False, "own memo")
+    )
 
 
 @pytest.mark.slow

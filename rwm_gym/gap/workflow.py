@@ -43,7 +43,13 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
 from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
 from rwm_gym.gap.select import CrossFit, Selection, select_effects
-from rwm_gym.gap.solver_check import choose_solver, corrected_solver, solver_settings
+from rwm_gym.gap.solver_check import (
+    SolverChoice,
+    choose_solver,
+    corrected_solver,
+    recheck_with_named,
+    solver_settings,
+)
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
 from rwm_gym.physics.params import PhysicsParams, SolverSettings
@@ -78,6 +84,22 @@ class GapConfig:
     """Resamples of the fitting episodes (drawn with replacement) on which the named effects are refitted, for the
     bootstrap std and 95 % interval of each fitted value in the report (`gap.bootstrap`; 0: none). Each costs about
     one local fit."""
+
+
+@dataclass
+class _Selected:
+    """What the workflow found under one solver: the vocabulary, the nominal re-simulation and its gap, the sensor
+    noise check, the floor and its test, and the selection."""
+
+    effects: dict
+    nominal_sim: np.ndarray
+    before: np.ndarray
+    noise_check: dict
+    floor_noise: SensorNoise
+    floor: np.ndarray
+    floor_test: dict
+    floor_of: Callable[[PhysicsParams], np.ndarray]
+    selection: Selection
 
 
 def scored_horizon(data: Dataset, held_ids: np.ndarray, warmup: int) -> int:
@@ -130,63 +152,81 @@ def run_gap(
     resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=core.solver.then(config.solver))
     held, dropped_held = drop_diverged(resim, held, base, measured)
     train, dropped_train = drop_diverged(resim, train, base, measured)
-    solver_check = {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}
-    first_step = None  # the check's fits under the solver it took, which selection's first step takes
-    if config.solver_check:
-        resim, solver_check, first_step = choose_solver(resim, train, held, base, fit_config, progress)
-    effects = vocabulary(spec, sim_kwargs.get("xml_file"), resim.solver)
-    nominal_sim = resim.rollout(held, base)
-    before = gap_per_window(spec, nominal_sim, held)
-    noise_check = sensor_noise_check(resim, data, held, base, sensor_noise)
-    floor_noise = noise_check.pop("floor_noise")
-    floor = noise_floor(resim, held, base, floor_noise, floor_config)
-    floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
-    # a step may test its best candidate, or a later step its gap, on every episode, and so may the test of two rivals
-    cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
-    floor_of = _floor_of(resim, held, floor_noise, floor_config)
-    selection = select_effects(
-        effects,
-        spec,
-        resim,
-        train,
-        held,
-        base,
-        before,
-        floor,
-        fit_config,
-        floor_config,
-        progress,
-        cross,
-        first_step,
-        floor_of=floor_of,
+    choice = SolverChoice(
+        resim, {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}, None
     )
+    if config.solver_check:
+        choice = choose_solver(resim, train, held, base, fit_config, progress)
+
+    def select_under(choice: SolverChoice) -> _Selected:
+        resim = choice.resim
+        effects = vocabulary(spec, sim_kwargs.get("xml_file"), resim.solver)
+        nominal_sim = resim.rollout(held, base)
+        before = gap_per_window(spec, nominal_sim, held)
+        noise_check = sensor_noise_check(resim, data, held, base, sensor_noise)
+        floor_noise = noise_check.pop("floor_noise")
+        floor = noise_floor(resim, held, base, floor_noise, floor_config)
+        floor_test = compare_with_floor(before, floor, held, fit_config.block_rows, floor_config)
+        # a step may test its best candidate, or a later step its gap, on every episode, and so may the test of two
+        # rivals
+        cross = _cross_fit_windows(resim, data, train_ids, held_ids, horizon, base, measured, config, fit_config)
+        floor_of = _floor_of(resim, held, floor_noise, floor_config)
+        selection = select_effects(
+            effects,
+            spec,
+            resim,
+            train,
+            held,
+            base,
+            before,
+            floor,
+            fit_config,
+            floor_config,
+            progress,
+            cross,
+            choice.first_step,
+            floor_of=floor_of,
+        )
+        return _Selected(effects, nominal_sim, before, noise_check, floor_noise, floor, floor_test, floor_of, selection)
+
+    chosen = select_under(choice)
+    if chosen.selection.named:
+        rechecked = recheck_with_named(
+            choice, chosen.selection.named, train, held, base, chosen.selection.gap_after, fit_config
+        )
+        if rechecked.resim is not choice.resim:
+            chosen = select_under(rechecked)
+        choice = rechecked
+    resim, selection, floor = choice.resim, chosen.selection, chosen.floor
     corrected_params, after = selection.params, selection.gap_after
     spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
-    carried = corrected_params.replace(solver=corrected_solver(resim, solver_check))  # what the corrected env runs
-    corrected_floor, residual = _residual(held, selection, floor, after, floor_of, fit_config, floor_config)
+    carried = corrected_params.replace(solver=corrected_solver(resim, choice.check))  # what the corrected env runs
+    corrected_floor, residual = _residual(held, selection, floor, after, chosen.floor_of, fit_config, floor_config)
     learned = None
-    if config.learned_correction and floor_test["above_floor"] and residual["above_floor"]:
+    if config.learned_correction and chosen.floor_test["above_floor"] and residual["above_floor"]:
         learned = learned_section(
             resim, train, held, corrected_params, after, corrected_floor, out, learned_config, fit_config, floor_config
         )
-    corrected_sim = resim.rollout(held, corrected_params) if selection.named else nominal_sim
+    corrected_sim = resim.rollout(held, corrected_params) if selection.named else chosen.nominal_sim
 
-    plots, located = _plots(spec, held, horizon, nominal_sim, corrected_sim, before, out)
+    plots, located = _plots(spec, held, horizon, chosen.nominal_sim, corrected_sim, chosen.before, out)
     report = {
         **named_section(selection, spread),
         "bootstrap": spread,
-        **_gap_numbers(before, after, gap_horizons(horizon)),
+        **_gap_numbers(chosen.before, after, gap_horizons(horizon)),
         "noise_floor": {
-            **floor_test,
+            **chosen.floor_test,
             "sensor_noise": dataclasses.asdict(sensor_noise),
-            "floor_sensor_noise": dataclasses.asdict(floor_noise),
-            "noise_check": noise_check,
+            "floor_sensor_noise": dataclasses.asdict(chosen.floor_noise),
+            "noise_check": chosen.noise_check,
             "method": "nominal re-simulation of the held-out windows read through the sensor-noise "
             f"model and re-simulated again, mean of {floor_config.draws} draws",
         },
         "residual": residual,
         "dropped_windows": {"held_out": dropped_held, "fitting": dropped_train},
-        "identifiability": identifiability(effects, resim, held, base, nominal_sim, floor_test["floor"]),
+        "identifiability": identifiability(
+            chosen.effects, resim, held, base, chosen.nominal_sim, chosen.floor_test["floor"]
+        ),
         "where": located,
         "selection_steps": selection.steps,
         "candidates": selection.steps[0]["candidates"],
@@ -198,7 +238,7 @@ def run_gap(
         "corrected": write_corrected(spec, carried, out, sim_kwargs.get("xml_file"), sim_kwargs),
         "plots": plots,
         "sim": sim,
-        "solver": {**solver_settings(resim), "source": solver_source(config), "check": solver_check},
+        "solver": {**solver_settings(resim), "source": solver_source(config), "check": choice.check},
         "measured": str(measured),
         "config": {
             "gap": dataclasses.asdict(config),
