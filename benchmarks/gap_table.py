@@ -283,6 +283,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "identifiable": {k: v["identifiable"] for k, v in report["identifiability"].items()},
         "signal_to_floor": {k: v["signal_to_floor"] for k, v in report["identifiability"].items()},
         "rejected_points": len(report["rejected"]),
+        "solver_taken": report["solver"]["check"]["taken"],
         "wall_s": time.time() - start,
         "settings": settings(args, case),
     }
