@@ -29,7 +29,7 @@ from rwm_gym.model.factory import model_config_for
 from rwm_gym.model.train import train
 from rwm_gym.physics.backlash import DeadBand
 from rwm_gym.physics.locomotion import LocomotionEnv
-from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, build_model
+from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, SolverSettings, build_model
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -350,6 +350,48 @@ def test_solver_recheck_takes_a_converged_solve_where_the_named_effects_fit_mate
     assert (rechecked.resim is other, rechecked.first_step) == (
         (True, "converged memo") if taken == "converged" else (False, "own memo")
     )
+
+
+@pytest.mark.parametrize(
+    ("iterations", "converged_gap", "taken"), [(40, 0.95, "converged"), (40, 1.05, "own"), (4, 0.5, None)]
+)
+def test_solver_recheck_after_a_finer_contact_solver_was_named(monkeypatch, iterations, converged_gap, taken):
+    """Joint friction and a contact solver of `iterations` were named under the sim env's own solver (4 iterations).
+    More iterations already say the own solver is too coarse: friction alone is refitted under the converged solve,
+    which is taken where it leaves no more than the named pair (no material margin needed). A contact solver of the
+    own iteration count (no-slip or cone only) is no change a converged solve makes, so there is nothing to test."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+    refitted = []
+
+    def fit_effect(effect, resim, train, base, config, start, bracket, max_evaluations=None):
+        refitted.append([p.name for p in effect.parameters])
+        return SimpleNamespace(status="ok", values=np.asarray(start))
+
+    class Converged(_StubResimulator):
+        def rollout(self, windows, params):
+            return params
+
+    monkeypatch.setattr(solver_check, "fit_effect", fit_effect)
+    monkeypatch.setattr(
+        solver_check, "gap_per_window", lambda spec, sim, held: np.full((len(held.start), 2), converged_gap)
+    )
+    own, other = _StubResimulator(), Converged()
+    choice = solver_check.SolverChoice(own, {"checked": True, "taken": "own", "reason": "fitted alone"}, "own memo")
+    choice = dataclasses.replace(choice, converged=(other, "converged memo"))
+    vocab = vocabulary(SPEC, None, SolverSettings(iterations=4))
+    named = [
+        (vocab["joint_friction"], SimpleNamespace(values=[2.0])),
+        (vocab["contact_solver"], SimpleNamespace(values=[iterations, 0, 0])),
+    ]
+    gap_after = np.ones((len(held.start), 2))
+    rechecked = solver_check.recheck_with_named(choice, named, None, held, PhysicsParams(), gap_after, FitConfig())
+    if taken is None:
+        assert rechecked is choice and not refitted
+        return
+    assert refitted == [["joint_friction"]]
+    assert rechecked.check["named_set"]["refitted"] == ["joint_friction"]
+    assert rechecked.check["taken"] == taken, rechecked.check["named_set"]["reason"]
+    assert (rechecked.resim is other) == (taken == "converged")
 
 
 @pytest.mark.slow

@@ -151,37 +151,55 @@ def recheck_with_named(
     """After a selection under the sim env's own solver: the `named` effects refitted together under the converged
     solve (from their values under the own), scored on the held-out windows against their gap under the own
     (`gap_after`, (W, horizons)). The converged choice, to select again with, where that is `MATERIAL` lower at
-    p < `SIGNIFICANCE`; else `choice` as it was. Either way its check records the test ("named_set")."""
-    if choice.converged is None or not named or any(e.name == "contact_solver" for e, _ in named):
+    p < `SIGNIFICANCE`; else `choice` as it was. Either way its check records the test ("named_set").
+
+    A named `contact_solver` with more iterations already says the own solver is too coarse for the data: the other
+    named effects are refitted under the converged solve, which is taken where it leaves no more than the named set.
+    A `contact_solver` of no-slip iterations or the cone alone is no change a converged solve makes: no check."""
+    if choice.converged is None or not named:
+        return choice
+    finer = next(((e, f) for e, f in named if e.name == "contact_solver"), None)
+    effects = [(e, f) for e, f in named if e.name != "contact_solver"]
+    if finer is not None and round(finer[1].values[0]) <= finer[0].parameters[0].nominal:
         return choice
     other, memo = choice.converged
-    combined = combine(named)
-    start = np.concatenate([fit.values for _, fit in named])
     own = gap_after.mean(1)
-    fit = fit_effect(
-        combined, other, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
-    )
-    conv, reason = None, f"the named effects' refit under the converged solve failed ({fit.status})"
-    if fit.status == "ok":
+    start = np.concatenate([fit.values for _, fit in effects]) if effects else np.zeros(0)
+    values, conv, reason = start, None, ""
+    if effects:
+        combined = combine(effects)
+        fit = fit_effect(
+            combined, other, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
+        )
+        values, params = fit.values, combined.physics(fit.values, base)
+        if fit.status != "ok":
+            reason = f"the named effects' refit under the converged solve failed ({fit.status})"
+    else:
+        params = base
+    if not reason:
         try:
-            conv = gap_per_window(other.spec, other.rollout(held, combined.physics(fit.values, base)), held).mean(1)
+            conv = gap_per_window(other.spec, other.rollout(held, params), held).mean(1)
         except SimulationDiverged as err:
             reason = f"the named effects blow up under the converged solve ({err.reason})"
+    p, take = float("nan"), False
     if conv is not None:
         p = paired_p_value(own, conv, held, config.block_rows, SIGNIFICANCE)
-        take = conv.mean() <= (1.0 - MATERIAL) * own.mean() and p < SIGNIFICANCE
+        names = ", ".join(e.name for e, _ in effects) or "none"
+        if finer is None:
+            take = conv.mean() <= (1.0 - MATERIAL) * own.mean() and p < SIGNIFICANCE
+            than = f"materially better than under the sim env's own solver (gap {own.mean():.4g}; needs {MATERIAL:.0%}"
+            than += f" lower at p<{SIGNIFICANCE:.2g}, p={p:.2g})"
+        else:
+            take = conv.mean() <= own.mean()
+            than = f"as well as with the finer contact solver named (gap {own.mean():.4g})"
         verb = "reproduce" if take else "do not reproduce"
-        reason = (
-            f"refitted together under a converged solve, the named effects ({', '.join(e.name for e, _ in named)}; "
-            f"gap {conv.mean():.4g}) {verb} the data materially better than under the sim env's own solver (gap "
-            f"{own.mean():.4g}; needs {MATERIAL:.0%} lower at p<{SIGNIFICANCE:.2g}, p={p:.2g})"
-        )
-    else:
-        p, take = float("nan"), False
+        reason = f"refitted together under a converged solve, the named effects ({names}; gap {conv.mean():.4g}) "
+        reason += f"{verb} the data {than}"
     named_set = {
         "effects": [e.name for e, _ in named],
+        "refitted": [e.name for e, _ in effects],
         "values_own": [float(v) for v in start],
-        "values_converged": [float(v) for v in fit.values],
+        "values_converged": [float(v) for v in values],
         "held_out_gap_own": float(own.mean()),
         "held_out_gap_converged": float(conv.mean()) if conv is not None else None,
         "p_value": p,
