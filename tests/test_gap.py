@@ -266,11 +266,15 @@ def test_workflow_names_hidden_effect_fits_it_and_shrinks_the_gap(tmp_path, name
 def test_workflow_defaults_fit_two_pd_gains_under_the_sim_envs_own_solver(tmp_path):
     """The workflow's defaults on a converged robot with PD gains off (kp 0.7x): under the sim env's own solver (4
     iterations) the two gains' cost is rough, and the fit, which searches kp within its screening bracket before least
-    squares, still finds them, so the solver check keeps the sim env's own solver and names them under it."""
+    squares, still finds them, so the solver check keeps the sim env's own solver and names them under it, and the
+    named gains refitted under a converged solve keep it too."""
     report = _hidden_and_check(tmp_path, "pd_gains", config=GapConfig())
     check = report["solver"]["check"]
     assert check["checked"] and check["own"]["best_effect"] == "pd_gains", check["reason"]
     assert check["taken"] == "own" and report["solver"]["iterations"] < CONVERGED_SOLVER.iterations
+    # the named gains refitted under the converged solve do not fit materially better either, and the report says so
+    assert check["named_set"]["effects"] == ["pd_gains"] and check["named_set"]["taken"] == "own"
+    assert check["named_set"]["reason"] in (tmp_path / "report" / "report.md").read_text()
 
 
 class _StubResimulator:

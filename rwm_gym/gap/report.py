@@ -108,9 +108,12 @@ def _solver(solver: dict | None) -> list[str]:
         return []
     check = solver.get("check", {})
     taken = "a converged solve" if check.get("taken") == "converged" else solver["source"]
+    reason = check.get("reason", "")
+    if check.get("named_set", {}).get("taken") == "own":
+        reason += f"; {check['named_set']['reason']}"
     return [
         f"Re-simulated with {taken} ({solver['iterations']} iterations, {solver['ls_iterations']} line-search, "
-        f"{solver['noslip_iterations']} no-slip, {solver['cone']} cone): {check.get('reason', '')}.\n"
+        f"{solver['noslip_iterations']} no-slip, {solver['cone']} cone): {reason}.\n"
     ]
 
 
