@@ -316,38 +316,49 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     assert solver_check.corrected_solver(choice.resim, check) == (choice.resim.solver if taken == "converged" else None)
 
 
+class _ConvergedStub(_StubResimulator):
+    """A converged re-simulator whose rollout hands the physics to the stubbed gap (`_recheck_inputs`)."""
+
+    def rollout(self, windows, params):
+        return params
+
+
+def _recheck_inputs(monkeypatch, converged_gap: np.ndarray, refitted: list):
+    """Held-out windows of 4 episodes, a check that kept the sim env's own solver with a converged alternative, and a
+    converged solve whose every window's gap is `converged_gap` (W,); the refit under it returns its start and
+    records the parameter names it fitted in `refitted`."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+
+    def fit_effect(effect, resim, train, base, config, start, bracket, max_evaluations=None):
+        refitted.append(([p.name for p in effect.parameters], np.asarray(start)))
+        return SimpleNamespace(status="ok", values=np.asarray(start))
+
+    monkeypatch.setattr(solver_check, "fit_effect", fit_effect)
+    monkeypatch.setattr(solver_check, "gap_per_window", lambda spec, sim, held: np.outer(converged_gap, [1, 1]))
+    other = _ConvergedStub()
+    choice = solver_check.SolverChoice(
+        _StubResimulator(), {"checked": True, "taken": "own", "reason": "fitted alone"}, "own memo"
+    )
+    return held, other, dataclasses.replace(choice, converged=(other, "converged memo"))
+
+
 @pytest.mark.parametrize(("converged_gap", "taken"), [(0.6, "converged"), (0.9, "own")])
 def test_solver_recheck_takes_a_converged_solve_where_the_named_effects_fit_materially_better(
     monkeypatch, converged_gap, taken
 ):
     """The check kept the sim env's own solver; the selection under it named two effects, which leave a held-out
-    gap of 1.0 per window. Refitted together under the converged solve (from their values under the own) they leave
-    `converged_gap`: 40 % less takes the converged solve and its first step's fits, 10 % less keeps the own; the
-    check records the test either way."""
-    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
-    ripple = 1 + 0.1 * (np.arange(len(held.start)) % 3)
-    starts = []
-
-    def fit_effect(effect, resim, train, base, config, start, bracket, max_evaluations=None):
-        starts.append(np.asarray(start))
-        return SimpleNamespace(status="ok", values=np.asarray(start) * 1.1)
-
-    class Converged(_StubResimulator):
-        def rollout(self, windows, params):
-            return params
-
-    monkeypatch.setattr(solver_check, "fit_effect", fit_effect)
-    monkeypatch.setattr(
-        solver_check, "gap_per_window", lambda spec, sim, held: np.outer(converged_gap * ripple, [1, 1])
-    )
-    own, other = _StubResimulator(), Converged()
-    choice = solver_check.SolverChoice(own, {"checked": True, "taken": "own", "reason": "fitted alone"}, "own memo")
-    choice = dataclasses.replace(choice, converged=(other, "converged memo"))
+    gap of about 1.0 per window. Refitted together under the converged solve (from their values under the own) they
+    leave `converged_gap` times that: 40 % less takes the converged solve and its first step's fits, 10 % less keeps
+    the own; the check records the test either way."""
+    ripple = 1 + 0.1 * (np.arange(32) % 3)
+    refitted = []
+    held, other, choice = _recheck_inputs(monkeypatch, converged_gap * ripple, refitted)
     vocab = vocabulary(SPEC, None, None)
     named = [(vocab[n], SimpleNamespace(values=v)) for n, v in (("joint_friction", [2.0]), ("motor_strength", [0.8]))]
     gap_after = np.outer(ripple, [1, 1])
     rechecked = solver_check.recheck_with_named(choice, named, None, held, PhysicsParams(), gap_after, FitConfig())
-    np.testing.assert_allclose(starts[0], [2.0, 0.8])
+    assert refitted[0][0] == ["joint_friction", "motor_strength"]
+    np.testing.assert_allclose(refitted[0][1], [2.0, 0.8])
     named_set = rechecked.check["named_set"]
     assert named_set["effects"] == ["joint_friction", "motor_strength"] and named_set["taken"] == taken
     assert rechecked.check["taken"] == taken, named_set["reason"]
@@ -364,35 +375,19 @@ def test_solver_recheck_after_a_finer_contact_solver_was_named(monkeypatch, iter
     More iterations already say the own solver is too coarse: friction alone is refitted under the converged solve,
     which is taken where it leaves no more than the named pair (no material margin needed). A contact solver of the
     own iteration count (no-slip or cone only) is no change a converged solve makes, so there is nothing to test."""
-    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
     refitted = []
-
-    def fit_effect(effect, resim, train, base, config, start, bracket, max_evaluations=None):
-        refitted.append([p.name for p in effect.parameters])
-        return SimpleNamespace(status="ok", values=np.asarray(start))
-
-    class Converged(_StubResimulator):
-        def rollout(self, windows, params):
-            return params
-
-    monkeypatch.setattr(solver_check, "fit_effect", fit_effect)
-    monkeypatch.setattr(
-        solver_check, "gap_per_window", lambda spec, sim, held: np.full((len(held.start), 2), converged_gap)
-    )
-    own, other = _StubResimulator(), Converged()
-    choice = solver_check.SolverChoice(own, {"checked": True, "taken": "own", "reason": "fitted alone"}, "own memo")
-    choice = dataclasses.replace(choice, converged=(other, "converged memo"))
+    held, other, choice = _recheck_inputs(monkeypatch, np.full(32, converged_gap), refitted)
     vocab = vocabulary(SPEC, None, SolverSettings(iterations=4))
     named = [
         (vocab["joint_friction"], SimpleNamespace(values=[2.0])),
         (vocab["contact_solver"], SimpleNamespace(values=[iterations, 0, 0])),
     ]
-    gap_after = np.ones((len(held.start), 2))
+    gap_after = np.ones((32, 2))
     rechecked = solver_check.recheck_with_named(choice, named, None, held, PhysicsParams(), gap_after, FitConfig())
     if taken is None:
         assert rechecked is choice and not refitted
         return
-    assert refitted == [["joint_friction"]]
+    assert [names for names, _ in refitted] == [["joint_friction"]]
     assert rechecked.check["named_set"]["refitted"] == ["joint_friction"]
     assert rechecked.check["taken"] == taken, rechecked.check["named_set"]["reason"]
     assert (rechecked.resim is other) == (taken == "converged")
