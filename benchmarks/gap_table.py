@@ -383,11 +383,14 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             together under a converged solve, and the selection runs again under it where that fits
     #             materially better (solver_check.recheck_with_named); only rows that named an effect can differ
     #             from version 25
+    # version 27: where a step's best candidate and an unrelated rival stay alike, both are followed to the end of
+    #             selection and the branch that leaves clearly less is taken (select._look_ahead); only rows whose
+    #             reason says `ambiguous` can differ from version 26
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 26,
+        "version": 27,
     }
 
 

@@ -1152,6 +1152,61 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
     assert no_cross is None and (crossed is not None) == named
 
 
+@pytest.mark.parametrize(
+    "payload_on_armature,look_ahead,named",
+    [(0.15, True, ["armature", "payload"]), (0.47, True, []), (0.15, False, [])],
+)
+def test_rivals_that_stay_alike_are_told_apart_by_where_each_leads(monkeypatch, payload_on_armature, look_ahead, named):
+    """Joint friction and armature explain step 1's gap alike, and neither holds the other. Followed to its end, naming
+    armature lets the payload explain most of the rest, naming friction leaves the gap where it was: the armature
+    branch is taken, as it leaves clearly less above the floor. Where both branches end alike (or selection does not
+    look ahead), nothing is named and the gap is `unexplained`."""
+    from rwm_gym.gap import select
+
+    nominal = PhysicsParams()
+    gaps = {  # each simulator's held-out gap, by the effects in it
+        frozenset(): 1.0,
+        frozenset({"joint_friction"}): 0.5,
+        frozenset({"armature"}): 0.52,
+        frozenset({"armature", "payload_mass", "payload_com"}): payload_on_armature,
+    }
+
+    def gap_of(params):
+        fields = dataclasses.fields(params)
+        return gaps[frozenset(f.name for f in fields if getattr(params, f.name) != getattr(nominal, f.name))]
+
+    def fits(name, gap):  # on top of a simulator of held-out gap `gap`: each effect's gap and p
+        explains = {1.0: {"joint_friction": 0.5, "armature": 0.52}, 0.52: {"payload": payload_on_armature}}
+        explained = explains.get(round(gap, 3), {}).get(name)
+        return (gap, 0.5) if explained is None else (explained, 1e-4)
+
+    _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.3, gap_of, 1.0)
+    monkeypatch.setattr(select, "resolve_rivals", lambda *args, **kwargs: None)  # neither holds the other
+    monkeypatch.setattr(select, "joint_candidates", lambda candidates, *args: candidates)
+    monkeypatch.setattr(  # worse windows wherever the gap is larger
+        select, "paired_p_value", lambda larger, smaller, *args: 1e-4 if larger.mean() > smaller.mean() else 0.5
+    )
+    selection = _select(0.1, FitConfig(look_ahead=look_ahead))
+    assert [e.name for e, _ in selection.named] == named, selection.reason
+    assert selection.verdict == (named[0] if named else "unexplained")
+    first = selection.steps[0]
+    assert first["decision"].startswith("ambiguous: joint_friction (50%) and armature (48%) explain the gap alike")
+    if not look_ahead:
+        assert "look_ahead" not in first
+        return
+    branches = first["look_ahead"]["branches"]
+    assert [b["named"] for b in branches] == [
+        ["joint_friction (global)"],
+        ["armature (global)", "payload (global)"] if named else ["armature (global)"],
+    ]
+    assert first["look_ahead"]["taken"] == (1 if named else None)
+    assert ("armature is named" if named else "still alike") in first["decision"]
+    if named:  # the taken branch's steps follow: step 2 named the payload
+        assert first["named"] == "armature (global)" and selection.steps[1]["named"] == "payload (global)"
+    else:
+        assert first["named"] is None and "still alike" in selection.reason
+
+
 @pytest.mark.parametrize("own_floor,named", [(True, ["joint_damping", "armature"]), (False, ["joint_damping"])])
 def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monkeypatch, own_floor, named):
     """Armature + damping + ground compliance on excitation data: the damped robot carries start noise a quarter as far

@@ -27,6 +27,10 @@ effects also in their scopes (`scope.scope_candidates`), and the best-scoring ca
   `rival_excess_explained` of the gap above the floor leaves a penalised remaining gap within `ambiguity_ratio` of
   the best's.
 
+A rival that stays alike after `resolve_rivals` (neither holds the other) is followed with the best: each is named in
+turn and selection runs to its end, and the branch that leaves clearly less is taken (`_look_ahead`,
+`FitConfig.look_ahead`); else the step names nothing.
+
 Before step 1 calls a gap above the floor `unexplained`, every effect is refined (not only the best screened,
 `FitConfig.refine_every_effect`) and every joint effect is fitted in its scopes too (`scope.every_scope`), also those
 whose global form explained nothing; a best candidate that then explains enough but fails only its held-out test is
@@ -46,6 +50,7 @@ their final values.
 
 from __future__ import annotations
 
+import copy
 import itertools
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -356,34 +361,122 @@ def select_effects(
     search = _Search(
         effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of, floor_config
     )
-    named: list[Candidate] = []
-    params, current, steps, reason, earlier, refit = base, before, [], "", [], None
-    for k in range(config.max_effects):
-        step_floor = search.floor_at(k, params)
-        test = compare_with_floor(current, step_floor, held, config.block_rows, floor_config)
-        step: dict = {"gap": float(current.mean()), "floor_test": test, "candidates": [], "named": None}
-        steps.append(step)
+    path = _forward(search, _Path([], base, before, []), config.look_ahead)
+    return _selection(search, path.named, path.steps, path.reason, before, path.params, path.current, path.refit)
+
+
+@dataclass
+class _Path:
+    """Where a forward selection stands: the named effects, the simulator with them and its held-out gap, the steps
+    so far, the last step's candidates (ranked), the last joint refit, and why the last step decided as it did."""
+
+    named: list[Candidate]
+    params: PhysicsParams
+    current: np.ndarray
+    steps: list[dict]
+    earlier: list[Candidate] = field(default_factory=list)
+    refit: dict | None = None
+    reason: str = ""
+
+    def fork(self) -> _Path:
+        """A copy that naming and refitting on it leave this one as it is (they change the named fits' values)."""
+        named = [(effect, copy.deepcopy(fit)) for effect, fit in self.named]
+        steps = [dict(step) for step in self.steps]
+        return _Path(named, self.params, self.current, steps, list(self.earlier), self.refit, self.reason)
+
+
+def _forward(search: _Search, path: _Path, look_ahead: bool) -> _Path:
+    """Name effects from `path` on, one per step, until a step names none or `max_effects` are named; where a step's
+    best candidate and an unrelated rival stay alike (`resolve_rivals`) and `look_ahead`, follow both
+    (`_look_ahead`)."""
+    config = search.config
+    while len(path.named) < config.max_effects:
+        k = len(path.named)
+        step_floor = search.floor_at(k, path.params)
+        test = compare_with_floor(path.current, step_floor, search.held, config.block_rows, search.floor_config)
+        step: dict = {"gap": float(path.current.mean()), "floor_test": test, "candidates": [], "named": None}
+        path.steps.append(step)
         below = not test["above_floor"]
         if below:
-            reason = _below_floor(test, floor_config)
+            path.reason = _below_floor(test, search.floor_config)
             if k > 0:
-                wide = _floor_test_on_every_episode(search, params, current, step_floor)
+                wide = _floor_test_on_every_episode(search, path.params, path.current, step_floor)
                 step["floor_test_every_episode"] = wide
                 if wide is None or not wide["above_floor"]:
-                    reason += "" if wide is None else f"; on every episode: {_below_floor(wide, floor_config, 'gap')}"
+                    path.reason += (
+                        "" if wide is None else f"; on every episode: {_below_floor(wide, search.floor_config, 'gap')}"
+                    )
                     break
-        judged = _judge_step(search, k, below, named, earlier, params, current, step_floor)
-        earlier = _ranked(judged.candidates)
+        judged = _judge_step(search, k, below, path.named, path.earlier, path.params, path.current, step_floor)
+        path.earlier = _ranked(judged.candidates)
         step["candidates"] = [asdict(f) for _, f in sorted(judged.candidates, key=lambda c: c[1].score, reverse=True)]
-        pick, reason = _decide(search, judged, below, reason, named, params, current)
-        step["decision"] = reason
+        pick, path.reason = _decide(search, judged, below, path.reason, path.named, path.params, path.current)
+        step["decision"] = path.reason
+        if pick is None and judged.rival is not None and not below and look_ahead:
+            return _look_ahead(search, path, judged)
         if pick is None:
             break
-        step["named"] = f"{pick[0].name} ({pick[0].scope})"
-        params, current = _name(search, pick, named, params)
-        if len(named) > 1:
-            named, params, current, refit = joint_refit(named, resim, train, held, base, current, config)
-    return _selection(search, named, steps, reason, before, params, current, refit)
+        _take(search, path, pick)
+    return path
+
+
+def _take(search: _Search, path: _Path, pick: Candidate) -> None:
+    """Name `pick` at `path`'s last step; from two named effects on, refit them together (`joint_refit`)."""
+    path.steps[-1]["named"] = f"{pick[0].name} ({pick[0].scope})"
+    path.params, path.current = _name(search, pick, path.named, path.params)
+    if len(path.named) > 1:
+        path.named, path.params, path.current, path.refit = joint_refit(
+            path.named, search.resim, search.train, search.held, search.base, path.current, search.config
+        )
+
+
+def _look_ahead(search: _Search, path: _Path, step: _Step) -> _Path:
+    """The step's best candidate and an unrelated rival explain the gap alike, and neither holds the other
+    (`resolve_rivals`): name each in turn and follow selection to its end (without looking ahead again). The branch
+    that leaves less of the gap above the step's floor is taken where the other leaves `ambiguity_ratio` more above
+    it, on windows that are significantly worse (`paired_p_value`); else the step names nothing, as before. With
+    several effects present, the one that mimics the first may explain as much alone, yet leave a misfit that none
+    of the others takes up: armature, joint damping and a compliant floor on excitation data, where joint friction
+    explained the gap as well as the damping at step 1 and on top of it the damping explained too little to hold it."""
+    config, floor = search.config, float(np.nanmean(step.floor))
+    best = _best(step.candidates)
+    assert best is not None and step.rival is not None
+    branches = []
+    for first in (best, step.rival):
+        branch = path.fork()
+        _take(search, branch, (first[0], copy.deepcopy(first[1])))
+        branches.append(_forward(search, branch, look_ahead=False))
+    above = [float(b.current.mean()) - floor for b in branches]
+    lower = int(np.argmin(above))
+    higher = 1 - lower
+    p_value = paired_p_value(
+        branches[higher].current.mean(1),
+        branches[lower].current.mean(1),
+        search.held,
+        config.block_rows,
+        config.significance,
+    )
+    clear = above[higher] > above[lower] * (1.0 + config.ambiguity_ratio) and p_value < config.significance
+    k = len(path.named)
+    record = {
+        "branches": [
+            {"named": [f"{e.name} ({e.scope})" for e, _ in b.named[k:]], "gap": float(b.current.mean()), "above": a}
+            for b, a in zip(branches, above)
+        ],
+        "p_value": p_value,
+        "taken": lower if clear else None,
+    }
+    followed = ", ".join(
+        f"naming {b.named[k][0].name} leads to {' + '.join(e.name for e, _ in b.named[k:])}, {a:.3g} above the floor"
+        for b, a in zip(branches, above)
+    )
+    verdict = f"{branches[lower].named[k][0].name} is named" if clear else "still alike"
+    decision = f"{path.steps[-1]['decision']}; looking ahead: {followed} (p={p_value:.2g}): {verdict}"
+    taken = branches[lower] if clear else path
+    taken.steps[len(path.steps) - 1].update(look_ahead=record, decision=decision)
+    if not clear:
+        path.reason = decision
+    return taken
 
 
 def _floor_test_on_every_episode(
