@@ -193,6 +193,10 @@ TINY_WM = WorldModelGapConfig(
 )
 
 
+ONE_EFFECT = FitConfig(max_effects=1)
+"""One effect hidden, one named: the steps after a naming are tested in test_gap_selection."""
+
+
 def _hidden_and_check(
     tmp_path,
     name: str,
@@ -209,7 +213,14 @@ def _hidden_and_check(
         {name: effect.values_from_magnitude(true)}, episodes, tmp_path / "m.h5", max_steps=steps, progress=False
     )
     report = run_gap(
-        SIM, data, tmp_path / "report", config=config, progress=False, world_model=world_model, wm_config=TINY_WM
+        SIM,
+        data,
+        tmp_path / "report",
+        config=config,
+        fit_config=ONE_EFFECT,
+        progress=False,
+        world_model=world_model,
+        wm_config=TINY_WM,
     )
     assert report["effect"] == name, report["reason"]
     assert report["scope"] == "global"  # a global effect is not taken for a per-leg one
