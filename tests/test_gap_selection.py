@@ -1376,3 +1376,44 @@ def test_the_training_cost_of_a_simulator_is_what_the_fits_minimise(tmp_path):
     fit = fit_effect(effect, resim, train, PhysicsParams(), config, np.array([0.8]), (0.75, 0.85))
     assert select.training_cost(search, effect.physics(np.array(fit.values))) == pytest.approx(fit.train_cost)
     assert select.training_cost(search, effect.physics(np.array([0.8]))) < select.training_cost(search, PhysicsParams())
+
+
+@pytest.mark.parametrize("spread_check", [True, False])
+def test_an_effect_named_by_its_spread_ends_selection_unrefitted(monkeypatch, spread_check):
+    """Step 1 names nothing by least squares; where an effect's own noise spread covers the data (`gap.spread`), it
+    is named, selection stops there, and its values stay as the spread search found them (a refit by least squares
+    would take them back towards the nominal robot). Without the check the gap is `unexplained`."""
+    from rwm_gym.gap import select
+
+    _stub_selection(monkeypatch, lambda name, gap: (gap, 0.5), lambda gap, windows: True, lambda params: 1.0, 0.5)
+    spread_fit = _fit_of("payload", 1.0, 1.4, 1e-4)  # a larger gap than the nominal one, and several parameters
+    spread_fit.spread = {"effect": "payload", "named": True}
+    asked = []
+
+    def name_by_spread(effects, *args):
+        asked.append(sorted(effects))
+        record = {
+            "own_floor_test": {"ratio": 0.8, "p_value": 0.9},
+            "first_horizon_share": 0.8,
+            "likelihood": {"p_value": 1e-4},
+        }
+        spread_fit.spread.update(record)
+        return (EFFECTS["payload"], spread_fit), [spread_fit.spread]
+
+    def no_refit(*args, **kwargs):
+        raise AssertionError("an effect named by its spread was refitted")
+
+    monkeypatch.setattr(select, "name_by_spread", name_by_spread)
+    monkeypatch.setattr(select, "joint_refit", no_refit)
+    monkeypatch.setattr(select, "prefer_simpler", no_refit)
+    floor_of = lambda params, windows=None: np.full((20, 3), 0.1)  # noqa: E731
+    selection = _select(0.1, FitConfig(spread_check=spread_check), floor_of=floor_of)
+    if not spread_check:
+        assert selection.verdict == "unexplained" and not asked and "spread" not in selection.steps[0]
+        return
+    assert asked == [sorted(EFFECTS_OF_STUBS)]
+    assert selection.verdict == "payload" and len(selection.steps) == 1
+    assert selection.named[0][1].values == [0.7, 0.7, 0.7] and selection.shares == [1.0]
+    assert "named by its spread" in selection.steps[0]["decision"]
+    assert selection.steps[0]["spread"] == [spread_fit.spread]
+    assert "its own noise floor" in selection.reason

@@ -7,7 +7,9 @@ the same on every run), and every named effect is refitted jointly on each draw'
 (`fit.fit_effect` with `FitConfig`'s budget; a one-parameter effect searched within a quarter of its range either side
 of its value). The spread of the refitted values is the report's `bootstrap` entry beside each value: the standard
 deviation and the 2.5 and 97.5 percentiles. Windows, not rows, are the unit drawn: a drawn episode brings all its
-fitting windows, so the correlation inside an episode stays in each draw.
+fitting windows, so the correlation inside an episode stays in each draw. An effect named by its noise spread
+(`gap.spread`) is searched again so on each draw (a draw where no value covers the data counts as NaN, said in the
+entry).
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.fit import FitConfig, fit_effect
+from rwm_gym.gap.noise_floor import FloorConfig
 from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.gap.select import Candidate, combine
+from rwm_gym.gap.spread import FloorOf, spread_search
 from rwm_gym.physics.params import PhysicsParams
 
 SEARCH_REACH = 0.25
@@ -43,9 +47,12 @@ def bootstrap(
     config: FitConfig,
     resamples: int,
     seed: int = 0,
+    floor_of: FloorOf | None = None,
+    floor_config: FloorConfig = FloorConfig(),
 ) -> dict:
     """{"resamples", "method", "parameters": {name: {"std", "interval"}}} for every parameter of the `named` effects
-    (empty where none is named or `resamples` is 0)."""
+    (empty where none is named or `resamples` is 0); `floor_of` (`spread.FloorOf`): for an effect named by its
+    spread."""
     if resamples < 0:
         raise ValueError(f"bootstrap resamples must be >= 0, got {resamples}")
     if not named or resamples == 0:
@@ -56,16 +63,31 @@ def bootstrap(
     first = effect.parameters[0]
     reach = SEARCH_REACH * (first.high - first.low)
     bracket = (max(first.low, start[0] - reach), min(first.high, start[0] + reach))
-    draws = np.empty((resamples, len(start)))
+    by_spread = named[0][1].spread is not None and floor_of is not None
+    draws = np.full((resamples, len(start)), np.nan)
     for b in range(resamples):
         windows = resample(train, np.random.default_rng([seed, 17, b]))
-        draws[b] = fit_effect(effect, resim, windows, base, config, start.copy(), bracket).values
+        if by_spread:
+            point = spread_search(named[0][0], resim, windows, base, floor_of, config, floor_config.min_ratio)
+            draws[b] = np.nan if point is None else point.values
+        else:
+            draws[b] = fit_effect(effect, resim, windows, base, config, start.copy(), bracket).values
+    method = "fitting episodes drawn with replacement, every named effect refitted jointly from its value"
+    if by_spread:
+        covered = int(np.isfinite(draws[:, 0]).sum())
+        method = (
+            f"fitting episodes drawn with replacement, the value of least spread that covers them searched again "
+            f"(found on {covered} of {resamples} draws)"
+        )
+        draws = draws[np.isfinite(draws[:, 0])]
+    if len(draws) == 0:
+        return {"resamples": resamples, "method": method, "parameters": {}}
     return {
         "resamples": resamples,
-        "method": "fitting episodes drawn with replacement, every named effect refitted jointly from its value",
+        "method": method,
         "parameters": {
             name: {
-                "std": float(draws[:, i].std(ddof=1)) if resamples > 1 else float("nan"),
+                "std": float(draws[:, i].std(ddof=1)) if len(draws) > 1 else float("nan"),
                 "interval": [float(np.percentile(draws[:, i], 2.5)), float(np.percentile(draws[:, i], 97.5))],
             }
             for i, name in enumerate(names)

@@ -114,6 +114,15 @@ class FitConfig:
     """Where a step's best candidate and an unrelated rival explain the gap alike and neither holds the other, name
     each in turn, follow selection to its end, and take the branch that leaves clearly less (`select._look_ahead`).
     Off: such a step names nothing (`unexplained` at step 1)."""
+    spread_check: bool = True
+    """Where step 1 would call a gap above the floor `unexplained`, ask each effect at which value its simulator's
+    own noise spread covers the data, and name one that does and explains the first horizon (`gap.spread`): a
+    slippery floor under a coarse contact solver turns start noise into another slide, and least squares never moves
+    towards it."""
+    spread_points: int = 9
+    """Values of each effect's first parameter across its range in that search."""
+    spread_bisections: int = 4
+    """Bisections between the covering value of least spread and its neighbour that does not cover."""
 
 
 @dataclass
@@ -147,6 +156,9 @@ class CandidateFit:
     named_refit: list[list[float]] | None = None
     """A joint candidate's values for each effect named before it, fitted together with it
     (`FitConfig.joint_candidates`)."""
+    spread: dict | None = None
+    """Where the effect was named because its own noise spread covers the data (`gap.spread`), that check's record:
+    the values are then no least-squares fit, and no refit changes them."""
 
 
 def gap_per_window(spec, simulated: np.ndarray, windows: Windows) -> np.ndarray:

@@ -72,6 +72,7 @@ from rwm_gym.gap.fit import (
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.gap.scope import every_scope, scope_candidates
+from rwm_gym.gap.spread import name_by_spread
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
 
@@ -335,6 +336,8 @@ class _Step:
     tested: int
     floor: np.ndarray
     """The noise floor the step judges against (`_Search.floor_at`)."""
+    spread: list[dict] | None = None
+    """Step 1 about to call its gap `unexplained`: each effect's check of its own noise spread (`gap.spread`)."""
 
 
 def select_effects(
@@ -412,11 +415,16 @@ def _forward(search: _Search, path: _Path, look_ahead: bool) -> _Path:
         step["candidates"] = [asdict(f) for _, f in sorted(judged.candidates, key=lambda c: c[1].score, reverse=True)]
         pick, path.reason = _decide(search, judged, below, path.reason, path.named, path.params, path.current)
         step["decision"] = path.reason
+        if judged.spread is not None:
+            step["spread"] = judged.spread
         if pick is None and judged.rival is not None and not below and look_ahead:
             return _look_ahead(search, path, judged)
         if pick is None:
             break
         _take(search, path, pick)
+        if pick[1].spread is not None:
+            path.reason = "its gap lies at its own noise floor, which no further effect can lower"
+            break
     return path
 
 
@@ -555,6 +563,7 @@ def _judge_step(
         _refine_every_effect(search, step, remaining, params, current)
         _fit_every_scope(search, step, remaining, params, current)
         _cross_fit_the_best(search, step, named, params, current)
+        _by_spread(search, step, remaining, params, current)
     return step
 
 
@@ -643,6 +652,36 @@ def _fit_every_scope(
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
 
 
+def _by_spread(
+    search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams, current: np.ndarray
+) -> None:
+    """Step 1, gap above the floor, still nothing named: name an effect whose own noise spread covers the data and
+    that explains the first horizon (`spread.name_by_spread`), if one does."""
+    if not _undecided(step) or not search.config.spread_check or search.floor_of is None:
+        return
+    pick, step.spread = name_by_spread(
+        remaining,
+        search.resim,
+        search.train,
+        search.held,
+        params,
+        current,
+        step.floor,
+        search.floor_of,
+        search.config,
+        search.floor_config,
+    )
+    if pick is not None:
+        record = pick[1].spread
+        step.pick = pick
+        step.decision = (
+            f"{step.decision}; but the data lie within {pick[0].name}'s own noise spread (held-out gap "
+            f"{record['own_floor_test']['ratio']:.2f}x its own floor, p={record['own_floor_test']['p_value']:.2g}), "
+            f"and the data are more likely under its spread than under the nominal one's "
+            f"(p={record['likelihood']['p_value']:.2g}): named by its spread"
+        )
+
+
 def _decide(
     search: _Search,
     step: _Step,
@@ -710,6 +749,9 @@ def _selection(
     if not named:
         verdict = "none" if not steps[0]["floor_test"]["above_floor"] else "unexplained"
         return Selection(verdict, reason, [], base, before, steps=steps)
+    if named[0][1].spread is not None:  # no least-squares fit: nothing to refit, no simpler form to ask
+        why = f"{steps[0]['decision']}; then: {reason}"
+        return Selection(named[0][0].name, why, named, params, current, [1.0], steps)
     if len(named) == 1 and config.refit_single_effect and len(named[0][0].parameters) > 1:
         named, params, current, refit = joint_refit(
             named, search.resim, search.train, search.held, base, current, config

@@ -190,7 +190,7 @@ def run_gap(
         return _Selected(effects, nominal_sim, before, noise_check, floor_noise, floor, floor_test, floor_of, selection)
 
     chosen = select_under(choice)
-    if chosen.selection.named:
+    if chosen.selection.named and chosen.selection.named[0][1].spread is None:  # a spread is the own solver's
         rechecked = recheck_with_named(
             choice, chosen.selection.named, train, held, base, chosen.selection.gap_after, fit_config
         )
@@ -199,7 +199,17 @@ def run_gap(
         choice = rechecked
     resim, selection, floor = choice.resim, chosen.selection, chosen.floor
     corrected_params, after = selection.params, selection.gap_after
-    spread = bootstrap(selection.named, resim, train, base, fit_config, config.bootstrap, config.split_seed)
+    spread = bootstrap(
+        selection.named,
+        resim,
+        train,
+        base,
+        fit_config,
+        config.bootstrap,
+        config.split_seed,
+        chosen.floor_of,
+        floor_config,
+    )
     carried = corrected_params.replace(solver=corrected_solver(resim, choice.check))  # what the corrected env runs
     corrected_floor, residual = _residual(held, selection, floor, after, chosen.floor_of, fit_config, floor_config)
     learned = None
