@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.fit import FitConfig, fit_effect
-from rwm_gym.gap.noise_floor import FloorConfig
 from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.gap.select import Candidate, combine
 from rwm_gym.gap.spread import FloorOf, spread_search
@@ -48,7 +47,6 @@ def bootstrap(
     resamples: int,
     seed: int = 0,
     floor_of: FloorOf | None = None,
-    floor_config: FloorConfig = FloorConfig(),
 ) -> dict:
     """{"resamples", "method", "parameters": {name: {"std", "interval"}}} for every parameter of the `named` effects
     (empty where none is named or `resamples` is 0); `floor_of` (`spread.FloorOf`): for an effect named by its
@@ -68,7 +66,7 @@ def bootstrap(
     for b in range(resamples):
         windows = resample(train, np.random.default_rng([seed, 17, b]))
         if by_spread:
-            point = spread_search(named[0][0], resim, windows, base, floor_of, config, floor_config.min_ratio)
+            point = spread_search(named[0][0], resim, windows, base, floor_of, config)
             draws[b] = np.nan if point is None else point.values
         else:
             draws[b] = fit_effect(effect, resim, windows, base, config, start.copy(), bracket).values

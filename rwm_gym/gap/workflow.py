@@ -208,7 +208,6 @@ def run_gap(
         config.bootstrap,
         config.split_seed,
         chosen.floor_of,
-        floor_config,
     )
     carried = corrected_params.replace(solver=corrected_solver(resim, choice.check))  # what the corrected env runs
     corrected_floor, residual = _residual(held, selection, floor, after, chosen.floor_of, fit_config, floor_config)
