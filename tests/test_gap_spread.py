@@ -13,7 +13,7 @@ from rwm_gym.gap.fit import FitConfig, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import FloorConfig, noise_floor
 from rwm_gym.gap.resim import Resimulator, make_windows
-from rwm_gym.gap.spread import name_by_spread
+from rwm_gym.gap.spread import SpreadInputs, name_by_spread
 from rwm_gym.gap.workflow import GapConfig, held_out_windows
 from rwm_gym.spec import load_spec
 
@@ -37,12 +37,12 @@ def _inputs(path):
         return noise_floor(resim, held if windows is None else windows, params, SensorNoise())
 
     before = gap_per_window(SPEC, resim.rollout(held, base), held)
-    return resim, train, held, base, before, floor_of(base), floor_of
+    return SpreadInputs(resim, train, held, base, before, floor_of(base), floor_of, fit, FloorConfig())
 
 
 def _name(inputs, *names):
     """`name_by_spread` over the effects `names` on `_inputs`."""
-    return name_by_spread({n: EFFECTS[n] for n in names}, *inputs, FitConfig(), FloorConfig())
+    return name_by_spread({n: EFFECTS[n] for n in names}, inputs)
 
 
 @pytest.fixture(scope="module")
@@ -54,14 +54,13 @@ def slippery(tmp_path_factory):
 
 
 def test_a_slippery_floor_under_the_fast_solver_is_named_by_its_spread(slippery):
-    before = slippery[4]
     pick, records = _name(slippery, "ground_friction", "motor_strength", "joint_damping")
     assert pick is not None, records
     effect, fit = pick
     assert effect.name == "ground_friction"
     assert abs(fit.values[0] - 0.3) <= 0.25 * 0.7, fit.values  # within 25 % of its distance from nominal
     # why least squares never got there: the right floor leaves a larger gap than the nominal one
-    assert fit.gap_mean > before.mean()
+    assert fit.gap_mean > slippery.before.mean()
     record = fit.spread
     assert record["named"] and not record["own_floor_test"]["above_floor"]
     assert record["likelihood"]["p_value"] < 0.01
@@ -90,9 +89,9 @@ def test_a_spread_that_only_covers_a_misfit_is_not_named(tmp_path):
 
 
 def test_the_bootstrap_of_an_effect_named_by_its_spread_searches_its_spread_again(slippery):
-    resim, train, _, base, _, _, floor_of = slippery
     pick, _ = _name(slippery, "ground_friction")
-    spread = bootstrap([pick], resim, train, base, FitConfig(), 3, floor_of=floor_of)
+    inputs = slippery
+    spread = bootstrap([pick], inputs.resim, inputs.train, inputs.base, inputs.config, 3, floor_of=inputs.floor_of)
     assert "least spread" in spread["method"]
     low, high = spread["parameters"]["ground_friction"]["interval"]
     assert 0.3 - 0.25 * 0.7 <= low <= high <= 0.3 + 0.25 * 0.7  # a least-squares refit would go back towards 1.0

@@ -72,7 +72,7 @@ from rwm_gym.gap.fit import (
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.gap.scope import every_scope, scope_candidates
-from rwm_gym.gap.spread import name_by_spread
+from rwm_gym.gap.spread import SpreadInputs, name_by_spread
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
 
@@ -659,8 +659,7 @@ def _by_spread(
     that explains the first horizon (`spread.name_by_spread`), if one does."""
     if not _undecided(step) or not search.config.spread_check or search.floor_of is None:
         return
-    pick, step.spread = name_by_spread(
-        remaining,
+    inputs = SpreadInputs(
         search.resim,
         search.train,
         search.held,
@@ -671,6 +670,7 @@ def _by_spread(
         search.config,
         search.floor_config,
     )
+    pick, step.spread = name_by_spread(remaining, inputs)
     if pick is not None:
         record = pick[1].spread
         step.pick = pick

@@ -145,29 +145,35 @@ def negative_log_likelihood(gap: np.ndarray, floor: np.ndarray) -> np.ndarray:
     return (gap / spread + np.log(spread)).sum(1)
 
 
-def judge_spread(
-    effect: Effect,
-    point: SpreadPoint,
-    resim: Resimulator,
-    held: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    floor: np.ndarray,
-    floor_of: FloorOf,
-    config: FitConfig,
-    floor_config: FloorConfig,
-) -> tuple[CandidateFit | None, dict]:
-    """`point` on the held-out windows: the candidate fit (None where it fails) and the record of the two tests.
-    `before` and `floor` (W, horizons): the nominal gap and noise floor there."""
+@dataclass(frozen=True)
+class SpreadInputs:
+    """What the spread check reads: the simulator (`base` under `resim`'s solver), the fitting and held-out windows,
+    the nominal held-out gap and noise floor (W, horizons), every simulator's floor, and the fit's and floor's
+    settings."""
+
+    resim: Resimulator
+    train: Windows
+    held: Windows
+    base: PhysicsParams
+    before: np.ndarray
+    floor: np.ndarray
+    floor_of: FloorOf
+    config: FitConfig
+    floor_config: FloorConfig
+
+
+def judge_spread(effect: Effect, point: SpreadPoint, inputs: SpreadInputs) -> tuple[CandidateFit | None, dict]:
+    """`point` on the held-out windows: the candidate fit (None where it fails) and the record of the two tests."""
+    resim, held, before, floor, config = inputs.resim, inputs.held, inputs.before, inputs.floor, inputs.config
     record: dict = {"effect": effect.name, "values": [float(v) for v in point.values], "spread": point.spread}
-    params = effect.physics(point.values, base)
+    params = effect.physics(point.values, inputs.base)
     try:
         gap = gap_per_window(resim.spec, resim.rollout(held, params), held)
-        own = floor_of(params)
+        own = inputs.floor_of(params)
     except SimulationDiverged as err:
         record["reason"] = f"the simulation blows up on held-out windows ({err.reason})"
         return None, record
-    test = compare_with_floor(gap, own, held, config.block_rows, floor_config)
+    test = compare_with_floor(gap, own, held, config.block_rows, inputs.floor_config)
     first_excess = float(before[:, 0].mean() - np.nanmean(floor[:, 0]))
     first_share = float((before[:, 0].mean() - gap[:, 0].mean()) / first_excess) if first_excess > 0 else float("nan")
     nll, nll_nominal = negative_log_likelihood(gap, own), negative_log_likelihood(before, floor)
@@ -205,31 +211,24 @@ def judge_spread(
 
 
 def name_by_spread(
-    effects: dict[str, Effect],
-    resim: Resimulator,
-    train: Windows,
-    held: Windows,
-    base: PhysicsParams,
-    before: np.ndarray,
-    floor: np.ndarray,
-    floor_of: FloorOf,
-    config: FitConfig,
-    floor_config: FloorConfig,
+    effects: dict[str, Effect], inputs: SpreadInputs
 ) -> tuple[tuple[Effect, CandidateFit] | None, list[dict]]:
     """Search every effect (`spread_search`) on the fitting windows `train`; judge those that cover them on `held`,
     least spread first (`judge_spread`); the first that passes, and every effect's record. Nothing to search where
-    the nominal simulator (`base`) covers the fitting windows itself."""
+    the nominal simulator covers the fitting windows itself."""
+    resim, train, base, floor_of = inputs.resim, inputs.train, inputs.base, inputs.floor_of
     gap = gap_per_window(resim.spec, resim.rollout(train, base), train)
-    if SpreadPoint(np.zeros(0), gap.mean(0), np.nanmean(floor_of(base, train), 0)).covers(floor_config.min_ratio):
+    nominal = SpreadPoint(np.zeros(0), gap.mean(0), np.nanmean(floor_of(base, train), 0))
+    if nominal.covers(inputs.floor_config.min_ratio):
         return None, [{"reason": "the nominal simulator's own spread covers the fitting windows"}]
     found = []
     for effect in effects.values():
-        point = spread_search(effect, resim, train, base, floor_of, config)
+        point = spread_search(effect, resim, train, base, floor_of, inputs.config)
         if point is not None:
             found.append((effect, point))
     records = []
     for effect, point in sorted(found, key=lambda item: item[1].spread):
-        fit, record = judge_spread(effect, point, resim, held, base, before, floor, floor_of, config, floor_config)
+        fit, record = judge_spread(effect, point, inputs)
         records.append(record)
         if fit is not None:
             return (effect, fit), records
