@@ -1394,7 +1394,7 @@ def test_an_effect_named_by_its_spread_ends_selection_unrefitted(monkeypatch, sp
         asked.append(sorted(effects))
         record = {
             "own_floor_test": {"ratio": 0.8, "p_value": 0.9},
-            "first_horizon_share": 0.8,
+            "systematic_misfit": {"explained": 0.8},
             "likelihood": {"p_value": 1e-4},
         }
         spread_fit.spread.update(record)

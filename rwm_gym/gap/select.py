@@ -677,8 +677,9 @@ def _by_spread(
         step.decision = (
             f"{step.decision}; but the data lie within {pick[0].name}'s own noise spread (held-out gap "
             f"{record['own_floor_test']['ratio']:.2f}x its own floor, p={record['own_floor_test']['p_value']:.2g}), "
-            f"and the data are more likely under its spread than under the nominal one's "
-            f"(p={record['likelihood']['p_value']:.2g}): named by its spread"
+            f"it removes {record['systematic_misfit']['explained']:.0%} of the nominal simulator's systematic "
+            f"misfit, and the data are more likely under its spread (p={record['likelihood']['p_value']:.2g}): "
+            "named by its spread"
         )
 
 
