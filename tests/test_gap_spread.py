@@ -90,7 +90,7 @@ def test_a_spread_that_only_covers_a_misfit_is_not_named(tmp_path):
 def test_the_bootstrap_of_an_effect_named_by_its_spread_searches_its_spread_again(slippery):
     pick, _ = _name(slippery, "ground_friction")
     inputs = slippery
-    spread = bootstrap([pick], inputs.resim, inputs.train, inputs.base, inputs.config, 3, floor_of=inputs.floor_of)
+    spread = bootstrap([pick], inputs.resim, inputs.train, inputs.base, inputs.config, 2, floor_of=inputs.floor_of)
     assert "least spread" in spread["method"]
     low, high = spread["parameters"]["ground_friction"]["interval"]
     assert 0.3 - 0.25 * 0.7 <= low <= high <= 0.3 + 0.25 * 0.7  # a least-squares refit would go back towards 1.0
