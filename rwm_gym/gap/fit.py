@@ -116,9 +116,9 @@ class FitConfig:
     Off: such a step names nothing (`unexplained` at step 1)."""
     spread_check: bool = True
     """Where step 1 would call a gap above the floor `unexplained`, ask each effect at which value its simulator's
-    own noise spread covers the data, and name one that does and explains the first horizon (`gap.spread`): a
-    slippery floor under a coarse contact solver turns start noise into another slide, and least squares never moves
-    towards it."""
+    own noise spread covers the data, and name one that does on held-out data and removes the nominal simulator's
+    systematic misfit (`gap.spread`): a slippery floor under a coarse contact solver turns start noise into another
+    slide, and least squares never moves towards it."""
     spread_points: int = 9
     """Values of each effect's first parameter across its range in that search."""
     spread_bisections: int = 4

@@ -655,8 +655,8 @@ def _fit_every_scope(
 def _by_spread(
     search: _Search, step: _Step, remaining: dict[str, Effect], params: PhysicsParams, current: np.ndarray
 ) -> None:
-    """Step 1, gap above the floor, still nothing named: name an effect whose own noise spread covers the data and
-    that explains the first horizon (`spread.name_by_spread`), if one does."""
+    """Step 1, gap above the floor, still nothing named: name an effect whose own noise spread covers the data
+    (`spread.name_by_spread`), if one does."""
     if not _undecided(step) or not search.config.spread_check or search.floor_of is None:
         return
     inputs = SpreadInputs(

@@ -190,7 +190,8 @@ def run_gap(
         return _Selected(effects, nominal_sim, before, noise_check, floor_noise, floor, floor_test, floor_of, selection)
 
     chosen = select_under(choice)
-    if chosen.selection.named and chosen.selection.named[0][1].spread is None:  # a spread is the own solver's
+    # an effect named by its spread is the own solver's spread, no least-squares fit to refit under another solve
+    if chosen.selection.named and chosen.selection.named[0][1].spread is None:
         rechecked = recheck_with_named(
             choice, chosen.selection.named, train, held, base, chosen.selection.gap_after, fit_config
         )
