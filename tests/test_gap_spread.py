@@ -53,8 +53,14 @@ def slippery(tmp_path_factory):
     return _inputs(path)
 
 
-def test_a_slippery_floor_under_the_fast_solver_is_named_by_its_spread(slippery):
-    pick, records = _name(slippery, "ground_friction", "motor_strength", "joint_damping")
+@pytest.fixture(scope="module")
+def slippery_named(slippery):
+    """`name_by_spread` on the slippery floor's data over three effects."""
+    return _name(slippery, "ground_friction", "motor_strength", "joint_damping")
+
+
+def test_a_slippery_floor_under_the_fast_solver_is_named_by_its_spread(slippery, slippery_named):
+    pick, records = slippery_named
     assert pick is not None, records
     effect, fit = pick
     assert effect.name == "ground_friction"
@@ -87,8 +93,8 @@ def test_a_spread_that_only_covers_a_misfit_is_not_named(tmp_path):
     assert record["systematic_misfit"]["explained"] < 0.3 and "systematic misfit" in record["reason"]
 
 
-def test_the_bootstrap_of_an_effect_named_by_its_spread_searches_its_spread_again(slippery):
-    pick, _ = _name(slippery, "ground_friction")
+def test_the_bootstrap_of_an_effect_named_by_its_spread_searches_its_spread_again(slippery, slippery_named):
+    pick, _ = slippery_named
     inputs = slippery
     spread = bootstrap([pick], inputs.resim, inputs.train, inputs.base, inputs.config, 2, floor_of=inputs.floor_of)
     assert "least spread" in spread["method"]
