@@ -15,6 +15,7 @@ from rwm_gym.gap.noise_floor import FloorConfig, noise_floor
 from rwm_gym.gap.resim import Resimulator, make_windows
 from rwm_gym.gap.spread import SpreadInputs, name_by_spread
 from rwm_gym.gap.workflow import GapConfig, held_out_windows
+from rwm_gym.physics.params import CONVERGED_SOLVER
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
@@ -79,12 +80,22 @@ def test_nominal_data_leave_nothing_for_a_spread_to_cover(tmp_path):
     assert pick is None and records == [{"reason": "the nominal simulator's own spread covers the fitting windows"}]
 
 
-def test_a_spread_that_only_covers_a_misfit_is_not_named(tmp_path):
-    """A knee spring (outside the vocabulary) on the fast physics: a floor slippery enough spreads noise wide enough to
-    cover the spring's misfit on the fitting windows, but it leaves the misfit's mean over windows where it was."""
+@pytest.mark.parametrize(("solver", "policy"), [(FAST, "excitation"), (CONVERGED_SOLVER, "gait")])
+def test_a_spread_that_only_covers_a_misfit_is_not_named(tmp_path, solver, policy):
+    """A knee spring (outside the vocabulary), on the fast physics and on a converged robot's walking data: a floor
+    slippery enough spreads noise wide enough to cover the spring's misfit on the fitting windows, but it leaves the
+    misfit's mean over windows where it was (on the walking data it also covers the held-out windows, and the data
+    are far more likely under its spread than under the nominal simulator's, 25x its floor)."""
     xml = write_spring_model(SPEC, tmp_path / "spring.xml", "KFE", 30.0)
     path = make_measured(
-        {}, 6, tmp_path / "m.h5", max_steps=150, solver=FAST, progress=False, env_kwargs={"xml_file": str(xml)}
+        {},
+        6,
+        tmp_path / "m.h5",
+        max_steps=150,
+        solver=solver,
+        policy=policy,
+        progress=False,
+        env_kwargs={"xml_file": str(xml)},
     )
     pick, records = _name(_inputs(path), "ground_friction")
     assert pick is None
