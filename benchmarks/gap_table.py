@@ -602,6 +602,13 @@ REUSABLE = {
         "named" in row and not stopped_near_a_later_floor(row) and not unexplained_by_its_held_out_test(row)
     ),
     "same-measured-data": lambda row: "named" in row,
+    "neither-ambiguous-nor-unexplained": lambda row: (
+        "named" in row
+        and row["verdict"] != "unexplained"
+        and _ran_at(row) >= 25
+        and (_ran_at(row) >= 26 or not row["named"])
+        and (_ran_at(row) >= 27 or "ambiguous" not in row["reason"])
+    ),
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
@@ -610,7 +617,15 @@ a gap not above the corrected simulator's floor (`rest_at_floor`: with nothing r
 against its own simulator's floor makes, so it stops there too), or one that neither stopped at the floor test of a
 step after a naming nor was called `unexplained` where its best candidate failed only its held-out test (a change to
 what such steps test), or any finished row where the change is to some cases' measured data only (the settings of
-those cases differ, so they run again)."""
+those cases differ, so they run again), or a row of version 25 or later that did not end `unexplained`, that named
+nothing if it ran at version 25, and that did not end on an ambiguity if it ran before version 27 (versions 26, 27
+and 28 change only what follows a naming, an ambiguity and an `unexplained` step 1; rows of version 24 or earlier
+run again)."""
+
+
+def _ran_at(row: dict) -> int:
+    """The version a row ran at (a reused row keeps it in `reused_version`)."""
+    return row.get("reused_version", row["settings"]["version"])
 
 
 def stopped_near_a_later_floor(row: dict) -> bool:

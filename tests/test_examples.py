@@ -603,6 +603,16 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
             tmp_path / f"{name}.json", tmp_path / f"v23_{name}.json", args, "same-measured-data"
         )
         assert taken == value, name
+    # versions 26-28 reach a named row of version 25, an ambiguous one before 27, an `unexplained` one, every one of 24
+    settled = gap_table.REUSABLE["neither-ambiguous-nor-unexplained"]
+    named = {"named": [["payload", "global"]], "verdict": "payload", "reason": step_1, "settings": {"version": 26}}
+    assert settled(named) and settled({**named, "reused_version": 27})
+    assert not settled({**named, "settings": {"version": 25}})
+    assert settled({**named, "named": [], "verdict": "none", "settings": {"version": 25}})
+    assert not settled({**named, "named": [], "verdict": "none", "settings": {"version": 24}})
+    ambiguous = {**named, "reason": f"{step_1}; then: ambiguous: armature (9%) and joint_damping (9%) explain"}
+    assert not settled(ambiguous) and settled({**ambiguous, "settings": {"version": 27}})
+    assert not settled({**named, "named": [], "verdict": "unexplained", "reason": failed})
 
 
 def test_gap_table_shards_split_the_grid_by_case():
