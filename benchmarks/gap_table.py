@@ -389,11 +389,14 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 28: where step 1 would call a gap above the floor `unexplained`, an effect whose own noise spread covers
     #             the data is named (select._by_spread, gap.spread); only rows `unexplained` at step 1 without an
     #             ambiguous rival can differ from version 27
+    # version 29: the base-velocity bias is refined by least squares on the windows' mean residual
+    #             (Effect.fit_on_mean); its own cases can differ from version 28, and any row where it was refined as a
+    #             candidate could
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 28,
+        "version": 29,
     }
 
 

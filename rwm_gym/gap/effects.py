@@ -64,6 +64,11 @@ class Effect:
     scope: str = "global"
     nested_in: tuple[str, ...] = ()
     """Effects that contain this one as a special case (equal fit there: the simpler one is named)."""
+    fit_on_mean: bool = False
+    """Refined on the training windows' mean residual, not on each window's (`fit.fit_effect`): a bias read into
+    every window's start shifts all windows alike, while each window's squared error follows how its contacts answer
+    the shifted start. For a base-velocity bias at 0.5x that squared error is flat within 3 % over +-30 % of the
+    bias, and the mean residual crosses zero within 1 % of it."""
 
     @property
     def nominal(self) -> np.ndarray:
@@ -245,6 +250,7 @@ def vocabulary(
                 Parameter("base_velocity_bias_z", "m/s", 0.0, -0.3, 0.3, 0.0),
             ),
             lambda v: {"base_velocity_bias": (float(v[0]), float(v[1]), float(v[2]))},
+            fit_on_mean=True,
         ),
         solver_effect(model),
     )

@@ -5,7 +5,8 @@ Fitting (training episodes): the residual vector is the normalised state error o
 refined: one-parameter effects by a bounded Brent search (`scipy.optimize.minimize_scalar`), discrete ones (delay, the
 solver's iteration counts and cone) on their steps, other multi-parameter ones by a Brent search of the first parameter
 within its screening bracket and then `scipy.optimize.least_squares`, from that point and from the screened one if the
-search moved it (the cheaper end is kept: on a cost with two valleys either start can land in the worse).
+search moved it (the cheaper end is kept: on a cost with two valleys either start can land in the worse). A sensor
+bias that shifts every window alike (`Effect.fit_on_mean`) is fitted by least squares on the windows' mean residual.
 Uncertainty: 1-sigma from the Jacobian at the optimum (`mujoco.sysid.calculate_intervals`).
 
 Scoring (held-out episodes, never fitted): the gap is the mean over `GAP_HORIZONS` of the normalised state MSE at that
@@ -251,7 +252,13 @@ def fit_effect(
     first = effect.parameters[0]
     lo, hi = bracket
     values = start.copy()
-    if first.step > 0 and len(effect.parameters) == 1:
+    lows = np.array([p.low for p in effect.parameters])
+    highs = np.array([p.high for p in effect.parameters])
+    if effect.fit_on_mean and not any(p.step > 0 for p in effect.parameters):
+        values = cheapest_least_squares(
+            window_mean(residual, len(train)), [np.clip(start, lows, highs)], lows, highs, budget
+        )
+    elif first.step > 0 and len(effect.parameters) == 1:
         steps = np.arange(lo, hi + first.step / 2, first.step)
         values = effect.values_from_magnitude(steps[int(np.argmin([cost(np.array([x])) for x in steps]))])
     elif all(p.step > 0 for p in effect.parameters):
@@ -265,8 +272,6 @@ def fit_effect(
         )
         values = np.array([found.x])
     else:
-        lows = np.array([p.low for p in effect.parameters])
-        highs = np.array([p.high for p in effect.parameters])
         screened = np.clip(start, lows, highs)
         along = first_along_bracket(effect, cost, screened, bracket, SCALAR_FIRST_EVALUATIONS)
         starts = [along] if np.array_equal(along, screened) else [along, screened]
@@ -282,6 +287,16 @@ def fit_effect(
         scope=effect.scope,
         rejected=rejected,
     )
+
+
+def window_mean(residual, windows: int):
+    """`residual` (values -> the windows' residuals, flattened) averaged over the `windows` windows: what is common to
+    all of them (`Effect.fit_on_mean`)."""
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return residual(values).reshape(windows, -1).mean(0)
+
+    return mean
 
 
 SCALAR_FIRST_EVALUATIONS = 12

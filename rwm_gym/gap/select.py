@@ -113,7 +113,10 @@ def combine(named: list[Candidate]) -> Effect:
         return out
 
     parameters = tuple(p for e, _ in named for p in e.parameters)
-    return Effect("+".join(e.name for e, _ in named), "jointly refitted named effects", parameters, apply)
+    fit_on_mean = all(e.fit_on_mean for e, _ in named)  # a mean residual cannot tell a bias from other effects
+    return Effect(
+        "+".join(e.name for e, _ in named), "jointly refitted named effects", parameters, apply, fit_on_mean=fit_on_mean
+    )
 
 
 def _related(a: Effect, b: Effect) -> bool:
