@@ -67,8 +67,8 @@ class Effect:
     fit_on_mean: bool = False
     """Refined on the training windows' mean residual, not on each window's (`fit.fit_effect`): a bias read into
     every window's start shifts all windows alike, while each window's squared error follows how its contacts answer
-    the shifted start. For a base-velocity bias at 0.5x that squared error is flat within 3 % over +-30 % of the
-    bias, and the mean residual crosses zero within 1 % of it."""
+    the shifted start. For a base-velocity bias at 0.5x that squared error is flat within 3 % from 0.7x to 1.2x the
+    bias, and the mean residual crosses zero within 2 % of it."""
 
     @property
     def nominal(self) -> np.ndarray:

@@ -113,7 +113,7 @@ def combine(named: list[Candidate]) -> Effect:
         return out
 
     parameters = tuple(p for e, _ in named for p in e.parameters)
-    fit_on_mean = all(e.fit_on_mean for e, _ in named)  # a mean residual cannot tell a bias from other effects
+    fit_on_mean = all(e.fit_on_mean for e, _ in named)  # a dynamic effect's residual averages out over windows
     return Effect(
         "+".join(e.name for e, _ in named), "jointly refitted named effects", parameters, apply, fit_on_mean=fit_on_mean
     )
