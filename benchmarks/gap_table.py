@@ -217,6 +217,19 @@ def measure(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot:
     )
 
 
+def solver_check_row(check: dict) -> dict:
+    """What a row keeps of the solver check: the best single effect and its held-out gap under each solver, and
+    whether the named effects' refit under a converged solve decided (so that a later change to the check can tell
+    which rows it reaches)."""
+    out = {"checked": check["checked"], "taken": check["taken"]}
+    for name in ("own", "converged"):
+        if name in check:
+            out[name] = {k: check[name][k] for k in ("best_effect", "scope", "held_out_gap")}
+    if "named_set" in check:
+        out["named_set_taken"] = check["named_set"]["taken"]
+    return out
+
+
 def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot: str = "converged") -> dict:
     """Measure the case from `source` on the `robot` solver, run the workflow, score the verdict."""
     start = time.time()
@@ -285,6 +298,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "signal_to_floor": {k: v["signal_to_floor"] for k, v in report["identifiability"].items()},
         "rejected_points": len(report["rejected"]),
         "solver_taken": report["solver"]["check"]["taken"],
+        "solver_check": solver_check_row(report["solver"]["check"]),
         "wall_s": time.time() - start,
         "settings": settings(args, case),
     }
@@ -393,11 +407,15 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 29: the base-velocity bias is refined by least squares on the windows' mean residual
     #             (Effect.fit_on_mean); its own cases can differ from version 28, and any row where it was refined as a
     #             candidate could
+    # version 30: where no single effect lowers the held-out gap under the sim env's own solver, the solver check fits
+    #             every joint effect in its scopes under it before it compares the solvers
+    #             (solver_check.best_candidate); only rows where the check took the converged solve can differ from
+    #             version 29 (`--reuse own-solver-kept`)
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 29,
+        "version": 30,
     }
 
 
@@ -613,6 +631,7 @@ REUSABLE = {
         and (_ran_at(row) >= 26 or not row["named"])
         and (_ran_at(row) >= 27 or "ambiguous" not in row["reason"])
     ),
+    "own-solver-kept": lambda row: row.get("solver_taken") == "own",
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
@@ -624,7 +643,8 @@ what such steps test), or any finished row where the change is to some cases' me
 those cases differ, so they run again), or a row of version 25 or later that did not end `unexplained`, that named
 nothing if it ran at version 25, and that did not end on an ambiguity if it ran before version 27 (versions 26, 27
 and 28 change only what follows a naming, an ambiguity and an `unexplained` step 1; rows of version 24 or earlier
-run again)."""
+run again), or one where the solver check kept the sim env's own solver (a change that can only lower the own
+solver's best in the check keeps it all the more, and the selection under it takes the same fits)."""
 
 
 def _ran_at(row: dict) -> int:

@@ -613,6 +613,10 @@ def test_gap_table_reuses_only_the_rows_a_versions_change_cannot_reach(tmp_path)
     ambiguous = {**named, "reason": f"{step_1}; then: ambiguous: armature (9%) and joint_damping (9%) explain"}
     assert not settled(ambiguous) and settled({**ambiguous, "settings": {"version": 27}})
     assert not settled({**named, "named": [], "verdict": "unexplained", "reason": failed})
+    # a change to what the solver check gives the sim env's own solver reaches only rows where it took the converged
+    kept = gap_table.REUSABLE["own-solver-kept"]
+    assert kept({**named, "solver_taken": "own"})
+    assert not kept({**named, "solver_taken": "converged"}) and not kept(named)
 
 
 def test_gap_table_shards_split_the_grid_by_case():

@@ -303,7 +303,7 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
     gaps = {False: 1.0, True: converged_gap}
 
-    def best_candidate(resim, train, held, base, config, progress):
+    def best_candidate(resim, train, held, base, config, progress, every_scope_if_none=False):
         gap = gaps[resim.solver is not None and resim.solver.iterations == CONVERGED_SOLVER.iterations]
         per_window = gap * (1 + 0.1 * (np.arange(len(held.start)) % 3))
         return {
@@ -325,6 +325,43 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     assert choice.first_step == f"memo of {gaps[taken == 'converged']}"
     assert (choice.converged is None) == (taken == "converged")
     assert solver_check.corrected_solver(choice.resim, check) == (choice.resim.solver if taken == "converged" else None)
+
+
+@pytest.mark.parametrize(
+    ("global_gap", "every_scope_if_none", "best", "scoped_every"),
+    [(1.2, True, "joint_type", True), (1.2, False, "none", False), (0.8, True, "global", False)],
+)
+def test_the_own_solver_gets_every_scope_before_the_check_gives_it_up(
+    monkeypatch, global_gap, every_scope_if_none, best, scoped_every
+):
+    """The nominal held-out gap is 1.0. Global friction leaves `global_gap`; per joint type it leaves 0.3 but is fitted
+    only by `scope.every_scope`. Where no effect lowers the gap (1.2) and the solver is the sim env's own, every scope
+    is fitted and the per-joint-type form is its best; a converged solve gets no such search (its best stays the
+    nominal simulator); where global friction lowers the gap (0.8) every scope is not fitted."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+    gaps = {"nominal": 1.0, "global": global_gap, "joint_type": 0.3}
+
+    def fit(scope):
+        return SimpleNamespace(effect="joint_friction", scope=scope, values=[4.0], status="ok", gap_mean=gaps[scope])
+
+    effect = {s: SimpleNamespace(physics=lambda values, base, s=s: s) for s in ("global", "joint_type")}
+    called = []
+
+    def every_scope(fits, done, effects, inputs, memo):
+        called.append(done)
+        return [(effect["joint_type"], fit("joint_type"))]
+
+    monkeypatch.setattr(solver_check, "vocabulary", lambda spec, xml, solver: {"joint_friction": effect["global"]})
+    monkeypatch.setattr(solver_check, "gap_per_window", lambda spec, sim, held: np.full((32, 2), gaps[sim]))
+    monkeypatch.setattr(solver_check, "fit_all", lambda effects, inputs, progress, memo: [fit("global")])
+    monkeypatch.setattr(solver_check, "scope_candidates", lambda fits, effects, inputs, memo: [])
+    monkeypatch.setattr(solver_check, "every_scope", every_scope)
+    resim = _ConvergedStub()
+    base = "nominal"
+    found, _ = solver_check.best_candidate(resim, None, held, base, FitConfig(), False, every_scope_if_none)
+    assert found["scope" if best != "none" else "effect"] == best
+    assert found["gap"] == pytest.approx(min(gaps[best if best != "none" else "nominal"], 1.0))
+    assert called == ([set()] if scoped_every else [])
 
 
 class _ConvergedStub(_StubResimulator):

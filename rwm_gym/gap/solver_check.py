@@ -20,6 +20,15 @@ together under it leave 31 % less than under the own. So after a selection under
 effects are refitted together under the converged solve (`recheck_with_named`), and the same test on that decides
 whether the selection runs again under it (from the converged first step the check already fitted).
 
+Before the check gives up the sim env's own solver, that solver gets the search its own selection makes before it
+calls a gap `unexplained`: where no single effect and no scoped form of the best joint effects lowers the held-out
+gap under it, every joint effect is fitted in its scopes (`scope.every_scope`). Friction of 4 N·m in the knees, on
+walking data of the package's own fast physics: under its solver global friction halves the fitting cost but raises
+the held-out gap (0.0241 against 0.0191), so no joint effect was scoped and the converged solve's best (PD gains,
+0.0126) won; per joint type, friction leaves 0.0037 under the own solver (0.64 / 0.37 / 3.88 N·m in the hip
+abduction, hip flexion and knee joints). The converged solve gets no such search: the check asks whether the
+simulator as the user runs it can be kept.
+
 The scoped forms are part of the check because an effect held by a few joints is misfit in its global form under
 either solver, so the global forms alone cannot tell the solvers apart; per group, the fast solve's rough cost leaks
 the effect into the other groups (friction of 6 N·m in one leg: 1.3-1.9 N·m fitted in the others, and the per-leg
@@ -35,7 +44,7 @@ import numpy as np
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, paired_p_value
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
-from rwm_gym.gap.scope import scope_candidates
+from rwm_gym.gap.scope import every_scope, scope_candidates
 from rwm_gym.gap.select import Candidate, combine
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
 
@@ -76,12 +85,21 @@ def is_converged(resim: Resimulator) -> bool:
 
 
 def best_candidate(
-    resim: Resimulator, train: Windows, held: Windows, base: PhysicsParams, config: FitConfig, progress: bool
+    resim: Resimulator,
+    train: Windows,
+    held: Windows,
+    base: PhysicsParams,
+    config: FitConfig,
+    progress: bool,
+    every_scope_if_none: bool = False,
 ) -> tuple[dict, FitMemo]:
     """Step 1 under `resim`'s solver: every effect but `contact_solver` fitted and scored, and the scoped forms of
     the best joint effects (`scope.scope_candidates`); the best held-out gap {"effect", "scope", "values", "gap",
     "per_window" (W,)} (the nominal simulator's where no effect lowers it), and the fits, which the selection's first
-    step under this solver takes rather than fitting them again (`fit.FitMemo`)."""
+    step under this solver takes rather than fitting them again (`fit.FitMemo`).
+
+    `every_scope_if_none`: where none of those lowers the held-out gap, every joint effect is fitted in its scopes too
+    (`scope.every_scope`, as the selection does before it calls a gap `unexplained`)."""
     effects = {n: e for n, e in vocabulary(resim.spec, resim.xml_file, resim.solver).items() if n != "contact_solver"}
     before = gap_per_window(resim.spec, resim.rollout(held, base), held)
     best = {"effect": "none", "scope": None, "values": [], "gap": float(before.mean()), "per_window": before.mean(1)}
@@ -89,6 +107,10 @@ def best_candidate(
     memo = FitMemo(inputs)
     fits = fit_all(effects, inputs, progress, memo=memo)
     scoped = scope_candidates(fits, effects, inputs, memo)
+    lowered = any(f.status == "ok" and f.gap_mean < best["gap"] for f in fits + [f for _, f in scoped])
+    if every_scope_if_none and config.every_scope and not lowered:
+        done = {f.effect for _, f in scoped if f.scope != "global"}
+        scoped += every_scope(fits, done, effects, inputs, memo)
     chosen = None
     for effect, fit in [(effects[f.effect], f) for f in fits] + scoped:
         if fit.status == "ok" and fit.gap_mean < best["gap"]:
@@ -115,7 +137,7 @@ def choose_solver(
             resim, {"checked": False, "taken": "own", "reason": "the sim env's own solver is converged"}, None
         )
     other = Resimulator(resim.spec, resim.xml_file, resim.nthread, converged(resim.solver or SolverSettings()))
-    own_best, own_memo = best_candidate(resim, train, held, base, config, progress)
+    own_best, own_memo = best_candidate(resim, train, held, base, config, progress, every_scope_if_none=True)
     try:
         conv_best, conv_memo = best_candidate(other, train, held, base, config, progress)
     except SimulationDiverged as err:
