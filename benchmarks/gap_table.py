@@ -227,6 +227,8 @@ def solver_check_row(check: dict) -> dict:
             out[name] = {k: check[name][k] for k in ("best_effect", "scope", "held_out_gap")}
     if "named_set" in check:
         out["named_set_taken"] = check["named_set"]["taken"]
+    if "reselection" in check:
+        out["reselection_kept"] = check["reselection"]["kept"]
     return out
 
 
@@ -410,7 +412,9 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 30: where no single effect lowers the held-out gap under the sim env's own solver, the solver check fits
     #             every joint effect in its scopes under it before it compares the solvers
     #             (solver_check.best_candidate); only rows where the check took the converged solve can differ from
-    #             version 29 (`--reuse own-solver-kept`)
+    #             version 29 (`--reuse own-solver-kept`); and where the named effects' refit took the converged
+    #             solve but the selection under it leaves materially more than they did, the own solver's selection
+    #             stands (solver_check.lost_in_reselection), which also reaches only rows that took the converged solve
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,

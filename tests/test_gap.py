@@ -327,6 +327,23 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     assert solver_check.corrected_solver(choice.resim, check) == (choice.resim.solver if taken == "converged" else None)
 
 
+@pytest.mark.parametrize(("selected_again", "taken"), [(0.0126, "own"), (0.0032, "converged")])
+def test_a_selection_under_the_converged_solve_that_loses_the_named_effects_is_not_taken(selected_again, taken):
+    """The named effects refitted under the converged solve leave 0.003 (materially less than under the sim env's own
+    solver). Selected again under it, the effects named there leave `selected_again`: four times that (an effect in
+    the knees lost to PD gains) keeps the own solver's selection; about the same takes the converged one."""
+    check = {
+        "checked": True,
+        "taken": "converged",
+        "reason": "fitted alone ...; but refitted together ...",
+        "named_set": {"taken": "converged", "held_out_gap_converged": 0.003},
+    }
+    out = solver_check.lost_in_reselection(check, np.full((32, 2), selected_again))
+    assert out["taken"] == taken and out["reselection"]["kept"] == taken
+    assert out["reselection"]["held_out_gap"] == pytest.approx(selected_again)
+    assert out["reason"].startswith(check["reason"]) and (taken == "own") == (out["reason"] != check["reason"])
+
+
 @pytest.mark.parametrize(
     ("global_gap", "every_scope_if_none", "best", "scoped_every"),
     [(1.2, True, "joint_type", True), (1.2, False, "none", False), (0.8, True, "global", False)],

@@ -18,7 +18,9 @@ solve gives: with a weak motor, joint friction and encoder offsets on a converge
 single effect under it is 17 % below the own solver's (short of `MATERIAL`), but the three named effects refitted
 together under it leave 31 % less than under the own. So after a selection under the sim's own solver, the named
 effects are refitted together under the converged solve (`recheck_with_named`), and the same test on that decides
-whether the selection runs again under it (from the converged first step the check already fitted).
+whether the selection runs again under it (from the converged first step the check already fitted). Where the
+selection under the converged solve then leaves `MATERIAL` more than the named effects refitted there, it lost them,
+and the selection under the sim env's own solver stands (`lost_in_reselection`).
 
 Before the check gives up the sim env's own solver, that solver gets the search its own selection makes before it
 calls a gap `unexplained`: where no single effect and no scoped form of the best joint effects lowers the held-out
@@ -233,6 +235,27 @@ def recheck_with_named(
         return replace(choice, check=check)
     check.update(taken="converged", reason=f"{check['reason']}; but {reason}")
     return SolverChoice(other, check, memo)
+
+
+def lost_in_reselection(check: dict, gap_after: np.ndarray) -> dict:
+    """After `recheck_with_named` took the converged solve and the selection ran again under it: `check` with the
+    sim env's own solver kept where that selection's held-out gap (`gap_after`) is `MATERIAL` above what the named
+    effects refitted under the converged solve left (it lost them: an effect in some joints whose global form
+    explains nothing is not scoped where another effect can be named), else as it was. Either way it records the
+    test ("reselection")."""
+    named = check["named_set"]["held_out_gap_converged"]
+    again = float(gap_after.mean())
+    lost = (1.0 - MATERIAL) * again > named
+    verb = "leaves materially more than" if lost else "leaves no materially more than"
+    reason = (
+        f"selected again under the converged solve, the effects named there (gap {again:.4g}) {verb} the named "
+        f"effects refitted under it (gap {named:.4g})"
+    )
+    record = {"held_out_gap": again, "kept": "own" if lost else "converged", "reason": reason}
+    if not lost:
+        return {**check, "reselection": record}
+    reason = f"{check['reason']}; {reason}, so it is not taken"
+    return {**check, "reselection": record, "taken": "own", "reason": reason}
 
 
 def solver_settings(resim: Resimulator) -> dict:

@@ -47,6 +47,7 @@ from rwm_gym.gap.solver_check import (
     SolverChoice,
     choose_solver,
     corrected_solver,
+    lost_in_reselection,
     recheck_with_named,
     solver_settings,
 )
@@ -196,7 +197,12 @@ def run_gap(
             choice, chosen.selection.named, train, held, base, chosen.selection.gap_after, fit_config
         )
         if rechecked.resim is not choice.resim:
-            chosen = select_under(rechecked)
+            again = select_under(rechecked)
+            check = lost_in_reselection(rechecked.check, again.selection.gap_after)
+            if check["taken"] == "converged":
+                chosen, rechecked = again, dataclasses.replace(rechecked, check=check)
+            else:
+                rechecked = dataclasses.replace(choice, check=check)
         choice = rechecked
     resim, selection, floor = choice.resim, chosen.selection, chosen.floor
     corrected_params, after = selection.params, selection.gap_after
