@@ -345,21 +345,36 @@ def test_a_selection_under_the_converged_solve_that_loses_the_named_effects_is_n
 
 
 @pytest.mark.parametrize(
-    ("global_gap", "every_scope_if_none", "best", "scoped_every"),
-    [(1.2, True, "joint_type", True), (1.2, False, "none", False), (0.8, True, "global", False)],
+    ("global_gap", "scoped_gap", "every_scope_if_none", "best", "scoped_every"),
+    [
+        (1.2, 0.3, True, "joint_type", True),
+        (1.2, 0.95, True, "none", True),
+        (1.2, 0.3, False, "none", False),
+        (0.8, 0.3, True, "global", False),
+    ],
 )
 def test_the_own_solver_gets_every_scope_before_the_check_gives_it_up(
-    monkeypatch, global_gap, every_scope_if_none, best, scoped_every
+    monkeypatch, global_gap, scoped_gap, every_scope_if_none, best, scoped_every
 ):
-    """The nominal held-out gap is 1.0. Global friction leaves `global_gap`; per joint type it leaves 0.3 but is fitted
-    only by `scope.every_scope`. Where no effect lowers the gap (1.2) and the solver is the sim env's own, every scope
-    is fitted and the per-joint-type form is its best; a converged solve gets no such search (its best stays the
-    nominal simulator); where global friction lowers the gap (0.8) every scope is not fitted."""
+    """The nominal held-out gap is 1.0. Global friction leaves `global_gap`; per joint type it leaves `scoped_gap` but
+    is fitted only by `scope.every_scope`. Where no effect lowers the gap (1.2) and the solver is the sim env's own,
+    every scope is fitted and the per-joint-type form is its best where it explains more than its charge (0.3), not
+    where it explains less (0.95); a converged solve gets no such search (its best stays the nominal simulator); where
+    global friction lowers the gap (0.8) every scope is not fitted."""
     held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
-    gaps = {"nominal": 1.0, "global": global_gap, "joint_type": 0.3}
+    gaps = {"nominal": 1.0, "global": global_gap, "joint_type": scoped_gap}
 
     def fit(scope):
-        return SimpleNamespace(effect="joint_friction", scope=scope, values=[4.0], status="ok", gap_mean=gaps[scope])
+        explained = 1.0 - gaps[scope] / gaps["nominal"]
+        return SimpleNamespace(
+            effect="joint_friction",
+            scope=scope,
+            values=[4.0],
+            status="ok",
+            gap_mean=gaps[scope],
+            score=explained - 0.1 * (scope != "global"),
+            p_value=0.001,
+        )
 
     effect = {s: SimpleNamespace(physics=lambda values, base, s=s: s) for s in ("global", "joint_type")}
     called = []
