@@ -648,7 +648,8 @@ those cases differ, so they run again), or a row of version 25 or later that did
 nothing if it ran at version 25, and that did not end on an ambiguity if it ran before version 27 (versions 26, 27
 and 28 change only what follows a naming, an ambiguity and an `unexplained` step 1; rows of version 24 or earlier
 run again), or one where the solver check kept the sim env's own solver (a change that can only lower the own
-solver's best in the check keeps it all the more, and the selection under it takes the same fits)."""
+solver's best in the check leaves a converged solve that was not materially better so; only one that was, and failed
+the p-value alone, could differ; the selection under the own solver takes the same fits)."""
 
 
 def _ran_at(row: dict) -> int:
