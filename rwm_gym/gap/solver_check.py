@@ -112,18 +112,22 @@ def best_candidate(
     memo = FitMemo(inputs)
     fits = fit_all(effects, inputs, progress, memo=memo)
     scoped = scope_candidates(fits, effects, inputs, memo)
-    lowered = any(f.status == "ok" and f.gap_mean < best["gap"] for f in fits + [f for _, f in scoped])
-    if every_scope_if_none and config.every_scope and not lowered:
+
+    def lowest(candidates: list[tuple]) -> tuple | None:
+        """The candidate with the lowest held-out gap below the nominal simulator's (the first of equals), or None."""
+        lower = [(e, f) for e, f in candidates if f.status == "ok" and f.gap_mean < best["gap"]]
+        return min(lower, key=lambda ef: ef[1].gap_mean, default=None)
+
+    candidates = [(effects[f.effect], f) for f in fits] + scoped
+    found = lowest(candidates)
+    if found is None and every_scope_if_none and config.every_scope:
         done = {f.effect for _, f in scoped if f.scope != "global"}
         more = every_scope(fits, done, effects, inputs, memo)
-        scoped += [(e, f) for e, f in more if f.status == "ok" and f.score > 0 and f.p_value < config.significance]
-    chosen = None
-    for effect, fit in [(effects[f.effect], f) for f in fits] + scoped:
-        if fit.status == "ok" and fit.gap_mean < best["gap"]:
-            best = {"effect": fit.effect, "scope": fit.scope, "values": fit.values, "gap": fit.gap_mean}
-            chosen = effect
-    if chosen is not None:
-        params = chosen.physics(best["values"], base)
+        found = lowest([(e, f) for e, f in more if f.score > 0 and f.p_value < config.significance])
+    if found is not None:
+        effect, fit = found
+        params = effect.physics(fit.values, base)
+        best = {"effect": fit.effect, "scope": fit.scope, "values": fit.values, "gap": fit.gap_mean}
         best["per_window"] = gap_per_window(resim.spec, resim.rollout(held, params), held).mean(1)
     return best, memo
 
