@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rwm_gym.cli import main
-from rwm_gym.data.collect import collect, finished_collection
+from rwm_gym.data.collect import collect, diverged_episodes, finished_collection
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.spec import load_spec
 
@@ -61,6 +61,23 @@ def test_workers_and_env_counts_write_the_same_bytes(tmp_path):
     lengths = Dataset.load(one).episode_lengths
     assert len(set(lengths)) > 1  # the case where the finishing order differs from the episode order
     assert one.read_bytes() == two.read_bytes() == wide.read_bytes()
+
+
+def test_an_episode_whose_physics_blows_up_ends_before_the_blow_up(tmp_path, capsys):
+    """The MJCF's 4 solver iterations blow up on ice (ground friction 0.05) in the first walking episode; MuJoCo
+    resets the robot and would carry on from there."""
+    out = tmp_path / "ice.h5"
+    physics = '{"ground_friction": 0.05}'
+    args = ["collect", "--policy", "gait", "--episodes", "2", "--max-steps", "150", "--physics", physics]
+    assert main([*args, "--out", str(out)]) == 0
+    assert "the physics blew up in 1 of 2 episodes" in capsys.readouterr().err
+    ds = Dataset.load(out)
+    assert diverged_episodes(ds).tolist() == [0] and ds.episode_lengths.tolist() == [24, 151]
+    first = ds.episode(0)
+    assert first["truncated"][-1] and not first["terminated"].any()  # a log that stops, not a fall
+    solved = {"physics": {"ground_friction": 0.05}, "solver": {"iterations": 100, "ls_iterations": 50}}
+    converged = collect(ENV_ID, "gait", 2, tmp_path / "solved.h5", max_steps=150, env_kwargs=solved, progress=False)
+    assert len(diverged_episodes(Dataset.load(converged))) == 0
 
 
 def test_the_zero_policy_stands_still_and_its_noise_is_seeded(tmp_path):

@@ -81,6 +81,14 @@ def test_measured_data_hides_the_effect(tmp_path):
     assert errors[1] < 0.5 * errors[0]
 
 
+def test_measured_data_whose_physics_blows_up_are_refused(tmp_path):
+    """The MJCF's own 4 solver iterations blow up on ice under the walking policy: no robot moves so."""
+    out = tmp_path / "ice.h5"
+    with pytest.raises(ValueError, match="blew up in 1 of 2 episodes"):
+        make_measured({"ground_friction": [0.05]}, 2, out, max_steps=150, policy="gait", solver=None, progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("physics", [{}, {"action_delay": 0.015}, {"backlash": 0.03}])
 def test_resimulation_reproduces_noise_free_data_exactly(tmp_path, physics):
     hidden = {name: [value] for name, value in physics.items()}

@@ -78,6 +78,25 @@ def test_time_limit_truncates():
     assert truncated and not terminated
 
 
+def test_a_step_the_physics_blows_up_in_ends_that_episode_only():
+    """MuJoCo resets a simulation that blows up and carries on; the env ends the episode there instead."""
+    single = LocomotionEnv()
+    single.reset(seed=0)
+    single.unwrapped.data.qvel[6] = 1e12  # past MuJoCo's limit: a bad-velocity warning and a reset
+    _, reward, terminated, truncated, info = single.step(np.zeros(12))
+    assert terminated and not truncated and reward == 0.0 and info["physics_diverged"]
+    vec = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="vector_entry_point")
+    vec.reset(seed=0)
+    core = vec.unwrapped.core
+    core.sim._bound["qvel"][1, 6] = 1e12
+    _, reward, terminated, _, info = core.step(np.zeros((2, 12)))
+    assert terminated.tolist() == [False, True] and info["physics_diverged"].tolist() == [False, True]
+    assert reward[1] == 0.0 and reward[0] != 0.0
+    core.reset(np.array([1]))
+    _, _, terminated, _, info = core.step(np.zeros((2, 12)))  # the next step is an ordinary one again
+    assert not info["physics_diverged"].any() and not terminated.any()
+
+
 def test_nan_and_wrong_shape_actions_are_refused(env):
     env.reset(seed=0)
     with pytest.raises(ValueError, match="NaN"):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import rwm_gym
 from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, WorkerOptions, add_group, parse_physics
-from rwm_gym.data.collect import collect
+from rwm_gym.data.collect import collect, diverged_episodes
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.options import non_negative_float, option
 from rwm_gym.workers import RayMissing
@@ -86,4 +86,12 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows, {falls} terminated "
         f"(rwm-gym {rwm_gym.__version__})"
     )
+    blown = len(diverged_episodes(ds))
+    if blown:
+        print(
+            f"rwm-gym collect: the physics blew up in {blown} of {ds.num_episodes} episodes (MuJoCo reset the "
+            'simulation); each ends at the last state before it. {"solver": {"iterations": 100}} in --physics '
+            "solves each step to convergence",
+            file=sys.stderr,
+        )
     return 0

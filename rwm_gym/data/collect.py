@@ -4,7 +4,9 @@ Runs N envs of a batched physics core side by side, in one process or in `--work
 Ray tasks, `rwm_gym.workers`); episode k always starts from seed `seed + k` (env and policy), so its content does not
 depend on N, on the workers or on the backend. One writer appends
 the episodes in episode order and flushes each at once: an interrupted collection keeps every episode written (those
-that finished before an earlier one are held back until it is written).
+that finished before an earlier one are held back until it is written). Where the physics blew up during a step
+(`info["physics_diverged"]`: MuJoCo reset the simulation), the episode ends, truncated, at the last state before it,
+as a robot's log that stops there: the reset is no motion of the robot.
 """
 
 from __future__ import annotations
@@ -221,13 +223,20 @@ class _Runner:
         obs[ids] = core.observe(ids)
         while any(b is not None for b in buffers):
             actions = pol.act(obs)
-            obs, reward, terminated, truncated, _ = core.step(actions)
+            obs, reward, terminated, truncated, info = core.step(actions)
             record = core.record()
             truncated = truncated | (core.steps >= self.horizon) & ~terminated
+            diverged = info.get("physics_diverged", np.zeros(num_envs, dtype=bool))
             finished = []
             for i in range(num_envs):
                 rows = buffers[i]
                 if rows is None:
+                    continue
+                if diverged[i]:  # the step's state is MuJoCo's reset, no motion: the log stops before it
+                    rows[-1]["truncated"] = True
+                    yield int(episode_of[i]), stack_episode(rows, spec.action_dim)
+                    buffers[i] = None
+                    finished.append(i)
                     continue
                 rows[-1]["action"], rows[-1]["reward"] = actions[i], reward[i]
                 rows.append({f: record[f][i] for f in ROW_FIELDS})
@@ -279,6 +288,16 @@ def _fan_out(job: _Job, episodes: int, workers: int, backend: str) -> Iterator[t
     blocks = [range(a, min(a + block, episodes)) for a in range(0, episodes, block)]
     for result in run_in_workers(functools.partial(_worker_block, job), blocks, workers, backend):
         yield from result
+
+
+def diverged_episodes(data: Dataset) -> np.ndarray:
+    """Indices of the episodes of a collection that ended where the physics blew up: truncated before the
+    collection's `max_steps` transitions (the collector truncates there and at that cap only)."""
+    cap = data.info.metadata.get("max_steps")
+    if cap is None:
+        return np.zeros(0, dtype=np.int64)
+    last = data.episode_starts + data.episode_lengths - 1
+    return np.flatnonzero(data["truncated"][last] & (data.episode_lengths - 1 < cap))
 
 
 def stack_episode(rows: list[dict], action_dim: int) -> dict[str, np.ndarray]:

@@ -19,7 +19,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from rwm_gym.data.collect import collect, make_physics_core
+from rwm_gym.data.collect import collect, diverged_episodes, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics
 from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
@@ -107,7 +107,9 @@ def make_measured(
 
     `extra_physics` (PhysicsParams fields, e.g. per-joint values) is hidden too. `policy` drives the robot:
     `excitation` (default), `gait`, `random` or the path of an SB3 `.zip`. `solver`: how the robot's physics is
-    solved (default: each step to convergence, as a real robot's physics is; None: the MJCF's own settings).
+    solved (default: each step to convergence, as a real robot's physics is; None: the MJCF's own settings). Where
+    that physics blows up in any episode (the MJCF's 4 iterations on ice, ground friction 0.05), the data show no
+    robot's motion: a ValueError says so and nothing is written.
     """
     out = Path(out)
     if out.exists() and not overwrite:
@@ -135,6 +137,12 @@ def make_measured(
             progress=progress,
         )
         source = Dataset.load(raw)
+        blown = diverged_episodes(source)
+        if len(blown):
+            raise ValueError(
+                f"the stand-in robot's physics blew up in {len(blown)} of {source.num_episodes} episodes (MuJoCo "
+                "reset the simulation): no measurement of a robot; solve it to convergence (the default solver)"
+            )
         info = replace(
             source.info, env_id=env_id, policy="unknown", seed=0, physics_params={}, metadata={}, complete=False
         )

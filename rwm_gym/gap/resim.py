@@ -29,16 +29,8 @@ from rwm_gym.data.dataset import Dataset
 from rwm_gym.physics.params import CONVERGED_SOLVER, ModelCache, PhysicsParams, SolverSettings, drive_rewrites
 from rwm_gym.physics.robot import RobotLayout, measure
 from rwm_gym.physics.sensors import SensorBias
-from rwm_gym.physics.simulator import BatchSimulator
+from rwm_gym.physics.simulator import DIVERGENCE_WARNINGS, BatchSimulator
 from rwm_gym.spec import TaskSpec
-
-DIVERGENCE_WARNINGS: dict[int, str] = {
-    int(mujoco.mjtWarning.mjWARN_BADQACC): "Nan, Inf or huge value in QACC",
-    int(mujoco.mjtWarning.mjWARN_BADQVEL): "Nan, Inf or huge value in QVEL",
-    int(mujoco.mjtWarning.mjWARN_BADQPOS): "Nan, Inf or huge value in QPOS",
-    int(mujoco.mjtWarning.mjWARN_BADCTRL): "Nan, Inf or huge value in CTRL",
-}
-"""MuJoCo warnings that mean the simulation blew up (and was reset by MuJoCo)."""
 
 
 @contextmanager

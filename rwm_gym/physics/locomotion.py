@@ -116,7 +116,9 @@ class LocomotionCore:
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every env one policy step. Returns obs, reward, terminated, truncated, info (arrays per env).
 
-        No env is reset here; callers reset finished envs (the vector adapters do it automatically).
+        No env is reset here; callers reset finished envs (the vector adapters do it automatically). An env whose
+        simulation blew up during the step (`info["physics_diverged"]`; MuJoCo reset it to the default pose) is
+        terminated with reward 0: what it measures after the step is no motion of the robot.
         """
         actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
         act = self.spec.actuator
@@ -124,13 +126,19 @@ class LocomotionCore:
         ctrl[:, self.layout.actuator_ids] = np.asarray(act.default_pose) + act.action_scale * actions
         self.sim.step(ctrl, self.spec.substeps)
 
+        diverged = self.sim.diverged.copy()
         prev, now = self.current, self._measure()
         reward, terms = self.task.reward(now.state, prev.state, now.contact, now.foot_height, actions, self.last_action)
-        info = {"command": self.command.copy(), **{f"reward/{k}": v for k, v in terms.items()}}
+        reward = np.where(diverged, 0.0, reward)
+        info = {
+            "command": self.command.copy(),
+            "physics_diverged": diverged,
+            **{f"reward/{k}": v for k, v in terms.items()},
+        }
 
         self.current, self.last_action = now, actions
         self.steps += 1
-        terminated = now.terminated.copy()
+        terminated = now.terminated | diverged
         truncated = (self.steps >= self.spec.episode_steps) & ~terminated
         self.task.advance(self.steps, self.rngs)
         return self.observe(), reward.astype(np.float64), terminated, truncated, info
