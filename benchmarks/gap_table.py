@@ -235,10 +235,10 @@ def solver_check_row(check: dict) -> dict:
 def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot: str = "converged") -> dict:
     """Measure the case from `source` on the `robot` solver, run the workflow, score the verdict."""
     start = time.time()
-    data = measure(case, source, args, tmp, robot)
     try:
+        data = measure(case, source, args, tmp, robot)
         report = run_gap(SIM, data, tmp / f"{label(source, robot)}_{case.name}", progress=False)
-    except ValueError as err:  # e.g. a robot that falls at once: no episode long enough for held-out windows
+    except ValueError as err:  # a robot that falls at once (no episode long enough) or whose physics blows up
         return {
             "case": case.name,
             "kind": case.kind,
