@@ -6,8 +6,9 @@ so the numbers of two policies are comparable.
 The headline figure is the **tracking score**: the mean over every evaluated step of
 `(w_xy * exp(-|cmd_xy - v_xy|^2 / sigma) + w_yaw * exp(-(cmd_yaw - w_z)^2 / sigma)) / (w_xy + w_yaw)` with the
 task's own tracking weights and sigma (1.0, 0.5 and 0.25 for ANYmal D), so 1.0 is perfect tracking; a robot that
-falls scores 0 for the rest of its episode. `scoring_commands` is the fixed command set it is measured on. Beside it
-we report the return, the velocity-tracking errors, the falls, the distance walked and the velocity achieved.
+falls (or whose physics blows up: `physics_diverged`) scores 0 for the rest of its episode and counts as a fall.
+`scoring_commands` is the fixed command set it is measured on. Beside it we report the return, the velocity-tracking
+errors, the falls, the distance walked and the velocity achieved.
 """
 
 from __future__ import annotations
