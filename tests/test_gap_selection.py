@@ -1420,3 +1420,45 @@ def test_an_effect_named_by_its_spread_ends_selection_unrefitted(monkeypatch, sp
     assert "named by its spread" in selection.steps[0]["decision"]
     assert selection.steps[0]["spread"] == [spread_fit.spread]
     assert "its own noise floor" in selection.reason
+
+
+@pytest.mark.parametrize(
+    "gap_without_damping,p_value,dropped",
+    [
+        (1.0, 1.0, True),  # nothing changes without it: it was named for what the refit of the armature did
+        (1.5, 0.05, False),  # half of what then lies above the floor: kept, though not significant alone
+        (1.1, 1e-4, False),  # a small share, but significant
+        (1.1, 0.05, True),  # a small share, not significant
+    ],
+)
+def test_a_named_effect_that_adds_nothing_at_the_final_values_is_dropped(
+    monkeypatch, gap_without_damping, p_value, dropped
+):
+    from rwm_gym.gap import select
+
+    def gap(spec, params, held):  # the stubbed rollout hands the simulator through
+        both = params.armature > 0 and params.joint_damping > 0
+        return np.full((20, 3), 1.0 if both else gap_without_damping if params.armature > 0 else 3.0)
+
+    monkeypatch.setattr(select, "gap_per_window", gap)
+    monkeypatch.setattr(select, "paired_p_value", lambda without, with_all, *a: p_value if without[0] < 2 else 1e-6)
+    named = [
+        (EFFECTS["armature"], SimpleNamespace(values=[0.1])),
+        (EFFECTS["joint_damping"], SimpleNamespace(values=[0.5])),
+    ]
+    params = EFFECTS["joint_damping"].physics([0.5], EFFECTS["armature"].physics([0.1], PhysicsParams()))
+    search = SimpleNamespace(
+        config=FitConfig(),
+        base=PhysicsParams(),
+        spec=SPEC,
+        held=None,
+        resim=SimpleNamespace(rollout=lambda held, p: p),
+        floor_at=lambda k, p: np.full((20, 3), 0.5),
+    )
+    kept, params_after, gap_after, checks = select.drop_idle(named, search, params, np.ones((20, 3)))
+    assert [e.name for e, _ in kept] == (["armature"] if dropped else ["armature", "joint_damping"])
+    assert (params_after.joint_damping == 0) == dropped
+    assert gap_after.mean() == pytest.approx(gap_without_damping if dropped else 1.0)
+    assert checks[0]["effect"] == "joint_damping" and checks[0]["dropped"] == dropped
+    assert checks[0]["share_above_floor"] == pytest.approx((gap_without_damping - 1.0) / (gap_without_damping - 0.5))
+    assert len(checks) == (1 if dropped else 2) and not any(c["dropped"] for c in checks[1:])  # armature stays

@@ -5,7 +5,8 @@ report.json keys: `effect` (the first named effect, `none` or `unexplained`), `r
 uncertainty, `share_of_explained_gap`, and with `GapConfig.bootstrap` the `bootstrap` std and 95 % interval of each
 parameter), `parameters` / `units` / `uncertainty` (all named parameters, flat), `bootstrap` (`resamples`, and per
 named parameter its `std` and `interval` over resampled fitting episodes, `gap.bootstrap`), `joint_refit`,
-`simpler_forms` (each named effect tested against a simpler one it holds, `select.prefer_simpler`),
+`simpler_forms` (each named effect tested against a simpler one it holds, `select.prefer_simpler`), `idle_effects`
+(each of several named effects tested for what it adds at the final values, `select.drop_idle`),
 `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
 1, 5 and 25 steps or fewer where the held-out episodes are shorter, after the named effects),
 `gap_before_per_horizon`, `gap_after_per_horizon`,

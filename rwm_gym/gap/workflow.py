@@ -450,6 +450,7 @@ def named_section(selection: Selection, spread: dict | None = None) -> dict:
         **flat,
         "joint_refit": selection.joint_refit,
         "simpler_forms": selection.simpler_forms,
+        "idle_effects": selection.idle_effects,
     }
 
 
