@@ -415,11 +415,13 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             version 29 (`--reuse own-solver-kept`); and where the named effects' refit took the converged
     #             solve but the selection under it leaves materially more than they did, the own solver's selection
     #             stands (solver_check.lost_in_reselection), which also reaches only rows that took the converged solve
+    # version 31: of several named effects, one that adds nothing at the final values is dropped (select.drop_idle);
+    #             only rows that named two or more effects can differ from version 30 (`--reuse at-most-one-named`)
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 30,
+        "version": 31,
     }
 
 
