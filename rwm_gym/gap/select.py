@@ -763,12 +763,12 @@ def _selection(
             named, search.resim, search.train, search.held, base, current, config
         )
     named, params, current, simpler = prefer_simpler(named, search, params, current)
+    why = _why(named, steps, reason)
     named, params, current, idle = drop_idle(named, search, params, current)
-    shares = effect_shares(named, search.resim, search.held, base, before)
     dropped = [f"{c['effect']} ({c['scope']})" for c in idle if c["dropped"]]
-    why = _why(named, steps, reason) + (
-        f"; dropped, adding nothing at the final values: {', '.join(dropped)}" if dropped else ""
-    )
+    if dropped:
+        why += f"; dropped, adding nothing at the final values: {', '.join(dropped)}"
+    shares = effect_shares(named, search.resim, search.held, base, before)
     return Selection(
         named[0][0].name,
         why,
