@@ -659,7 +659,7 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(
     tested = _stub_selection(monkeypatch, fits, above, gap_of, 1e-5)
     selection = _select(
         0.3,
-        FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming),
+        FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming, drop_idle=False),  # stubbed rollouts
         held=SimpleNamespace(join=lambda other: "every episode"),
         cross=lambda: select.CrossFit(None, None),
         floor_of=lambda params, windows=None: np.full((20, 3), own_floor if params.joint_friction else 0.3),
@@ -1191,7 +1191,7 @@ def test_rivals_that_stay_alike_are_told_apart_by_where_each_leads(monkeypatch, 
     monkeypatch.setattr(  # worse windows wherever the gap is larger
         select, "paired_p_value", lambda larger, smaller, *args: 1e-4 if larger.mean() > smaller.mean() else 0.5
     )
-    selection = _select(0.1, FitConfig(look_ahead=look_ahead))
+    selection = _select(0.1, FitConfig(look_ahead=look_ahead, drop_idle=False))  # gaps stubbed per named set
     assert [e.name for e, _ in selection.named] == named, selection.reason
     assert selection.verdict == (named[0] if named else "unexplained")
     first = selection.steps[0]
@@ -1279,7 +1279,7 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
         PhysicsParams(),
         np.ones((20, 3)),
         np.full((20, 3), 0.45),  # 0.5 left after damping: under 1.2x the nominal floor
-        FitConfig(near_the_floor_after_naming=False),  # the floor test alone decides whether step 2 fits
+        FitConfig(near_the_floor_after_naming=False, drop_idle=False),  # the floor test alone decides step 2
         progress=False,
         floor_of=floor_of if own_floor else None,
     )

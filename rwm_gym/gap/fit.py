@@ -111,6 +111,8 @@ class FitConfig:
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second
     (armature can absorb an action delay on walking data), and on top of it, frozen, the second then
     explains nothing."""
+    drop_idle: bool = True
+    """Of several named effects, drop one that adds nothing at the final values (`select.drop_idle`)."""
     look_ahead: bool = True
     """Where a step's best candidate and an unrelated rival explain the gap alike and neither holds the other, name
     each in turn, follow selection to its end, and take the branch that leaves clearly less (`select._look_ahead`).

@@ -793,7 +793,7 @@ def drop_idle(
     armature per joint type on the fast robot's walking data, stopped at (0.013, 0.112, 0.006) kg·m² by its solver's
     rough cost (true: 0.1 in the hip flexion joints only), moved to (0.002, 0.102, 0.003) with joint damping beside
     it, and damping, named for that, ended at 1e-7 N·m·s/rad. Checked from the last named effect to the first."""
-    if len(named) < 2:
+    if len(named) < 2 or not search.config.drop_idle:
         return named, params, current, []
     config, checks = search.config, []
     floor = float(np.nanmean(search.floor_at(len(named), params)))
