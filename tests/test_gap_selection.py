@@ -227,8 +227,12 @@ def test_walking_policy_data_and_identifiability(tmp_path, capsys):
     such data can reveal it at all."""
     out = tmp_path / "walk.h5"
     assert main(["make-measured", "--policy", "gait", "--episodes", "2", "--max-steps", "60", "--out", str(out)]) == 0
+    assert "(hidden: nothing)" in capsys.readouterr().out
     data = Dataset.load(out)
     assert data.info.policy == "unknown" and data.num_episodes == 2
+    heavy = ["--physics", '{"payload_mass": 5.0}', "--effect", "action_delay", "--out", str(tmp_path / "heavy.h5")]
+    assert main(["make-measured", "--policy", "gait", "--episodes", "1", "--max-steps", "5", *heavy]) == 0
+    assert "(hidden: action_delay, payload_mass)" in capsys.readouterr().out
     assert main(["make-measured", "--policy", "dance", "--out", str(tmp_path / "x.h5")]) == 2
     assert "unknown policy 'dance'" in capsys.readouterr().err
     windows = make_windows(data, np.arange(2), 25, 10)

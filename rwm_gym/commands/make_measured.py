@@ -92,8 +92,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"rwm-gym make-measured: {err}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)
-    print(
-        f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (effects hidden: "
-        f"{', '.join(args.effect) or 'none'})"
-    )
+    hidden = [*args.effect, *(parse_physics(args.physics) if args.physics else {})]
+    print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (hidden: {', '.join(hidden) or 'nothing'})")
     return 0
