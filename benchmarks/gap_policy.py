@@ -15,7 +15,7 @@ The share of the loss recovered is (corrected - before) / (true - before) in tra
 nominal policy's own score there (above 100 % where the ceiling's fine-tune ends below the corrected one's). Each
 stage's output is kept under `--out` and reused when it exists (a killed run continues where it stopped).
 
-    python benchmarks/gap_policy.py --out results/gap_policy                       # both robots, 3 M steps each
+    python benchmarks/gap_policy.py --out results/gap_policy                       # every robot, 3 M steps each
     python benchmarks/gap_policy.py --out results/gap_policy --robots weak_leg_delay --timesteps 1000000
     python benchmarks/gap_policy.py --out results/gap_policy --summary-only
 """
@@ -38,6 +38,14 @@ ROBOTS: dict[str, tuple[str, dict]] = {
     "slip_payload": (
         "10 kg payload on a slippery floor (friction 0.5)",
         {"payload_mass": 10.0, "ground_friction": 0.5},
+    ),
+    "friction_payload": (
+        "3 N·m joint friction, 15 kg payload 0.1 m behind the base",
+        {"joint_friction": 3.0, "payload_mass": 15.0, "payload_com": [-0.1, 0.0, 0.0]},
+    ),
+    "torque_payload": (
+        "drives limited to 35 N·m, 10 kg payload",
+        {"torque_limit": 35.0, "payload_mass": 10.0},
     ),
 }
 """Hidden robots on which the shipped model-free policy degrades (tracking 0.923 on the nominal robot)."""
