@@ -74,13 +74,14 @@ def run(args: argparse.Namespace) -> int:
             ],
         )
         effects = parse_effects(spec, args.effect, args.magnitude)
+        extra_physics = parse_physics(args.physics) if args.physics else {}
         path = make_measured(
             effects,
             args.episodes,
             args.out,
             env_id=args.env,
             env_kwargs=env_kwargs,
-            extra_physics=parse_physics(args.physics) if args.physics else None,
+            extra_physics=extra_physics or None,
             seed=args.seed,
             max_steps=args.max_steps,
             noise=SensorNoise(scale=args.noise_scale),
@@ -92,6 +93,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"rwm-gym make-measured: {err}", file=sys.stderr)
         return 2
     ds = Dataset.load(path)
-    hidden = [*args.effect, *(parse_physics(args.physics) if args.physics else {})]
+    hidden = [*args.effect, *extra_physics]
     print(f"wrote {path}: {ds.num_episodes} episodes, {ds.num_steps} rows (hidden: {', '.join(hidden) or 'nothing'})")
     return 0
