@@ -348,11 +348,11 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             (Bonferroni over the step's candidates); at every step a candidate must explain 30 % of the gap above
     #             the floor, not of the whole gap (select); re-simulation models come from one compile (ModelCache)
     # version 11: rivals are alike in the penalised gap they leave above the floor, not in the whole gap they leave
-    #             (select.name_step); any step that ended on an ambiguity can differ, so every case reruns
+    #             (judge.name_step); any step that ended on an ambiguity can differ, so every case reruns
     # version 12: a scoped form that could not beat the step's best candidate even with no gap left is not fitted
     #             (scope._scoped_fits); it could never be named, so no verdict should differ from version 11
     # version 13: near the floor, step 1's best candidate that fails only its held-out test is tested again on every
-    #             episode, 2-fold cross-fitted (select.cross_fitted_p_value); only cases whose whole gap is not above
+    #             episode, 2-fold cross-fitted (cross_fit.cross_fitted_p_value); only cases whose whole gap is not above
     #             the floor can differ from version 12
     # version 14: the learned correction is a linear residual torque per joint type, fitted through 5-step
     #             re-simulation (gap.learned); only cases with a learned correction can differ from version 13
@@ -371,7 +371,7 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             contact solver; every case reruns. Also in 19: an unrelated candidate is a rival only if it
     #             explains FitConfig.rival_excess_explained itself, and a rival that the best holds (the best
     #             still explains enough on top of it, not the other way round) is resolved for the best
-    #             (select.resolve_rivals), each test cross-fitted on every episode where the held-out third alone is
+    #             (judge.resolve_rivals), each test cross-fitted on every episode where the held-out third alone is
     #             not significant; rows run before these differ only if they end `ambiguous`, and those ran again
     # version 20: a step after the first tests the gap against the noise floor of the simulator with the effects named
     #             so far, not the nominal one's (select.select_effects, floor_of); a named effect gives way to a
@@ -385,7 +385,7 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 22: a step after the first whose gap is not significantly above its floor tests it again on every
     #             episode, and where it is above the floor there, fits the candidates and tests each one's own
     #             reduction, the best cross-fitted on every episode (as step 1 does; FitConfig.near_the_floor_after_
-    #             naming); its pick must leave less above its own simulator's floor (select._against_its_own_floor).
+    #             naming); its pick must leave less above its own simulator's floor (step._against_its_own_floor).
     #             Before step 1 calls a gap `unexplained`, a best candidate that explains enough but fails only its
     #             held-out test is tested cross-fitted. Only rows that stopped at a later step's floor test, or were
     #             `unexplained` so, can differ from version 21 (`--reuse cross-fitting-cannot-change`)
@@ -401,10 +401,10 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             materially better (solver_check.recheck_with_named); only rows that named an effect can differ
     #             from version 25
     # version 27: where a step's best candidate and an unrelated rival stay alike, both are followed to the end of
-    #             selection and the branch that leaves clearly less is taken (select._look_ahead); only rows whose
+    #             selection and the branch that leaves clearly less is taken (search._look_ahead); only rows whose
     #             reason says `ambiguous` can differ from version 26
     # version 28: where step 1 would call a gap above the floor `unexplained`, an effect whose own noise spread covers
-    #             the data is named (select._by_spread, gap.spread); only rows `unexplained` at step 1 without an
+    #             the data is named (step._by_spread, gap.spread); only rows `unexplained` at step 1 without an
     #             ambiguous rival can differ from version 27
     # version 29: the base-velocity bias is refined by least squares on the windows' mean residual
     #             (Effect.fit_on_mean); its own cases can differ from version 28, and any row where it was refined as a

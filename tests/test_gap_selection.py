@@ -13,9 +13,11 @@ import pytest
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap.cross_fit import CrossFit, cross_fitted_p_value
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.identifiability import identifiability
+from rwm_gym.gap.judge import resolve_rivals
 from rwm_gym.gap.learned import (
     LearnedCorrectionConfig,
     LinearResidualTorque,
@@ -25,8 +27,10 @@ from rwm_gym.gap.learned import (
 )
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
 from rwm_gym.gap.noise_floor import noise_floor
+from rwm_gym.gap.refit import joint_candidates, named_params
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
+from rwm_gym.gap.step import Search
 from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.physics.params import CONVERGED_SOLVER, PhysicsParams, build_model
 from rwm_gym.spec import load_spec
@@ -402,7 +406,6 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
     """A first effect fitted alone can soak up part of a second; on top of it, frozen, the second explains too little.
     The best `joint_candidates` candidates are fitted again together with the named effects: where that scores better
     on held-out windows, the candidate carries the named effects' refitted values; elsewhere it stays as it was."""
-    from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
     def fitted(name, values, score):
@@ -437,18 +440,16 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
         fit.gap_mean = joint_gap[effect.name.split("+")[1]]
         fit.explained_fraction, fit.p_value = 1.0 - fit.gap_mean, 1e-4
 
-    monkeypatch.setattr(select, "fit_effect", fake_fit)
-    monkeypatch.setattr(select, "score_fit", fake_score)
-    out = select.joint_candidates(
-        candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig()
-    )
+    _patch(monkeypatch, "fit_effect", fake_fit)
+    _patch(monkeypatch, "score_fit", fake_score)
+    out = joint_candidates(candidates, named, [], None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig())
     assert seen == ["armature+action_delay", "armature+payload"]  # the two best, not joint_damping
     delay, payload, damping = (fit for _, fit in out)
     assert delay.named_refit == [[0.05]] and delay.values == [0.005]
     assert delay.score == pytest.approx(0.8) and delay.p_value == 1e-4
     assert payload is candidates[1][1]  # 1 - 0.99 x 1.2 charged for its 3 parameters: worse than fitted alone
     assert damping is candidates[2][1] and damping.named_refit is None
-    assert select.named_params(named, out[0], PhysicsParams(), PhysicsParams()) == EFFECTS["armature"].physics(
+    assert named_params(named, out[0], PhysicsParams(), PhysicsParams()) == EFFECTS["armature"].physics(
         [0.05], PhysicsParams()
     )
     # the best of the step before (not named, here joint_damping) is fitted jointly too, from its value there
@@ -459,14 +460,12 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
     ]
     joint_gap["joint_damping"] = 0.5
     starts = []
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "fit_effect",
         lambda effect, *args, **kwargs: starts.append(list(args[4])) or fake_fit(effect, *args, **kwargs),
     )
-    out = select.joint_candidates(
-        candidates, named, earlier, None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig()
-    )
+    out = joint_candidates(candidates, named, earlier, None, None, None, PhysicsParams(), np.ones((4, 3)), FitConfig())
     assert seen == ["armature+action_delay", "armature+payload", "armature+joint_damping"]
     assert starts[-1] == [0.1, 0.7] and out[2][1].named_refit == [[0.05]]
 
@@ -518,11 +517,11 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
             out.append(fit)
         return out
 
-    monkeypatch.setattr(select, "compare_with_floor", test_floor)
-    monkeypatch.setattr(select, "fit_all", fits)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
-    monkeypatch.setattr(select, "every_scope", lambda *args: [])
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
+    _patch(monkeypatch, "compare_with_floor", test_floor)
+    _patch(monkeypatch, "fit_all", fits)
+    _patch(monkeypatch, "scope_candidates", lambda *args: [])
+    _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("backlash", "joint_friction", "armature", "payload")}
     config = FitConfig(near_the_floor_after_naming=False)  # step 1 is tested here
@@ -532,6 +531,16 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     assert selection.verdict == ("backlash" if named else "none" if not above else "unexplained"), selection.reason
     if not above:
         assert "Bonferroni" in selection.reason and "p < 0.0025" in selection.reason
+
+
+def _patch(monkeypatch, name: str, value) -> None:
+    """Stub `name` in every module of the selection that looks it up (the final choice, the search, a step, the
+    judge, the cross-fitting and the refits)."""
+    from rwm_gym.gap import cross_fit, judge, refit, search, select, step
+
+    for module in (cross_fit, judge, refit, search, select, step):
+        if hasattr(module, name):
+            monkeypatch.setattr(module, name, value)
 
 
 def _fit_of(name: str, gap: float, gap_mean: float, p_value: float):
@@ -550,15 +559,14 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     effect's (gap_mean, p_value) on top of a simulator of held-out gap `gap`, `above(gap, windows)` the floor test's
     verdict,
     `gap_of(params)` a simulator's held-out gap; returns the effects the cross-fitted test is asked about."""
-    from rwm_gym.gap import select
 
     def fit_all(effects, inputs, *args, **kwargs):
         gap = float(inputs.before.mean())
         return [_fit_of(name, gap, *fits(name, gap)) for name in effects]
 
     tested = []
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "compare_with_floor",
         lambda gap, floor, windows, *args: {
             "gap": float(gap.mean()),
@@ -568,16 +576,16 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
             "above_floor": above(float(gap.mean()), windows),
         },
     )
-    monkeypatch.setattr(select, "fit_all", fit_all)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args, **kwargs: [])
-    monkeypatch.setattr(select, "every_scope", lambda *args, **kwargs: [])
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
-    monkeypatch.setattr(
-        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    _patch(monkeypatch, "fit_all", fit_all)
+    _patch(monkeypatch, "scope_candidates", lambda *args, **kwargs: [])
+    _patch(monkeypatch, "every_scope", lambda *args, **kwargs: [])
+    _patch(monkeypatch, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
+    _patch(
+        monkeypatch,
+        "joint_refit",
+        lambda named, resim, train, held, base, current, config: (named, base, current, None),
     )
-    monkeypatch.setattr(
-        select, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p
-    )
+    _patch(monkeypatch, "cross_fitted_p_value", lambda candidate, *args: tested.append(candidate[1].effect) or cross_p)
     return tested
 
 
@@ -621,14 +629,13 @@ def test_near_the_floor_the_best_candidate_is_tested_again_cross_fitted(
     """A 0.5x torque limit removes most of a gap near the floor, but three held-out episodes hold too few blocks for
     p < 0.01 over the step's candidates. The best candidate is then tested on every episode (2-fold cross-fitting),
     and named if that test passes at the same Bonferroni level; the reason says which test decided."""
-    from rwm_gym.gap import select
 
     def fits(name, gap):
         return (best_gap, 5e-3) if name == "torque_limit" else (1.0, 1.0)
 
     tested = _stub_selection(monkeypatch, fits, lambda gap, windows: False, lambda params: 0.75, cross_p)
     built = []
-    cross = (lambda: built.append(1) or select.CrossFit(None, None)) if with_cross else None
+    cross = (lambda: built.append(1) or CrossFit(None, None)) if with_cross else None
     selection = _select(0.8, FitConfig(near_the_floor_after_naming=False), cross=cross)  # step 1 is tested here
     needed = with_cross and best_gap < 1.0
     assert tested == (["torque_limit"] if needed else [])
@@ -649,7 +656,6 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(
     episode; above the floor there, it is judged as step 1 is near the floor: each candidate's own test over the
     step's candidates, the best cross-fitted on every episode. A pick that lowers the gap only by lowering its
     simulator's floor (a contact solver after friction and a payload) is not named."""
-    from rwm_gym.gap import select
 
     def fits(name, gap):
         return {"torque_limit": (0.5, 1e-5), "joint_friction": (0.7 * gap, 5e-3)}.get(name, (gap, 1.0))
@@ -665,7 +671,7 @@ def test_a_later_step_near_its_floor_tests_the_candidates_cross_fitted(
         0.3,
         FitConfig(joint_candidates=0, near_the_floor_after_naming=after_naming, drop_idle=False),  # stubbed rollouts
         held=SimpleNamespace(join=lambda other: "every episode"),
-        cross=lambda: select.CrossFit(None, None),
+        cross=lambda: CrossFit(None, None),
         floor_of=lambda params, windows=None: np.full((20, 3), own_floor if params.joint_friction else 0.3),
     )
     named = [e.name for e, _ in selection.named]
@@ -686,14 +692,13 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
     """A torque limit 2x on walking data explained 89 % of a gap 300x the floor, but at p = 0.034 on the held-out
     third (a few windows carry it), and the gap was called `unexplained`. Before that, the best candidate is tested
     again on every episode, cross-fitted; one that explains too little is not."""
-    from rwm_gym.gap import select
 
     def fits(name, gap):
         return (0.11, 0.034) if name == "torque_limit" else (1.0, 1.0)
 
     tested = _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.9, lambda params: 0.11, cross_p)
     config = FitConfig(near_the_floor_after_naming=False)
-    selection = _select(1.0 / 300, config, cross=lambda: select.CrossFit(None, None))
+    selection = _select(1.0 / 300, config, cross=lambda: CrossFit(None, None))
     assert selection.verdict == verdict and tested == ["torque_limit"], selection.reason
     assert "cross-fitted p=" in selection.steps[0]["decision"]
 
@@ -701,7 +706,6 @@ def test_step_1_cross_fits_its_best_before_calling_a_gap_unexplained(monkeypatch
 def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monkeypatch):
     """The swapped fit is made on the held-out episodes' windows and scored on the fitting episodes' ones; the test
     pools both, so it runs on the blocks of every episode."""
-    from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
     from rwm_gym.gap.resim import Windows
 
@@ -733,18 +737,18 @@ def test_cross_fitting_scores_every_episode_with_a_fit_that_did_not_see_it(monke
         return 1e-5
 
     rollout_of = {id(held): 1.0, id(score_here): 2.0}
-    monkeypatch.setattr(select, "fit_effect", fake_fit)
-    monkeypatch.setattr(select, "paired_p_value", fake_p)
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, w: np.full((len(w), 3), sim))
+    _patch(monkeypatch, "fit_effect", fake_fit)
+    _patch(monkeypatch, "paired_p_value", fake_p)
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, w: np.full((len(w), 3), sim))
     resim = SimpleNamespace(
         spec=SPEC, rollout=lambda w, params: rollout_of[id(w)] * (0.5 if params.torque_limit is not None else 1.0)
     )
     candidate = (effect, CandidateFit("torque_limit", ["t"], ["N·m"], [56.0], [1.0], 0.0))
-    p = select.cross_fitted_p_value(
+    p = cross_fitted_p_value(
         candidate,
         resim,
         held,
-        select.CrossFit(fit_here, score_here),
+        CrossFit(fit_here, score_here),
         PhysicsParams(),
         np.ones((len(held), 3)),
         FitConfig(),
@@ -806,8 +810,8 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
             )
         ]
 
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "compare_with_floor",
         lambda gap, *args: {
             "gap": float(gap.mean()),
@@ -817,13 +821,15 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
             "above_floor": above[0] and gap.mean() > 0.9,
         },
     )
-    monkeypatch.setattr(select, "fit_all", lambda effects, *args: [fitted(n, 0.0) for n in effects])
-    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
-    monkeypatch.setattr(select, "every_scope", every)
-    monkeypatch.setattr(
-        select, "joint_refit", lambda named, resim, train, held, base, current, config: (named, base, current, None)
+    _patch(monkeypatch, "fit_all", lambda effects, *args: [fitted(n, 0.0) for n in effects])
+    _patch(monkeypatch, "scope_candidates", lambda *args: [])
+    _patch(monkeypatch, "every_scope", every)
+    _patch(
+        monkeypatch,
+        "joint_refit",
+        lambda named, resim, train, held, base, current, config: (named, base, current, None),
     )
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("armature", "joint_damping", "payload")}
 
@@ -879,8 +885,8 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
             return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.1 * len(effects) / 4)]
         return [fitted("motor_strength", 0.15, 0.1), fitted("ground_friction", 0.6, 1e-4)]
 
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "compare_with_floor",
         lambda gap, *args: {
             "gap": float(gap.mean()),
@@ -890,10 +896,10 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
             "above_floor": gap.mean() > 0.9,
         },
     )
-    monkeypatch.setattr(select, "fit_all", fit_all)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
-    monkeypatch.setattr(select, "every_scope", lambda *args: [])
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
+    _patch(monkeypatch, "fit_all", fit_all)
+    _patch(monkeypatch, "scope_candidates", lambda *args: [])
+    _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("motor_strength", "ground_friction", "payload", "armature")}
 
@@ -944,8 +950,8 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
         )
 
     refits = []
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "compare_with_floor",
         lambda gap, *args: {
             "gap": float(gap.mean()),
@@ -955,21 +961,21 @@ def test_a_lone_named_effect_of_several_parameters_is_refitted(monkeypatch):
             "above_floor": gap.mean() > 0.9,
         },
     )
-    monkeypatch.setattr(select, "fit_all", lambda effects, *args: [fitted(n, 0.0, [0.0]) for n in effects])
-    monkeypatch.setattr(
-        select,
+    _patch(monkeypatch, "fit_all", lambda effects, *args: [fitted(n, 0.0, [0.0]) for n in effects])
+    _patch(
+        monkeypatch,
         "joint_refit",
         lambda named, resim, train, held, base, current, config: (
             refits.append([e.name for e, _ in named]) or (named, base, current, {"kept": True})
         ),
     )
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("armature", "joint_damping")}
 
     def run(candidate, config):
         refits.clear()
-        monkeypatch.setattr(select, "scope_candidates", lambda *args: [candidate])
+        _patch(monkeypatch, "scope_candidates", lambda *args: [candidate])
         return select.select_effects(
             effects,
             SPEC,
@@ -1002,7 +1008,7 @@ def test_rivals_are_alike_in_the_gap_they_leave_above_the_floor(floor, best_expl
     """A candidate that explains nothing is no rival of one that removes a third of what lies above the floor, however
     close the floor is: the remaining gaps are compared above it."""
     from rwm_gym.gap.fit import CandidateFit
-    from rwm_gym.gap.select import name_step
+    from rwm_gym.gap.judge import name_step
 
     def fitted(name, explained, p_value):
         fit = CandidateFit(
@@ -1031,7 +1037,7 @@ def test_a_candidate_that_explains_nothing_is_no_rival_of_a_penalised_one():
     lies above it); charged for its two extra parameters, its penalised remaining gap came within 25 % of that of an
     action delay that explained nothing, and the gap was called `unexplained`. A rival must explain something."""
     from rwm_gym.gap.fit import CandidateFit
-    from rwm_gym.gap.select import judge
+    from rwm_gym.gap.judge import judge
 
     def fitted(name, explained, parameters, p_value):
         score = 1.0 - (1.0 - explained) * (1.0 + FitConfig().penalty_per_parameter * (parameters - 1))
@@ -1119,7 +1125,6 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
     """An action delay and armature explain a step's gap alike (they mimic each other). Armature refitted on top of
     the delay explains little more; if the delay on top of armature still explains a third of the rest above the
     floor, the delay holds all armature explains and is named; if it too explains little, the two are confusable."""
-    from rwm_gym.gap import select
     from rwm_gym.gap.fit import CandidateFit
 
     def gap_of(params):  # a stand-in simulator: each effect's held-out gap, from 1.0 with neither
@@ -1130,9 +1135,9 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
         both = {"armature": 0.38, "action_delay": delay_on_armature}[effect.name]  # refitted on top of the other
         fit.gap_mean, fit.p_value, fit.status = both, 1e-4 if float(after.mean()) - both > 0.05 else 0.3, "ok"
 
-    monkeypatch.setattr(select, "fit_effect", lambda effect, resim, train, base, config, start, bracket: fitted(effect))
-    monkeypatch.setattr(select, "score_fit", score)
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, params, held: np.full((10, 3), gap_of(params)))
+    _patch(monkeypatch, "fit_effect", lambda effect, resim, train, base, config, start, bracket: fitted(effect))
+    _patch(monkeypatch, "score_fit", score)
+    _patch(monkeypatch, "gap_per_window", lambda spec, params, held: np.full((10, 3), gap_of(params)))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: params)
 
     def fitted(effect):
@@ -1141,21 +1146,21 @@ def test_a_rival_that_the_best_holds_is_resolved_for_the_best(monkeypatch, delay
     delay, armature = EFFECTS["action_delay"], EFFECTS["armature"]
     best, rival = (delay, fitted(delay)), (armature, fitted(armature))
     floor = np.full((10, 3), 0.2)
-    out = select.resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
+    out = resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
     assert (out is not None) == named
     if named:
         assert out[0] is best and "action_delay is named" in out[1]
 
     # where the held-out third alone is not significant, the test runs again on every episode (cross-fitted)
-    monkeypatch.setattr(select, "cross_fitted_p_value", lambda candidate, *args: 1e-3)
+    _patch(monkeypatch, "cross_fitted_p_value", lambda candidate, *args: 1e-3)
     weak = {"armature": 0.38, "action_delay": delay_on_armature}  # as above, but every held-out p 0.3
 
     def score_weakly(fit, effect, resim, held, on_top, after, config):
         fit.gap_mean, fit.p_value, fit.status = weak[effect.name], 0.3, "ok"
 
-    monkeypatch.setattr(select, "score_fit", score_weakly)
-    no_cross = select.resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
-    crossed = select.resolve_rivals(
+    _patch(monkeypatch, "score_fit", score_weakly)
+    no_cross = resolve_rivals(best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig())
+    crossed = resolve_rivals(
         best, rival, resim, None, None, PhysicsParams(), None, floor, FitConfig(), cross=lambda: "swapped windows"
     )
     assert no_cross is None and (crossed is not None) == named
@@ -1170,7 +1175,6 @@ def test_rivals_that_stay_alike_are_told_apart_by_where_each_leads(monkeypatch, 
     armature lets the payload explain most of the rest, naming friction leaves the gap where it was: the armature
     branch is taken, as it leaves clearly less above the floor. Where both branches end alike (or selection does not
     look ahead), nothing is named and the gap is `unexplained`."""
-    from rwm_gym.gap import select
 
     nominal = PhysicsParams()
     gaps = {  # each simulator's held-out gap, by the effects in it
@@ -1190,10 +1194,10 @@ def test_rivals_that_stay_alike_are_told_apart_by_where_each_leads(monkeypatch, 
         return (gap, 0.5) if explained is None else (explained, 1e-4)
 
     _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.3, gap_of, 1.0)
-    monkeypatch.setattr(select, "resolve_rivals", lambda *args, **kwargs: None)  # neither holds the other
-    monkeypatch.setattr(select, "joint_candidates", lambda candidates, *args: candidates)
-    monkeypatch.setattr(  # worse windows wherever the gap is larger
-        select, "paired_p_value", lambda larger, smaller, *args: 1e-4 if larger.mean() > smaller.mean() else 0.5
+    _patch(monkeypatch, "resolve_rivals", lambda *args, **kwargs: None)  # neither holds the other
+    _patch(monkeypatch, "joint_candidates", lambda candidates, *args: candidates)
+    _patch(  # worse windows wherever the gap is larger
+        monkeypatch, "paired_p_value", lambda larger, smaller, *args: 1e-4 if larger.mean() > smaller.mean() else 0.5
     )
     selection = _select(0.1, FitConfig(look_ahead=look_ahead, drop_idle=False))  # gaps stubbed per named set
     assert [e.name for e, _ in selection.named] == named, selection.reason
@@ -1244,8 +1248,8 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
         level[0] *= 1.0 - explains[pick[0].name]
         return params.replace(joint_damping=float(len(named))), np.full((20, 3), level[0])
 
-    monkeypatch.setattr(
-        select,
+    _patch(
+        monkeypatch,
         "compare_with_floor",
         lambda gap, floor, *args: {
             "gap": float(gap.mean()),
@@ -1255,19 +1259,19 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
             "above_floor": gap.mean() > 1.2 * floor.mean(),
         },
     )
-    monkeypatch.setattr(select, "fit_all", fits)
-    monkeypatch.setattr(select, "scope_candidates", lambda *args: [])
-    monkeypatch.setattr(select, "every_scope", lambda *args: [])
-    monkeypatch.setattr(select, "joint_candidates", lambda candidates, *args: candidates)
-    monkeypatch.setattr(select, "_name", name)
+    _patch(monkeypatch, "fit_all", fits)
+    _patch(monkeypatch, "scope_candidates", lambda *args: [])
+    _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "joint_candidates", lambda candidates, *args: candidates)
+    _patch(monkeypatch, "_name", name)
     refits = []
 
     def joint_refit(named, resim, train, held, base, current, config):
         refits.append(len(named))
         return named, base.replace(joint_damping=float(len(named))), current, None
 
-    monkeypatch.setattr(select, "joint_refit", joint_refit)
-    monkeypatch.setattr(select, "effect_shares", lambda *args: {})
+    _patch(monkeypatch, "joint_refit", joint_refit)
+    _patch(monkeypatch, "effect_shares", lambda *args: {})
     asked = []
 
     def floor_of(params):  # the damped simulator's floor is a third of the nominal one
@@ -1320,13 +1324,13 @@ def test_a_named_effect_gives_way_to_a_simpler_one_it_holds_that_fits_alike(monk
         refits.append([e.name for e, _ in named])
         return named, base.replace(motor_strength=0.8), np.full((20, 3), 0.21), None
 
-    monkeypatch.setattr(select, "fit_all", lambda effects, *args, **kw: [fitted(n, [0.8]) for n in effects])
-    monkeypatch.setattr(select, "joint_refit", joint_refit)
-    monkeypatch.setattr(select, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.3))
-    monkeypatch.setattr(select, "paired_p_value", lambda larger, smaller, *args: p_value)
-    monkeypatch.setattr(select, "training_cost", lambda search, params: costs[params.motor_strength == 0.8])
+    _patch(monkeypatch, "fit_all", lambda effects, *args, **kw: [fitted(n, [0.8]) for n in effects])
+    _patch(monkeypatch, "joint_refit", joint_refit)
+    _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.3))
+    _patch(monkeypatch, "paired_p_value", lambda larger, smaller, *args: p_value)
+    _patch(monkeypatch, "training_cost", lambda search, params: costs[params.motor_strength == 0.8])
     effects = {n: EFFECTS[n] for n in ("encoder_offset", "pd_gains", "motor_strength")}
-    search = select._Search(
+    search = Search(
         effects,
         SPEC,
         SimpleNamespace(spec=SPEC, rollout=lambda held, params: None),
@@ -1378,7 +1382,7 @@ def test_the_training_cost_of_a_simulator_is_what_the_fits_minimise(tmp_path):
     config = FitConfig()
     train = make_windows(data, np.arange(2), config.fit_horizon, 8)
     resim = Resimulator(SPEC)
-    search = select._Search(EFFECTS, SPEC, resim, train, None, PhysicsParams(), None, config, False, None)
+    search = Search(EFFECTS, SPEC, resim, train, None, PhysicsParams(), None, config, False, None)
     effect = EFFECTS["motor_strength"]
     fit = fit_effect(effect, resim, train, PhysicsParams(), config, np.array([0.8]), (0.75, 0.85))
     assert select.training_cost(search, effect.physics(np.array(fit.values))) == pytest.approx(fit.train_cost)
@@ -1390,7 +1394,6 @@ def test_an_effect_named_by_its_spread_ends_selection_unrefitted(monkeypatch, sp
     """Step 1 names nothing by least squares; where an effect's own noise spread covers the data (`gap.spread`), it
     is named, selection stops there, and its values stay as the spread search found them (a refit by least squares
     would take them back towards the nominal robot). Without the check the gap is `unexplained`."""
-    from rwm_gym.gap import select
 
     _stub_selection(monkeypatch, lambda name, gap: (gap, 0.5), lambda gap, windows: True, lambda params: 1.0, 0.5)
     spread_fit = _fit_of("payload", 1.0, 1.4, 1e-4)  # a larger gap than the nominal one, and several parameters
@@ -1410,9 +1413,9 @@ def test_an_effect_named_by_its_spread_ends_selection_unrefitted(monkeypatch, sp
     def no_refit(*args, **kwargs):
         raise AssertionError("an effect named by its spread was refitted")
 
-    monkeypatch.setattr(select, "name_by_spread", name_by_spread)
-    monkeypatch.setattr(select, "joint_refit", no_refit)
-    monkeypatch.setattr(select, "prefer_simpler", no_refit)
+    _patch(monkeypatch, "name_by_spread", name_by_spread)
+    _patch(monkeypatch, "joint_refit", no_refit)
+    _patch(monkeypatch, "prefer_simpler", no_refit)
     floor_of = lambda params, windows=None: np.full((20, 3), 0.1)  # noqa: E731
     selection = _select(0.1, FitConfig(spread_check=spread_check), floor_of=floor_of)
     if not spread_check:
@@ -1444,8 +1447,8 @@ def test_a_named_effect_that_adds_nothing_at_the_final_values_is_dropped(
         both = params.armature > 0 and params.joint_damping > 0
         return np.full((20, 3), 1.0 if both else gap_without_damping if params.armature > 0 else 3.0)
 
-    monkeypatch.setattr(select, "gap_per_window", gap)
-    monkeypatch.setattr(select, "paired_p_value", lambda without, with_all, *a: p_value if without[0] < 2 else 1e-6)
+    _patch(monkeypatch, "gap_per_window", gap)
+    _patch(monkeypatch, "paired_p_value", lambda without, with_all, *a: p_value if without[0] < 2 else 1e-6)
     named = [
         (EFFECTS["armature"], SimpleNamespace(values=[0.1])),
         (EFFECTS["joint_damping"], SimpleNamespace(values=[0.5])),

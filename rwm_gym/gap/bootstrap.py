@@ -18,7 +18,7 @@ import numpy as np
 
 from rwm_gym.gap.fit import FitConfig, fit_effect
 from rwm_gym.gap.resim import Resimulator, Windows
-from rwm_gym.gap.select import Candidate, combine
+from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.gap.spread import FloorOf, spread_search
 from rwm_gym.physics.params import PhysicsParams
 

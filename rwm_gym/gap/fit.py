@@ -115,7 +115,7 @@ class FitConfig:
     """Of several named effects, drop one that adds nothing at the final values (`select.drop_idle`)."""
     look_ahead: bool = True
     """Where a step's best candidate and an unrelated rival explain the gap alike and neither holds the other, name
-    each in turn, follow selection to its end, and take the branch that leaves clearly less (`select._look_ahead`).
+    each in turn, follow selection to its end, and take the branch that leaves clearly less (`search._look_ahead`).
     Off: such a step names nothing (`unexplained` at step 1)."""
     spread_check: bool = True
     """Where step 1 would call a gap above the floor `unexplained`, ask each effect at which value its simulator's
@@ -149,7 +149,7 @@ class CandidateFit:
     p_value: float = 1.0
     cross_fitted_p_value: float = float("nan")
     """Near the noise floor only: the test of the reduction on every measured episode, each scored by a fit that did
-    not see it (`select.cross_fitted_p_value`); when set, it decides instead of `p_value`."""
+    not see it (`cross_fit.cross_fitted_p_value`); when set, it decides instead of `p_value`."""
     scope: str = "global"
     """"global" (one value for all joints), "leg", "joint_type" or "joint" (`rwm_gym.gap.scope`)."""
     rejected: list[str] = field(default_factory=list)

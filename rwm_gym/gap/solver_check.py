@@ -49,7 +49,7 @@ from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, paired_p_value
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates
-from rwm_gym.gap.select import Candidate, combine
+from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
 
 MATERIAL = 0.2
