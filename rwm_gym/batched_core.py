@@ -20,6 +20,8 @@ from typing import Any, Protocol
 import gymnasium as gym
 import numpy as np
 
+from rwm_gym.spec import CommandSpec
+
 MAX_NUM_ENVS = 16384
 """Most envs one core steps. Each physics env holds its own MjData and each imagined env a GRU state, so memory grows
 linearly: a bound turns a typo (num_envs=100000) into an error instead of a machine that runs out of memory."""
@@ -65,13 +67,16 @@ RESET_OPTIONS = ("command",)
 """Keys `reset(options=...)` understands."""
 
 
-def commands_from_options(options: dict | None, n: int, command_names: Sequence[str]) -> np.ndarray | None:
+def commands_from_options(options: dict | None, n: int, commands: Sequence[str] | CommandSpec) -> np.ndarray | None:
     """The commands (n, K) that `reset(options={"command": ...})` asks to hold, or None.
 
     A command is K numbers in the spec's order (ANYmal D: vx m/s, vy m/s, yaw rate rad/s); one command is given to every
     env, or one row per env. It holds for the whole episode (no resampling); a vector env keeps it through its
-    auto-resets, and the next `reset()` without it samples commands again.
+    auto-resets, and the next `reset()` without it samples commands again. `commands`: the spec's `CommandSpec` (or
+    its names alone). Each number must be finite and, given the spec, within `command_limits`: a command past the
+    range the spec samples is allowed (to probe how a policy extrapolates), one far past it is refused.
     """
+    command_names = commands.names if isinstance(commands, CommandSpec) else tuple(commands)
     if not options:
         return None
     unknown = sorted(set(options) - set(RESET_OPTIONS))
@@ -95,4 +100,21 @@ def commands_from_options(options: dict | None, n: int, command_names: Sequence[
             f"command must be {k} finite numbers ({', '.join(command_names)}) or one row per env "
             f"({n}, {k}), got shape {command.shape}"
         )
+    if isinstance(commands, CommandSpec):
+        low, high = command_limits(commands)
+        for i, name in enumerate(command_names):
+            outside = command[:, i][(command[:, i] < low[i]) | (command[:, i] > high[i])]
+            if outside.size:
+                raise ValueError(
+                    f"command {name} = {outside[0]:g} is far outside the spec's range [{commands.low[i]:g}, "
+                    f"{commands.high[i]:g}]; reset(options={{'command': ...}}) takes [{low[i]:g}, {high[i]:g}]"
+                )
     return command
+
+
+def command_limits(commands: CommandSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest command `reset(options={"command": ...})` holds, per component: the spec's sampled
+    range widened by its own width (at least 1 unit) on each side, e.g. vx in [-1, 1] m/s: [-3, 3] m/s."""
+    low, high = np.asarray(commands.low, dtype=float), np.asarray(commands.high, dtype=float)
+    width = np.maximum(high - low, 1.0)
+    return low - width, high + width

@@ -56,6 +56,14 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         return f"{text} (default %(default)s)".strip()
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line (the usage of a command with many options fills a screen):
+    the option and what is wrong with its value, then where the usage is; exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def _entry(module: str, what: str):
     """The `add_arguments` or `run` function ("what") of a command module."""
     return getattr(importlib.import_module(module), what)
@@ -63,8 +71,8 @@ def _entry(module: str, what: str):
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The parser; only the `selected` subcommand's module is imported to add its options."""
-    parser = argparse.ArgumentParser(prog="rwm-gym", description="Learned robot simulators as Gymnasium envs.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser = OneLineParser(prog="rwm-gym", description="Learned robot simulators as Gymnasium envs.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=OneLineParser)
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=DefaultsHelpFormatter)
         p.set_defaults(_module=module)
@@ -79,20 +87,36 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+"""Exit statuses of every command (docs/reference/cli.md): 2 for bad input (an option's value, an input file, an
+output that cannot or may not be written), 1 for a failure while running, 130 when interrupted (Ctrl-C)."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run `rwm-gym ARGV`; the exit status (2 with one line on stderr for what the command did not word itself)."""
+    """Run `rwm-gym ARGV`; the exit status (`EXIT_*`), with one line on stderr for an error.
+
+    What a command words itself (a `SystemExit` carrying its message) and what it did not (ValueError, OSError)
+    are bad input: one line, 2. Ctrl-C is 130. A command's own status stands (1: a failure while running)."""
     argv = sys.argv[1:] if argv is None else argv
     selected = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(selected).parse_args(argv)
     if getattr(args, "_missing", None):
         print(f"rwm-gym {args.command}: not available in this build ({args._missing} missing)", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     try:
         return int(_entry(args._module, "run")(args) or 0)
+    except SystemExit as stop:  # raise SystemExit("rwm-gym CMD: ...") in a command: its one line, exit 2
+        if isinstance(stop.code, str):
+            print(" ".join(stop.code.split()), file=sys.stderr)
+            stop.code = EXIT_BAD_INPUT  # str(stop) keeps the message
+        raise
+    except KeyboardInterrupt:
+        print(f"rwm-gym {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except (ValueError, OSError) as err:  # what a command did not word itself: one line, not a traceback
         text = " ".join(str(err).split()) or type(err).__name__
         print(f"rwm-gym {args.command}: {text}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

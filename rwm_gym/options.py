@@ -6,9 +6,11 @@ from __future__ import annotations
 import argparse
 import ast
 import inspect
+import math
+import numbers
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import MISSING, Field, field, fields, replace
+from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from functools import cache
 from pathlib import Path
 from typing import get_args, get_origin, get_type_hints
@@ -41,16 +43,76 @@ def option(
     metavar: str | None = None,
     append: bool = False,
     one_of: str | None = None,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+    finite: bool = False,
 ):
     """A dataclass field with the command-line details its default and annotation cannot say, read by
     `add_dataclass_options`: `flags` in place of `--field-name` (e.g. `--in` for a field `where`), further `aliases`,
     the `parse` type, `choices`, `nargs`, `metavar`; `append`: the flag is repeatable, each value appended; `one_of`:
     a name shared by fields of which exactly one must be given (an argparse mutually exclusive group). A field with
-    no default is a required flag."""
+    no default is a required flag.
+
+    ge, gt, le, lt, finite: the field's `Range` (a number, or each number of a tuple, finite and >=, >, <=, < the
+    bound), checked once for the API and the command line alike: `check_ranges(self)` in the dataclass's
+    `__post_init__`, and the flag's parser (its error names the flag)."""
     cli = dict(flags=flags, aliases=aliases, type=parse, choices=choices, nargs=nargs, metavar=metavar)
     cli.update(action="append" if append else None, one_of=one_of)
-    metadata = {"cli": {k: v for k, v in cli.items() if v}}
+    metadata: dict[str, object] = {"cli": {k: v for k, v in cli.items() if v}}
+    if finite or any(b is not None for b in (ge, gt, le, lt)):
+        metadata["range"] = Range(ge=ge, gt=gt, le=le, lt=lt)
     return field(default=default, default_factory=default_factory, metadata=metadata)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric field takes: finite, and within the bounds given (ge: >=, gt: >, le: <=, lt: <)."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    def __str__(self) -> str:
+        bounds = ((">=", self.ge), (">", self.gt), ("<=", self.le), ("<", self.lt))
+        return " and ".join(f"{op} {b:g}" for op, b in bounds if b is not None) or "a finite number"
+
+    def admits(self, value: float) -> bool:
+        """Whether the number `value` is finite and within the bounds."""
+        return math.isfinite(value) and not (
+            (self.ge is not None and value < self.ge)
+            or (self.gt is not None and value <= self.gt)
+            or (self.le is not None and value > self.le)
+            or (self.lt is not None and value >= self.lt)
+        )
+
+    def check(self, name: str, value: object) -> None:
+        """A one-line ValueError naming `name` unless `value` (a number, or each number of a sequence; None passes)
+        is in range."""
+        if value is None:
+            return
+        items = value if isinstance(value, Iterable) and not isinstance(value, str) else (value,)
+        for item in items:
+            real = isinstance(item, numbers.Real) and not isinstance(item, bool)
+            if not (real and self.admits(float(item))):
+                shown = list(value) if isinstance(value, tuple) else value
+                raise ValueError(f"{name} must be {self}, got {shown!r}")
+
+
+def field_range(f: Field) -> Range | None:
+    """The `Range` a field's `option(ge=..., ...)` gives, or None."""
+    return f.metadata.get("range")
+
+
+def check_ranges(obj: object, label: str = "{cls}.{field}") -> None:
+    """A one-line ValueError naming the first field of the dataclass `obj` whose value is outside its `Range` (as
+    `label` words it): the one check a config's `__post_init__` makes, so the API refuses what the command line
+    refuses."""
+    for f in fields(obj):  # type: ignore[arg-type]
+        if (rule := field_range(f)) is not None:
+            rule.check(label.format(cls=type(obj).__name__, field=f.name), getattr(obj, f.name))
 
 
 _PARSED_TYPES = (int, float, Path)
@@ -141,19 +203,21 @@ def add_dataclass_options(
             action = argparse.BooleanOptionalAction
             target.add_argument(*names, dest=f.name, action=action, default=value, help=help_text, required=is_required)
             continue
-        cli.setdefault("type", _flag_type(cls, f.name, default))
+        cli.setdefault("type", _flag_type(cls, f.name, default, field_range(f)))
         if not cli.get("choices"):  # argparse's metavar, named after the flag rather than the dest
             cli.setdefault("metavar", names[0].lstrip("-").replace("-", "_").upper())
         value = list(value) if isinstance(value, tuple) else value  # argparse appends to (and prints) a list
         target.add_argument(*names, dest=f.name, default=value, help=help_text, required=is_required, **cli)
 
 
-def _flag_type(cls: type, name: str, default: object) -> Callable[[str], object]:
+def _flag_type(cls: type, name: str, default: object, rule: Range | None = None) -> Callable[[str], object]:
     """The type a field's flag parses its text to: its default's, else (None, a tuple or no default) its
-    annotation's, else the text itself."""
+    annotation's, else the text itself. A number is checked against the field's range (a float: finite at least)."""
     if default is not None and default is not MISSING and not isinstance(default, tuple):
-        return type(default)
-    return _annotated_types(cls).get(name, str)
+        kind = type(default)
+    else:
+        kind = _annotated_types(cls).get(name, str)
+    return number(kind, rule) if kind in (int, float) else kind
 
 
 def dataclass_from_args(
@@ -180,25 +244,50 @@ def parse_dataclass_args(cls: type, argv: Sequence[str] | None = None, **options
     return dataclass_from_args(cls, parser.parse_args(argv))
 
 
-def _number(kind: type, low: float, strict: bool) -> Callable[[str], object]:
-    """An argparse type: `kind` parsed from the text, finite and >= `low` (> `low` if strict); else a one-line error."""
+def number(kind: type, rule: Range | None = None) -> Callable[[str], object]:
+    """An argparse type: `kind` (int or float) parsed from the text, in `rule`'s range if given; an int may be written
+    as an integral float ("64.0", "6.4e1"). Else a one-line error, which argparse prefixes with the flag."""
 
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if value != value or value in (float("inf"), float("-inf")) or value < low or (strict and value == low):
-            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {low:g}, got {text}")
+            try:
+                value = float(text)
+            except ValueError:
+                value = None
+            if kind is not int or value is None or not value.is_integer():
+                expected = "an integer" if kind is int else "a number"
+                raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+            value = int(value)
+        if not (rule or Range()).admits(float(value)):
+            raise argparse.ArgumentTypeError(f"must be {rule or Range()}, got {text}")
         return value
 
     parse.__name__ = kind.__name__  # argparse names the type in its "invalid ... value" message
     return parse
 
 
-positive_int = _number(int, 0, strict=True)
+positive_int = number(int, Range(ge=1))
 """An argparse type for counts that must be at least 1."""
-non_negative_int = _number(int, 0, strict=False)
+non_negative_int = number(int, Range(ge=0))
 """An argparse type for counts and budgets that may be 0."""
-non_negative_float = _number(float, 0.0, strict=False)
+non_negative_float = number(float, Range(ge=0))
 """An argparse type for finite amounts >= 0 (minutes, noise std)."""
+
+
+def torch_device(text: str) -> str:
+    """An argparse type: a torch device this machine has ("cpu", "cuda", "cuda:1", "mps"), else a one-line error."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a torch device (cpu, cuda, cuda:N, mps)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"{text}: torch finds no CUDA GPU on this machine (use cpu)")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise argparse.ArgumentTypeError(f"{text}: this machine has {torch.cuda.device_count()} CUDA GPU(s)")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise argparse.ArgumentTypeError(f"{text}: torch finds no MPS device on this machine (use cpu)")
+    return text

@@ -7,7 +7,7 @@ import argparse
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 from rwm_gym.imagination.options import MATMUL_PRECISION_NAMES, ImaginationOptions
-from rwm_gym.options import add_dataclass_options, dataclass_from_args, positive_int
+from rwm_gym.options import add_dataclass_options, dataclass_from_args
 
 
 def add_imagination_options(
@@ -27,7 +27,7 @@ def add_imagination_options(
         skip=skip,
         defaults=defaults,
         aliases=aliases,
-        types={"episode_steps": int, "history": positive_int, **(types or {})},
+        types=types,
         choices={"matmul_precision": MATMUL_PRECISION_NAMES},
     )
 

@@ -10,7 +10,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from rwm_gym.options import add_dataclass_options, option
+from rwm_gym.options import add_dataclass_options, option, torch_device
 from rwm_gym.workers import BACKENDS
 
 
@@ -26,9 +26,9 @@ class OverwriteOption:
 class TorchOptions:
     """Where torch runs a command's networks."""
 
-    device: str = "cpu"
+    device: str = option("cpu", parse=torch_device)
     """torch device of the policy and of the world model"""
-    threads: int | None = None
+    threads: int | None = option(None, ge=1)
     """torch CPU threads (default: torch's; 1 is fastest on a machine shared with other jobs)"""
 
 
@@ -58,9 +58,9 @@ class RunFolderOptions:
     run_dir: Path | None = None
     """resumable run folder (rwm_gym.rl.training_run): resume point, snapshots, log.csv, experience; running the
     same command again continues to the same --timesteps total"""
-    save_every: int = 10
+    save_every: int = option(10, ge=1)
     """with --run-dir: updates (PPO: rollouts) between resume points"""
-    snapshot_every: int = 25
+    snapshot_every: int = option(25, ge=1)
     """with --run-dir: updates (PPO: rollouts) between policy snapshots"""
 
 
@@ -68,7 +68,7 @@ class RunFolderOptions:
 class WorkerOptions:
     """Workers a command's physics episodes are split over (`rwm_gym.workers`): the same results as one."""
 
-    workers: int = 1
+    workers: int = option(1, ge=1)
     """workers the episodes are split over, each a batched core of a block of them; the same results as one"""
     backend: str = option("processes", choices=BACKENDS)
     """where the workers run: spawned processes on this machine, or Ray tasks on the cluster `ray start` made (else

@@ -147,7 +147,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument_group("PPO", "PPO's settings (rwm_gym.rl.ppo.PPOConfig)"),
         PPOConfig,
         defaults_none=True,
-        types={"net_arch": int},
         nargs={"net_arch": "+"},
         choices={"activation": ACTIVATIONS},
     )
@@ -353,7 +352,7 @@ def _behaviour_clone(args: argparse.Namespace, model, env_kwargs: dict | None = 
     )
     if args.eval:  # the warm start alone, so the effect of PPO is plain to see
         warm.evaluation = evaluate_policy(
-            model, seeds=range(args.eval_seeds), steps=args.eval_steps, env_kwargs=env_kwargs
+            model, seeds=range(args.eval_seeds), steps=args.eval_steps, spec=_task_trained_on(args), env_kwargs=env_kwargs
         )
         print("physics evaluation of the cloned actor, before PPO:")
         print(format_table(warm.evaluation))
@@ -363,19 +362,24 @@ def _behaviour_clone(args: argparse.Namespace, model, env_kwargs: dict | None = 
     return warm
 
 
-def _dm_control_task(args: argparse.Namespace):
-    """The task spec trained on (the --checkpoint's in imagination, --env's in physics) when it is a dm_control task
-    (judged by its return and success), else None."""
-    from rwm_gym.registration import resolve_spec, simulator_of
+def _task_trained_on(args: argparse.Namespace):
+    """The task spec trained on: --env's in physics, the --checkpoint's in imagination, else the shipped ANYmal D."""
+    from rwm_gym.registration import resolve_spec
 
     if args.where == "physics" and args.env is not None:
-        spec = resolve_spec(args.env)
-    elif args.where == "imagination" and args.checkpoint is not None:
+        return resolve_spec(args.env)
+    if args.where == "imagination" and args.checkpoint is not None:
         from rwm_gym.model.checkpoint import read_meta
 
-        spec = read_meta(args.checkpoint).spec
-    else:
-        return None
+        return read_meta(args.checkpoint).spec
+    return resolve_spec("anymal_d")
+
+
+def _dm_control_task(args: argparse.Namespace):
+    """The task spec trained on when it is a dm_control task (judged by its return and success), else None."""
+    from rwm_gym.registration import simulator_of
+
+    spec = _task_trained_on(args)
     return spec if simulator_of(spec) == "dm_control" else None
 
 
@@ -399,7 +403,9 @@ def _judge(
         print(f"physics evaluation: {episodes.summary()}")
         report["evaluation"] = episodes.to_dict()
         return
-    evaluation = evaluate_policy(model, seeds=range(args.eval_seeds), steps=args.eval_steps, env_kwargs=env_kwargs)
+    evaluation = evaluate_policy(
+        model, seeds=range(args.eval_seeds), steps=args.eval_steps, spec=_task_trained_on(args), env_kwargs=env_kwargs
+    )
     print("physics evaluation" + (" after PPO:" if warm.cloned else ":"))
     print(format_table(evaluation))
     report["evaluation"] = evaluation.to_dict()

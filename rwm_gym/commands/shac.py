@@ -65,7 +65,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument_group("SHAC"),
         SHACConfig,
         nargs={"net_arch": "+"},
-        types={"net_arch": int},
         choices={"activation": ("elu", "tanh", "relu")},
     )
     add_group(parser, RunOptions)

@@ -34,7 +34,7 @@ class TrainOptions:
     model: str | None = option(None, choices=(*MODEL_KINDS, "auto"))
     """model family (default rwm, or --init's); auto: the kind with the lowest measured error for this data size and
     --cpu-minutes budget in the shipped table of benchmarks/budget_curve.py (rwm_gym.model.choice)"""
-    cpu_minutes: float | None = None
+    cpu_minutes: float | None = option(None, gt=0)
     """budget in this process's CPU minutes (time.process_time: other jobs on the machine do not count), in place
     of --minutes"""
     out: str

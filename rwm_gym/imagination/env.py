@@ -75,7 +75,7 @@ class ImaginedEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        commands = commands_from_options(options, 1, self.task_spec.command.names)
+        commands = commands_from_options(options, 1, self.task_spec.command)
         obs = self.core.reset(np.array([0]), [seed], commands)
         if self._dream is not None:
             self._dream.reset()

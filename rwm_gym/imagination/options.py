@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from rwm_gym.options import check_ranges, option
+
 MATMUL_PRECISION_NAMES = ("float32", "bfloat16")
 """The values of `ImaginationOptions.matmul_precision` (`rwm_gym.imagination.core.MATMUL_PRECISIONS` maps them to
 dtypes)."""
@@ -17,25 +19,25 @@ class ImaginationOptions:
 
     sample_predictions: bool = False
     """Step with a sample of the predicted Gaussian instead of its mean."""
-    history: int | None = None
+    history: int | None = option(None, ge=1)
     """Real rows replayed at every reset (None: the checkpoint's training history)."""
-    episode_steps: int | None = None
+    episode_steps: int | None = option(None, ge=1)
     """Time limit in policy steps (None: the task spec's)."""
-    uncertainty_penalty: float = 0.0
+    uncertainty_penalty: float = option(0.0, ge=0)
     """lambda of the RWM-U penalty -lambda * max(u - uncertainty_floor, 0) * dt, u the ensemble disagreement."""
-    uncertainty_floor: float = 0.0
+    uncertainty_floor: float = option(0.0, ge=0)
     """Disagreement the penalty leaves free: the model's own level on states like its data (the shipped ANYmal model:
     about 0.02 while the teacher walks or the robot stands). A penalty on every step would make ending the episode
     early pay; charging only the excess keeps surviving worth it."""
-    uncertainty_halt: float = 0.0
+    uncertainty_halt: float = option(0.0, ge=0)
     """End an episode (terminated, no bootstrap) where u exceeds this (0: never): MOReL's halt, so a policy cannot
     collect reward in states the model does not know."""
-    fall_tilt: float = 0.0
+    fall_tilt: float = option(0.0, ge=0, le=180)
     """End an episode (terminated, no bootstrap) where the predicted base tilts more than this many degrees from
     upright (0: never; needs a projected_gravity state group). The model's termination head fires on predicted base
     contact, late or never, while its own predicted tilt already shows a fall; a walking robot stays far below a
     tilt from which it rarely recovers (`benchmarks/exploitation.py --fall-tilt` measures both for a policy)."""
-    torque_halt: float = 0.0
+    torque_halt: float = option(0.0, ge=0)
     """End an episode (terminated, no bootstrap) where a predicted joint torque reaches this fraction of the spec's
     effort limit (0: never; needs a joint_torque state group and a finite limit). Saturated actuators are states a
     model's data rarely covers, and policies trained in imagination that fell in physics often fell there: the halt
@@ -46,7 +48,7 @@ class ImaginationOptions:
     every PPO rollout sees the same phase of its episodes."""
     resample_commands: bool = True
     """Resample commands on the spec's period (off: one command per episode)."""
-    command_from_history: float = 0.0
+    command_from_history: float = option(0.0, ge=0, le=1)
     """Share of restarts whose command is the velocity their real history was moving at (its last rows' mean vx, vy
     and yaw rate, within the command range) instead of a fresh draw: the episode starts mid-gait with that gait's
     own goal (reference-state initialisation), so a young policy is paid for keeping a gait before it has found one
@@ -55,19 +57,19 @@ class ImaginationOptions:
     """Compute what a fixed-base arm's MJCF fixes instead of predicting it: joint angles integrate the predicted joint
     velocities, sites on the arm follow by forward kinematics (`rwm_gym.imagination.kinematics`; dm_control's
     manipulation arms only, no effect on other robots)."""
-    push_interval_s: float = 0.0
+    push_interval_s: float = option(0.0, ge=0)
     """Seconds between random pushes (0: none); a push adds a uniform base velocity."""
-    push_velocity: float = 0.5
+    push_velocity: float = option(0.5, ge=0)
     """m/s, half-width of a push."""
     report_uncertainty: bool = False
     """Compute the ensemble disagreement every step and report it as info['uncertainty'] even without a penalty
     (it runs all k heads per step; off and penalty 0, each env runs only its own head and info has no uncertainty)."""
-    divergence_bound: float = 50.0
+    divergence_bound: float = option(50.0, gt=0)
     """|normalised state| above which the model is taken to have diverged and the episode ends."""
     trust_entry_points: bool = False
     """Import the reward / termination functions the checkpoint's spec names (`[imagination]`): importing a module
     runs its code, so only for a checkpoint you trust (off: naming one is an error; pass reward_fn= instead)."""
-    warm_up_cache_mb: float = 512.0
+    warm_up_cache_mb: float = option(512.0, ge=0)
     """Keep each reset window's warm hidden state for reuse if all windows fit in this many MB (0: warm up on every
     reset); models whose warm-up reads the ensemble member always warm up."""
 
@@ -77,8 +79,7 @@ class ImaginationOptions:
     ANYmal model: benchmarks/RESULTS.md). Gates, hidden state and heads stay float32."""
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.command_from_history <= 1.0:
-            raise ValueError(f"ImaginationOptions.command_from_history {self.command_from_history} is not in [0, 1]")
+        check_ranges(self)
         if self.matmul_precision not in MATMUL_PRECISION_NAMES:
             raise ValueError(
                 f"ImaginationOptions.matmul_precision {self.matmul_precision!r} unknown (choose from "

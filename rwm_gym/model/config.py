@@ -10,6 +10,8 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+from rwm_gym.options import check_ranges, option, torch_device
+
 MODEL_KINDS = ("rwm", "mlp", "rssm", "transformer", "no_change")
 LOSSES = ("mse", "nll")
 SCHEDULES = ("cosine", "step", "constant")
@@ -86,16 +88,16 @@ _MODEL_LEGACY = {"unit_gravity": False, "joint_limits": False}
 class TrainConfig:
     """Dual-autoregressive training of a world model on windows of history + forecast steps."""
 
-    history: int = 32
+    history: int = option(32, ge=1)
     """H: true steps the model warms up on before forecasting."""
-    forecast: int = 8
+    forecast: int = option(8, ge=1)
     """F: steps predicted autoregressively from the model's own samples (1 = teacher forcing)."""
-    batch_size: int = 64
+    batch_size: int = option(64, ge=1)
     """Forecast windows per gradient step (segments x branches)."""
-    branches: int = 1
+    branches: int = option(1, ge=1)
     """Forecast branches per sampled segment: one teacher-forced pass over the segment, then this many F-step
     forecasts from its hidden states, batched (1: one window of H + F rows, the paper's recipe)."""
-    branch_stride: int = 1
+    branch_stride: int = option(1, ge=1)
     """Rows between the starts of consecutive branches of a segment."""
     warmup_gradients: bool = True
     """Backpropagate through the teacher-forced warm-up, as the paper does. Off, the warm-up runs without autograd
@@ -103,46 +105,46 @@ class TrainConfig:
     windows per second with many branches per segment (the docs' Results, "World-model error"). Not for models whose
     warm-up
     carries a loss of its own (rssm's KL)."""
-    lr: float = 1e-3
+    lr: float = option(1e-3, gt=0)
     """Adam learning rate at the start of the schedule."""
-    weight_decay: float = 0.0
+    weight_decay: float = option(0.0, ge=0)
     """Adam (L2) weight decay."""
-    grad_clip: float = 1.0
+    grad_clip: float = option(1.0, gt=0)
     """Global gradient-norm clip."""
     schedule: str = "cosine"
     """Learning-rate schedule over the budget: cosine (to 5%), step (x0.1 at 50% and 75%) or constant."""
-    schedule_start: int = 0
+    schedule_start: int = option(0, ge=0)
     """Iteration at which the learning-rate schedule (and `forecast_curriculum`) starts over the iteration budget:
     a resumed run given a larger `iterations` and this set to the iteration it resumes at runs a fresh schedule from
     `lr` over the added iterations (a warm restart). Applies to the iteration budget, not to `minutes`."""
     forecast_curriculum: tuple[int, ...] = ()
     """Forecast lengths F trained with in turn, each for an equal share of the budget (e.g. 8 32 100: short
     forecasts first); empty: `forecast` throughout. Validation forecasts `forecast` steps."""
-    iterations: int = 2000
+    iterations: int = option(2000, ge=0)
     """Budget in gradient steps (0: no limit, then `minutes` must be set)."""
-    minutes: float = 0.0
+    minutes: float = option(0.0, ge=0)
     """Budget in wall-clock minutes (0: no limit); the run stops at whichever budget ends first."""
-    val_fraction: float = 0.1
+    val_fraction: float = option(0.1, ge=0, lt=1)
     """Fraction of episodes held out for validation (whole episodes)."""
-    val_every: int = 100
+    val_every: int = option(100, ge=1)
     """Iterations between validation passes."""
-    val_windows: int = 256
+    val_windows: int = option(256, ge=1)
     """Validation windows (fixed, drawn once per run)."""
-    checkpoint_every: int = 100
+    checkpoint_every: int = option(100, ge=1)
     """Iterations between checkpoints (with optimizer and RNG state, for --resume)."""
     seed: int = 0
     """Seeds weights, window sampling and forecast noise; a run is deterministic in it."""
-    device: str = "cpu"
+    device: str = option("cpu", parse=torch_device)
     """torch device: cpu or cuda."""
     loss: str = "mse"
     """State loss on forecast steps: mse (of reparameterised samples, as RWM) or nll (Gaussian)."""
-    contact_weight: float = 1.0
+    contact_weight: float = option(1.0, ge=0)
     """Weight of the contact BCE."""
-    termination_weight: float = 1.0
+    termination_weight: float = option(1.0, ge=0)
     """Weight of the class-weighted termination BCE."""
-    foot_weight: float = 1.0
+    foot_weight: float = option(1.0, ge=0)
     """Weight of the foot-height MSE."""
-    bound_weight: float = 0.01
+    bound_weight: float = option(0.01, ge=0)
     """Weight of the log-std band term sum(max_log_std) - sum(min_log_std)."""
     reset_std_band: bool = False
     """With `init`: put the state heads' learned log-std band back to the model config's initial limits and their
@@ -150,14 +152,15 @@ class TrainConfig:
     floor settles where the penalty on samples meets `bound_weight` (0.34 normalised units on ANYmal D, on every
     channel of every state), so the sampled feedback is that noise, not the model's error. An nll fine-tune needs
     the std free."""
-    reset_log_std: float = -2.3
+    reset_log_std: float = option(-2.3, finite=True)
     """The log-std every state head predicts after `reset_std_band` (-2.3: 0.1 normalised units)."""
-    kl_weight: float = 1.0
+    kl_weight: float = option(1.0, ge=0)
     """Weight of the RSSM KL term (posterior from the true next state vs prior)."""
-    kl_free_nats: float = 1.0
+    kl_free_nats: float = option(1.0, ge=0)
     """KL below this many nats per step is not penalised (RSSM)."""
 
     def __post_init__(self) -> None:
+        check_ranges(self)
         if self.history < 1 or self.forecast < 1:
             raise ValueError(f"history and forecast must be >= 1, got {self.history} and {self.forecast}")
         if self.loss not in LOSSES:

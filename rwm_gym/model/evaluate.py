@@ -28,6 +28,7 @@ from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import load_checkpoint
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import WindowData
+from rwm_gym.options import check_ranges, option, torch_device
 from rwm_gym.spec import TaskSpec
 
 
@@ -35,28 +36,26 @@ from rwm_gym.spec import TaskSpec
 class EvalConfig:
     """How a checkpoint's long-horizon error is measured: warm-up, horizons, noise levels, windows."""
 
-    history: int = 32
+    history: int = option(32, ge=1)
     """H: true rows the model warms up on."""
-    horizons: tuple[int, ...] = (8, 32, 100)
+    horizons: tuple[int, ...] = option((8, 32, 100), ge=1)
     """N: open-loop rows to report (plus the longest the episodes allow)."""
-    max_horizon: int = 368
+    max_horizon: int = option(368, ge=1)
     """Cap of the longest horizon."""
-    noise_levels: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
+    noise_levels: tuple[float, ...] = option((0.1, 0.2, 0.4, 0.8), ge=0)
     """Stds of the Gaussian noise added to the normalised history states and actions in the robustness test (none:
     no such test)."""
-    max_windows: int = 512
+    max_windows: int = option(512, ge=1)
     """Windows per horizon (a seeded subset when more fit)."""
-    batch_size: int = 512
+    batch_size: int = option(512, ge=1)
     """Windows per forward pass."""
     seed: int = 0
     """Seed of the window choice and the noise."""
-    device: str = "cpu"
+    device: str = option("cpu", parse=torch_device)
     """torch device of the model."""
 
     def __post_init__(self) -> None:
-        for name in ("history", "max_horizon", "max_windows", "batch_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_ranges(self, "{field}")
         if not self.horizons or min(self.horizons) < 1:
             raise ValueError(f"horizons must be >= 1, got {list(self.horizons)}")
 

@@ -156,7 +156,7 @@ class DMCEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        commands_from_options(options, 1, self.task_spec.command.names)  # refuses unknown options and commands
+        commands_from_options(options, 1, self.task_spec.command)  # refuses unknown options and commands
         return self.core.reset(np.array([0]), [seed])[0], {}
 
     def step(self, action):

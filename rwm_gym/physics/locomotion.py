@@ -215,7 +215,7 @@ class LocomotionEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        commands = commands_from_options(options, 1, self.task_spec.command.names)
+        commands = commands_from_options(options, 1, self.task_spec.command)
         obs = self.core.reset(np.array([0]), [seed], commands)
         return obs[0], {"command": self.core.command[0].copy()}
 

@@ -20,6 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from rwm_gym.options import check_ranges, option
 from rwm_gym.progress import BudgetBar, whole_rollouts
 from rwm_gym.rl.policy_file import save_policy  # noqa: F401  (re-exported: callers save policies from here)
 from rwm_gym.spec import TaskSpec
@@ -31,46 +32,46 @@ WHERE = ("imagination", "physics")
 class PPOConfig:
     """PPO hyperparameters (RWM's 'policy in imagination' figures, sized for a small CPU by default)."""
 
-    num_envs: int = 512
+    num_envs: int = option(512, ge=1)
     """Envs stepped together; one rollout is num_envs x n_steps transitions."""
-    n_steps: int = 24
+    n_steps: int = option(24, ge=1)
     """Steps per env per update."""
-    net_arch: tuple[int, ...] = (128, 128, 128)
+    net_arch: tuple[int, ...] = option((128, 128, 128), ge=1)
     """Hidden layers of the actor and of the (separate) critic."""
     activation: str = "elu"
     """Activation of both MLPs: elu, tanh or relu."""
-    log_std_init: float = 0.0
+    log_std_init: float = option(0.0, finite=True)
     """Initial log std of the Gaussian policy (0: std 1); with `use_sde`, of the exploration matrix's entries."""
     use_sde: bool = False
     """Generalised state-dependent exploration (gSDE, Raffin et al. 2021): the action noise is a random linear function
     of the actor's last hidden layer, held for `sde_sample_freq` steps, so it is smooth in time instead of white."""
-    sde_sample_freq: int = -1
+    sde_sample_freq: int = option(-1, ge=-1)
     """Steps between fresh exploration matrices with `use_sde` (-1: once per rollout)."""
-    clip_range: float = 0.2
+    clip_range: float = option(0.2, gt=0)
     """PPO ratio clip."""
-    n_epochs: int = 5
+    n_epochs: int = option(5, ge=1)
     """Passes over each rollout."""
-    num_minibatches: int = 4
+    num_minibatches: int = option(4, ge=1)
     """Minibatches per pass (batch size = num_envs x n_steps / num_minibatches)."""
-    learning_rate: float = 1e-3
+    learning_rate: float = option(1e-3, gt=0)
     """Initial Adam learning rate."""
-    target_kl: float = 0.01
+    target_kl: float = option(0.01, ge=0)
     """KL target of the adaptive learning rate: /1.5 above 2x, x1.5 below 1/2 (0: constant learning rate)."""
-    lr_anneal_fraction: float = 0.0
+    lr_anneal_fraction: float = option(0.0, ge=0, le=1)
     """Last fraction of a `--timesteps` budget over which the learning rate falls linearly from its adapted value to
     one rollout's share (KL adaptation stops there): the policy settles instead of wandering between snapshots
     (0: none)."""
-    gamma: float = 0.99
+    gamma: float = option(0.99, ge=0, le=1)
     """Discount per policy step."""
-    gae_lambda: float = 0.95
+    gae_lambda: float = option(0.95, ge=0, le=1)
     """GAE lambda."""
-    ent_coef: float = 0.005
+    ent_coef: float = option(0.005, ge=0)
     """Entropy bonus weight."""
-    vf_coef: float = 1.0
+    vf_coef: float = option(1.0, ge=0)
     """Value-loss weight."""
-    max_grad_norm: float = 1.0
+    max_grad_norm: float = option(1.0, gt=0)
     """Global gradient-norm clip."""
-    critic_warmup_steps: int = 0
+    critic_warmup_steps: int = option(0, ge=0)
     """Env steps that train only the critic before the actor moves (for a warm-started actor; 0: none)."""
     positive_reward_only: bool = False
     """Clip each step's reward at 0 from below (legged_gym's only_positive_rewards): a young policy whose penalties
@@ -91,8 +92,9 @@ class PPOConfig:
             )
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"PPOConfig.activation {self.activation!r} unknown (choose from {', '.join(ACTIVATIONS)})")
-        if not 0.0 <= self.lr_anneal_fraction <= 1.0:
-            raise ValueError(f"PPOConfig.lr_anneal_fraction {self.lr_anneal_fraction} is not in [0, 1]")
+        check_ranges(self)
+        if self.num_envs * self.n_steps < 2:
+            raise ValueError("PPOConfig: a rollout of num_envs x n_steps must hold at least 2 transitions, got 1")
         if (self.num_envs * self.n_steps) % self.num_minibatches:
             raise ValueError(
                 f"PPOConfig: num_envs x n_steps ({self.num_envs * self.n_steps}) is not divisible by "

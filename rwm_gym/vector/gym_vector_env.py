@@ -43,7 +43,7 @@ class CoreGymVectorEnv(gym.vector.VectorEnv):
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
         super().reset(seed=seed if isinstance(seed, (int, type(None))) else None)
-        self._held_commands = commands_from_options(options, self.num_envs, self.core.spec.command.names)
+        self._held_commands = commands_from_options(options, self.num_envs, self.core.spec.command)
         obs = self.core.reset(np.arange(self.num_envs), seeds_per_env(seed, self.num_envs), self._held_commands)
         self._needs_reset = False
         return obs, {}

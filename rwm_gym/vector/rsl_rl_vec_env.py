@@ -103,8 +103,8 @@ class CoreRslRlVecEnv(VecEnv):
     def reset(self, seed: int | None = None, command=None) -> TensorDict:
         """Start a new episode in every env; `command` (K numbers, or one row per env) is held through auto-resets
         until the next reset without it (see `rwm_gym.batched_core.commands_from_options`)."""
-        names = self.core.spec.command.names
-        self._held_commands = commands_from_options({"command": command}, self.num_envs, names)
+        commands = self.core.spec.command
+        self._held_commands = commands_from_options({"command": command}, self.num_envs, commands)
         obs = self.core.reset(np.arange(self.num_envs), seeds_per_env(seed, self.num_envs), self._held_commands)
         self._term_sums = {}
         self._obs = self._observations(obs)
