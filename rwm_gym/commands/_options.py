@@ -112,12 +112,18 @@ def parse_physics(text: str, flag: str = "--physics") -> dict:
         raise ValueError(f"{flag}: {name} is not a physics value (give finite numbers)")
 
     source = Path(text)
-    is_file = not text.lstrip().startswith("{") and source.is_file()
+    try:
+        is_file = not text.lstrip().startswith("{") and source.is_file()
+    except OSError:  # a name too long for a path: JSON text
+        is_file = False
     try:
         values = json.loads(source.read_text() if is_file else text, parse_constant=no_constant)
     except json.JSONDecodeError as err:
         where = f"{source} is" if is_file else "is"
         raise ValueError(f"{flag} {where} not valid JSON ({err})") from None
+    except RecursionError:
+        where = f"{source} is" if is_file else "is"
+        raise ValueError(f"{flag} {where} nested too deeply (a physics dict is two levels deep)") from None
     except OSError as err:
         raise ValueError(f"{flag}: {source}: {err.strerror}") from None
     if isinstance(values, dict) and set(values) == {"physics"}:

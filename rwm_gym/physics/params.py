@@ -22,6 +22,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from rwm_gym.options import check_ranges, option
 from rwm_gym.physics.backlash import DeadBand
 from rwm_gym.physics.torque_speed import TorqueSpeedLimit
 from rwm_gym.spec import TaskSpec
@@ -33,43 +34,43 @@ PerJoint = float | tuple[float, ...]
 class PhysicsParams:
     """Overrides of the nominal robot; units in the field docs."""
 
-    kp_scale: PerJoint = 1.0
+    kp_scale: PerJoint = option(1.0, ge=0, le=100)
     """PD stiffness multiplier on the spec's kp (1)."""
-    kd_scale: PerJoint = 1.0
+    kd_scale: PerJoint = option(1.0, ge=0, le=100)
     """PD damping multiplier on the spec's kd (1)."""
-    motor_strength: PerJoint = 1.0
+    motor_strength: PerJoint = option(1.0, ge=0, le=100)
     """Torque gain: the actuator's output torque multiplier (1)."""
-    torque_limit: PerJoint | None = None
+    torque_limit: PerJoint | None = option(None, gt=0, le=1e5)
     """Torque saturation (N·m); None keeps the spec's effort limit."""
-    joint_friction: PerJoint = 0.0
+    joint_friction: PerJoint = option(0.0, ge=0, le=1e4)
     """Coulomb friction torque added at each joint (N·m)."""
-    joint_damping: PerJoint = 0.0
+    joint_damping: PerJoint = option(0.0, ge=0, le=1e4)
     """Viscous damping added at each joint (N·m·s/rad)."""
-    armature: PerJoint = 0.0
+    armature: PerJoint = option(0.0, ge=0, le=100)
     """Reflected rotor inertia added at each joint (kg·m²)."""
-    action_delay: float = 0.0
+    action_delay: float = option(0.0, ge=0, le=1)
     """Delay between a position target and its effect in the actuator (s); a multiple of the physics dt."""
-    payload_mass: float = 0.0
+    payload_mass: float = option(0.0, ge=0, le=1e4)
     """Point mass added to the base (kg)."""
-    payload_com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    payload_com: tuple[float, float, float] = option((0.0, 0.0, 0.0), ge=-10, le=10)
     """Position of the payload in the base frame (m)."""
-    ground_friction: float | None = None
+    ground_friction: float | None = option(None, ge=0, le=10)
     """Sliding friction coefficient of the floor (1); None keeps the model's."""
-    backlash: PerJoint = 0.0
+    backlash: PerJoint = option(0.0, ge=0, le=1)
     """Total width of the gear dead band between motor and link (rad); an env option, not MJCF (see `backlash`)."""
-    torque_speed_slope: PerJoint = 0.0
+    torque_speed_slope: PerJoint = option(0.0, ge=0, le=1e4)
     """Fall of each drive's torque limit per rad/s of joint speed above `torque_speed_knee` (N·m·s/rad); an env
     option, not MJCF (see `torque_speed`)."""
-    torque_speed_knee: PerJoint = 1.5
+    torque_speed_knee: PerJoint = option(1.5, ge=0, le=1e3)
     """Joint speed above which the drive's torque limit falls (rad/s); nothing falls while the slope is 0. The
     default is low for a real drive, but excitation data moves a joint faster than 2 rad/s in a tenth of its rows."""
     ground_solref: tuple[float, float] | None = None
     """MuJoCo solref of the floor's contacts: time constant (s) and damping ratio (1); None keeps the model's."""
     ground_solimp: tuple[float, float, float] | None = None
     """MuJoCo solimp of the floor's contacts: dmin, dmax (1) and width (m); None keeps the model's."""
-    encoder_offset: PerJoint = 0.0
+    encoder_offset: PerJoint = option(0.0, ge=-3.15, le=3.15)
     """Offset of each joint encoder's reading from the joint's position (rad); a sensor bias (see `sensors`)."""
-    base_velocity_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    base_velocity_bias: tuple[float, float, float] = option((0.0, 0.0, 0.0), ge=-10, le=10)
     """Bias of the estimated base linear velocity, base frame (m/s); a sensor bias (see `sensors`)."""
     solver: SolverSettings | None = None
     """Solver settings applied on top of the env's (`SolverSettings`; None: the env's own). Not physics: the gap
@@ -85,6 +86,7 @@ class PhysicsParams:
             numbers = np.asarray(value)
             if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):
                 raise ValueError(f"physics parameter {f.name!r} must be a finite number, got {value!r}")
+        check_ranges(self, "physics parameter '{field}'")  # physical ranges: option(ge=..., le=...) above
 
     @classmethod
     def from_dict(cls, values: Mapping[str, object] | None) -> PhysicsParams:
