@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from rwm_gym.gap.fit import FitConfig, fit_effect
-from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.gap.refit import Candidate, combine
+from rwm_gym.gap.resim import Resimulator, Windows
 from rwm_gym.gap.spread import FloorOf, spread_search
 from rwm_gym.physics.params import PhysicsParams
 

@@ -47,9 +47,9 @@ import numpy as np
 
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, paired_p_value
+from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates
-from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
 
 MATERIAL = 0.2
@@ -197,36 +197,10 @@ def recheck_with_named(
     other, memo = choice.converged
     own = gap_after.mean(1)
     start = np.concatenate([fit.values for _, fit in effects]) if effects else np.zeros(0)
-    values, conv, reason = start, None, ""
-    if effects:
-        combined = combine(effects)
-        fit = fit_effect(
-            combined, other, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
-        )
-        values, params = fit.values, combined.physics(fit.values, base)
-        if fit.status != "ok":
-            reason = f"the named effects' refit under the converged solve failed ({fit.status})"
-    else:
-        params = base
-    if not reason:
-        try:
-            conv = gap_per_window(other.spec, other.rollout(held, params), held).mean(1)
-        except SimulationDiverged as err:
-            reason = f"the named effects blow up under the converged solve ({err.reason})"
+    values, conv, reason = _refit_under(other, effects, start, train, held, base, config)
     p, take = float("nan"), False
     if conv is not None:
-        p = paired_p_value(own, conv, held, config.block_rows, SIGNIFICANCE)
-        names = ", ".join(e.name for e, _ in effects) or "none"
-        if finer is None:
-            take = conv.mean() <= (1.0 - MATERIAL) * own.mean() and p < SIGNIFICANCE
-            than = f"materially better than under the sim env's own solver (gap {own.mean():.4g}; needs {MATERIAL:.0%}"
-            than += f" lower at p<{SIGNIFICANCE:.2g}, p={p:.2g})"
-        else:
-            take = conv.mean() <= own.mean()
-            than = f"as well as with the finer contact solver named (gap {own.mean():.4g})"
-        verb = "reproduce" if take else "do not reproduce"
-        reason = f"refitted together under a converged solve, the named effects ({names}; gap {conv.mean():.4g}) "
-        reason += f"{verb} the data {than}"
+        p, take, reason = _named_set_test(own, conv, effects, finer is not None, held, config)
     named_set = {
         "effects": [e.name for e, _ in named],
         "refitted": [e.name for e, _ in effects],
@@ -243,6 +217,53 @@ def recheck_with_named(
         return replace(choice, check=check)
     check.update(taken="converged", reason=f"{check['reason']}; but {reason}")
     return SolverChoice(other, check, memo)
+
+
+def _refit_under(
+    other: Resimulator,
+    effects: list[Candidate],
+    start: np.ndarray,
+    train: Windows,
+    held: Windows,
+    base: PhysicsParams,
+    config: FitConfig,
+) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """The `effects` refitted together under `other`'s solver from their values `start`: the values, the held-out
+    gap per window under `other` (None where the refit failed or the rollout blew up) and why it is None."""
+    values, params = start, base
+    if effects:
+        combined = combine(effects)
+        fit = fit_effect(
+            combined, other, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
+        )
+        values, params = fit.values, combined.physics(fit.values, base)
+        if fit.status != "ok":
+            return values, None, f"the named effects' refit under the converged solve failed ({fit.status})"
+    try:
+        return values, gap_per_window(other.spec, other.rollout(held, params), held).mean(1), ""
+    except SimulationDiverged as err:
+        return values, None, f"the named effects blow up under the converged solve ({err.reason})"
+
+
+def _named_set_test(
+    own: np.ndarray, conv: np.ndarray, effects: list[Candidate], finer: bool, held: Windows, config: FitConfig
+) -> tuple[float, bool, str]:
+    """The test of the named set: p that the converged solve's gap per window `conv` is below the own's `own`,
+    whether the converged solve is taken (`MATERIAL` lower at p < `SIGNIFICANCE`; with a `finer` contact solver
+    named, no higher), and why."""
+    p = paired_p_value(own, conv, held, config.block_rows, SIGNIFICANCE)
+    names = ", ".join(e.name for e, _ in effects) or "none"
+    if not finer:
+        take = conv.mean() <= (1.0 - MATERIAL) * own.mean() and p < SIGNIFICANCE
+        than = f"materially better than under the sim env's own solver (gap {own.mean():.4g}; needs {MATERIAL:.0%}"
+        than += f" lower at p<{SIGNIFICANCE:.2g}, p={p:.2g})"
+    else:
+        take = conv.mean() <= own.mean()
+        than = f"as well as with the finer contact solver named (gap {own.mean():.4g})"
+    verb = "reproduce" if take else "do not reproduce"
+    reason = f"refitted together under a converged solve, the named effects ({names}; gap {conv.mean():.4g}) "
+    reason += f"{verb} the data {than}"
+    return p, bool(take), reason
 
 
 def lost_in_reselection(check: dict, gap_after: np.ndarray) -> dict:

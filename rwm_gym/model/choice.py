@@ -142,18 +142,8 @@ def choose_kind(table: ModelChoiceTable, rows: int, cpu_minutes: float, toleranc
     """The kind to train on `rows` rows of data for `cpu_minutes` CPU-minutes (the rule in the module docstring)."""
     if rows < 1 or not cpu_minutes > 0:
         raise ModelChoiceError(f"need rows >= 1 and a budget > 0 CPU-minutes, got {rows} rows and {cpu_minutes}")
-    sizes = {m.rows for m in table.measurements}
-    nearest = min(_log_distance(s, rows) for s in sizes)
-    near_sizes = {s for s in sizes if _log_distance(s, rows) <= nearest + math.log(2.0)}
-    pool = [m for m in table.measurements if m.rows in near_sizes]
-    budget = min({m.cpu_minutes for m in pool}, key=lambda b: (_log_distance(b, cpu_minutes), b))
-    chosen = [m for m in pool if m.cpu_minutes == budget]
-    kinds = set.intersection(*(set(m.errors) for m in chosen))
-    errors = {
-        k: math.exp(sum(math.log(max(m.errors[k], 1e-12)) for m in chosen) / len(chosen))
-        for k in sorted(kinds)
-        if all(math.isfinite(m.errors[k]) for m in chosen)
-    }
+    budget, chosen = _nearest(table, rows, cpu_minutes)
+    errors = _mean_errors(chosen)
     candidates = {k: e for k, e in errors.items() if k in CANDIDATES}
     if not candidates:
         raise ModelChoiceError(f"the model-choice table measures none of {', '.join(CANDIDATES)} at {budget:g} min")
@@ -161,14 +151,39 @@ def choose_kind(table: ModelChoiceTable, rows: int, cpu_minutes: float, toleranc
     kind = lowest
     if DEFAULT_KIND in candidates and candidates[DEFAULT_KIND] <= (1.0 + tolerance) * candidates[lowest]:
         kind = DEFAULT_KIND
-    rates = [m.iterations[kind] / m.cpu_minutes for m in chosen if m.iterations.get(kind)]
-    iterations = round(sorted(rates)[len(rates) // 2] * cpu_minutes) if rates else None
     return Choice(
         kind,
         errors,
         budget,
         tuple(m.robot for m in chosen),
         tuple(m.rows for m in chosen),
-        iterations,
+        _iterations(chosen, kind, cpu_minutes),
         table.horizon,
     )
+
+
+def _nearest(table: ModelChoiceTable, rows: int, cpu_minutes: float) -> tuple[float, list[Measurement]]:
+    """The measured budget nearest `cpu_minutes` among the robots whose data size is nearest `rows` (every robot
+    within a factor 2 of the nearest one), and those robots' measurements at it."""
+    sizes = {m.rows for m in table.measurements}
+    nearest = min(_log_distance(s, rows) for s in sizes)
+    near_sizes = {s for s in sizes if _log_distance(s, rows) <= nearest + math.log(2.0)}
+    pool = [m for m in table.measurements if m.rows in near_sizes]
+    budget = min({m.cpu_minutes for m in pool}, key=lambda b: (_log_distance(b, cpu_minutes), b))
+    return budget, [m for m in pool if m.cpu_minutes == budget]
+
+
+def _mean_errors(chosen: list[Measurement]) -> dict[str, float]:
+    """kind -> geometric mean of its error over `chosen`, for the kinds every one of them measured finitely."""
+    kinds = set.intersection(*(set(m.errors) for m in chosen))
+    return {
+        k: math.exp(sum(math.log(max(m.errors[k], 1e-12)) for m in chosen) / len(chosen))
+        for k in sorted(kinds)
+        if all(math.isfinite(m.errors[k]) for m in chosen)
+    }
+
+
+def _iterations(chosen: list[Measurement], kind: str, cpu_minutes: float) -> int | None:
+    """Gradient steps `kind` would make in `cpu_minutes`, at its median measured rate (None: not measured)."""
+    rates = [m.iterations[kind] / m.cpu_minutes for m in chosen if m.iterations.get(kind)]
+    return round(sorted(rates)[len(rates) // 2] * cpu_minutes) if rates else None
