@@ -108,7 +108,7 @@ def test_a_malicious_policy_zip_runs_nothing_through_any_loader(tmp_path: Path, 
 
     evil, marker = malicious_zip(tmp_path, key)
     for load in (load_policy, as_policy, lambda p: make_policy(str(p), SPEC, 1)):
-        with pytest.raises(PolicyFileError, match=f"entry '{key}' names posix.system") as err:
+        with pytest.raises(PolicyFileError, match=f"entry '{key}' is <class 'object'>") as err:
             load(evil)
         assert "\n" not in str(err.value)
     assert not marker.exists()
@@ -180,9 +180,10 @@ def test_a_training_run_zip_with_its_run_state_loads_safely(tmp_path: Path) -> N
     )
     model.learn(512)
     model.save(tmp_path / "p.zip")
-    loaded = load_policy(tmp_path / "p.zip")
-    np.testing.assert_array_equal(loaded._last_obs, model._last_obs)
-    assert list(loaded.ep_info_buffer) == list(model.ep_info_buffer)
+    loaded = load_policy(tmp_path / "p.zip")  # the run state is pickled: ignored, training goes on from env resets
+    assert loaded._last_obs is None and loaded.num_timesteps == model.num_timesteps
+    obs = np.random.default_rng(0).normal(size=(16, 3)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
 
 
 def _pendulum_policy(path: Path) -> Path:
