@@ -33,23 +33,45 @@ class Group:
         return len(self.columns)
 
 
+PerJointFigure = float | tuple[float, ...]
+"""One value for every actuated joint, or one per joint in `ActuatorSpec.joints` order."""
+
+
 @dataclass(frozen=True)
 class ActuatorSpec:
-    """The actuated joints and their position servos (spec `[actuator]`)."""
+    """The actuated joints and their position servos (spec `[actuator]`).
+
+    `kp`, `kd`, `effort_limit` and `velocity_limit` take one number for every joint or a list with one per joint
+    (a Go2's knees are stronger than its hips); `per_joint` gives either as an array.
+    """
 
     joints: tuple[str, ...]
     default_pose: tuple[float, ...]
     """rad, one per joint."""
     action_scale: float
     """rad per unit action; actions live in [-1, 1]."""
-    kp: float
+    kp: PerJointFigure
     """N·m/rad."""
-    kd: float
+    kd: PerJointFigure
     """N·m·s/rad."""
-    effort_limit: float
+    effort_limit: PerJointFigure
     """N·m."""
-    velocity_limit: float
+    velocity_limit: PerJointFigure
     """rad/s."""
+
+    def per_joint(self, name: str) -> np.ndarray:
+        """(A,) the figure `name` ("kp", "kd", "effort_limit", "velocity_limit") of each joint."""
+        return np.broadcast_to(np.asarray(getattr(self, name), dtype=np.float64), (len(self.joints),))
+
+
+def _figure(act: dict, key: str, default: float, n: int, where: str) -> PerJointFigure:
+    """A spec `[actuator]` figure: a number, or a list of one per joint."""
+    value = act.get(key, default)
+    if isinstance(value, list):
+        if len(value) != n:
+            raise ValueError(f"{where}: actuator.{key} has {len(value)} values for {n} joints")
+        return tuple(float(v) for v in value)
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -286,10 +308,10 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             joints=joints,
             default_pose=tuple(float(v) for v in act.get("default_pose", [0.0] * len(joints))),
             action_scale=float(act.get("action_scale", 1.0)),
-            kp=float(act.get("kp", 0.0)),
-            kd=float(act.get("kd", 0.0)),
-            effort_limit=float(act.get("effort_limit", "inf")),
-            velocity_limit=float(act.get("velocity_limit", "inf")),
+            kp=_figure(act, "kp", 0.0, len(joints), where),
+            kd=_figure(act, "kd", 0.0, len(joints), where),
+            effort_limit=_figure(act, "effort_limit", float("inf"), len(joints), where),
+            velocity_limit=_figure(act, "velocity_limit", float("inf"), len(joints), where),
         )
         if len(actuator.default_pose) != len(joints):
             raise ValueError(

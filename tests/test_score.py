@@ -57,7 +57,8 @@ def test_scripted_names_resolve_to_seeded_policies_one_stream_per_env():
     np.testing.assert_array_equal(a, b)
     assert a.shape == (4, 12) and np.abs(a).max() <= 1.0 and not np.allclose(a[0], a[1])
     assert not np.allclose(first(obs), a)  # the actions move from step to step
-    assert resolve_policy("zero", 4) is zero_policy
+    np.testing.assert_array_equal(resolve_policy("zero", 4)(obs), zero_policy(obs))
+    assert not resolve_policy("zero", 4)(obs).any()
 
 
 def test_a_fall_scores_zero_for_the_rest_of_the_episode():

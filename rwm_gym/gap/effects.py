@@ -141,12 +141,20 @@ def solver_effect(model: mujoco.MjModel) -> Effect:
     )
 
 
+def _scaled_limits(limits: np.ndarray, strongest: float) -> float | tuple[float, ...]:
+    """Per-joint torque limits with the strongest drive's at `strongest` N·m (one number where all are equal)."""
+    if np.all(limits == limits[0]):
+        return strongest
+    return tuple(float(x) for x in limits * (strongest / limits.max()))
+
+
 def vocabulary(
     spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None
 ) -> dict[str, Effect]:
     """Every effect the workflow knows, with nominal values and ranges resolved against the task spec (effort limit,
     physics dt), the robot model (floor friction) and the simulator's `solver` (None: the MJCF's)."""
-    limit, dt = spec.actuator.effort_limit, spec.physics_dt
+    limits, dt = spec.actuator.per_joint("effort_limit"), spec.physics_dt
+    limit = float(limits.max())  # the strongest drive's; weaker drives scale with it
     model = build_model(spec, xml_file, solver=solver)
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     mu = float(model.geom_friction[floor, 0]) if floor >= 0 else 1.0
@@ -185,9 +193,9 @@ def vocabulary(
         ),
         Effect(
             "torque_limit",
-            "saturation torque of every drive, lower than the data sheet's",
+            "saturation torque of every drive, lower than the data sheet's (the strongest drive's, in N·m)",
             (Parameter("torque_limit", "N·m", limit, 0.1 * limit, limit, 0.4 * limit),),
-            lambda v: {"torque_limit": float(v[0])},
+            lambda v: {"torque_limit": _scaled_limits(limits, float(v[0]))},
         ),
         Effect(
             "pd_gains",

@@ -143,7 +143,7 @@ class ImaginedCore:
                 f"{self.checkpoint}: fall_tilt needs a projected_gravity state group, which {name} has not"
             )
         if self.options.torque_halt > 0 and (
-            "joint_torque" not in slices or not np.isfinite(self.spec.actuator.effort_limit)
+            "joint_torque" not in slices or not np.isfinite(self.spec.actuator.per_joint("effort_limit")).all()
         ):
             raise ValueError(
                 f"{self.checkpoint}: torque_halt needs a joint_torque state group and a finite effort "
@@ -318,7 +318,7 @@ class ImaginedCore:
         saturated = np.zeros(self.num_envs, dtype=bool)
         if self.options.torque_halt > 0:
             torque = np.abs(next_state[:, self.spec.state_slices["joint_torque"]])
-            saturated = (torque >= self.options.torque_halt * self.spec.actuator.effort_limit).any(axis=1)
+            saturated = (torque >= self.options.torque_halt * self.spec.actuator.per_joint("effort_limit")).any(axis=1)
             terminated |= saturated
         halted = np.zeros(self.num_envs, dtype=bool)
         if self.options.uncertainty_halt > 0:

@@ -207,10 +207,12 @@ class JointFigures:
     def of(cls, spec: TaskSpec, params: PhysicsParams) -> JointFigures:
         act = spec.actuator
         n = len(act.joints)
-        kp = act.kp * per_joint(params.kp_scale, n, "kp_scale")
-        kd = act.kd * per_joint(params.kd_scale, n, "kd_scale")
+        kp = act.per_joint("kp") * per_joint(params.kp_scale, n, "kp_scale")
+        kd = act.per_joint("kd") * per_joint(params.kd_scale, n, "kd_scale")
         strength = per_joint(params.motor_strength, n, "motor_strength")
-        limit = per_joint(act.effort_limit if params.torque_limit is None else params.torque_limit, n, "torque_limit")
+        limit = per_joint(
+            act.per_joint("effort_limit") if params.torque_limit is None else params.torque_limit, n, "torque_limit"
+        )
         delay_steps = params.action_delay / spec.physics_dt
         if params.action_delay < 0 or abs(delay_steps - round(delay_steps)) > 1e-6:
             raise ValueError(

@@ -190,7 +190,9 @@ class GaitPolicy:
         targets = self._swing_targets(feet, swing, leg_phase, desired, lin_vel, ang_vel)
         q_swing = self.kin.inverse(targets)
         torque = self._stance_torques(q, feet, swing, leg_phase, hold, desired, lin_vel, ang_vel, gravity)
-        target = np.where(swing[..., None], q_swing, q + torque / self.spec.actuator.kp)
+        target = np.where(
+            swing[..., None], q_swing, q + torque / self.spec.actuator.per_joint("kp").reshape(q.shape[1:])
+        )
 
         actions = (target.reshape(self.num_envs, -1) - self.default_pose) / self.spec.actuator.action_scale
         if self.action_noise > 0:

@@ -34,13 +34,14 @@ SCORING_SEED = 20261123
 def scoring_commands(
     spec: str | TaskSpec = "anymal_d", num_random: int = 16, seed: int = SCORING_SEED
 ) -> tuple[tuple[float, ...], ...]:
-    """The scoring command set: standing, 1 m/s forward, then `num_random` commands drawn uniformly from the spec's
-    ranges with a fixed seed. (vx m/s, vy m/s, yaw rate rad/s) in the body frame for ANYmal D."""
+    """The scoring command set: standing, 1 m/s forward (the top of the forward range where that is lower), then
+    `num_random` commands drawn uniformly from the spec's ranges with a fixed seed. (vx m/s, vy m/s, yaw rate rad/s)
+    in the body frame for the legged tasks."""
     from rwm_gym.spec import load_spec
 
     task = spec if isinstance(spec, TaskSpec) else load_spec(spec)
     low, high = np.asarray(task.command.low), np.asarray(task.command.high)
-    fixed = [np.zeros_like(low), np.where(np.arange(len(low)) == 0, 1.0, 0.0)]
+    fixed = [np.zeros_like(low), np.where(np.arange(len(low)) == 0, min(1.0, float(high[0])), 0.0)]
     drawn = np.random.default_rng(seed).uniform(low, high, (num_random, len(low)))
     return tuple(tuple(round(float(x), 3) for x in c) for c in [*fixed, *drawn])
 

@@ -33,6 +33,7 @@ from rwm_gym.rl.evaluate_policy import (
     scoring_commands,
     summarize,
 )
+from rwm_gym.spec import TaskSpec
 from rwm_gym.workers import run_in_workers, threads_per_worker, uses_workers
 
 VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
@@ -43,9 +44,9 @@ VIDEO_COMMANDS: tuple[tuple[str, tuple[float, float, float]], ...] = (
 )
 
 
-def zero_policy(obs: np.ndarray) -> np.ndarray:
-    """The floor: zero actions hold the default pose, so the robot stands still."""
-    return np.zeros((len(obs), 12), dtype=np.float32)
+def zero_policy(obs: np.ndarray, action_dim: int = 12) -> np.ndarray:
+    """The floor: zero actions hold the default pose, so the robot stands still (`action_dim` actions)."""
+    return np.zeros((len(obs), action_dim), dtype=np.float32)
 
 
 SCRIPTED = ("zero", "gait", "random")
@@ -53,16 +54,22 @@ SCRIPTED = ("zero", "gait", "random")
 datasets' correlated random actions (`rwm_gym.policies.base.RandomPolicy`)."""
 
 
-def resolve_policy(policy, num_envs: int, spec: str = "anymal_d", first: int = 0):
-    """A policy function for `num_envs` envs from a name in `SCRIPTED` (env k draws from generator `first` + k, so a
-    block of envs acts as those envs of one whole batch), a zip path, an SB3 model or a callable."""
+def task_of(spec: str | TaskSpec) -> TaskSpec:
+    """The task spec of a physics env id, a shipped spec name, a spec file path or a TaskSpec."""
+    from rwm_gym.registration import resolve_spec
+
+    return resolve_spec(spec)
+
+
+def resolve_policy(policy, num_envs: int, spec: str | TaskSpec = "anymal_d", first: int = 0):
+    """A policy function for `num_envs` envs of the task `spec` from a name in `SCRIPTED` (env k draws from generator
+    `first` + k, so a block of envs acts as those envs of one whole batch), a zip path, an SB3 model or a callable."""
     if isinstance(policy, str) and policy == "zero":
-        return zero_policy
+        return functools.partial(zero_policy, action_dim=task_of(spec).action_dim)
     if isinstance(policy, str) and policy in SCRIPTED:
         from rwm_gym.policies.factory import make_policy
-        from rwm_gym.spec import load_spec
 
-        scripted = make_policy(policy, load_spec(spec), num_envs)
+        scripted = make_policy(policy, task_of(spec), num_envs)
         scripted.reset(np.arange(num_envs), [np.random.default_rng(first + k) for k in range(num_envs)])
         return scripted.act
     return as_policy(policy)
@@ -76,20 +83,23 @@ def score(
     num_random: int = 16,
     checkpoint: str | None = None,
     reset_data: str | os.PathLike | None = None,
-    spec: str = "anymal_d",
+    spec: str | TaskSpec = "anymal_d",
     workers: int = 1,
     backend: str = "processes",
     physics: dict | None = None,
+    trust_entry_points: bool = False,
 ) -> Evaluation:
     """The tracking score of `policy` (a name in `SCRIPTED`, zip path, SB3 model or callable) in physics, or in the
-    world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's).
+    world model `checkpoint`, its episodes starting from windows of `reset_data` (default: the checkpoint's);
+    `trust_entry_points`: import the reward / termination functions the checkpoint's spec names.
 
     workers > 1 (or backend "ray"): the physics episodes split over that many workers of `backend` ("processes" or
     "ray", `rwm_gym.workers`; `policy` then a name or a path); the figures are those of one process, exactly for the
     scripted policies; an SB3 network acting on a smaller batch rounds differently (about 1e-9 relative, tested).
-    `physics`: the robot's `PhysicsParams` (a dict of its fields; None: the MJCF's).
+    `physics`: the robot's `PhysicsParams` (a dict of its fields; None: the MJCF's). `spec`: the task scored on (a
+    physics env id, a shipped spec name, a spec file or a TaskSpec): its command ranges, its robot, its falls.
     """
-    commands = scoring_commands(spec, num_random)
+    commands = scoring_commands(task_of(spec), num_random)
     if uses_workers(workers, backend):
         if checkpoint is not None:
             raise ValueError("workers score in physics; a world model scores in one process")
@@ -107,16 +117,25 @@ def score(
             checkpoint,
             len(commands) * seeds,
             reset_data=reset_data,
-            options=ImaginationOptions(resample_commands=False, report_uncertainty=True),
+            options=ImaginationOptions(
+                resample_commands=False, report_uncertainty=True, trust_entry_points=trust_entry_points
+            ),
         )
     env_kwargs = {"physics": physics} if physics else None
     return evaluate_policy(
-        policy, commands=commands, seeds=range(seeds), steps=steps, spec=spec, core=core, env_kwargs=env_kwargs
+        policy, commands=commands, seeds=range(seeds), steps=steps, spec=task_of(spec), core=core, env_kwargs=env_kwargs
     )
 
 
 def _score_in_workers(
-    policy: str, commands, seeds: int, steps: int | None, spec: str, workers: int, backend: str, physics: dict | None
+    policy: str,
+    commands,
+    seeds: int,
+    steps: int | None,
+    spec: str | TaskSpec,
+    workers: int,
+    backend: str,
+    physics: dict | None,
 ) -> Evaluation:
     """`score` in physics with the (command, seed) episodes in `workers` consecutive blocks, one worker each; their
     tallies joined in order, so the means are taken over the same arrays as in one process."""
@@ -130,14 +149,16 @@ def _score_in_workers(
     return summarize(_Tally.concatenate(tallies), commands, pairs, time.monotonic() - started)
 
 
-def _score_block(policy: str, pairs, steps: int | None, spec: str, threads: int, physics: dict | None, block: range):
+def _score_block(
+    policy: str, pairs, steps: int | None, spec: str | TaskSpec, threads: int, physics: dict | None, block: range
+):
     """A worker's share: the episodes of `pairs[block]` in one physics core of `threads` threads."""
     import torch
 
     torch.set_num_threads(threads)
     act = resolve_policy(policy, len(block), spec, first=block.start)
     env_kwargs = {"nthread": threads, **({"physics": physics} if physics else {})}
-    return run_episodes(act, [pairs[k] for k in block], steps=steps, spec=spec, env_kwargs=env_kwargs)
+    return run_episodes(act, [pairs[k] for k in block], steps=steps, spec=task_of(spec), env_kwargs=env_kwargs)
 
 
 def record_walk(
@@ -148,19 +169,21 @@ def record_walk(
     seconds_each: float = 3.0,
     fps: int = 15,
     size: tuple[int, int] = (400, 272),
-    spec: str = "anymal_d",
+    spec: str | TaskSpec = "anymal_d",
     physics: dict | None = None,
 ) -> tuple[Path, Path]:
     """Render `policy` in physics (of the robot `physics`, a dict of `PhysicsParams` fields; None: the MJCF's) through
-    `VIDEO_COMMANDS` (tracking camera) as an animated GIF and one still PNG."""
+    `VIDEO_COMMANDS`, clipped to the task's command ranges (tracking camera), as an animated GIF and one still PNG."""
     from PIL import Image, ImageDraw
 
     from rwm_gym.physics.locomotion import LocomotionEnv
 
-    act = resolve_policy(policy, 1, spec)
+    task = task_of(spec)
+    act = resolve_policy(policy, 1, task)
+    low, high = np.asarray(task.command.low), np.asarray(task.command.high)
     # the video's commands, not the task's random ones
     env = LocomotionEnv(
-        spec, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False, physics=physics
+        task, render_mode="rgb_array", width=size[0], height=size[1], resample_commands=False, physics=physics
     )
     try:
         obs, _ = env.reset(seed=0)
@@ -168,7 +191,7 @@ def record_walk(
         every = max(1, round(1.0 / (fps * env.task_spec.policy_dt)))
         frames, stills = [], []
         for label, command in VIDEO_COMMANDS:
-            core.command[0] = command
+            core.command[0] = np.clip(command, low, high)
             obs = core.observe()[0]
             for t in range(round(seconds_each / env.task_spec.policy_dt)):
                 obs, _, terminated, _, _ = env.step(act(obs[None])[0])

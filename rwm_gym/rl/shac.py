@@ -113,7 +113,9 @@ class DifferentiableImagination:
         self.last_action = torch.zeros((n, self.spec.action_dim), device=self.device)
         self.command = torch.zeros((n, len(self.spec.command.names)), device=self.device)
         self.hidden = tuple(h.clone() for h in core.hidden)
-        self.effort_limit = float(self.spec.actuator.effort_limit)
+        self.effort_limit = torch.as_tensor(
+            self.spec.actuator.per_joint("effort_limit"), dtype=torch.float32, device=self.device
+        )
 
     def reset(self, ids: np.ndarray, seeds: list[int | None] | None = None) -> None:
         """Restart envs `ids` from real windows (the core's draw and warm-up); other envs keep their graph."""
