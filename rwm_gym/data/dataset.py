@@ -44,6 +44,7 @@ import h5py
 import numpy as np
 
 from rwm_gym.atomic import atomic_write
+from rwm_gym.data.hdf5_guard import check_self_contained
 from rwm_gym.spec import TaskSpec, parse_spec
 
 FORMAT_NAME = "rwm-gym-dataset"
@@ -277,10 +278,13 @@ class Dataset:
         """Read and validate a dataset; any problem raises a one-line DatasetError naming the file and field."""
         path = Path(path)
         if not path.is_file():
+            if path.exists() and not path.is_dir():  # opening a FIFO would wait for a writer
+                raise DatasetError(f"{path}: not a regular file (a FIFO, socket or device); a dataset is a file")
             raise FileNotFoundError(f"{path}: no such dataset file")
         where = "file"
         try:
             with _open_for_reading(path) as f:
+                check_self_contained(f, path, DatasetError)  # before any value is read
                 where = "attribute 'format'"
                 if f.attrs.get("format") != FORMAT_NAME:
                     raise DatasetError(f"{path}: {where}: expected {FORMAT_NAME!r}, got {f.attrs.get('format')!r}")

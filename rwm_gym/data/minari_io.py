@@ -140,10 +140,45 @@ def _write_minari(
             shutil.rmtree(tmp)
 
 
+def _check_minari_folder(folder: Path) -> None:
+    """Before Minari reads `folder`: its two files are regular files inside it (no link out), the metadata is small
+    JSON naming the hdf5 format, and the HDF5 file holds its own data (`check_self_contained`)."""
+    import h5py
+
+    from rwm_gym.data.hdf5_guard import check_self_contained
+    from rwm_gym.untrusted import regular_file
+
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a readable Minari dataset (not a folder)")
+    files = {}
+    for name in ("metadata.json", "main_data.hdf5"):
+        path = folder / name
+        if not path.exists():
+            raise ValueError(f"{folder}: not a readable Minari dataset exported by rwm-gym (no {name})")
+        if path.is_symlink() or not path.resolve().is_relative_to(folder.resolve()):
+            raise ValueError(f"{path}: a link to {path.resolve()}; a Minari dataset must hold its own files")
+        files[name] = regular_file(path, "Minari file")
+    if files["metadata.json"].stat().st_size > 64 << 20:
+        raise ValueError(f"{files['metadata.json']}: over 64 MiB, not Minari metadata")
+    try:
+        data_format = json.loads(files["metadata.json"].read_text()).get("data_format", "hdf5")
+    except (ValueError, AttributeError):
+        raise ValueError(f"{files['metadata.json']}: not a JSON object") from None
+    if data_format != "hdf5":
+        raise ValueError(f"{folder}: data format {data_format!r}; rwm-gym imports the hdf5 Minari datasets it exports")
+    main_data = files["main_data.hdf5"]
+    try:
+        with h5py.File(main_data, "r") as f:
+            check_self_contained(f, main_data, ValueError)
+    except OSError as err:
+        raise ValueError(f"{main_data}: not a readable HDF5 file ({' '.join(str(err).split())})") from None
+
+
 def import_minari(folder: str | Path, out: str | Path, *, overwrite: bool = False) -> Path:
     """Rebuild the rwm-gym dataset that `export_minari` wrote into `folder` (atomic write of `out`)."""
     minari = _minari()
     folder, out = Path(folder), check_output(out, inputs=[folder], overwrite=overwrite)
+    _check_minari_folder(folder)
     try:
         dataset = minari.MinariDataset(folder)
     except (ValueError, OSError, KeyError, AssertionError) as err:  # what Minari raises for a folder it cannot read
