@@ -2,7 +2,9 @@
 
 `check_output` refuses (one line, `OutputError`) an output that is one of the command's inputs, lies inside an input
 folder or holds an input, exists without `overwrite`, or cannot be written (checked before a long run, not after it).
-`claim` holds an exclusive lock on the output for the whole run: a second run writing the same path fails at once.
+`check_folder` does the same for an output folder, which a command writes into only to continue its own run or with
+`overwrite`. `claim` holds an exclusive lock on the output for the whole run: a second run writing the same path
+fails at once; a folder it made for the lock and that stays empty (a run refused before writing) is removed again.
 The lock is a `flock` on a hidden `.NAME.lock` file beside the output, released by the kernel if the process dies,
 so a killed run never blocks the next one.
 """
@@ -68,8 +70,29 @@ def check_output(
     return path
 
 
+def check_folder(
+    folder: str | os.PathLike,
+    *,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    overwrite: bool = False,
+    continues: bool = False,
+    flag: str = "--out",
+) -> Path:
+    """The resolved output folder `folder` (a run folder or a report folder), after `check_output`'s checks: a folder
+    that already holds files is written into only if the command `continues` the run it holds (its own resume point)
+    or with `overwrite`."""
+    path = check_output(folder, inputs=inputs, overwrite=True, folder=True, flag=flag)
+    if path.is_dir() and not continues and not overwrite and any(path.iterdir()):
+        raise OutputError(f"{flag} {folder} holds files and no run to continue (pass --overwrite to write over them)")
+    return path
+
+
 _HELD: dict[Path, list[int]] = {}
 """Locks this process holds: path -> [fd, depth] (a writer nested in a command claims the same path again)."""
+
+_MADE: dict[Path, list[Path]] = {}
+"""Folders a claim created for its lock, deepest first: removed again if still empty when the claim ends, so a run
+refused after its claim leaves no empty output folder behind."""
 
 
 def lock_path(out: Path) -> Path:
@@ -83,8 +106,14 @@ def claim(out: str | os.PathLike) -> Iterator[Path]:
     one process claims nest (a command's writer claims the path its command holds); the last to leave releases."""
     path = resolved(out)
     if path not in _HELD:
+        made = [p for p in (path.parent, *path.parent.parents) if not p.exists()]
         path.parent.mkdir(parents=True, exist_ok=True)
-        _HELD[path] = [_lock(lock_path(path), out), 0]
+        try:
+            _HELD[path] = [_lock(lock_path(path), out), 0]
+        except BaseException:
+            _remove_empty(made)
+            raise
+        _MADE[path] = made
     _HELD[path][1] += 1
     try:
         yield path
@@ -97,6 +126,16 @@ def claim(out: str | os.PathLike) -> Iterator[Path]:
             except OSError:
                 pass
             os.close(fd)
+            _remove_empty(_MADE.pop(path, []))
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove each of `folders` (deepest first) that is empty; stop at the first that is not."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 def _lock(lock: Path, out: str | os.PathLike) -> int:

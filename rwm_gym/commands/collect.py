@@ -11,7 +11,7 @@ import rwm_gym
 from rwm_gym.commands._options import OverwriteOption, PhysicsEnvOptions, WorkerOptions, add_group, parse_physics
 from rwm_gym.data.collect import collect, diverged_episodes
 from rwm_gym.data.dataset import Dataset, DatasetError
-from rwm_gym.options import non_negative_float, option
+from rwm_gym.options import option
 from rwm_gym.workers import RayMissing
 
 
@@ -24,15 +24,15 @@ class CollectOptions:
     policy: str = "gait"
     """'random', 'zero' (stand still), 'gait' (a legged robot's trot), 'reach' (an arm's reach toward its target;
     --action-noise makes it hover and miss) or the path of an SB3 .zip"""
-    episodes: int = 64
+    episodes: int = option(64, ge=1)
     """episodes to collect"""
     seed: int = 0
     """episode k starts from seed + k"""
-    num_envs: int = 8
+    num_envs: int = option(8, ge=1)
     """simulations stepped together"""
-    action_noise: float = option(0.0, parse=non_negative_float)
+    action_noise: float = option(0.0, ge=0)
     """Gaussian std added to the policy's actions ('reach': correlated, with an aim offset of 0.1 m per unit)"""
-    max_steps: int | None = None
+    max_steps: int | None = option(None, ge=1)
     """cap on episode length in policy steps (default: the task's episode length)"""
     physics: str | None = None
     """JSON dict of physics parameters (see PhysicsParams), or a JSON file of one (default: the MJCF's). The physics

@@ -67,8 +67,9 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--horizons {max(args.horizons)} is above --max-horizon {args.max_horizon}")
         if args.out:
             inputs = [args.checkpoint, *args.data, *args.training_data]
-            check_output(Path(args.out) / "error_vs_horizon.png", inputs=inputs, overwrite=True)
-            check_output(Path(args.out) / "evaluation.json", inputs=inputs, overwrite=args.overwrite)
+            check_output(args.out, inputs=inputs, overwrite=True, folder=True)  # not a folder holding an input
+            for name in ("evaluation.json", "error_vs_horizon.png"):
+                check_output(Path(args.out) / name, inputs=inputs, overwrite=args.overwrite)
         config = dataclass_from_args(EvalConfig, args)
         for data in args.data:
             results[Path(data).stem] = evaluate_checkpoint(

@@ -8,7 +8,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from rwm_gym.commands._options import add_group
+from rwm_gym.commands._options import OverwriteOption, add_group
 from rwm_gym.gap.fit import FitConfig
 from rwm_gym.gap.measured import SensorNoise, solver_option
 from rwm_gym.gap.report import world_model_table
@@ -19,7 +19,7 @@ from rwm_gym.gap.workflow import (
     run_gap,
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig
-from rwm_gym.options import dataclass_from_args
+from rwm_gym.options import dataclass_from_args, option
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -37,7 +37,7 @@ class GapOptions:
     """report folder"""
     sensor_noise: str | None = None
     """JSON SensorNoise of the measured data (SI units, e.g. {"joint_vel": 0.05}); default: make-measured's"""
-    solver_iterations: int = 0
+    solver_iterations: int = option(0, ge=0)
     """MuJoCo solver iterations per physics step of the re-simulations (0: the sim env's own, so the gap is that
     of the simulator as it runs, unless --solver-check finds a converged solve reproduces the data materially
     better; 100: each step solved to convergence)"""
@@ -54,13 +54,14 @@ def scope_list(text: str) -> tuple[str, ...]:
     return scopes
 
 
-OPTIONS = (GapOptions, GapConfig, FitConfig, WorldModelGapConfig)
+OPTIONS = (GapOptions, OverwriteOption, GapConfig, FitConfig, WorldModelGapConfig)
 """The dataclasses the flags of `rwm-gym gap` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
+    add_group(parser, OverwriteOption)
     add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check", "bootstrap"})
     add_group(
         parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
@@ -82,13 +83,15 @@ def run(args: argparse.Namespace) -> int:
         noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
-        from rwm_gym.output_guard import check_output
+        from rwm_gym.output_guard import check_folder
 
-        check_output(
+        world_model = resolve_world_model(args.world_model, args.sim, sim_kwargs)
+        if world_model is not None and not world_model.is_file():
+            raise FileNotFoundError(f"--world-model {world_model} not found")
+        check_folder(
             args.out,
             inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none") else None],
-            overwrite=True,
-            folder=True,
+            overwrite=args.overwrite,
         )
         report = run_gap(
             args.sim,
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
             config=dataclass_from_args(GapConfig, args, solver=solver_option(args.solver_iterations)),
             fit_config=dataclass_from_args(FitConfig, args),
             sensor_noise=noise,
-            world_model=resolve_world_model(args.world_model, args.sim, sim_kwargs),
+            world_model=world_model,
             wm_config=wm_config,
         )
     except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors

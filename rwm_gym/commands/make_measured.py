@@ -33,13 +33,13 @@ class MeasuredOptions:
     policy: str = "excitation"
     """what drives the robot: excitation (made for identification), gait, random, or the path of an SB3 .zip (an
     ordinary walking policy, as in a real robot's log)"""
-    episodes: int = 16
-    max_steps: int = 250
+    episodes: int = option(16, ge=1)
+    max_steps: int = option(250, ge=1)
     """policy steps per episode"""
-    noise_scale: float = 1.0
+    noise_scale: float = option(1.0, ge=0)
     """multiplier on the default sensor noise (0: none); `rwm-gym gap` assumes the default and checks it against
     the data"""
-    solver_iterations: int = CONVERGED_SOLVER.iterations
+    solver_iterations: int = option(CONVERGED_SOLVER.iterations, ge=0)
     """MuJoCo solver iterations per physics step of the hidden robot: the robot stands in for a real one, so by
     default each step is solved to convergence (100), not with the fast MJCF's settings that `rwm-gym gap`
     re-simulates with (0: the MJCF's own)"""

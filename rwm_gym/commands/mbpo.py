@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
-from rwm_gym.commands._options import TensorBoardOption, TorchOptions, add_group
+from rwm_gym.commands._options import OverwriteOption, TensorBoardOption, TorchOptions, add_group
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import (
     add_dataclass_options,
@@ -17,15 +17,22 @@ from rwm_gym.options import (
     non_negative_int,
     positive_int,
 )
-from rwm_gym.output_guard import OutputError, check_output, claim, resolved
+from rwm_gym.output_guard import OutputError, check_folder, claim, resolved
 from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
-RUN_FILES = re.compile(r"(data_\d+\.h5|buffer\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
+RUN_FILES = re.compile(r"(data_\d+\.h5|buffer(_base)?\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
 """The files the loop writes in its folder (`--out`)."""
 
 
-def check_run_folder(out: Path, inputs) -> None:
-    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself."""
+def is_run_folder(folder: Path) -> bool:
+    """Whether every file in `folder` is one the loop writes (or a hidden temp file, or a dataset a killed write
+    left): the folder of a run, finished or killed, that the same command continues."""
+    return all(p.name.startswith(".") or RUN_FILES.fullmatch(p.name.split(".partial-")[0]) for p in folder.iterdir())
+
+
+def check_run_folder(out: Path, inputs, overwrite: bool = False) -> None:
+    """A one-line OutputError for an input that the loop would overwrite in its folder, or the folder itself; for an
+    input inside the folder; and for a folder of other files, unless `overwrite`."""
     folder = resolved(out)
     for source in (s for s in inputs if s is not None):
         path = resolved(source)
@@ -34,7 +41,7 @@ def check_run_folder(out: Path, inputs) -> None:
                 f"--out {out}: the run writes {path.name if path != folder else 'into it'}, which is "
                 f"the input {source}; copy the input elsewhere first"
             )
-    check_output(folder, overwrite=True, folder=True)
+    check_folder(out, inputs=inputs, overwrite=overwrite, continues=folder.is_dir() and is_run_folder(folder))
 
 
 @dataclass(frozen=True)
@@ -56,13 +63,13 @@ class RunOptions:
     assets/policies/anymal_d_ppo_physics_curve.csv (default: none)"""
 
 
-OPTIONS = (RunOptions, TensorBoardOption, TorchOptions, MBPOConfig, ImaginationOptions)
+OPTIONS = (RunOptions, OverwriteOption, TensorBoardOption, TorchOptions, MBPOConfig, ImaginationOptions)
 """The dataclasses the flags of `rwm-gym mbpo` come from."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym mbpo`: the run's files, then one flag per `MBPOConfig` and `ImaginationOptions` field."""
-    for group in (RunOptions, TensorBoardOption, TorchOptions):
+    for group in (RunOptions, OverwriteOption, TensorBoardOption, TorchOptions):
         add_group(parser, group)
     counts = (
         "iterations",
@@ -106,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
         MBPOConfig, args, skip={"imagination"}, imagination=imagination_from_args(args, MBPOConfig().imagination)
     )
     try:
-        check_run_folder(args.out, [args.data, args.checkpoint, args.init_policy, args.model_free_curve])
+        inputs = [args.data, args.checkpoint, args.init_policy, args.model_free_curve]
+        check_run_folder(args.out, inputs, overwrite=args.overwrite)
         with claim(args.out):
             report = mbpo(
                 args.data,

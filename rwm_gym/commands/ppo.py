@@ -26,7 +26,7 @@ from rwm_gym.commands._options import (
 )
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int, option
-from rwm_gym.output_guard import OutputError, check_output, claim
+from rwm_gym.output_guard import OutputError, check_folder, check_output, claim
 from rwm_gym.policy_zip import load_policy
 from rwm_gym.rl.policy_file import save_policy
 from rwm_gym.rl.ppo import (
@@ -82,7 +82,7 @@ class RunOptions:
     seed: int = 0
     out: Path = Path("policy.zip")
     """SB3 zip to write (JSON and PNG beside)"""
-    record_every: int = 0
+    record_every: int = option(0, ge=0)
     """with --run-dir --in physics: write the episodes of every N-th env to experience/ as world-model data
     (0: none)"""
     physics: str | None = None
@@ -100,9 +100,9 @@ class BCOptions:
     bc_data: tuple[Path, ...] | None = option(None, nargs="+")
     """datasets of a demonstrator (e.g. the scripted trot) whose actions the actor is cloned from before PPO
     (rwm_gym.rl.warm_start)"""
-    bc_steps: int = CloneConfig.steps
+    bc_steps: int = option(CloneConfig.steps, ge=0)
     """behaviour-cloning Adam steps"""
-    bc_log_std: float = CloneConfig.log_std
+    bc_log_std: float = option(CloneConfig.log_std, finite=True)
     """action log std after cloning"""
     keep_best: bool = False
     """with --bc-data: if the physics tracking score after PPO is below the clone's, write the clone as --out (said
@@ -115,9 +115,9 @@ class EvalOptions:
 
     eval: bool = True
     """judge the policy in physics after training (--no-eval: skip the physics evaluation)"""
-    eval_seeds: int = 3
+    eval_seeds: int = option(3, ge=1)
     """physics episodes per evaluation command (a dm_control task: episodes, seeds 0..N-1)"""
-    eval_steps: int | None = None
+    eval_steps: int | None = option(None, ge=1)
     """policy steps per evaluation episode (default: the task's episode, 20 s)"""
 
 
@@ -162,12 +162,32 @@ def run(args: argparse.Namespace) -> int:
 
     check_tensorboard(args.tensorboard, "rwm-gym ppo")
     inputs = [args.checkpoint, args.reset_data, args.init_policy, *(args.bc_data or [])]
+    from rwm_gym.rl.training_run import TrainingRun
+
+    own = args.run_dir is not None and TrainingRun(args.run_dir).resumable  # a resumed run rewrites its own files
     try:
-        check_output(args.out, inputs=inputs, overwrite=args.overwrite or args.run_dir is not None)
+        if args.run_dir is not None:
+            check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=own, flag="--run-dir")
+        for path in written_files(args):
+            check_output(path, inputs=inputs, overwrite=args.overwrite or own)
         with claim(args.out):
             return _train(args)
     except OutputError as err:
         raise SystemExit(f"rwm-gym ppo: {err}") from None
+
+
+def written_files(args: argparse.Namespace) -> list[Path]:
+    """Every file `rwm-gym ppo` writes beside --out: the zip, its JSON report and PNG plot, the cloned actor
+    (--bc-data) and the PPO policy --keep-best may set aside; each follows --overwrite."""
+    out = Path(args.out)
+    files = [out, out.with_suffix(".json")]
+    if args.eval:
+        files.append(out.with_suffix(".png"))
+        if args.bc_data:
+            files.append(out.with_name(out.stem + "_bc.zip"))
+    if args.keep_best:
+        files.append(out.with_name(out.stem + "_ppo.zip"))
+    return files
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from rwm_gym.atomic import write_json, write_text
 from rwm_gym.commands._options import OverwriteOption, WorkerOptions, add_group, parse_physics
+from rwm_gym.options import option
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
 from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
@@ -28,14 +29,17 @@ class ScoreOptions:
     reset_data: Path | None = None
     """with --checkpoint: dataset of real histories the imagined episodes start from (default: the checkpoint's; the
     shipped one's are mostly early falls)"""
-    seeds: int = 3
+    seeds: int = option(3, ge=1)
     """episodes per command (default: 3)"""
-    steps: int | None = None
+    steps: int | None = option(None, ge=1)
     """policy steps per episode (default: the task's, 20 s)"""
-    commands: int = 16
+    commands: int = option(16, ge=0)
     """random commands in the set, beside standing and 1 m/s forward (default: 16)"""
     video: bool = False
     """also write walk.gif and walk.png (needs offscreen GL)"""
+    trust_entry_points: bool = False
+    """with --checkpoint: import the reward / termination functions its task spec names ([imagination]); importing
+    a module runs its code, so only for a checkpoint you trust"""
     physics: str | None = None
     """the robot scored on: a JSON dict of PhysicsParams, or a JSON file of one (e.g. a robot with hidden effects
     standing in for a measured one, or `rwm-gym gap`'s corrected_physics.json; default: the MJCF's robot). The zero
@@ -56,8 +60,6 @@ def run(args: argparse.Namespace) -> int:
     """`rwm-gym score`: 0, or 2 with one line on stderr on bad input."""
     if args.policy not in SCRIPTED and not Path(args.policy).is_file():
         raise SystemExit(f"rwm-gym score: --policy {args.policy}: no such file")
-    if args.seeds < 1 or args.commands < 0 or (args.steps is not None and args.steps < 1) or args.workers < 1:
-        raise SystemExit("rwm-gym score: --seeds, --steps and --workers must be >= 1, --commands >= 0")
     if uses_workers(args.workers, args.backend) and args.checkpoint is not None:
         raise SystemExit("rwm-gym score: --workers splits physics episodes; a --checkpoint scores in one process")
     if args.physics is not None and args.checkpoint is not None:
@@ -70,10 +72,13 @@ def run(args: argparse.Namespace) -> int:
         check_backend(args.backend)
     except RayMissing as err:
         raise SystemExit(f"rwm-gym score: {err}") from None
+    if args.trust_entry_points and args.checkpoint is None:
+        raise SystemExit("rwm-gym score: --trust-entry-points applies to --checkpoint (a world model's spec)")
     inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
     try:
-        for name in ("score.md", "score.png", "walk.gif", "walk.png"):
-            check_output(args.out / name, inputs=inputs, overwrite=True)
+        check_output(args.out, inputs=inputs, overwrite=True, folder=True)
+        for name in ("score.md", "score.png", *(("walk.gif", "walk.png") if args.video else ())):
+            check_output(args.out / name, inputs=inputs, overwrite=args.overwrite)
         report = check_output(args.out / "score.json", inputs=inputs, overwrite=args.overwrite)
         with claim(report):
             return _score(args)
@@ -107,6 +112,7 @@ def _score(args: argparse.Namespace) -> int:
         workers=args.workers,
         backend=args.backend,
         physics=args.physics,
+        trust_entry_points=args.trust_entry_points,
     )
     in_workers = uses_workers(args.workers, args.backend)
     if in_workers:  # each worker loads the policy itself

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
 from rwm_gym.commands._options import (
+    OverwriteOption,
     RunFolderOptions,
     TensorBoardOption,
     TorchOptions,
@@ -51,6 +52,7 @@ OPTIONS = (
     WorldModelOptions,
     TorchOptions,
     TensorBoardOption,
+    OverwriteOption,
     SHACConfig,
     ImaginationOptions,
 )
@@ -73,21 +75,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_group(parser, TorchOptions)
     add_group(parser, TensorBoardOption)
+    add_group(parser, OverwriteOption)
 
 
 def run(args: argparse.Namespace) -> int:
-    """`rwm-gym shac`: refuse an --out that would replace an input or another run's file (the run folder's own policy
-    may be rewritten: running the command again resumes), then train holding its lock."""
-    from rwm_gym.output_guard import OutputError, check_output, claim
+    """`rwm-gym shac`: refuse an --out or --run-dir that would replace an input or another run's files (a run that
+    resumes may rewrite its own: running the command again continues it; else only with --overwrite), then train
+    holding the lock of --out."""
+    from rwm_gym.output_guard import OutputError, check_folder, check_output, claim
+    from rwm_gym.rl.training_run import TrainingRun
     from rwm_gym.tensorboard import check_tensorboard
 
     check_tensorboard(args.tensorboard, "rwm-gym shac")
+    _refuse_entry_points(args.checkpoint)
+    run_folder = TrainingRun(args.run_dir)
+    own = run_folder.resumable and (run_folder.folder / "latest_shac.pt").is_file()
+    inputs = [args.checkpoint, args.reset_data]
     try:
-        check_output(args.out, inputs=[args.checkpoint, args.reset_data], overwrite=True)
+        check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=own, flag="--run-dir")
+        check_output(args.out, inputs=inputs, overwrite=args.overwrite or own)
         with claim(args.out):
             return _train(args)
     except OutputError as err:
         raise SystemExit(f"rwm-gym shac: {err}") from None
+
+
+def _refuse_entry_points(checkpoint: str | None) -> None:
+    """SHAC differentiates the velocity-tracking reward and the terminations it implements itself: a checkpoint
+    whose spec names its own (`[imagination]` entry points) is refused in one line rather than trained on another
+    task's reward."""
+    if checkpoint is None:  # the shipped model names none
+        return
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.task.entry_points import spec_entry_points
+
+    if named := spec_entry_points(read_meta(checkpoint).spec):
+        raise SystemExit(
+            f"rwm-gym shac: {checkpoint}'s task spec names its own {' and '.join(named)} function "
+            f"({', '.join(named.values())}); SHAC differentiates the velocity-tracking reward it implements, so it "
+            "cannot train on them (rwm-gym ppo --trust-entry-points can)"
+        )
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -37,9 +37,9 @@ class SpecOptions:
     """foot bodies (default: --mjcf the leaf bodies of the legs, --from-dmc the colliding bodies named like a foot)"""
     name: str | None = None
     """--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"""
-    episodes: int = 8
+    episodes: int = option(8, ge=1)
     """random-policy episodes for the normalisation"""
-    steps: int = 200
+    steps: int = option(200, ge=1)
     """policy steps per normalisation episode (at most)"""
     seed: int = 0
 

@@ -12,7 +12,11 @@ as a robot's log that stops there: the reset is no motion of the robot.
 from __future__ import annotations
 
 import functools
+import glob
 import inspect
+import json
+import os
+import sys
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,20 +117,82 @@ def collect(
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with (
-        claim(out),
-        DatasetWriter(out, info, overwrite=overwrite) as writer,
-        tqdm(total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress) as bar,
-    ):
-        if in_workers:
-            del runner, core  # the workers build their own
-            finished = _fan_out(job, episodes, workers, backend)
-        else:
-            finished = runner.run(range(episodes))
-        for episode in _in_order(finished):
-            writer.append_episode(episode)
-            bar.update(1)
+    with claim(out):
+        resumed = _resume_point(out, info, episodes)
+        first = 0 if resumed is None else resumed[1].num_episodes
+        writer = None
+        try:
+            with (
+                DatasetWriter(out, info, overwrite=overwrite) as writer,
+                tqdm(total=episodes, desc=f"collect {spec.name}", unit="ep", disable=not progress) as bar,
+            ):
+                for k in range(first):  # the killed collection's episodes first
+                    writer.append_episode(resumed[1].episode(k))
+                    bar.update(1)
+                if in_workers:
+                    del runner, core  # the workers build their own
+                    finished = _fan_out(job, range(first, episodes), workers, backend)
+                else:
+                    finished = runner.run(range(first, episodes))
+                for episode in _in_order(finished, first):
+                    writer.append_episode(episode)
+                    bar.update(1)
+        except BaseException:
+            if resumed is not None and writer is not None and not writer.replaces and out.exists():
+                resumed[0].unlink(missing_ok=True)  # its episodes are in `out` now (complete=false)
+            raise
+        if resumed is not None:  # only now: until `out` holds its episodes, the file keeps them
+            resumed[0].unlink(missing_ok=True)
     return out
+
+
+_RESUMABLE = ("partial", "resume")
+"""Names of the files a killed collection of NAME leaves beside it: NAME.partial-XXXXXXXX (the writer's file) and
+NAME.resume-XXXXXXXX (one being resumed from, while its episodes are copied)."""
+
+
+def _resume_point(out: Path, info: DatasetInfo, episodes: int) -> tuple[Path, Dataset] | None:
+    """The finished episodes a killed collection of `out` left (`_RESUMABLE`), when it collected the same episodes:
+    the same task, policy, seed, physics and settings (episode k starts from seed + k, so they are this run's first
+    episodes), at most `episodes` of them; the file is renamed out of the writer's way first, and None if there is
+    none. The finished episodes of a killed collection with other settings are kept: moved to
+    NAME.interrupted-XXXXXXXX.h5 beside `out`, said on stderr. Files holding no finished episode are left to the
+    writer, which removes them. Call holding `claim(out)` (no other writer is running)."""
+    found = []
+    for kind in _RESUMABLE:
+        for path in sorted(out.parent.glob(f"{glob.escape(out.name)}.{kind}-*")):
+            try:
+                data = Dataset.load(path)
+            except (DatasetError, OSError):
+                continue  # killed before its first episode: nothing to keep
+            if data.num_episodes:
+                found.append((path, data))
+    same = [(p, d) for p, d in found if _same_collection(d.info, info) and d.num_episodes <= episodes]
+    best = max(same, key=lambda pd: pd[1].num_episodes, default=None)
+    for path, data in found:
+        if best is not None and any(path == p for p, _ in same) and path != best[0]:
+            path.unlink()  # the first episodes of the same collection, all in `best` too
+        elif not any(path == p for p, _ in same):
+            kept = out.with_name(f"{out.stem}.interrupted-{path.name.rsplit('-', 1)[-1]}{out.suffix}")
+            os.replace(path, kept)
+            print(
+                f"{out}: a killed collection with other settings left {data.num_episodes} finished "
+                f"episodes; kept in {kept}",
+                file=sys.stderr,
+            )
+    if best is None:
+        return None
+    path, data = best
+    moving = path.with_name(f"{out.name}.resume-{path.name.rsplit('-', 1)[-1]}")
+    os.replace(path, moving)
+    print(f"{out}: resuming from the {data.num_episodes} finished episodes of a killed collection", file=sys.stderr)
+    return moving, data
+
+
+def _same_collection(found: DatasetInfo, info: DatasetInfo) -> bool:
+    """Whether a killed collection's file holds the first episodes of the collection `info` describes."""
+    fields = ("env_id", "spec_text", "dt", "columns", "policy", "seed", "physics_params", "metadata")
+    return all(json.dumps(getattr(found, f)) == json.dumps(getattr(info, f)) for f in fields)
 
 
 def _check_request(
@@ -260,9 +326,10 @@ def _takes_nthread(env_id: str | Path | TaskSpec) -> bool:
     return "nthread" in parameters or any(p.kind is p.VAR_KEYWORD for p in parameters.values())
 
 
-def _in_order(finished: Iterable[tuple[int, dict]]) -> Iterator[dict]:
-    """Episodes in episode-number order (0, 1, ...), holding back those that finish before an earlier one."""
-    waiting, next_k = {}, 0
+def _in_order(finished: Iterable[tuple[int, dict]], first: int = 0) -> Iterator[dict]:
+    """Episodes in episode-number order (first, first + 1, ...), holding back those that finish before an earlier
+    one."""
+    waiting, next_k = {}, first
     for k, episode in finished:
         waiting[k] = episode
         while next_k in waiting:
@@ -281,11 +348,11 @@ def _worker_block(job: _Job, numbers: range) -> list[tuple[int, dict]]:
     return list(_WORKER.run(numbers))
 
 
-def _fan_out(job: _Job, episodes: int, workers: int, backend: str) -> Iterator[tuple[int, dict]]:
-    """Episodes from `workers` workers of `backend`; blocks of numbers go to whichever worker is free and come back
-    in order."""
-    block = max(1, min(4 * job.num_envs, -(-episodes // workers)))  # a few waves of envs, all workers busy
-    blocks = [range(a, min(a + block, episodes)) for a in range(0, episodes, block)]
+def _fan_out(job: _Job, numbers: range, workers: int, backend: str) -> Iterator[tuple[int, dict]]:
+    """The episodes `numbers` from `workers` workers of `backend`; blocks of numbers go to whichever worker is free
+    and come back in order."""
+    block = max(1, min(4 * job.num_envs, -(-len(numbers) // workers)))  # a few waves of envs, all workers busy
+    blocks = [range(a, min(a + block, numbers.stop)) for a in range(numbers.start, numbers.stop, block)]
     for result in run_in_workers(functools.partial(_worker_block, job), blocks, workers, backend):
         yield from result
 

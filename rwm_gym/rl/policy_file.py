@@ -14,8 +14,12 @@ def save_policy(model, path: str | os.PathLike) -> Path:
     """`model.save` to a temp file in the same folder, then rename (an interrupted save leaves no broken zip)."""
 
     def write(tmp: str) -> None:
-        model.save(tmp + ".zip")  # SB3 adds ".zip" to a name without it
-        os.replace(tmp + ".zip", tmp)
+        try:
+            model.save(tmp + ".zip")  # SB3 adds ".zip" to a name without it
+            os.replace(tmp + ".zip", tmp)
+        finally:  # a failed save (a full disk) leaves no half-written .tmp.zip beside the policy
+            if os.path.exists(tmp + ".zip"):
+                os.remove(tmp + ".zip")
 
     return atomic_write(path, write)
 
