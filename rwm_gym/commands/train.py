@@ -11,6 +11,8 @@ import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
+from safetensors import SafetensorError
+
 from rwm_gym.commands._options import OverwriteOption, TensorBoardOption, add_group
 from rwm_gym.data.dataset import Dataset, DatasetError
 from rwm_gym.model import distributed
@@ -193,9 +195,11 @@ def run(args: argparse.Namespace) -> int:
             )
     except KeyboardInterrupt:
         return 130
-    except (ValueError, OSError, DatasetError, CheckpointError) as err:
+    except (ValueError, OSError, DatasetError, CheckpointError, SafetensorError) as err:
+        if isinstance(err, SafetensorError):  # safetensors' own error for a write that failed (a full disk)
+            err = f"--out {args.out}: cannot write the checkpoint ({err})"
         if distributed.current_world().is_main:
-            print(f"rwm-gym train: {err}", file=sys.stderr)
+            print(f"rwm-gym train: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     finally:
         distributed.close_world()

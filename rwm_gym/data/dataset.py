@@ -380,6 +380,10 @@ def _check(path: Path, info: DatasetInfo, data: dict[str, np.ndarray], lengths: 
     """Validate loaded arrays against each other and the attributes; return them cut to the finished episodes."""
     if lengths.ndim != 1 or (lengths < 1).any():
         raise DatasetError(f"{path}: field 'episode_lengths': must be a 1-D array of positive row counts")
+    if not (np.isfinite(info.dt) and info.dt > 0):
+        raise DatasetError(f"{path}: attribute 'dt': must be a finite policy step > 0 s, got {info.dt}")
+    if lengths.sum(dtype=np.float64) >= 2**62:  # before the int64 sum, which such lengths wrap to any row count
+        raise DatasetError(f"{path}: field 'episode_lengths': the episodes add up to more rows than a file can hold")
     total = int(lengths.sum())
     for name, value in data.items():
         dtype, ndim = _FIELDS.get(name, (value.dtype, value.ndim))

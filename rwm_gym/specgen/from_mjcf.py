@@ -331,32 +331,46 @@ def _add_floor_camera_and_servos(
 
 def _add_contact_sensors(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, pose: _Pose) -> list[str]:
     """Into the copy: a site and touch sensor around each foot (named after its geom: the foot names, returned), and
-    a box site and touch sensor `contact_BODY` around the base and each thigh."""
+    a box site and touch sensor `contact_BODY` around the base and each thigh. A site of that name already on that
+    body, and a touch sensor of that name already on that site, are the model's own and kept (the shipped ANYmal D
+    has both); a site or sensor of that name elsewhere is refused."""
     foot_names = []
     for f, (g, point, radius) in zip(legs.feet, pose.points):
-        body = mj.body(_name(model, _BODY, f))
-        geom = body.geoms[g - model.body_geomadr[f]]
+        geom = mj.body(_name(model, _BODY, f)).geoms[g - model.body_geomadr[f]]
         geom.name = geom.name or f"{_name(model, _BODY, f)}_foot"
-        if mujoco.mj_name2id(model, _SITE, geom.name) >= 0:
-            raise ValueError(f"a site named {geom.name!r} exists already; rename it (feet get sites of their name)")
-        body.add_site(
-            name=geom.name, type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0], group=4
-        )
-        mj.add_sensor(
-            name=f"contact_{geom.name}",
-            type=mujoco.mjtSensor.mjSENS_TOUCH,
-            objtype=mujoco.mjtObj.mjOBJ_SITE,
-            objname=geom.name,
-        )
+        sphere = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0], group=4)
+        _touch_site(mj, model, f, geom.name, f"contact_{geom.name}", sphere)
         foot_names.append(geom.name)
     for s in [legs.base, *legs.thighs]:
         centre, half = _enclosing_box(model, s)
         site = f"contact_{_name(model, _BODY, s)}"
-        mj.body(_name(model, _BODY, s)).add_site(
-            name=site, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre), size=list(half), group=4
-        )
-        mj.add_sensor(name=site, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
+        box = dict(type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre), size=list(half), group=4)
+        _touch_site(mj, model, s, site, site, box)
     return foot_names
+
+
+def _touch_site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, sensor: str, shape: dict) -> None:
+    """A site `site` on `body` with a touch sensor `sensor` on it, in the copy: kept where the model has them (its
+    own site on that body, its own touch sensor on that site), else added (a site of `shape`: type, pos, size,
+    group); a site or sensor of that name that is something else is refused in one line."""
+    found = mujoco.mj_name2id(model, _SITE, site)
+    if found >= 0 and model.site_bodyid[found] != body:
+        raise ValueError(
+            f"a site named {site!r} exists already on body {_name(model, _BODY, model.site_bodyid[found])!r}, not "
+            f"{_name(model, _BODY, body)!r}; rename it (feet and contact bodies get sites of their name)"
+        )
+    if found < 0:
+        mj.body(_name(model, _BODY, body)).add_site(name=site, **shape)
+    touch = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor)
+    if touch < 0:
+        mj.add_sensor(name=sensor, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=_SITE, objname=site)
+    elif not (
+        found >= 0
+        and model.sensor_type[touch] == mujoco.mjtSensor.mjSENS_TOUCH
+        and model.sensor_objtype[touch] == _SITE
+        and model.sensor_objid[touch] == found
+    ):
+        raise ValueError(f"a sensor named {sensor!r} exists already, not a touch sensor on site {site!r}; rename it")
 
 
 def _timing(model: mujoco.MjModel, height: float, notes: list[str]) -> tuple[float, float, float]:
