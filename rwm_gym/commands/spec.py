@@ -37,6 +37,9 @@ class SpecOptions:
     """foot bodies (default: --mjcf the leaf bodies of the legs, --from-dmc the colliding bodies named like a foot)"""
     name: str | None = None
     """--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"""
+    fast_physics: bool = False
+    """--mjcf: give the model copy ANYmal D's fast solver settings (pyramidal cone, few iterations, 5 ms steps), and
+    print their speed and accuracy against the file's own solver"""
     episodes: int = option(8, ge=1)
     """random-policy episodes for the normalisation"""
     steps: int = option(200, ge=1)
@@ -68,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         if args.from_dmc:
             from rwm_gym.specgen.from_dmc import dmc_draft
 
+            if args.fast_physics:
+                raise ValueError("--fast-physics applies to --mjcf (a dm_control task keeps the suite's physics)")
             domain, sep, task = args.from_dmc.partition("-")
             if not sep or not task:
                 raise ValueError(f"--from-dmc {args.from_dmc!r}: expected DOMAIN-TASK, e.g. acrobot-swingup")
@@ -84,7 +89,9 @@ def run(args: argparse.Namespace) -> int:
             check_output(path, inputs=[args.mjcf], overwrite=args.overwrite)
         with tempfile.TemporaryDirectory(prefix="rwm-spec-") as tmp:
             if model_xml is not None:  # the collection runs on a copy: nothing is written before the spec works
-                draft, mjcf_text = legged_draft(args.mjcf, base=args.base, feet=args.feet, name=args.name)
+                draft, mjcf_text = legged_draft(
+                    args.mjcf, base=args.base, feet=args.feet, name=args.name, fast_physics=args.fast_physics
+                )
                 trial = Path(tmp) / model_xml.name
                 trial.write_text(mjcf_text)
                 draft.table("task").values["model"] = str(trial)

@@ -9,13 +9,15 @@ spec) and leaves the user's file alone:
 - feet: `--feet`, else the leaf bodies of the legs; each foot is its body's lowest sphere or capsule geom (the
   capsule's lower end), given a site of the same name; thighs are the feet's parent bodies;
 - touch sensors: a sphere around each foot, a box around the base's and each thigh's geoms;
-- actuators: the joints' actuators are replaced by position servos; kp, kd and the effort limit come from
-  existing position servos or force ranges where the file has them, else from the robot's weight (printed);
+- actuators: the joints' actuators are replaced by position servos; each joint's kp, kd and effort limit come from
+  the file where it has them (position servos, force ranges, a motor's control range, a joint's
+  `actuatorfrcrange`), else from the robot's weight (printed);
 - default pose: the first keyframe, else qpos0 lowered until the feet touch the floor (a plane is added if the world
   has none).
 
-Commands, reward weights and reset noise are ANYmal D's (`envs/anymal_d.toml`), the command speeds scaled to the
-robot's standing height; every such choice is listed in the spec's header.
+Reward weights, reset noise and action scale are ANYmal D's (`envs/anymal_d.toml`); command speeds follow
+`command_speed` (Froude number 0.4, capped at ANYmal D's 1 m/s); `fast_physics` gives the copy ANYmal D's solver
+settings. Every such choice is listed in the spec's header.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 
 from rwm_gym.spec import load_spec
 from rwm_gym.specgen.draft import SpecDraft, Table
+from rwm_gym.specgen.fast_physics import apply_fast_physics, compare
 from rwm_gym.specgen.toml_text import significant
 
 _BODY, _GEOM, _SITE = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE
@@ -111,39 +114,76 @@ def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.nda
     return (low + high) / 2, 1.1 * (high - low) / 2
 
 
+@dataclass(frozen=True)
+class _Servo:
+    """Each joint's PD gains and torque limit (N·m/rad, N·m·s/rad, N·m), in joint order."""
+
+    kp: list[float]
+    kd: list[float]
+    limit: list[float]
+
+    @staticmethod
+    def figure(values: list[float]) -> float | list[float]:
+        """One number where every joint has it, else the list: how the spec writes a per-joint figure."""
+        return values[0] if len(set(values)) == 1 else values
+
+
+def _joint_actuator_figures(model: mujoco.MjModel, a: int) -> tuple[float | None, float | None, float | None]:
+    """(kp, kd, torque limit) of actuator `a` on a joint where the file gives them, else None each."""
+    gear = abs(float(model.actuator_gear[a, 0]))
+    kp = kd = limit = None
+    if int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_AFFINE) and model.actuator_gainprm[a, 0] > 0:
+        kp = float(model.actuator_gainprm[a, 0]) * gear
+        kd = max(-float(model.actuator_biasprm[a, 2]) * gear, 0.0)
+    if model.actuator_forcelimited[a]:
+        limit = float(np.abs(model.actuator_forcerange[a]).max()) * gear
+    elif model.actuator_ctrllimited[a] and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE):
+        limit = float(np.abs(model.actuator_ctrlrange[a]).max()) * gear * float(model.actuator_gainprm[a, 0])
+    return kp, kd, limit
+
+
 def _gains(
     model: mujoco.MjModel, joints: list[int], mass: float, height: float, n_feet: int, notes: list[str]
-) -> tuple[float, float, float]:
-    """(kp N·m/rad, kd N·m·s/rad, effort limit N·m) from the file's actuators where it has them, else from weight."""
-    kps, kds, limits = [], [], []
+) -> _Servo:
+    """Each joint's kp, kd and effort limit: from the file's actuators (position servos' kp and kv, force ranges, a
+    motor's control range times its gain) and joints (`actuatorfrcrange`) where it has them, else from weight."""
+    found = {j: (None, None, None) for j in joints}
     for a in range(model.nu):
-        if int(model.actuator_trntype[a]) != int(mujoco.mjtTrn.mjTRN_JOINT) or model.actuator_trnid[a, 0] not in joints:
-            continue
-        gear = abs(float(model.actuator_gear[a, 0]))
-        if int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_AFFINE) and model.actuator_gainprm[a, 0] > 0:
-            kps.append(float(model.actuator_gainprm[a, 0]) * gear)
-            kds.append(-float(model.actuator_biasprm[a, 2]) * gear)
-        if model.actuator_forcelimited[a]:
-            limits.append(float(np.abs(model.actuator_forcerange[a]).max()) * gear)
-        elif model.actuator_ctrllimited[a] and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE):
-            limits.append(float(np.abs(model.actuator_ctrlrange[a]).max()) * gear * float(model.actuator_gainprm[a, 0]))
-    if kps:
-        kp, kd = max(kps), max(max(kds), 0.0)
-        notes.append(f"kp {significant(kp)} N·m/rad, kd {significant(kd)} N·m·s/rad from the file's position servos")
+        j = int(model.actuator_trnid[a, 0])
+        if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT) and j in found:
+            found[j] = _joint_actuator_figures(model, a)
+    for j in joints:  # a joint's own actuator force range binds whatever drives it
+        if model.jnt_actfrclimited[j]:
+            joint_limit = float(np.abs(model.jnt_actfrcrange[j]).max())
+            kp, kd, limit = found[j]
+            found[j] = (kp, kd, joint_limit if limit is None else min(limit, joint_limit))
+    kps = [found[j][0] for j in joints]
+    if all(kp is not None for kp in kps):
+        kp = [significant(v) for v in kps]
+        kd = [significant(found[j][1]) for j in joints]
+        notes.append(f"kp {_span(kp)} N·m/rad, kd {_span(kd)} N·m·s/rad from the file's position servos")
     else:
-        kp = significant(2.0 * mass * GRAVITY * height / n_feet)
-        kd = significant(kp / 10.0)  # kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
+        weight_kp = significant(2.0 * mass * GRAVITY * height / n_feet)
+        kp, kd = [weight_kp] * len(joints), [significant(weight_kp / 10.0)] * len(joints)
+        # kd = kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
         notes.append(
-            f"kp = 2 x weight x standing height / feet = {kp} N·m/rad, kd = kp x 0.1 s = {kd} N·m·s/rad "
-            f"(no position servos in the file)"
+            f"kp = 2 x weight x standing height / feet = {weight_kp} N·m/rad, kd = kp x 0.1 s = {kd[0]} N·m·s/rad "
+            f"(no position servo on every joint in the file)"
         )
-    if limits:
-        limit = significant(max(limits))
-        notes.append(f"effort limit {limit} N·m from the file's actuator ranges")
+    limits = [found[j][2] for j in joints]
+    if all(v is not None for v in limits):
+        limit = [significant(v) for v in limits]
+        notes.append(f"effort limits {_span(limit)} N·m per joint from the file's actuator and joint force ranges")
     else:
-        limit = significant(kp * 1.0)
-        notes.append(f"effort limit = kp x 1 rad = {limit} N·m (no force range in the file)")
-    return float(kp), float(kd), float(limit)
+        limit = [significant(k * 1.0) if v is None else significant(v) for k, v in zip(kp, limits)]
+        notes.append(f"effort limit = kp x 1 rad where the file gives no force range: {_span(limit)} N·m")
+    return _Servo(kp, kd, limit)
+
+
+def _span(values: list[float]) -> str:
+    """ "25" for equal values, "23.7 to 45.43" for a spread."""
+    low, high = min(values), max(values)
+    return f"{low:g}" if low == high else f"{low:g} to {high:g}"
 
 
 def _task_name(name: str | None, model_name: str) -> str:
@@ -183,9 +223,15 @@ class _Pose:
 
 
 def legged_draft(
-    mjcf: str | Path, *, base: str | None = None, feet: list[str] | None = None, name: str | None = None
+    mjcf: str | Path,
+    *,
+    base: str | None = None,
+    feet: list[str] | None = None,
+    name: str | None = None,
+    fast_physics: bool = False,
 ) -> tuple[SpecDraft, str]:
-    """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller."""
+    """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller. `fast_physics`:
+    the copy takes ANYmal D's solver settings (`rwm_gym.specgen.fast_physics`), measured against the file's own."""
     path = Path(mjcf)
     mj, model = _load(path)
     notes: list[str] = []
@@ -195,10 +241,13 @@ def legged_draft(
     servo = _gains(model, legs.joint_ids, mass, pose.height, len(legs.feet), notes)
     _add_floor_camera_and_servos(mj, model, legs, pose, servo, notes)
     foot_names = _add_contact_sensors(mj, model, legs, pose)
-    try:
-        mj.compile()
-    except ValueError as err:
-        raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
+    own = _compile_copy(mj, path)
+    if fast_physics:
+        notes.append(apply_fast_physics(mj, float(model.opt.timestep)))
+        fast = _compile_copy(mj, path)
+        keyframe = mujoco.mj_name2id(fast, mujoco.mjtObj.mjOBJ_KEY, pose.keyframe)
+        notes.append(compare(own, fast, keyframe).line())
+        model = fast
     dt, policy_dt, speed = _timing(model, pose.height, notes)
     task_name = _task_name(name, mj.modelname)
     tables = _tables(task_name, legs, pose, servo, foot_names, dt, policy_dt, speed)
@@ -208,6 +257,13 @@ def legged_draft(
     )
     header = [f"Task spec: {task_name} velocity tracking, written by `rwm-gym spec --mjcf {path.name}`.", robot_line]
     return SpecDraft(header, tables, notes), mj.to_xml()
+
+
+def _compile_copy(mj: mujoco.MjSpec, path: Path) -> mujoco.MjModel:
+    try:
+        return mj.compile()
+    except ValueError as err:
+        raise ValueError(f"{path}: the rwm-ready copy does not compile ({' '.join(str(err).split())[:200]})") from None
 
 
 def _load(path: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
@@ -299,12 +355,11 @@ def _add_floor_camera_and_servos(
     model: mujoco.MjModel,
     legs: _Legs,
     pose: _Pose,
-    servo: tuple[float, float, float],
+    servo: _Servo,
     notes: list[str],
 ) -> None:
     """Into the copy: a floor plane and a "track" camera where missing, a position servo named after each joint (in
     place of the joints' actuators), and the default keyframe where the file has none."""
-    kp, kd, limit = servo
     if not any(
         model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
         for g in range(model.ngeom)
@@ -321,7 +376,7 @@ def _add_floor_camera_and_servos(
         )
     for actuator in [a for a in mj.actuators if a.target in legs.joints]:
         mj.delete(actuator)
-    for j in legs.joints:
+    for j, kp, kd, limit in zip(legs.joints, servo.kp, servo.kd, servo.limit):
         act = mj.add_actuator(name=j, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=kp, kv=kd)
         act.forcelimited, act.forcerange = True, [-limit, limit]
@@ -373,17 +428,28 @@ def _touch_site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, 
         raise ValueError(f"a sensor named {sensor!r} exists already, not a touch sensor on site {site!r}; rename it")
 
 
+FROUDE = 0.4
+"""The command rule's Froude number v² / (g h): a brisk walk for any leg length (walk-to-trot near 0.5)."""
+
+
+def command_speed(height: float) -> float:
+    """m/s and rad/s, the top of every command range: the speed at Froude number `FROUDE` for a base standing
+    `height` m tall, capped at ANYmal D's top speed (ANYmal D itself gets its own 1 m/s)."""
+    cap = max(load_spec("anymal_d").command.high)
+    return significant(min(cap, float(np.sqrt(FROUDE * GRAVITY * height))), 2)
+
+
 def _timing(model: mujoco.MjModel, height: float, notes: list[str]) -> tuple[float, float, float]:
-    """(physics dt s, policy dt s: about 0.02 s in whole physics steps, command speed m/s and rad/s: ANYmal D's
-    scaled by the standing height)."""
+    """(physics dt s, policy dt s: about 0.02 s in whole physics steps, command speed m/s and rad/s)."""
     dt = float(model.opt.timestep)
     substeps = max(1, round(0.02 / dt))
     policy_dt = significant(substeps * dt, 9)
     notes.append(f"policy step {policy_dt} s = {substeps} x the model's timestep {dt} s; episodes of 1000 steps")
-    speed = significant(min(1.0, height / 0.6), 2)  # ANYmal D stands 0.6 m tall and is commanded up to 1 m/s
+    speed = command_speed(height)
     notes.append(
-        f"commands up to {speed} m/s and rad/s (ANYmal D's 1 m/s x standing height {height:.3f} m / 0.6 m); "
-        f"reward weights, reset noise and action scale are ANYmal D's"
+        f"commands up to {speed} m/s and rad/s: the speed at Froude number {FROUDE} for a base standing {height:.3f} m "
+        f"tall, at most ANYmal D's 1 m/s (edit [command] low/high to change it); reward weights, reset noise and "
+        f"action scale are ANYmal D's"
     )
     return dt, policy_dt, speed
 
@@ -392,7 +458,7 @@ def _tables(
     task_name: str,
     legs: _Legs,
     pose: _Pose,
-    servo: tuple[float, float, float],
+    servo: _Servo,
     foot_names: list[str],
     dt: float,
     policy_dt: float,
@@ -400,7 +466,6 @@ def _tables(
 ) -> list[Table]:
     """The spec's tables: the robot's own figures, and ANYmal D's (`envs/anymal_d.toml`) for the rest."""
     a = load_spec("anymal_d")
-    kp, kd, limit = servo
     joints, thigh_names = legs.joints, legs.thigh_names
     tables = [
         Table(
@@ -433,9 +498,9 @@ def _tables(
                 "joints": joints,
                 "default_pose": pose.default_pose,
                 "action_scale": a.actuator.action_scale,
-                "kp": kp,
-                "kd": kd,
-                "effort_limit": limit,
+                "kp": servo.figure(servo.kp),
+                "kd": servo.figure(servo.kd),
+                "effort_limit": servo.figure(servo.limit),
             },
             {
                 "default_pose": "rad",
