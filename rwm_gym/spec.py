@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rwm_gym.resources import assets_dir, specs_dir
+from rwm_gym.resources import model_file, specs_dir
 
 
 @dataclass(frozen=True)
@@ -203,6 +203,9 @@ class TaskSpec:
     """World-model checkpoint shipped for the imagined env, relative to `assets/` (empty: none ships)."""
     symmetry: SymmetrySpec | None = None
     """The robot's left-right mirror (None: the spec has no `[symmetry]` table)."""
+    model_dir: Path | None = field(default=None, repr=False, compare=False)
+    """Folder besides `assets/` where `model` may lie: the folder of a spec file the user gave (None for a spec read
+    from a dataset or checkpoint, which names only the package's own models)."""
 
     @property
     def substeps(self) -> int:
@@ -210,8 +213,8 @@ class TaskSpec:
 
     @property
     def model_path(self) -> Path:
-        path = Path(self.model)
-        return path if path.is_absolute() else assets_dir() / path
+        """The MJCF file `model` names, inside `assets/` or `model_dir`, checked (`rwm_gym.resources.model_file`)."""
+        return model_file(self.model, self.model_dir, self.name)
 
     @cached_property
     def state_columns(self) -> tuple[str, ...]:
@@ -293,8 +296,9 @@ def _symmetry(table: dict | None, joints: tuple[str, ...], where: str) -> Symmet
     return SymmetrySpec(mirror, signs, groups)
 
 
-def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
-    """Parse a spec from TOML text; `where` names its origin in error messages."""
+def parse_spec(text: str, where: str = "<spec>", model_dir: str | Path | None = None) -> TaskSpec:
+    """Parse a spec from TOML text; `where` names its origin in error messages; `model_dir`: a folder the user vouches
+    for, where `model` may lie besides the package's assets (the spec file's own folder; None for embedded specs)."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -366,6 +370,7 @@ def parse_spec(text: str, where: str = "<spec>") -> TaskSpec:
             symmetry=_symmetry(raw.get("symmetry"), joints, where),
             text=text,
             extra={k: v for k, v in raw.items() if k not in known},
+            model_dir=None if model_dir is None else Path(model_dir),
         )
     except KeyError as err:
         raise ValueError(f"{where}: missing field {err.args[0]!r}") from None
@@ -379,7 +384,8 @@ def load_spec(name_or_path: str | Path) -> TaskSpec:
     if not path.is_file():
         available = sorted(p.stem for p in specs_dir().glob("*.toml"))
         raise FileNotFoundError(f"task spec {str(name_or_path)!r} not found (shipped specs: {', '.join(available)})")
-    return parse_spec(path.read_text(), where=str(path))
+    own = path.parent.resolve() == specs_dir().resolve()  # a shipped spec names shipped models only
+    return parse_spec(path.read_text(), where=str(path), model_dir=None if own else path.parent)
 
 
 def shipped_spec(env_id: str) -> TaskSpec | None:

@@ -65,3 +65,65 @@ def read_zip_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int)
                 raise ValueError(f"member {info.filename!r} inflates past its declared {declared} bytes")
             chunks.append(chunk)
     return b"".join(chunks)
+
+
+MJCF_LIMIT_BYTES = 64 << 20
+"""Largest MJCF file (model or include) read."""
+_MJCF_DIRS = ("meshdir", "texturedir", "assetdir")
+
+
+def check_mjcf(path: str | os.PathLike, *, max_files: int = 64) -> None:
+    """Refuse (one line) an MJCF that pulls in XML from outside its own folder or names a file that is not a regular
+    file, read before MuJoCo opens anything: every `<include file=...>` (read recursively) and `<model file=...>`
+    must be a relative path that stays in the model's folder (links followed); every file read must be a regular
+    file under `MJCF_LIMIT_BYTES`. Asset files (meshes, textures, height fields, skins) may lie elsewhere (a
+    generated copy points at its robot's meshes with an absolute `meshdir`), but must be regular files: a FIFO would
+    block MuJoCo."""
+    import xml.etree.ElementTree as ElementTree
+
+    main = Path(path)
+    root = main.parent.resolve()
+    queue, seen, dirs = [main], set(), {}
+
+    def xml_inside(value: str, what: str, where: Path) -> Path:
+        relative = Path(value)
+        if relative.is_absolute():
+            raise ValueError(f"MJCF {where}: {what} {value!r} is an absolute path; a model includes only its own files")
+        candidates = [(base / relative).resolve() for base in (root, where.parent.resolve())]
+        if not all(c.is_relative_to(root) for c in candidates):
+            raise ValueError(f"MJCF {where}: {what} {value!r} leads out of the model's folder {root}")
+        return next((c for c in candidates if c.exists()), candidates[0])
+
+    def asset_files(tag: str, value: str) -> list[Path]:
+        own = {"mesh": "meshdir", "texture": "texturedir"}.get(tag, "assetdir")
+        folder = dirs.get(own, dirs.get("assetdir"))
+        bases = [root / folder] if folder else []
+        return [base / value for base in [*bases, root]] if not Path(value).is_absolute() else [Path(value)]
+
+    while queue:
+        current = queue.pop(0)
+        if len(seen) >= max_files:
+            raise ValueError(f"MJCF {main}: includes more than {max_files} files")
+        seen.add(current)
+        regular_file(current, "MJCF")
+        if current.stat().st_size > MJCF_LIMIT_BYTES:
+            raise ValueError(f"MJCF {current}: over {MJCF_LIMIT_BYTES >> 20} MiB")
+        try:
+            tree = ElementTree.parse(current)
+        except ElementTree.ParseError as err:
+            raise ValueError(f"MJCF {current}: not readable XML ({err})") from None
+        for element in tree.iter("compiler"):
+            dirs.update({k: v for k, v in element.attrib.items() if k in _MJCF_DIRS})
+        for element in tree.iter():
+            for name, value in element.attrib.items():
+                if not name.startswith("file"):
+                    continue
+                if element.tag in ("include", "model"):
+                    target = xml_inside(value, f"<{element.tag} {name}>", current)
+                    if target not in seen:
+                        queue.append(target)
+                    continue
+                for candidate in asset_files(element.tag, value):
+                    if candidate.exists():
+                        regular_file(candidate, f"MJCF {current}: <{element.tag} {name}>")
+                        break

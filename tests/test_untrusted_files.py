@@ -5,9 +5,13 @@ field, exit status 2 from the CLI."""
 
 from __future__ import annotations
 
+import base64
 import importlib.util
+import json
 import os
+import pickle
 import shutil
+import zipfile
 from pathlib import Path
 
 import h5py
@@ -198,3 +202,333 @@ def test_import_refuses_a_minari_file_that_links_out_of_its_folder(tmp_path, goo
     (folder / "main_data.hdf5").symlink_to(elsewhere)
     assert main(["import", "--minari", str(folder), "--out", str(tmp_path / "back.h5")]) == 2
     one_line(capsys, "main_data.hdf5", "link")
+
+
+# Policy zips: pickles that would run code ------------------------------------------------------------------------
+
+
+def _payloads(marker: Path) -> dict[str, bytes]:
+    """Hand-assembled pickles, each running `touch marker` when unpickled: every way a pickle names and calls."""
+    cmd = f"touch {marker}".encode()
+    argv = pickle.dumps(["sh", "-c", cmd.decode()], protocol=2)[2:-1]  # a list, without PROTO and STOP
+    text = b"\x8c" + bytes([len(cmd)]) + cmd  # SHORT_BINUNICODE
+    return {
+        # protocol 4: an allowed module with a dotted attribute path that walks to subprocess.Popen
+        "dotted STACK_GLOBAL": b"\x80\x04\x95\x00\x00\x00\x00\x00\x00\x00\x00"
+        + b"\x8c\x1btorch.nn.modules.activation\x8c\x1aF.np.f2py.subprocess.Popen\x93"
+        + argv
+        + b"\x85R.",
+        "protocol 5 STACK_GLOBAL": b"\x80\x05\x8c\x05posix\x8c\x06system\x93" + text + b"\x85R.",
+        "protocol 0 GLOBAL + REDUCE": b"cposix\nsystem\n(V" + cmd + b"\ntR.",
+        "dotted GLOBAL (protocol 4)": b"\x80\x04cos\npath.os.system\n(V" + cmd + b"\ntR.",
+        "INST": b"(V" + cmd + b"\niposix\nsystem\n.",
+        "OBJ": b"\x80\x02(cposix\nsystem\nV" + cmd + b"\no.",
+        # NEWOBJ / NEWOBJ_EX build str(system(cmd)): the class is harmless, its argument is a call
+        "NEWOBJ": b"\x80\x02cbuiltins\nstr\ncposix\nsystem\n" + text + b"\x85R\x85\x81.",
+        "NEWOBJ_EX": b"\x80\x04\x8c\x08builtins\x8c\x03str\x93\x8c\x05posix\x8c\x06system\x93"
+        + text
+        + b"\x85R\x85}\x92.",
+        "BUILD": b"\x80\x02cposix\nsystem\n" + text + b"\x85R}b.",
+    }
+
+
+def _live(payload: bytes, marker: Path) -> bool:
+    """Whether plain `pickle.loads` runs the payload (it must, or the test below proves nothing)."""
+    import subprocess
+
+    try:
+        result = pickle.loads(payload)
+        if isinstance(result, subprocess.Popen):
+            result.wait()
+    except Exception:
+        pass
+    ran = marker.exists()
+    marker.unlink(missing_ok=True)
+    return ran
+
+
+def _policy_with(folder: Path, edit) -> Path:
+    evil = folder / "evil.zip"
+    with zipfile.ZipFile(SHIPPED_POLICY) as src, zipfile.ZipFile(evil, "w") as out:
+        for info in src.infolist():
+            payload = src.read(info)
+            if info.filename == "data":
+                data = json.loads(payload)
+                edit(data)
+                payload = json.dumps(data).encode()
+            out.writestr(info, payload)
+    return evil
+
+
+@pytest.mark.parametrize("opcodes", list(_payloads(Path("m"))))
+def test_no_crafted_pickle_runs_wherever_it_sits_in_a_policy_zip(tmp_path, opcodes) -> None:
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
+
+    marker = tmp_path / "ran"
+    payload = _payloads(marker)[opcodes]
+    assert _live(payload, marker), f"the {opcodes} payload does not run under plain pickle"
+    encoded = base64.b64encode(payload).decode()
+    obs = np.random.default_rng(0).normal(size=(8, 48)).astype(np.float32)
+    reference = load_policy(SHIPPED_POLICY).predict(obs, deterministic=True)[0]
+
+    def hidden(data: dict) -> None:  # the pickle swapped in, every readable field kept; plus one in a new key
+        for key in ("policy_class", "observation_space", "action_space", "policy_kwargs", "lr_schedule", "clip_range"):
+            data[key][":serialized:"] = encoded
+        data["data"] = {":type:": "<class 'object'>", ":serialized:": encoded}
+        data["_last_obs"] = {":type:": "<class 'numpy.ndarray'>", ":serialized:": encoded}
+
+    loaded = load_policy(_policy_with(tmp_path, hidden))
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], reference)
+    for key in ("policy_class", "observation_space", "policy_kwargs", "lr_schedule"):
+
+        def bare(data: dict, key=key) -> None:  # the entry is the pickle alone
+            data[key] = {":type:": "<class 'object'>", ":serialized:": encoded}
+
+        with pytest.raises(PolicyFileError, match=f"entry '{key}'") as err:
+            load_policy(_policy_with(tmp_path, bare))
+        assert "\n" not in str(err.value) and "evil.zip" in str(err.value)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "key, value, words",
+    [
+        ("policy_kwargs", {"activation_fn": "<class 'torch.nn.modules.activation.F.np.f2py.subprocess.Popen'>"}, []),
+        ("policy_kwargs", {"features_extractor_class": "<class 'subprocess.Popen'>"}, ["features extractor"]),
+        ("policy_kwargs", {"optimizer_class": "<class 'os.system'>"}, ["optimizer"]),
+        ("policy_kwargs", {"net_arch": [100000, 100000]}, ["layer sizes"]),
+        ("policy_kwargs", {"net_arch": [4096, 4096, 4096]}, ["parameters", "policy.pth"]),
+        ("policy_kwargs", {"device": "cpu", "squash_output": "yes"}, ["true or false"]),
+        ("policy_kwargs", {"lambda": 1}, ["'lambda'"]),
+        ("n_steps", 1e400, ["n_steps"]),
+        ("n_envs", 10**9, ["rollout buffer"]),
+        ("clip_range", {":type:": "<class 'stable_baselines3.common.utils.FloatSchedule'>", "value_schedule": "x"}, []),
+        ("tensorboard_log", "/etc", None),  # ignored: a log folder is the user's to give
+    ],
+)
+def test_the_policy_is_rebuilt_only_from_fields_it_checks(tmp_path, key, value, words) -> None:
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
+
+    def edit(data: dict) -> None:
+        if key == "policy_kwargs":
+            data[key] = {**{k: v for k, v in data[key].items() if k != ":serialized:"}, **value}
+        else:
+            data[key] = value
+
+    path = _policy_with(tmp_path, edit)
+    if words is None:
+        assert load_policy(path).tensorboard_log is None
+        return
+    with pytest.raises(PolicyFileError, match=f"entry '{key}'" if key != "n_envs" else "n_envs") as err:
+        load_policy(path)
+    assert "\n" not in str(err.value)
+    for word in words:
+        assert word in str(err.value)
+
+
+@pytest.mark.parametrize("opcodes", ["dotted STACK_GLOBAL", "protocol 0 GLOBAL + REDUCE", "INST"])
+@pytest.mark.parametrize("where", ["policy_class", "data"])
+def test_commands_given_a_crafted_policy_run_nothing(tmp_path, capsys, opcodes, where) -> None:
+    marker = tmp_path / "ran"
+    encoded = base64.b64encode(_payloads(marker)[opcodes]).decode()
+
+    def edit(data: dict) -> None:
+        data[where] = {":type:": "<class 'object'>", ":serialized:": encoded}
+
+    evil = _policy_with(tmp_path, edit)
+    out = tmp_path / "score"
+    code = main(["score", "--policy", str(evil), "--out", str(out), "--seeds", "1", "--commands", "0", "--steps", "2"])
+    if where == "policy_class":  # a field the policy is built from: refused
+        assert code == 2
+        one_line(capsys, "evil.zip", "entry 'policy_class'")
+    else:  # a key the policy is not built from: never decoded
+        assert code == 0
+    assert not marker.exists()
+
+
+def test_a_policy_zip_bomb_is_refused_before_it_inflates(tmp_path, capsys) -> None:
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
+
+    bomb = tmp_path / "bomb.zip"
+    with zipfile.ZipFile(SHIPPED_POLICY) as src, zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as out:
+        for info in src.infolist():
+            if info.filename != "policy.optimizer.pth":
+                out.writestr(info.filename, src.read(info))
+        with out.open("policy.optimizer.pth", "w", force_zip64=True) as member:
+            zeros = bytes(1 << 20)
+            for _ in range(64):
+                member.write(zeros)
+    assert bomb.stat().st_size < 1 << 20
+    with pytest.raises(PolicyFileError, match=r"'policy\.optimizer\.pth' would inflate") as err:
+        load_policy(bomb)
+    assert "\n" not in str(err.value)
+    out = tmp_path / "score"
+    assert main(["score", "--policy", str(bomb), "--out", str(out), "--seeds", "1", "--steps", "2"]) == 2
+    one_line(capsys, "bomb.zip", "inflate")
+
+
+def test_a_zip_member_that_inflates_past_its_declared_size_stops_there(tmp_path) -> None:
+    from rwm_gym.untrusted import read_zip_member
+
+    path = tmp_path / "liar.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as out:
+        out.writestr("data", b"x" * 4096)
+    raw = bytearray(path.read_bytes())
+    central = raw.rindex(b"PK\x01\x02")
+    raw[central + 24 : central + 28] = (100).to_bytes(4, "little")  # the central directory's uncompressed size
+    path.write_bytes(bytes(raw))
+    with zipfile.ZipFile(path) as archive, pytest.raises((ValueError, zipfile.BadZipFile)):
+        data = read_zip_member(archive, archive.getinfo("data"), 1 << 20)
+        assert len(data) <= 100
+
+
+# Specs and checkpoints: a model path that leads out, a FIFO, a header asking for gigabytes -----------------------
+
+
+def _spec_text(model: str) -> str:
+    return _shipped_text().replace('model = "anymal_d/scene.xml"', f"model = {json.dumps(model)}", 1)
+
+
+def _shipped_text() -> str:
+    from rwm_gym.resources import specs_dir
+
+    return (specs_dir() / "anymal_d.toml").read_text()
+
+
+@pytest.fixture(scope="module")
+def checkpoint(good_data, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ckpt") / "m.safetensors"
+    args = ["--iterations", "1", "--history", "4", "--forecast", "2", "--batch-size", "4", "--hidden-size", "8"]
+    limits = ["--joint-limits", "--unit-gravity", "--num-layers", "1", "--quiet"]  # the constraints read the MJCF
+    assert main(["train", "--data", str(good_data), "--out", str(out), *args, *limits]) == 0
+    return out
+
+
+def _crafted_checkpoint(source: Path, out: Path, *, spec_text: str | None = None, **config) -> Path:
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(source), framework="pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    meta = json.loads(header["meta"])
+    if spec_text is not None:
+        meta["spec"] = spec_text
+    meta["model_config"].update(config)
+    save_file(tensors, str(out), metadata={**header, "meta": json.dumps(meta)})
+    return out
+
+
+def _fifo(folder: Path, name: str) -> Path:
+    path = folder / name
+    os.mkfifo(path)
+    return path
+
+
+OUT_OF_TREE = {
+    "absolute": lambda tmp, secret: str(secret),
+    "dot-dot": lambda tmp, secret: "../" * 12 + str(secret).lstrip("/"),
+    "dot-dot from an asset": lambda tmp, secret: "anymal_d/../../" + "../" * 12 + str(secret).lstrip("/"),
+    "fifo": lambda tmp, secret: str(_fifo(tmp, "model.xml")),
+}
+
+
+@pytest.mark.parametrize("case", OUT_OF_TREE)
+def test_a_spec_from_a_checkpoint_or_dataset_names_only_the_package_models(tmp_path, outside, case) -> None:
+    from rwm_gym.spec import parse_spec
+
+    spec = parse_spec(_spec_text(OUT_OF_TREE[case](tmp_path, outside)), where="ckpt:spec")
+    with pytest.raises(ValueError, match="outside rwm-gym's assets") as err:
+        _ = spec.model_path
+    assert "\n" not in str(err.value)
+    assert parse_spec(_spec_text(str(assets_dir() / "anymal_d" / "scene.xml"))).model_path.is_file()
+
+
+@pytest.mark.parametrize("case", OUT_OF_TREE)
+def test_gym_make_on_a_crafted_checkpoint_opens_no_outside_file(
+    tmp_path, outside, checkpoint, monkeypatch, case
+) -> None:
+    import gymnasium as gym
+    import mujoco
+
+    opened = []
+    for name in ("from_xml_path", "from_xml_string"):
+        real = getattr(mujoco.MjModel, name)
+        monkeypatch.setattr(mujoco.MjModel, name, lambda *a, _real=real: opened.append(a) or _real(*a))
+    crafted = _crafted_checkpoint(
+        checkpoint,
+        tmp_path / "c.safetensors",
+        spec_text=_spec_text(OUT_OF_TREE[case](tmp_path, outside)),
+    )
+    env = gym.make("rwm_gym:Imagined-v0", checkpoint=str(crafted))  # the limits are the file's own buffers
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+    assert opened == []
+    drawn = gym.make("rwm_gym:Imagined-v0", checkpoint=str(crafted), render_mode="rgb_array")
+    drawn.reset(seed=0)
+    with pytest.raises(ValueError, match="outside rwm-gym's assets") as err:
+        drawn.render()
+    assert "\n" not in str(err.value) and opened == []
+
+
+def _user_robot(folder: Path, scene: str) -> Path:
+    """A spec file of the user's with its model beside it, as `rwm-gym spec --mjcf` writes them."""
+    robot = folder / "robot"
+    robot.mkdir(parents=True)
+    shutil.copy(assets_dir() / "anymal_d" / "anymal_d.xml", robot / "anymal_d.xml")
+    (robot / "scene.xml").write_text(scene)
+    spec = robot / "robot.toml"
+    spec.write_text(_spec_text(str(robot / "scene.xml")))
+    return spec
+
+
+def test_a_user_spec_file_names_a_model_beside_it_but_no_include_outside(tmp_path, outside) -> None:
+    from rwm_gym.spec import load_spec
+
+    scene = (assets_dir() / "anymal_d" / "scene.xml").read_text()
+    good = load_spec(_user_robot(tmp_path / "a", scene))
+    assert good.model_path == tmp_path / "a" / "robot" / "scene.xml"
+    relative = (tmp_path / "a" / "robot" / "robot.toml").read_text().replace(str(good.model_path), "scene.xml")
+    (tmp_path / "a" / "robot" / "relative.toml").write_text(relative)
+    assert load_spec(tmp_path / "a" / "robot" / "relative.toml").model_path == good.model_path
+    for include, words in (
+        (str(outside), "absolute path"),
+        ("../../outside/secret.bin", "leads out"),
+        ("nested.xml", "absolute path"),  # nested.xml includes the secret in its turn
+    ):
+        (tmp_path / "b").mkdir(exist_ok=True)
+        shutil.rmtree(tmp_path / "b" / "robot", ignore_errors=True)
+        spec_file = _user_robot(tmp_path / "b", scene.replace('file="anymal_d.xml"', f'file="{include}"'))
+        (spec_file.parent / "nested.xml").write_text(f'<mujoco><include file="{outside}"/></mujoco>')
+        with pytest.raises(ValueError, match=words) as err:
+            _ = load_spec(spec_file).model_path
+        assert "\n" not in str(err.value)
+
+
+def test_a_model_or_include_that_is_a_fifo_is_refused_without_waiting(tmp_path) -> None:
+    from rwm_gym.spec import load_spec
+
+    scene = (assets_dir() / "anymal_d" / "scene.xml").read_text()
+    spec_file = _user_robot(tmp_path, scene.replace('file="anymal_d.xml"', 'file="pipe.xml"'))
+    _fifo(spec_file.parent, "pipe.xml")
+    with pytest.raises(ValueError, match="FIFO"):
+        _ = load_spec(spec_file).model_path
+    fifo_model = spec_file.with_name("fifo.toml")
+    fifo_model.write_text(_spec_text(str(_fifo(spec_file.parent, "model.xml"))))
+    with pytest.raises(ValueError, match="FIFO"):
+        _ = load_spec(fifo_model).model_path
+
+
+def test_a_checkpoint_whose_header_asks_for_120_gb_is_refused_before_allocating(tmp_path, checkpoint, capsys) -> None:
+    import gymnasium as gym
+
+    from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
+
+    crafted = _crafted_checkpoint(checkpoint, tmp_path / "c.safetensors", hidden_size=100_000, num_layers=1)
+    with pytest.raises(CheckpointError, match="GB of weights") as err:
+        load_checkpoint(crafted)
+    assert "\n" not in str(err.value)
+    with pytest.raises(CheckpointError, match="GB of weights"):
+        gym.make("rwm_gym:Imagined-v0", checkpoint=str(crafted))
+    fitting = _crafted_checkpoint(checkpoint, tmp_path / "d.safetensors", hidden_size=4096)
+    with pytest.raises(CheckpointError, match="has shape"):  # within memory, but not the file's tensors
+        load_checkpoint(fitting)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.spec import TaskSpec, parse_spec
+from rwm_gym.untrusted import memory_cap_bytes
 
 FORMAT_NAME = "rwm-gym-checkpoint"
 FORMAT_VERSION = 1
@@ -108,6 +109,8 @@ def save_checkpoint(
 
 def _read(path: Path, device: str | torch.device) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
     if not path.is_file():
+        if path.exists() and not path.is_dir():  # a FIFO or device: opening it could wait or read without end
+            raise CheckpointError(f"{path}: not a regular file (a FIFO, socket or device); a checkpoint is a file")
         raise FileNotFoundError(f"{path}: no such checkpoint file")
     try:
         with safe_open(str(path), framework="pt", device=str(device)) as f:
@@ -226,8 +229,16 @@ def load_checkpoint(
     meta = _meta(path, header, tensors)
     if expect_spec is not None and (difference := spec_difference(meta.spec, expect_spec)):
         raise CheckpointError(f"{path}: checkpoint is for another task layout: {difference}")
-    model = build_model(meta.model_config, meta.spec).to(device)
-    expected = model.state_dict()
+    # The joint limits are the checkpoint's own buffers: no MJCF is read. Shapes first, on the meta device, so a
+    # config that asks for more than the file holds allocates nothing before it is refused.
+    build_spec = replace(meta.spec, model="")
+    with torch.device("meta"):
+        expected = build_model(meta.model_config, build_spec).state_dict()
+    need = sum(t.numel() * t.element_size() for t in expected.values())
+    if need > memory_cap_bytes():
+        raise CheckpointError(
+            f"{path}: its model config asks for {need / 1e9:.1f} GB of weights, over half this machine's memory"
+        )
     stored = {name[len("model/") :]: t for name, t in tensors.items() if name.startswith("model/")}
     for name, tensor in expected.items():
         if name not in stored:
@@ -240,6 +251,7 @@ def load_checkpoint(
     if extra := sorted(set(stored) - set(expected)):
         raise CheckpointError(f"{path}: tensor 'model/{extra[0]}' is not part of a {meta.model_config.kind} model")
     check_finite(path, stored, meta.normalizer)
+    model = build_model(meta.model_config, build_spec).to(device)
     model.load_state_dict(stored)
     return model.eval(), meta
 

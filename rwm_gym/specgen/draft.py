@@ -52,7 +52,9 @@ class SpecDraft:
         return "\n\n".join(parts) + "\n"
 
     def parse(self) -> TaskSpec:
-        return parse_spec(self.text(), where="<generated spec>")
+        """The spec as written; its model (the MJCF copy the generator wrote) may lie in that copy's folder."""
+        model = self.table("task").values.get("model") if any(t.name == "task" for t in self.tables) else ""
+        return parse_spec(self.text(), where="<generated spec>", model_dir=Path(model).parent if model else None)
 
 
 def fill_normalization(draft: SpecDraft, episodes: int, steps: int, seed: int = 0) -> str:
