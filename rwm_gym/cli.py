@@ -95,11 +95,17 @@ output that cannot or may not be written), 1 for a failure while running, 130 wh
 def main(argv: list[str] | None = None) -> int:
     """Run `rwm-gym ARGV`; the exit status (`EXIT_*`), with one line on stderr for an error.
 
-    What a command words itself (a `SystemExit` carrying its message) and what it did not (ValueError, OSError)
-    are bad input: one line, 2. Ctrl-C is 130. A command's own status stands (1: a failure while running)."""
+    A bad option (the parser's one line) and what a command did not word itself (ValueError, OSError) are bad input:
+    one line, 2. What a command words itself (`SystemExit` carrying its message) is printed in one line and exits 2,
+    by raising it, as `sys.exit` does. Ctrl-C is 130. A command's own status stands (1: a failure while running)."""
     argv = sys.argv[1:] if argv is None else argv
     selected = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(selected).parse_args(argv)
+    try:
+        args = build_parser(selected).parse_args(argv)
+    except SystemExit as stop:  # --help exits 0 as argparse does; a bad option is a status like any bad input
+        if stop.code in (0, None):
+            raise
+        return int(stop.code)
     if getattr(args, "_missing", None):
         print(f"rwm-gym {args.command}: not available in this build ({args._missing} missing)", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -170,11 +170,7 @@ def test_killed_collection_keeps_finished_episodes(tmp_path):
 )
 def test_bad_collect_options_give_one_line_errors_and_write_nothing(tmp_path, capsys, bad, message):
     out = tmp_path / "d.h5"
-    try:
-        status = main(["collect", "--out", str(out), "--episodes", "1", "--max-steps", "2", *bad])
-    except SystemExit as stop:  # refused by the parser
-        status = stop.code
-    assert status == 2
+    assert main(["collect", "--out", str(out), "--episodes", "1", "--max-steps", "2", *bad]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert not list(tmp_path.iterdir())
