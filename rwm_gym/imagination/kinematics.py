@@ -26,7 +26,7 @@ class KinematicClosure:
     """Integrates a fixed-base robot's joint angles and places its sites, in place on a batch of states (SI units)."""
 
     def __init__(self, spec: TaskSpec):
-        from rwm_gym.physics.dmc_environments import load_environment
+        from rwm_gym.task.dmc_environments import load_environment
 
         task = SuiteTask.from_spec(spec)
         self._environment = load_environment(task.domain, task.task)  # held: composer keeps its model weakly
@@ -60,7 +60,7 @@ class KinematicClosure:
     @classmethod
     def of(cls, spec: TaskSpec) -> KinematicClosure | None:
         """The closure of a fixed-base arm's spec (dm_control.manipulation with joint velocities), else None."""
-        from rwm_gym.physics.dmc_environments import MANIPULATION
+        from rwm_gym.task.dmc_environments import MANIPULATION
 
         names = {g.name for g in spec.state}
         if spec.extra.get("dm_control", {}).get("domain") != MANIPULATION or "joint_vel" not in names:

@@ -1,5 +1,5 @@
 """dm_control tasks as rwm-gym physics envs: the suite (cheetah, walker, hopper, quadruped, humanoid, finger, ...) and
-the Kinova Jaco arm of `dm_control.manipulation` (reach, lift; see `rwm_gym.physics.dmc_environments`).
+the Kinova Jaco arm of `dm_control.manipulation` (reach, lift; see `rwm_gym.task.dmc_environments`).
 
 `DMCCore` runs N environments of one task side by side (a plain loop: the models are small), using dm_control's own
 MJCF models and task code for initial states and rewards. It follows the protocol of
@@ -23,9 +23,9 @@ import mujoco
 import numpy as np
 
 from rwm_gym.batched_core import check_actions, check_num_envs, commands_from_options
-from rwm_gym.physics.dmc_environments import MANIPULATION, load_environment
 from rwm_gym.physics.dmc_layout import DMCLayout
 from rwm_gym.spec import SuiteTask, TaskSpec, load_spec
+from rwm_gym.task.dmc_environments import MANIPULATION, load_environment
 from rwm_gym.task.manipulation_reward import GOAL_REWARD
 from rwm_gym.task.observation import build_observation
 

@@ -57,7 +57,7 @@ class ReachPolicy:
     name = "reach"
 
     def __init__(self, spec: TaskSpec, num_envs: int, *, action_noise: float = 0.0, params: ReachParams | None = None):
-        from rwm_gym.physics.dmc_environments import load_environment
+        from rwm_gym.task.dmc_environments import load_environment
         from rwm_gym.task.manipulation_reward import ReachGoal, manipulation_goal
 
         goal = manipulation_goal(spec)

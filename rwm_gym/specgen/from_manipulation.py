@@ -16,8 +16,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from rwm_gym.specgen.dmc_model import children, layout, name_of, observation_table, spec_header, subtree, task_table_of
 from rwm_gym.specgen.draft import SpecDraft, Table
-from rwm_gym.specgen.from_dmc import _children, _name, _subtree, layout, observation_table, spec_header, task_table_of
 from rwm_gym.specgen.toml_text import significant
 
 _BODY_GROUPS = (
@@ -39,7 +39,7 @@ def _free_bodies(model: mujoco.MjModel) -> tuple[int, ...]:
     free = int(mujoco.mjtJoint.mjJNT_FREE)
     return tuple(
         b
-        for b in _children(model, 0)
+        for b in children(model, 0)
         if any(
             int(model.jnt_type[j]) == free
             for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
@@ -51,10 +51,10 @@ def _colliding(model: mujoco.MjModel, bodies: list[int]) -> list[str]:
     names = []
     for b in bodies:
         geoms = np.flatnonzero(model.geom_bodyid == b)
-        if any(model.geom_contype[g] | model.geom_conaffinity[g] for g in geoms) and _name(
+        if any(model.geom_contype[g] | model.geom_conaffinity[g] for g in geoms) and name_of(
             model, mujoco.mjtObj.mjOBJ_BODY, b
         ):
-            names.append(_name(model, mujoco.mjtObj.mjOBJ_BODY, b))
+            names.append(name_of(model, mujoco.mjtObj.mjOBJ_BODY, b))
     return names
 
 
@@ -65,10 +65,10 @@ def _lift_goal(env, model: mujoco.MjModel, prop: int) -> tuple[dict, dict]:
     vertices = [
         s
         for s in range(model.nsite)
-        if model.site_bodyid[s] == prop and "vertex_" in _name(model, mujoco.mjtObj.mjOBJ_SITE, s)
+        if model.site_bodyid[s] == prop and "vertex_" in name_of(model, mujoco.mjtObj.mjOBJ_SITE, s)
     ]
     if not vertices:
-        raise ValueError(f"the lifted body {_name(model, mujoco.mjtObj.mjOBJ_BODY, prop)!r} has no vertex sites")
+        raise ValueError(f"the lifted body {name_of(model, mujoco.mjtObj.mjOBJ_BODY, prop)!r} has no vertex sites")
     heights = []
     for seed in range(REST_RESETS):
         env.reseed(seed)
@@ -76,8 +76,8 @@ def _lift_goal(env, model: mujoco.MjModel, prop: int) -> tuple[dict, dict]:
         heights.append(env.physics.data.ptr.site_xpos[vertices, 2].min())
     table = {
         "goal": "lift",
-        "prop_body": _name(model, mujoco.mjtObj.mjOBJ_BODY, prop),
-        "vertex_sites": [_name(model, mujoco.mjtObj.mjOBJ_SITE, s) for s in vertices],
+        "prop_body": name_of(model, mujoco.mjtObj.mjOBJ_BODY, prop),
+        "vertex_sites": [name_of(model, mujoco.mjtObj.mjOBJ_SITE, s) for s in vertices],
         "lift_distance": float(lift._DISTANCE_TO_LIFT),
         "rest_height": significant(float(np.mean(heights))),
     }
@@ -93,7 +93,7 @@ def manipulation_draft(task: str) -> SpecDraft:
     """The spec of `dm_control.manipulation` task `task` with placeholder normalisation (see `fill_normalization`)."""
     from dm_control import manipulation
 
-    from rwm_gym.physics.dmc_environments import ManipulationEnvironment
+    from rwm_gym.task.dmc_environments import ManipulationEnvironment
 
     env = ManipulationEnvironment(task)
     model: mujoco.MjModel = env.physics.model.ptr
@@ -121,11 +121,11 @@ def manipulation_draft(task: str) -> SpecDraft:
             f'([imagination] reward = "module:function") or reward_fn='
         )
     groups.append(("site_pos", [f"{s}:{c}" for s in sites for c in "xyz"], "m"))
-    object_names = [_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in objects]
+    object_names = [name_of(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in objects]
     for name, components, unit in _BODY_GROUPS if objects else ():
         groups.append((name, [f"{o}:{c}" for o in object_names for c in components], unit))
 
-    robot = [b for root in _children(model, 0) if root not in objects for b in _subtree(model, root)]
+    robot = [b for root in children(model, 0) if root not in objects for b in subtree(model, root)]
     contact_bodies = _colliding(model, robot)
     partner = object_names[0] if len(objects) == 1 else "world"
     notes.append(f"contact flags of the robot's colliding bodies with {partner!r}")

@@ -5,6 +5,10 @@ A spec's `[dm_control]` table names a suite task (`domain = "cheetah"`, `task = 
 Both load dm_control's own models and task code; `DMCCore` (`rwm_gym.physics.dmc`) drives either through
 `reseed`, `reset` and `step`, never through dm_control's own auto-reset and time limit (the spec's `episode_steps`
 truncates episodes).
+
+It lives beside the rewards because more than the physics env reads dm_control's task: the lift reward takes the
+brick's corners from its model, the reach policy and the imagined arm's kinematics the arm's. It imports nothing else
+of the package.
 """
 
 from __future__ import annotations

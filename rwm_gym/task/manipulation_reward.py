@@ -115,8 +115,8 @@ class ManipulationReward:
 
     def _vertex_offsets(self, spec: TaskSpec) -> np.ndarray:
         """m, (V, 3) the vertex sites' positions in the prop's frame, read from dm_control's model."""
-        from rwm_gym.physics.dmc_environments import load_environment
         from rwm_gym.spec import SuiteTask
+        from rwm_gym.task.dmc_environments import load_environment
 
         params = SuiteTask.from_spec(spec)
         env = load_environment(params.domain, params.task)  # held while its model is read (composer holds weakly)

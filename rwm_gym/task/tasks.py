@@ -99,7 +99,7 @@ class VelocityTrackingTask:
 def state_reward(spec: TaskSpec):
     """The reward of a dm_control spec as a function `(state, foot_height, action) -> (N,)`: a manipulation task's
     (`ManipulationReward`, which also judges success) or a suite task's (`SuiteReward`)."""
-    from rwm_gym.physics.dmc_environments import MANIPULATION
+    from rwm_gym.task.dmc_environments import MANIPULATION
 
     if spec.extra.get("dm_control", {}).get("domain") == MANIPULATION:
         from rwm_gym.task.manipulation_reward import ManipulationReward
