@@ -140,3 +140,20 @@ def test_ppo_curve_spaces_the_snapshots_it_scores(tmp_path):
     assert spaced(snapshots, 4_000_000) == [snapshots[i] for i in (0, 4, 5)]
     assert spaced(snapshots, 1_000_000) == [snapshots[i] for i in (0, 3, 4, 5)]
     assert spaced(snapshots, 0) == snapshots
+
+
+def test_a_run_folder_takes_a_minutes_budget_counted_over_its_restarts(tmp_path):
+    """--run-dir with --minutes alone: the run trains until its training time reaches the budget, and a rerun of
+    the same command finds the budget spent instead of training again."""
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "rwm_gym.cli", "ppo", *ARGS, "--run-dir", str(run), "--minutes", "0.05"]
+    cmd += ["--eval-seeds", "1", "--eval-steps", "10", "--out", str(run / "final.zip")]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env)
+    assert first.returncode == 0, first.stderr
+    state = json.loads((run / "state.json").read_text())
+    assert state["wall_s"] >= 3.0 and state["timesteps"] > 0
+    again = subprocess.run([*cmd, "--overwrite"], capture_output=True, text=True, timeout=240, env=env)
+    assert again.returncode == 0, again.stderr
+    assert "already has its 0.05 min" in again.stdout
+    assert json.loads((run / "state.json").read_text())["timesteps"] == state["timesteps"]

@@ -372,7 +372,11 @@ def _behaviour_clone(args: argparse.Namespace, model, env_kwargs: dict | None = 
     )
     if args.eval:  # the warm start alone, so the effect of PPO is plain to see
         warm.evaluation = evaluate_policy(
-            model, seeds=range(args.eval_seeds), steps=args.eval_steps, spec=_task_trained_on(args), env_kwargs=env_kwargs
+            model,
+            seeds=range(args.eval_seeds),
+            steps=args.eval_steps,
+            spec=_task_trained_on(args),
+            env_kwargs=env_kwargs,
         )
         print("physics evaluation of the cloned actor, before PPO:")
         print(format_table(warm.evaluation))
@@ -451,12 +455,11 @@ def _judge(
 def run_resumable(
     args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict, judged_on: dict | None = None
 ) -> int:
-    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` in a folder that survives a killed process, then judge
-    the policy in physics (on `judged_on`'s robot, the one trained on) and write the report beside --out."""
+    """`rwm-gym ppo --run-dir RUN`: train to `--timesteps` and/or `--minutes` of training in all (whichever ends
+    first, counted over every restart) in a folder that survives a killed process, then judge the policy in physics
+    (on `judged_on`'s robot, the one trained on) and write the report beside --out."""
     from rwm_gym.rl.training_run import RunCheckpoint, TrainingRun, resume_model
 
-    if not args.timesteps:
-        raise SystemExit("rwm-gym ppo: --run-dir needs --timesteps (the run's total budget)")
     run = TrainingRun(args.run_dir)
     state = run.state()
     saved = {**json.loads(json.dumps(PPOConfig().to_dict())), **state.get("ppo", {})}  # a field added since: default
@@ -503,13 +506,14 @@ def run_resumable(
         restarts=state.get("restarts", -1) + 1,
         environment=environment,
     )
-    remaining = args.timesteps - model.num_timesteps
+    remaining = args.timesteps - model.num_timesteps if args.timesteps else None
+    minutes_left = None if args.minutes is None else args.minutes - state.get("wall_s", 0.0) / 60.0
     try:
-        if remaining > 0:
+        if (remaining is None or remaining > 0) and (minutes_left is None or minutes_left > 0):
             learn(
                 model,
                 timesteps=remaining,
-                minutes=args.minutes,
+                minutes=minutes_left,
                 target_kl=config.target_kl,
                 callbacks=(checkpoint, *update_callbacks(config, model), *_tensorboard(args, model)),
                 on_rollout=checkpoint.log_row,
@@ -517,7 +521,8 @@ def run_resumable(
             )
             checkpoint.save()
         else:
-            print(f"{run.folder} already has its {args.timesteps:,} steps")
+            budget = f"{args.timesteps:,} steps" if remaining is not None and remaining <= 0 else f"{args.minutes} min"
+            print(f"{run.folder} already has its {budget}")
     finally:
         if recorder is not None:
             recorder.close()

@@ -11,7 +11,7 @@ from rwm_gym.commands._options import OverwriteOption, WorkerOptions, add_group,
 from rwm_gym.options import option
 from rwm_gym.output_guard import OutputError, check_output, claim
 from rwm_gym.rl.evaluate_policy import as_policy, format_table, plot
-from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line, zero_policy
+from rwm_gym.rl.score import SCRIPTED, record_walk, score, summary_line
 from rwm_gym.workers import RayMissing, check_backend, uses_workers
 
 
@@ -24,6 +24,9 @@ class ScoreOptions:
     random actions)"""
     out: Path
     """folder for score.json, score.md, score.png"""
+    env: str | None = None
+    """the task scored on, a physics env id (e.g. Go2-MuJoCo-v0) or a task spec file: its robot, command ranges and
+    falls (default: --checkpoint's task, else the shipped ANYmal D task)"""
     checkpoint: str | None = None
     """score in this world model (the imagined env) instead of physics, same commands and seeds"""
     reset_data: Path | None = None
@@ -86,19 +89,37 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym score: {err}") from None
 
 
+def _task(args: argparse.Namespace):
+    """The task scored on: --env's, else --checkpoint's, else ANYmal D's; one line on a bad --env or a mismatch."""
+    from rwm_gym.registration import resolve_spec
+
+    try:
+        task = resolve_spec(args.env or "anymal_d")
+    except ValueError as err:
+        raise SystemExit(f"rwm-gym score: --env: {err}") from None
+    if args.checkpoint is not None:
+        from rwm_gym.model.checkpoint import read_meta
+
+        trained_on = read_meta(args.checkpoint).spec
+        if args.env is not None and trained_on.name != task.name:
+            raise SystemExit(f"rwm-gym score: --checkpoint is a {trained_on.name} model; --env is {task.name}")
+        task = trained_on
+    return task
+
+
 def _score(args: argparse.Namespace) -> int:
+    task = _task(args)
     if args.policy not in SCRIPTED:
         from rwm_gym.policy_zip import load_policy
-        from rwm_gym.spec import load_spec
 
-        policy = as_policy(load_policy(args.policy, spec=load_spec("anymal_d")))  # refused here, in one line
+        policy = as_policy(load_policy(args.policy, spec=task))  # refused here, in one line
     else:
         policy = args.policy
     if args.reset_data is not None and args.checkpoint is None:
         raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
     if args.reset_data is not None and not args.reset_data.is_file():
         raise SystemExit(f"rwm-gym score: --reset-data {args.reset_data}: no such file")
-    where = f"world model {args.checkpoint}" if args.checkpoint else "physics"
+    where = f"world model {args.checkpoint}" if args.checkpoint else f"physics ({task.physics_env_id})"
     if args.physics:
         where += " with " + ", ".join(f"{k}={v}" for k, v in args.physics.items())
     if args.reset_data is not None:
@@ -113,12 +134,13 @@ def _score(args: argparse.Namespace) -> int:
         backend=args.backend,
         physics=args.physics,
         trust_entry_points=args.trust_entry_points,
+        spec=task,
     )
     in_workers = uses_workers(args.workers, args.backend)
     if in_workers:  # each worker loads the policy itself
         policy = args.policy
     result = score(policy, **options)
-    floor = result if args.policy == "zero" else score("zero" if in_workers else zero_policy, **options)
+    floor = result if args.policy == "zero" else score("zero", **options)
     table = format_table(result)
     lines = [
         summary_line(f"policy {args.policy} in {where}", result),
@@ -137,6 +159,7 @@ def _score(args: argparse.Namespace) -> int:
     report = {
         "policy": str(args.policy),
         "where": where,
+        "task": task.name,
         "physics": args.physics,
         "tracking": result.tracking,
         "return": result.episode_return,
@@ -148,7 +171,7 @@ def _score(args: argparse.Namespace) -> int:
     }
     write_json(args.out / "score.json", report)
     if args.video:
-        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png", physics=args.physics)
+        gif, still = record_walk(policy, args.out / "walk.gif", args.out / "walk.png", spec=task, physics=args.physics)
         print(f"video: {gif}, still: {still}")
     print(f"wrote {args.out / 'score.json'}")
     return 0
