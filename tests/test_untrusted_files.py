@@ -36,6 +36,14 @@ def one_line(capsys, *words: str) -> str:
     return err
 
 
+def status(argv: list[str]) -> int:
+    """`rwm-gym ARGV`'s exit status, whether `main` returns it or raises it (as `sys.exit` does)."""
+    try:
+        return main(argv)
+    except SystemExit as stop:
+        return stop.code
+
+
 @pytest.fixture(scope="module")
 def good_data(tmp_path_factory) -> Path:
     return write_linear_dataset(tmp_path_factory.mktemp("data") / "good.h5", num_episodes=4)
@@ -133,11 +141,11 @@ def test_train_and_export_refuse_such_a_dataset_in_one_line(tmp_path, good_data,
     make, words = BAD_DATASETS[case]
     bad = _crafted(good_data, tmp_path / "bad.h5", make(outside))
     args = ["--iterations", "1", "--history", "4", "--forecast", "2", "--batch-size", "4", "--hidden-size", "8"]
-    assert main(["train", "--data", str(bad), "--out", str(tmp_path / "m.safetensors"), *args, "--quiet"]) == 2
+    assert status(["train", "--data", str(bad), "--out", str(tmp_path / "m.safetensors"), *args, "--quiet"]) == 2
     one_line(capsys, str(bad), *words)
     assert not (tmp_path / "m.safetensors").exists()
     if importlib.util.find_spec("minari"):
-        assert main(["export", "--minari", str(bad), "--out", str(tmp_path / "minari")]) == 2
+        assert status(["export", "--minari", str(bad), "--out", str(tmp_path / "minari")]) == 2
         one_line(capsys, str(bad), *words)
         assert not (tmp_path / "minari").exists()
 
@@ -166,7 +174,7 @@ def test_a_soft_link_inside_the_file_and_compressed_fields_still_load(tmp_path, 
 def good_minari(good_data, tmp_path_factory) -> Path:
     pytest.importorskip("minari")
     out = tmp_path_factory.mktemp("minari") / "m"
-    assert main(["export", "--minari", str(good_data), "--out", str(out)]) == 0
+    assert status(["export", "--minari", str(good_data), "--out", str(out)]) == 0
     return out
 
 
@@ -189,7 +197,7 @@ def test_import_refuses_a_minari_file_that_reads_other_files(tmp_path, good_mina
             group.create_dataset("infos/leak", shape=(3 << 30,), dtype="u1", chunks=(1 << 20,))
 
     folder = _minari_copy(good_minari, tmp_path, edit)
-    assert main(["import", "--minari", str(folder), "--out", str(tmp_path / "back.h5")]) == 2
+    assert status(["import", "--minari", str(folder), "--out", str(tmp_path / "back.h5")]) == 2
     one_line(capsys, "main_data.hdf5", "episode_0/infos/leak")
     assert not (tmp_path / "back.h5").exists()
 
@@ -200,7 +208,7 @@ def test_import_refuses_a_minari_file_that_links_out_of_its_folder(tmp_path, goo
     elsewhere = tmp_path / "elsewhere.hdf5"
     (folder / "main_data.hdf5").rename(elsewhere)
     (folder / "main_data.hdf5").symlink_to(elsewhere)
-    assert main(["import", "--minari", str(folder), "--out", str(tmp_path / "back.h5")]) == 2
+    assert status(["import", "--minari", str(folder), "--out", str(tmp_path / "back.h5")]) == 2
     one_line(capsys, "main_data.hdf5", "link")
 
 
@@ -337,7 +345,9 @@ def test_commands_given_a_crafted_policy_run_nothing(tmp_path, capsys, opcodes, 
 
     evil = _policy_with(tmp_path, edit)
     out = tmp_path / "score"
-    code = main(["score", "--policy", str(evil), "--out", str(out), "--seeds", "1", "--commands", "0", "--steps", "2"])
+    code = status(
+        ["score", "--policy", str(evil), "--out", str(out), "--seeds", "1", "--commands", "0", "--steps", "2"]
+    )
     if where == "policy_class":  # a field the policy is built from: refused
         assert code == 2
         one_line(capsys, "evil.zip", "entry 'policy_class'")
@@ -363,7 +373,7 @@ def test_a_policy_zip_bomb_is_refused_before_it_inflates(tmp_path, capsys) -> No
         load_policy(bomb)
     assert "\n" not in str(err.value)
     out = tmp_path / "score"
-    assert main(["score", "--policy", str(bomb), "--out", str(out), "--seeds", "1", "--steps", "2"]) == 2
+    assert status(["score", "--policy", str(bomb), "--out", str(out), "--seeds", "1", "--steps", "2"]) == 2
     one_line(capsys, "bomb.zip", "inflate")
 
 
@@ -400,7 +410,7 @@ def checkpoint(good_data, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("ckpt") / "m.safetensors"
     args = ["--iterations", "1", "--history", "4", "--forecast", "2", "--batch-size", "4", "--hidden-size", "8"]
     limits = ["--joint-limits", "--unit-gravity", "--num-layers", "1", "--quiet"]  # the constraints read the MJCF
-    assert main(["train", "--data", str(good_data), "--out", str(out), *args, *limits]) == 0
+    assert status(["train", "--data", str(good_data), "--out", str(out), *args, *limits]) == 0
     return out
 
 
@@ -532,3 +542,36 @@ def test_a_checkpoint_whose_header_asks_for_120_gb_is_refused_before_allocating(
     fitting = _crafted_checkpoint(checkpoint, tmp_path / "d.safetensors", hidden_size=4096)
     with pytest.raises(CheckpointError, match="has shape"):  # within memory, but not the file's tensors
         load_checkpoint(fitting)
+
+
+def test_commands_refuse_a_model_include_or_input_fifo_in_one_line(tmp_path, outside, good_data, capsys) -> None:
+    from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
+
+    scene = (assets_dir() / "anymal_d" / "scene.xml").read_text()
+    spec_file = _user_robot(tmp_path, scene.replace('file="anymal_d.xml"', f'file="{outside}"'))
+    collect = ["collect", "--policy", "random", "--episodes", "1", "--max-steps", "2", "--num-envs", "1"]
+    assert status([*collect, "--env", str(spec_file), "--out", str(tmp_path / "d.h5")]) == 2
+    one_line(capsys, "<include file>", "absolute path")
+    fifo = _fifo(tmp_path, "data.h5")
+    assert status(["train", "--data", str(fifo), "--out", str(tmp_path / "m.safetensors"), "--quiet"]) == 2
+    one_line(capsys, "data.h5", "not a regular file")
+    with pytest.raises(CheckpointError, match="not a regular file"):
+        load_checkpoint(_fifo(tmp_path, "m.safetensors"))
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
+
+    with pytest.raises(PolicyFileError, match="FIFO"):
+        load_policy(_fifo(tmp_path, "p.zip"))
+
+
+def test_ppo_init_policy_refuses_a_crafted_zip_and_runs_nothing(tmp_path, capsys) -> None:
+    marker = tmp_path / "ran"
+    encoded = base64.b64encode(_payloads(marker)["protocol 5 STACK_GLOBAL"]).decode()
+
+    def edit(data: dict) -> None:
+        data["policy_class"] = {":type:": "<class 'object'>", ":serialized:": encoded}
+
+    evil = _policy_with(tmp_path, edit)
+    tiny = ["--num-envs", "2", "--n-steps", "8", "--timesteps", "16", "--no-eval"]
+    assert status(["ppo", "--in", "physics", "--init-policy", str(evil), "--out", str(tmp_path / "p.zip"), *tiny]) == 2
+    one_line(capsys, "evil.zip", "entry 'policy_class'")
+    assert not marker.exists() and not (tmp_path / "p.zip").exists()

@@ -36,8 +36,11 @@ def compact_policy(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite:
     src, dst = Path(src), Path(dst)
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst} exists (pass overwrite=True to replace it)")
-    with zipfile.ZipFile(src) as archive:
-        entries = {info: archive.read(info) for info in archive.infolist()}
+    from rwm_gym.untrusted import memory_cap_bytes, read_zip_member, regular_file
+
+    regular_file(src, "policy")
+    with zipfile.ZipFile(src) as archive:  # each member capped by its declared size and ratio before inflating
+        entries = {info: read_zip_member(archive, info, memory_cap_bytes() // 4) for info in archive.infolist()}
     if not any(info.filename == "data" for info in entries):
         raise ValueError(f"{src} is not an SB3 policy zip (no 'data' entry)")
 
