@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from rwm_gym.atomic import save_png
 from rwm_gym.imagination.options import ImaginationOptions
+from rwm_gym.spec import TaskSpec
 
 TRACKING_TARGET = 0.80
 """The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
@@ -141,7 +142,7 @@ def mbpo(
     if report is not None:
         _check_resume(report, config, report_path)
     starting = Dataset.load(data)
-    loop = _Loop(out, config, device, progress, model_free, tensorboard)
+    loop = _Loop(out, config, device, progress, model_free, tensorboard, starting.spec())
     started = time.monotonic()
     if not loop.base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
         keep = config.base_episodes or starting.num_episodes
@@ -163,7 +164,14 @@ class _Loop:
     """The steps of one run folder's loop: its files, the imagined env, (re)training and one iteration."""
 
     def __init__(
-        self, out: Path, config: MBPOConfig, device: str, progress: bool, model_free, tensorboard: str | Path | None
+        self,
+        out: Path,
+        config: MBPOConfig,
+        device: str,
+        progress: bool,
+        model_free,
+        tensorboard: str | Path | None,
+        spec: TaskSpec,
     ) -> None:
         from rwm_gym.rl.ppo import PPOConfig
         from rwm_gym.rl.tensorboard import tensorboard_logger
@@ -171,6 +179,8 @@ class _Loop:
         self.out, self.config, self.device, self.progress, self.model_free = out, config, device, progress, model_free
         self.logger = None if tensorboard is None else tensorboard_logger(tensorboard)
         self.base = out / "buffer_base.h5"
+        self.spec = spec
+        """The task the data come from, and the policies are judged on."""
         self.model_config = None
         self.ppo_config = PPOConfig(
             num_envs=config.num_envs, log_std_init=config.log_std_init, positive_reward_only=config.positive_reward_only
@@ -251,7 +261,7 @@ class _Loop:
         else:
             policy = make_ppo(env, self.ppo_config, seed=config.seed, device=self.device)
         save_policy(policy, self.out / "policy_0.zip")
-        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
+        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps, spec=self.spec)
         report = {
             "config": config.to_dict(),
             "data": str(data),
@@ -303,7 +313,7 @@ class _Loop:
             callbacks=(*update_callbacks(self.ppo_config, policy), *tensorboard_callbacks(policy, self.logger)),
         )
         zip_path = save_policy(policy, out / f"policy_{k}.zip")
-        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps)
+        evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps, spec=self.spec)
         noise = config.action_noise
         if noise is None:  # the deterministic policy the score judges, and the exploring one PPO runs in imagination
             std = float(policy.policy.log_std.detach().exp().mean())
