@@ -341,7 +341,7 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 6: joint effects are also fitted at one joint alone where its residual stands out (scope.outlying_joint)
     # version 7: later selection steps also fit the best candidates together with the named effects (joint_candidates)
     # version 8: with too few held-out blocks for the rank test to reach p < 0.01, a t-test on log ratios decides
-    #            (fit.paired_p_value); only cases with fewer than 7 held-out blocks can differ from version 7
+    #            (significance.paired_p_value); only cases with fewer than 7 held-out blocks can differ from version 7
     # version 9: the learned correction is fitted to the base and joint velocities' one-step miss, weight decay 1e-3
     #            (gap.learned); only cases with a learned correction can differ from version 8
     # version 10: where the whole gap is not above the noise floor, step 1 still tests each candidate's own reduction

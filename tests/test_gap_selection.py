@@ -377,7 +377,7 @@ def test_the_two_best_joint_effects_that_reduce_the_gap_are_fitted_in_their_scop
 def test_a_large_gap_on_short_held_out_episodes_can_still_be_significant():
     """Two held-out episodes of 6 windows fall into 4 blocks of 25 rows: an exact Wilcoxon test on 4 blocks cannot go
     below 1/16, so a gap 60x the floor was called `none`. Smaller blocks give the test the power to see it."""
-    from rwm_gym.gap.fit import MIN_BLOCKS, paired_p_value
+    from rwm_gym.gap.significance import MIN_BLOCKS, paired_p_value
 
     windows = SimpleNamespace(episode=np.repeat([0, 1], 6), start=np.tile(np.arange(0, 30, 5), 2))
     floor = np.full(12, 0.01)
@@ -391,7 +391,7 @@ def test_with_too_few_windows_for_the_rank_test_the_size_of_the_gap_decides():
     """A robot that falls at once leaves five held-out windows: no rank test on 5 blocks reaches p < 0.01 (its floor is
     2^-5 = 0.031), so a gap 500x the floor was called `none`. There the t-test on log ratios decides: a gap hundreds of
     times the floor is significant, one that wanders around the floor is not."""
-    from rwm_gym.gap.fit import paired_p_value, paired_test
+    from rwm_gym.gap.significance import paired_p_value, paired_test
 
     windows = SimpleNamespace(episode=np.arange(5), start=np.zeros(5, dtype=int))
     floor = np.array([0.006, 0.008, 0.007, 0.009, 0.008])

@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import FitConfig, fit_effect, gap_per_window
 from rwm_gym.gap.refit import Candidate
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.physics.params import PhysicsParams
 
 

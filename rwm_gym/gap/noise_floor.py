@@ -24,9 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rwm_gym.gap.fit import gap_horizons, gap_per_window, paired_p_value, paired_test
+from rwm_gym.gap.fit import gap_horizons, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, noisy_measurement
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
+from rwm_gym.gap.significance import paired_p_value, paired_test
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.physics.robot import RobotLayout
 

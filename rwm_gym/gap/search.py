@@ -25,11 +25,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from rwm_gym.gap.fit import gap_per_window, paired_p_value
+from rwm_gym.gap.fit import gap_per_window
 from rwm_gym.gap.judge import best_of, ranked, resolve_rivals
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.refit import Candidate, joint_refit, named_params
 from rwm_gym.gap.resim import SimulationDiverged
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.gap.step import Search, Step, judge_step
 from rwm_gym.physics.params import PhysicsParams
 

@@ -19,11 +19,12 @@ import numpy as np
 
 from rwm_gym.gap.cross_fit import CrossFit
 from rwm_gym.gap.effects import Effect
-from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import FitConfig, FitMemo, fit_all, gap_per_window
 from rwm_gym.gap.noise_floor import FloorConfig
 from rwm_gym.gap.refit import Candidate, combine, effect_shares, joint_refit
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.gap.search import forward
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.gap.step import Search
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec

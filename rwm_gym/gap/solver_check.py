@@ -8,7 +8,7 @@ gap: each step's solve stops after a few iterations, so a re-simulated window is
 state (the noise floor rises). So the first selection step is fitted under both solvers (`fit.fit_all` and the
 scoped forms of the best joint effects, the same windows), and the converged solve is taken where the best candidate
 under it leaves a held-out gap `MATERIAL` below the best under the sim's own, at p < `SIGNIFICANCE`
-(`fit.paired_p_value` on block means). The report says which was taken and why; the corrected robot then carries the
+(`significance.paired_p_value`). The report says which was taken and why; the corrected robot then carries the
 converged settings (`PhysicsParams.solver`). The fits under the solver taken are handed on (`fit.FitMemo`):
 selection's first step takes them rather than fitting them again, so the check costs one first step, under the
 other solver.
@@ -46,17 +46,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window
 from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings
 
 MATERIAL = 0.2
 """The converged solve is taken where its best held-out gap is at least this fraction below the sim's own best."""
 
 SIGNIFICANCE = 0.05
-"""p-value under which the converged solve's lower held-out gap counts (`fit.paired_p_value` on block means). Looser
+"""p-value under which the converged solve's lower held-out gap counts (`significance.paired_p_value`). Looser
 than naming an effect (`FitConfig.significance`): the check chooses between two simulators of the same parameters,
 not whether something is there, and with two held-out episodes a per-leg friction fitted to within 3 % under the
 converged solve (gap 63 % lower) reached p = 0.014 only."""

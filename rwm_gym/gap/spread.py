@@ -35,9 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from rwm_gym.gap.effects import Effect
-from rwm_gym.gap.fit import CandidateFit, FitConfig, gap_horizons, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import CandidateFit, FitConfig, gap_horizons, gap_per_window
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.physics.params import PhysicsParams
 
 COVERING_RATIOS = (1.0, 1.2)

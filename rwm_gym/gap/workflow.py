@@ -27,7 +27,7 @@ from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.cross_fit import CrossFit
 from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_window, paired_p_value
+from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_window
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
@@ -44,6 +44,7 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.report import markdown, plot_channels, plot_rollout
 from rwm_gym.gap.resim import WARMUP, Resimulator, SimulationDiverged, Windows, make_windows, normalised_residual
 from rwm_gym.gap.select import Selection, select_effects
+from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.gap.solver_check import (
     SolverChoice,
     choose_solver,
