@@ -19,7 +19,7 @@ from rwm_gym.gap.workflow import (
     run_gap,
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig
-from rwm_gym.options import dataclass_from_args, option
+from rwm_gym.options import Range, dataclass_from_args, number, option, torch_device
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,6 +46,19 @@ class GapOptions:
     AnymalD-MuJoCo-v0 (else none); none: skip them"""
 
 
+def json_flag(text: str, flag: str) -> dict:
+    """A JSON object given as a flag's text; a one-line ValueError naming the flag otherwise."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{flag} is not valid JSON ({err})") from None
+    except RecursionError:
+        raise ValueError(f"{flag} is nested too deeply") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"{flag} must be a JSON object, got {type(value).__name__}")
+    return value
+
+
 def scope_list(text: str) -> tuple[str, ...]:
     """An argparse type: comma-separated joint-group scopes of `FitConfig.scopes` ('none': the global forms only)."""
     scopes = tuple(s for s in text.split(",") if s and s != "none")
@@ -62,9 +75,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym gap`: its inputs, then the fields of the workflow's configs it exposes."""
     add_group(parser, GapOptions)
     add_group(parser, OverwriteOption)
-    add_group(parser, GapConfig, "workflow", only={"val_fraction", "learned_correction", "solver_check", "bootstrap"})
     add_group(
-        parser, FitConfig, "fit", only={"scopes", "max_effects", "joint_candidates"}, types={"scopes": scope_list}
+        parser,
+        GapConfig,
+        "workflow",
+        only={"val_fraction", "learned_correction", "solver_check", "bootstrap"},
+        types={"val_fraction": number(float, Range(gt=0, lt=1)), "bootstrap": number(int, Range(ge=0))},
+    )
+    add_group(
+        parser,
+        FitConfig,
+        "fit",
+        only={"scopes", "max_effects", "joint_candidates"},
+        types={"scopes": scope_list, "max_effects": number(int, Range(ge=1))},
     )
     add_group(
         parser,
@@ -72,6 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "world model",
         only={"iterations", "episodes", "device"},
         flags={"iterations": ["--finetune-iterations"], "episodes": ["--regenerate-episodes"]},
+        types={"device": torch_device, "iterations": number(int, Range(ge=0)), "episodes": number(int, Range(ge=1))},
     )
 
 
@@ -79,8 +103,8 @@ def run(args: argparse.Namespace) -> int:
     """`rwm-gym gap`: 0, or 2 with one line on stderr on bad input."""
     wm_config = dataclass_from_args(WorldModelGapConfig, args)
     try:
-        sim_kwargs = json.loads(args.sim_kwargs) if args.sim_kwargs else {}
-        noise = SensorNoise(**json.loads(args.sensor_noise)) if args.sensor_noise else SensorNoise()
+        sim_kwargs = json_flag(args.sim_kwargs, "--sim-kwargs") if args.sim_kwargs else {}
+        noise = SensorNoise(**json_flag(args.sensor_noise, "--sensor-noise")) if args.sensor_noise else SensorNoise()
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         from rwm_gym.output_guard import check_folder
