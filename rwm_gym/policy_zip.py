@@ -116,7 +116,7 @@ def read_zip(path: str | os.PathLike) -> tuple[dict, dict[str, bytes]]:
         raise PolicyFileError(f"policy {path}: not a readable SB3 policy zip ({type(err).__name__})") from None
     try:
         data = json.loads(raw)
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: arrays nested thousands deep
         raise PolicyFileError(f"policy {path}: not a readable SB3 policy zip (its data is not JSON)") from None
     if not isinstance(data, dict):
         raise PolicyFileError(f"policy {path}: not an SB3 policy zip (data is not a JSON object)")

@@ -303,6 +303,8 @@ def parse_spec(text: str, where: str = "<spec>", model_dir: str | Path | None = 
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{where}: not valid TOML ({err})") from None
+    except RecursionError:  # arrays or tables nested thousands deep
+        raise ValueError(f"{where}: not valid TOML (nested too deep)") from None
     try:
         task, act = raw["task"], raw["actuator"]
         joints = tuple(act["joints"])

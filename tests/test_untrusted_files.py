@@ -575,3 +575,28 @@ def test_ppo_init_policy_refuses_a_crafted_zip_and_runs_nothing(tmp_path, capsys
     assert status(["ppo", "--in", "physics", "--init-policy", str(evil), "--out", str(tmp_path / "p.zip"), *tiny]) == 2
     one_line(capsys, "evil.zip", "entry 'policy_class'")
     assert not marker.exists() and not (tmp_path / "p.zip").exists()
+
+
+def test_json_nested_too_deep_is_refused_in_one_line(tmp_path, checkpoint) -> None:
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint
+    from rwm_gym.policy_zip import PolicyFileError, load_policy
+
+    deep = "[" * 100_000 + "]" * 100_000
+    path = tmp_path / "deep.zip"
+    with zipfile.ZipFile(path, "w") as out:
+        out.writestr("data", deep)
+        out.writestr("policy.pth", b"")
+    with pytest.raises(PolicyFileError, match="not JSON"):
+        load_policy(path)
+    with safe_open(str(checkpoint), framework="pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    save_file(tensors, str(tmp_path / "deep.safetensors"), metadata={**header, "meta": deep})
+    with pytest.raises(CheckpointError, match="metadata unreadable"):
+        load_checkpoint(tmp_path / "deep.safetensors")
+    from rwm_gym.spec import parse_spec
+
+    with pytest.raises(ValueError, match="nested too deep"):
+        parse_spec("a = " + deep, where="data.h5:spec")

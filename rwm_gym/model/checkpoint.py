@@ -183,7 +183,7 @@ def _meta(path: Path, header: dict[str, str], tensors: dict[str, torch.Tensor]) 
         )
     except KeyError as err:
         raise CheckpointError(f"{path}: metadata field {err.args[0]!r} missing") from None
-    except (ValueError, TypeError) as err:
+    except (ValueError, TypeError, RecursionError) as err:
         if isinstance(err, CheckpointError):
             raise
         raise CheckpointError(f"{path}: metadata unreadable ({' '.join(str(err).split())})") from None
