@@ -541,8 +541,7 @@ def test_the_learning_rate_anneal_ends_with_the_budget_and_a_resumed_run_stays_o
             raise KeyboardInterrupt
 
     monkeypatch.setattr(RunCheckpoint, "save", killed_after_rollout_7)
-    with pytest.raises(KeyboardInterrupt):
-        ppo(stopped)
+    assert ppo(stopped) == 130  # Ctrl-C: the documented status, the resume point kept
     monkeypatch.setattr(RunCheckpoint, "save", save)
     assert ppo(stopped) == 0
     resumed = _lr_column(stopped)
