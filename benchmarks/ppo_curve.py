@@ -1,6 +1,7 @@
 """The learning curve of a resumable PPO run: the tracking score of every snapshot against env steps and wall time.
 
-    python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--seeds 3] [--threshold 0.8] [--every N] [--out DIR]
+    python benchmarks/ppo_curve.py --run-dir runs/ppo_physics [--env Go2-MuJoCo-v0] [--seeds 3] [--threshold 0.8]
+                                   [--every N] [--out DIR]
     python benchmarks/ppo_curve.py --run-dir runs/imagC --trained-in imagination --checkpoint CKPT --reset-data H5
 
 Scores each `RUN/snapshots/step_N.zip` in physics on the scoring command set (`rwm-gym score`'s), once: results are
@@ -20,7 +21,7 @@ import os
 from pathlib import Path
 
 from rwm_gym.atomic import atomic_write, save_png, write_json
-from rwm_gym.rl.score import score, zero_policy
+from rwm_gym.rl.score import score
 from rwm_gym.rl.training_run import TrainingRun
 
 FIELDS = [
@@ -60,6 +61,7 @@ def spaced(snapshots: list[Path], every: int) -> list[Path]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-dir", type=Path, required=True)
+    parser.add_argument("--env", default="anymal_d", help="the physics env id or spec the run is scored on")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--max-falls", type=int, default=1)
@@ -97,7 +99,7 @@ def main() -> None:
         steps = int(snapshot.stem.split("_")[1])
         row = done.get(steps)
         if row is None:
-            e = score(str(snapshot), seeds=args.seeds)
+            e = score(str(snapshot), seeds=args.seeds, spec=args.env)
             row = {
                 "timesteps": steps,
                 "wall_s": wall_at(run, steps),
@@ -114,7 +116,9 @@ def main() -> None:
                 flush=True,
             )
         if args.checkpoint and not row.get("imagined_tracking"):
-            e = score(str(snapshot), seeds=args.seeds, checkpoint=args.checkpoint, reset_data=args.reset_data)
+            e = score(
+                str(snapshot), seeds=args.seeds, checkpoint=args.checkpoint, reset_data=args.reset_data, spec=args.env
+            )
             row.update(imagined_tracking=round(e.tracking, 4), imagined_falls=e.falls)
             print(
                 f"{snapshot.name} in the world model: tracking {e.tracking:.3f}, falls {e.falls}/{e.episodes}",
@@ -126,7 +130,7 @@ def main() -> None:
     if floor_path.is_file():
         floor = json.loads(floor_path.read_text())
     else:
-        e = score(zero_policy, seeds=args.seeds)
+        e = score("zero", seeds=args.seeds, spec=args.env)
         floor = {"tracking": e.tracking, "return": e.episode_return, "falls": e.falls}
         write_json(floor_path, floor)
     reached = [r for r in rows if float(r["tracking"]) >= args.threshold and int(r["falls"]) <= args.max_falls]
