@@ -19,6 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("rwm_gym.commands.evaluate", "long-horizon prediction error of a checkpoint on a dataset"),
     "ppo": ("rwm_gym.commands.ppo", "train PPO in imagination (or physics) and evaluate it in physics"),
     "shac": ("rwm_gym.commands.shac", "train a policy by SHAC: gradients through the world model's imagined rollouts"),
+    "dreamer": (
+        "rwm_gym.commands.dreamer",
+        "train a Dreamer-style actor-critic on lambda-returns through the world model's imagined rollouts",
+    ),
     "score": (
         "rwm_gym.commands.score",
         "tracking score of a policy in physics (or a world model) beside the zero-action floor",

@@ -100,10 +100,10 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym shac: {err}") from None
 
 
-def _refuse_entry_points(checkpoint: str | None) -> None:
-    """SHAC differentiates the velocity-tracking reward and the terminations it implements itself: a checkpoint
-    whose spec names its own (`[imagination]` entry points) is refused in one line rather than trained on another
-    task's reward."""
+def _refuse_entry_points(checkpoint: str | None, command: str = "rwm-gym shac", learner: str = "SHAC") -> None:
+    """SHAC (and `rwm-gym dreamer`) differentiate the velocity-tracking reward and the terminations they implement
+    themselves: a checkpoint whose spec names its own (`[imagination]` entry points) is refused in one line rather
+    than trained on another task's reward."""
     if checkpoint is None:  # the shipped model names none
         return
     from rwm_gym.model.checkpoint import read_meta
@@ -111,9 +111,9 @@ def _refuse_entry_points(checkpoint: str | None) -> None:
 
     if named := spec_entry_points(read_meta(checkpoint).spec):
         raise SystemExit(
-            f"rwm-gym shac: {checkpoint}'s task spec names its own {' and '.join(named)} function "
-            f"({', '.join(named.values())}); SHAC differentiates the velocity-tracking reward it implements, so it "
-            "cannot train on them (rwm-gym ppo --trust-entry-points can)"
+            f"{command}: {checkpoint}'s task spec names its own {' and '.join(named)} function "
+            f"({', '.join(named.values())}); {learner} differentiates the velocity-tracking reward it implements, so "
+            "it cannot train on them (rwm-gym ppo --trust-entry-points can)"
         )
 
 
