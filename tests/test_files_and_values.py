@@ -145,6 +145,27 @@ def test_the_api_refuses_what_the_command_line_refuses(make, kwargs, name) -> No
         make(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "physics, words",
+    [
+        ({"payload_com": [1.0, 2.0]}, "needs 3 numbers"),
+        ({"payload_mass": [1.0, 2.0]}, "must be one number"),
+        ({"kp_scale": [[1.0, 2.0]]}, "must be one number or one per joint"),
+        ({"solver": 5}, "must be a dict of solver settings"),
+    ],
+)
+def test_physics_values_of_the_wrong_shape_are_refused_naming_the_parameter(physics: dict, words: str) -> None:
+    with pytest.raises(ValueError, match=rf"physics parameter '{next(iter(physics))}' {words}"):
+        _physics(**physics)
+
+
+def test_sensor_noise_is_a_finite_std() -> None:
+    from rwm_gym.gap.measured import SensorNoise
+
+    with pytest.raises(ValueError, match="sensor noise joint_vel must be >= 0"):
+        SensorNoise(joint_vel=-1.0)
+
+
 def test_physics_flag_with_an_unphysical_or_too_deep_value_is_one_line(tmp_path: Path, capsys) -> None:
     argv = ["collect", "--episodes", "1", "--max-steps", "2", "--out", str(tmp_path / "d.h5")]
     assert status([*argv, "--physics", '{"payload_mass": -3}']) == EXIT_BAD_INPUT

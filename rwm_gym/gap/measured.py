@@ -22,6 +22,7 @@ import numpy as np
 from rwm_gym.data.collect import collect, diverged_episodes, make_physics_core
 from rwm_gym.data.dataset import Dataset, write_dataset
 from rwm_gym.gap.effects import combined_physics
+from rwm_gym.options import check_ranges, option
 from rwm_gym.physics.params import CONVERGED_SOLVER, SolverSettings
 from rwm_gym.physics.robot import measure
 from rwm_gym.policies.excitation import ExcitationPolicy
@@ -32,19 +33,22 @@ from rwm_gym.policies.factory import make_policy
 class SensorNoise:
     """Std of Gaussian sensor noise per measured quantity (SI units); `scale` multiplies all of them."""
 
-    joint_pos: float = 2e-4
+    joint_pos: float = option(2e-4, ge=0)
     """rad, joint encoders."""
-    joint_vel: float = 0.02
+    joint_vel: float = option(0.02, ge=0)
     """rad/s, differentiated encoders."""
-    joint_torque: float = 0.3
+    joint_torque: float = option(0.3, ge=0)
     """N·m, drive current -> torque."""
-    base_lin_vel: float = 0.02
+    base_lin_vel: float = option(0.02, ge=0)
     """m/s, state estimator."""
-    base_ang_vel: float = 0.01
+    base_ang_vel: float = option(0.01, ge=0)
     """rad/s, IMU gyro."""
-    base_orientation: float = 0.002
+    base_orientation: float = option(0.002, ge=0)
     """rad, IMU attitude."""
-    scale: float = 1.0
+    scale: float = option(1.0, ge=0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "sensor noise {field}")  # a std: finite and >= 0
 
 
 def add_sensor_noise(episode: dict[str, np.ndarray], core, noise: SensorNoise, rng: np.random.Generator) -> None:

@@ -79,10 +79,13 @@ class PhysicsParams:
     def __post_init__(self) -> None:
         if isinstance(self.solver, Mapping):
             object.__setattr__(self, "solver", SolverSettings.from_dict(self.solver))
+        if not isinstance(self.solver, SolverSettings | None):
+            raise ValueError(f"physics parameter 'solver' must be a dict of solver settings, got {self.solver!r}")
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if value is None or isinstance(value, SolverSettings):
                 continue
+            _check_shape(f.name, str(f.type), value)
             numbers = np.asarray(value)
             if numbers.dtype.kind not in "biuf" or not np.all(np.isfinite(numbers)):
                 raise ValueError(f"physics parameter {f.name!r} must be a finite number, got {value!r}")
@@ -107,6 +110,22 @@ class PhysicsParams:
 
     def replace(self, **changes: object) -> PhysicsParams:
         return dataclasses.replace(self, **changes)
+
+
+def _check_shape(name: str, annotation: str, value: object) -> None:
+    """A one-line ValueError unless `value` has the shape its field's annotation says: one number (`float`), one
+    number or one per joint (`PerJoint`), or exactly N numbers (`tuple[float, ...]` of N)."""
+    kind = annotation.replace(" | None", "")
+    try:
+        shape = np.shape(value)
+    except ValueError:  # a ragged list
+        shape = None
+    if kind == "float" and shape != ():
+        raise ValueError(f"physics parameter {name!r} must be one number, got {value!r}")
+    if kind == "PerJoint" and (shape is None or len(shape) > 1):
+        raise ValueError(f"physics parameter {name!r} must be one number or one per joint, got {value!r}")
+    if kind.startswith("tuple[") and shape != (kind.count("float"),):
+        raise ValueError(f"physics parameter {name!r} needs {kind.count('float')} numbers, got {value!r}")
 
 
 def per_joint(value: PerJoint, n: int, name: str) -> np.ndarray:
