@@ -1,7 +1,7 @@
 """`rwm-gym spec`: write a task spec for a dm_control suite task or a legged robot's MJCF.
 
     rwm-gym spec --from-dmc acrobot-swingup --out acrobot.toml
-    rwm-gym spec --mjcf robot.xml [--base BODY] [--feet BODY ...] --out my_robot.toml
+    rwm-gym spec --mjcf robot.xml [--base BODY] [--feet BODY ...] [--keyframe NAME] --out my_robot.toml
 
 The spec's normalisation comes from its own short random-policy collection; everything the generator chose without
 being told is printed and written into the spec's header. An existing file is never replaced without --overwrite.
@@ -35,6 +35,8 @@ class SpecOptions:
     """--mjcf: the floating base body (default: the body with the free joint)"""
     feet: tuple[str, ...] | None = option(None, nargs="+")
     """foot bodies (default: --mjcf the leaf bodies of the legs, --from-dmc the colliding bodies named like a foot)"""
+    keyframe: str | None = None
+    """--mjcf: the standing keyframe, the default pose (default: the file's first)"""
     name: str | None = None
     """--mjcf: task name (default: the model's name); ids are NAME-MuJoCo-v0, RWM-NAME-v0"""
     fast_physics: bool = False
@@ -71,8 +73,9 @@ def run(args: argparse.Namespace) -> int:
         if args.from_dmc:
             from rwm_gym.specgen.from_dmc import dmc_draft
 
-            if args.fast_physics:
-                raise ValueError("--fast-physics applies to --mjcf (a dm_control task keeps the suite's physics)")
+            if args.fast_physics or args.keyframe:
+                flag = "--fast-physics" if args.fast_physics else "--keyframe"
+                raise ValueError(f"{flag} applies to --mjcf (a dm_control task keeps the suite's physics and pose)")
             domain, sep, task = args.from_dmc.partition("-")
             if not sep or not task:
                 raise ValueError(f"--from-dmc {args.from_dmc!r}: expected DOMAIN-TASK, e.g. acrobot-swingup")
@@ -90,7 +93,12 @@ def run(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory(prefix="rwm-spec-") as tmp:
             if model_xml is not None:  # the collection runs on a copy: nothing is written before the spec works
                 draft, mjcf_text = legged_draft(
-                    args.mjcf, base=args.base, feet=args.feet, name=args.name, fast_physics=args.fast_physics
+                    args.mjcf,
+                    base=args.base,
+                    feet=args.feet,
+                    name=args.name,
+                    fast_physics=args.fast_physics,
+                    keyframe=args.keyframe,
                 )
                 trial = Path(tmp) / model_xml.name
                 trial.write_text(mjcf_text)

@@ -32,7 +32,8 @@ class RobotLayout:
     foot_site_ids: np.ndarray
     """(F,) site at each foot centre."""
     foot_radius: np.ndarray
-    """(F,) m, radius of each foot sphere, so foot height is the lowest point above z = 0."""
+    """(F,) m, radius of each foot's sphere or capsule (0 for a box, whose site sits on its bottom face), so foot
+    height is the lowest point above z = 0."""
     default_pose: np.ndarray
     """(A,) rad."""
 
@@ -59,7 +60,9 @@ class RobotLayout:
             contact_sensor_adr=np.asarray([sensor_adr(b) for b in spec.privileged.contact_bodies], dtype=int),
             termination_sensor_adr=np.asarray([sensor_adr(b) for b in spec.privileged.termination_bodies], dtype=int),
             foot_site_ids=np.asarray(feet, dtype=int),
-            foot_radius=model.geom_size[foot_geoms, 0].copy(),
+            foot_radius=np.where(
+                model.geom_type[foot_geoms] == int(mujoco.mjtGeom.mjGEOM_BOX), 0.0, model.geom_size[foot_geoms, 0]
+            ),
             default_pose=np.asarray(spec.actuator.default_pose),
         )
 
@@ -113,6 +116,7 @@ def measure(
     ang_vel = qvel[:, 3:6]
     gravity = quat_rotate_inverse(quat, np.broadcast_to([0.0, 0.0, -1.0], lin_vel.shape))
     parts = {
+        "base_height": qpos[:, 2:3],  # m above the floor (z = 0); an optional group (a biped's base_height reward)
         "base_lin_vel": lin_vel,
         "base_ang_vel": ang_vel,
         "projected_gravity": gravity,

@@ -6,14 +6,17 @@ keyframe. Few MJCF files have them, so the generator writes a copy of the model 
 spec) and leaves the user's file alone:
 
 - base: `--base`, else the body with the free joint; joints: every hinge below it, in model order;
-- feet: `--feet`, else the leaf bodies of the legs; each foot is its body's lowest sphere or capsule geom (the
-  capsule's lower end), given a site of the same name; thighs are the feet's parent bodies;
-- touch sensors: a sphere around each foot, a box around the base's and each thigh's geoms;
+- feet: `--feet`, else the leaf bodies with a geom that touches the floor, kept where they stand on it at the default
+  pose (a humanoid's hands are leaves too); a geom collides through its contype/conaffinity or an explicit `<pair>`
+  (`rwm_gym.specgen.mjcf_feet`). A foot's point is its lowest sphere or capsule end (or a box's bottom face), given a
+  site named after its geom; thighs are the feet's nearest ancestors with colliding geoms (a humanoid's knees);
+- touch sensors: a sphere around a one-geom foot, a box around a foot's sole of several geoms (a G1's box and three
+  capsules), a box around the base's and each thigh's geoms; MuJoCo's touch sensors count pair contacts too;
 - actuators: the joints' actuators are replaced by position servos; each joint's kp, kd and effort limit come from
   the file where it has them (position servos, force ranges, a motor's control range, a joint's
   `actuatorfrcrange`), else from the robot's weight (printed);
-- default pose: the first keyframe, else qpos0 lowered until the feet touch the floor (a plane is added if the world
-  has none).
+- default pose: the keyframe `--keyframe` names, else the first, else qpos0 lowered until the feet touch the floor
+  (a plane is added if the world has none).
 
 Reward weights, reset noise and action scale are ANYmal D's (`envs/anymal_d.toml`); command speeds follow
 `command_speed` (Froude number 0.4, capped at ANYmal D's 1 m/s); `fast_physics` gives the copy ANYmal D's solver
@@ -23,7 +26,7 @@ settings. Every such choice is listed in the spec's header.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -32,6 +35,15 @@ import numpy as np
 from rwm_gym.spec import load_spec
 from rwm_gym.specgen.draft import SpecDraft, Table
 from rwm_gym.specgen.fast_physics import apply_fast_physics, compare
+from rwm_gym.specgen.mjcf_feet import (
+    FootPoint,
+    colliding_geoms,
+    floor_geoms,
+    foot_point,
+    leaf_bodies,
+    sole_box,
+    standing_feet,
+)
 from rwm_gym.specgen.toml_text import significant
 
 _BODY, _GEOM, _SITE = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE
@@ -54,14 +66,6 @@ def _is_below(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
     return False
 
 
-def _colliding_geoms(model: mujoco.MjModel, body: int) -> list[int]:
-    return [
-        g
-        for g in range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
-        if model.geom_contype[g] or model.geom_conaffinity[g]
-    ]
-
-
 def _find_base(model: mujoco.MjModel, base: str | None) -> int:
     if base:
         b = mujoco.mj_name2id(model, _BODY, base)
@@ -78,33 +82,9 @@ def _find_base(model: mujoco.MjModel, base: str | None) -> int:
     return b
 
 
-def _foot_point(model: mujoco.MjModel, data: mujoco.MjData, body: int) -> tuple[int, np.ndarray, float]:
-    """(geom index, foot centre in the body frame, radius) of the body's lowest sphere or capsule geom."""
-    best = None
-    for g in _colliding_geoms(model, body):
-        kind, radius = int(model.geom_type[g]), float(model.geom_size[g, 0])
-        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
-            ends = [model.geom_pos[g].copy()]
-        elif kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE):
-            axis = np.zeros(9)
-            mujoco.mju_quat2Mat(axis, model.geom_quat[g])
-            half = model.geom_size[g, 1] * axis.reshape(3, 3)[:, 2]
-            ends = [model.geom_pos[g] + half, model.geom_pos[g] - half]
-        else:
-            continue
-        rot = data.xmat[body].reshape(3, 3)
-        for end in ends:
-            z = float((data.xpos[body] + rot @ end)[2]) - radius
-            if best is None or z < best[0]:
-                best = (z, g, end, radius)
-    if best is None:
-        raise ValueError(f"foot body {_name(model, _BODY, body)!r} has no colliding sphere or capsule geom")
-    return best[1], best[2], best[3]
-
-
 def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.ndarray]:
     """(centre, half sizes) in the body frame of a box around the body's colliding geoms, 10 % larger."""
-    geoms = _colliding_geoms(model, body) or list(
+    geoms = colliding_geoms(model, body) or list(
         range(model.body_geomadr[body], model.body_geomadr[body] + model.body_geomnum[body])
     )
     if not geoms:
@@ -206,18 +186,18 @@ class _Legs:
     """The hinge joints' names, in model order."""
     feet: list[int]
     thighs: list[int]
-    """The feet's parent bodies (those that are not the base)."""
+    """Each foot's nearest ancestor with a colliding geom, other than the base (`_thighs`)."""
     thigh_names: list[str]
 
 
 @dataclass
 class _Pose:
-    """The default pose: the keyframe's name, qpos, each foot's (geom, centre in the body frame, radius), the joint
-    angles (rad), and the base's height (m)."""
+    """The default pose: the keyframe's name, qpos, each foot's point (`FootPoint`), the joint angles (rad), and the
+    base's height (m)."""
 
     keyframe: str
     qpos: np.ndarray
-    points: list[tuple[int, np.ndarray, float]]
+    points: list[FootPoint]
     default_pose: list[float]
     height: float
 
@@ -229,14 +209,15 @@ def legged_draft(
     feet: list[str] | None = None,
     name: str | None = None,
     fast_physics: bool = False,
+    keyframe: str | None = None,
 ) -> tuple[SpecDraft, str]:
     """(draft spec, text of the rwm-ready MJCF copy). The draft's `task.model` is set by the caller. `fast_physics`:
-    the copy takes ANYmal D's solver settings (`rwm_gym.specgen.fast_physics`), measured against the file's own."""
+    the copy takes ANYmal D's solver settings (`rwm_gym.specgen.fast_physics`), measured against the file's own;
+    `keyframe`: the standing keyframe's name (default: the file's first)."""
     path = Path(mjcf)
     mj, model = _load(path)
     notes: list[str] = []
-    legs = _find_legs(model, base, feet, notes)
-    pose = _find_pose(mj, model, legs, notes)
+    legs, pose = _find_pose(mj, model, _find_legs(model, base, feet, notes), keyframe, bool(feet), notes)
     mass = float(model.body_subtreemass[legs.base])
     servo = _gains(model, legs.joint_ids, mass, pose.height, len(legs.feet), notes)
     _add_floor_camera_and_servos(mj, model, legs, pose, servo, notes)
@@ -281,15 +262,30 @@ def _load(path: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
 
 
 def _find_legs(model: mujoco.MjModel, base: str | None, feet: list[str] | None, notes: list[str]) -> _Legs:
-    """The base (`--base`, else the body with the free joint), its hinge joints, and the feet (`--feet`, else the
-    leaf bodies with colliding geoms) and thighs."""
+    """The base (`--base`, else the body with the free joint), its hinge joints, and the candidate feet (`--feet`, else
+    every leaf body with a geom that touches the floor; `_find_pose` keeps those on the floor)."""
     b = _find_base(model, base)
     base_name = _name(model, _BODY, b)
     robot = _subtree(model, b)
     joint_ids, joints = _hinge_joints(model, b, robot, base_name)
-    foot_bodies = _find_feet(model, b, robot, base_name, feet, notes)
-    thighs = [int(model.body_parentid[f]) for f in foot_bodies if model.body_parentid[f] != b]
-    return _Legs(b, base_name, joint_ids, joints, foot_bodies, thighs, [_name(model, _BODY, t) for t in thighs])
+    touching = floor_geoms(model)
+    if not any(model.geom_bodyid[g] in robot for g in touching):
+        raise ValueError(
+            f"no geom of the robot below {base_name!r} can touch the floor (collision bits off and no <pair> with a "
+            f"world geom)"
+        )
+    if feet:
+        foot_bodies = [mujoco.mj_name2id(model, _BODY, f) for f in feet]
+        missing = [f for f, i in zip(feet, foot_bodies) if i < 0 or i not in robot or i == b]
+        if missing:
+            raise ValueError(f"--feet: {missing[0]!r} is not a body of the robot below {base_name!r}")
+    else:
+        foot_bodies = leaf_bodies(model, b, robot)
+        if not foot_bodies:
+            raise ValueError(
+                f"no leaf body below {base_name!r} has a geom that touches the floor: name the feet with --feet BODY"
+            )
+    return _Legs(b, base_name, joint_ids, joints, foot_bodies, [], [])
 
 
 def _hinge_joints(model: mujoco.MjModel, b: int, robot: list[int], base_name: str) -> tuple[list[int], list[str]]:
@@ -303,42 +299,59 @@ def _hinge_joints(model: mujoco.MjModel, b: int, robot: list[int], base_name: st
     return joint_ids, joints
 
 
-def _find_feet(
-    model: mujoco.MjModel, b: int, robot: list[int], base_name: str, feet: list[str] | None, notes: list[str]
-) -> list[int]:
-    """The foot bodies: those named by `--feet`, else the robot's leaf bodies with colliding geoms."""
-    if feet:
-        foot_bodies = [mujoco.mj_name2id(model, _BODY, f) for f in feet]
-        missing = [f for f, i in zip(feet, foot_bodies) if i < 0 or i not in robot]
-        if missing:
-            raise ValueError(f"--feet: {missing[0]!r} is not a body of the robot below {base_name!r}")
-        return foot_bodies
-    foot_bodies = [
-        c
-        for c in robot
-        if c != b and not any(model.body_parentid[k] == c for k in robot) and _colliding_geoms(model, c)
-    ]
-    notes.append(f"feet: the leaf bodies {', '.join(_name(model, _BODY, f) for f in foot_bodies)}")
-    return foot_bodies
+def _thighs(model: mujoco.MjModel, legs: _Legs) -> list[int]:
+    """Each foot's nearest ancestor below the base with a colliding geom (a quadruped's thigh or shank, a humanoid's
+    knee), once each."""
+    thighs: list[int] = []
+    for f in legs.feet:
+        t = int(model.body_parentid[f])
+        while t not in (legs.base, 0) and not colliding_geoms(model, t):
+            t = int(model.body_parentid[t])
+        if t not in (legs.base, 0) and t not in thighs:
+            thighs.append(t)
+    return thighs
 
 
-def _find_pose(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, notes: list[str]) -> _Pose:
-    """The first keyframe (named "home" in the copy if it has no name), else qpos0 lowered until the feet touch the
-    floor."""
+def _keyframe(model: mujoco.MjModel, keyframe: str | None) -> int:
+    """The keyframe index `--keyframe` names (-1: none named and the file has none), else the first."""
+    if keyframe is None:
+        return 0 if model.nkey else -1
+    k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, keyframe)
+    if k < 0:
+        names = [_name(model, mujoco.mjtObj.mjOBJ_KEY, i) for i in range(model.nkey)]
+        listed = ", ".join(repr(n) for n in names if n) or "none named"
+        raise ValueError(f"--keyframe {keyframe!r}: no such keyframe in the file (it has: {listed})")
+    return k
+
+
+def _find_pose(
+    mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, keyframe: str | None, given: bool, notes: list[str]
+) -> tuple[_Legs, _Pose]:
+    """The feet (the given ones, else the candidates on the floor: `standing_feet`) and the default pose: the keyframe
+    `keyframe` names, else the first (named "home" in the copy if it has no name), else qpos0 lowered until the feet
+    touch the floor."""
     data = mujoco.MjData(model)
-    if model.nkey:
-        keyframe = _name(model, mujoco.mjtObj.mjOBJ_KEY, 0) or "home"
-        mj.keys[0].name = keyframe
-        qpos = model.key_qpos[0].copy()
-        notes.append(f"default pose: keyframe {keyframe!r}")
+    k = _keyframe(model, keyframe)
+    if k >= 0:
+        name = _name(model, mujoco.mjtObj.mjOBJ_KEY, k) or "home"
+        mj.keys[k].name = name
+        qpos = model.key_qpos[k].copy()
+        other = "" if keyframe else " (the file's first; --keyframe NAME for another)"
+        notes.append(f"default pose: keyframe {name!r}{other}")
     else:
-        keyframe, qpos = "home", model.qpos0.copy()
+        name, qpos = "home", model.qpos0.copy()
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
-    points = [_foot_point(model, data, f) for f in legs.feet]
-    if not model.nkey:
+    if not given:
+        where = f"keyframe {name!r}" if k >= 0 else "qpos0"
+        legs = replace(legs, feet=standing_feet(model, data, legs.feet, where, notes))
+    thighs = _thighs(model, legs)
+    legs = replace(legs, thighs=thighs, thigh_names=[_name(model, _BODY, t) for t in thighs])
+    points = [foot_point(model, data, f) for f in legs.feet]
+    if k < 0:
         lowest = min(
-            float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p)[2]) - r for f, (_, p, r) in zip(legs.feet, points)
+            float((data.xpos[f] + data.xmat[f].reshape(3, 3) @ p.point)[2]) - p.radius
+            for f, p in zip(legs.feet, points)
         )
         qpos[2] -= lowest
         data.qpos[:] = qpos
@@ -347,7 +360,7 @@ def _find_pose(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, notes: lis
             f"default pose: qpos0 with the base at {qpos[2]:.3f} m so the feet touch the floor (keyframe 'home' added)"
         )
     default_pose = [significant(float(qpos[model.jnt_qposadr[j]]), 6) for j in legs.joint_ids]
-    return _Pose(keyframe, qpos, points, default_pose, float(data.xpos[legs.base, 2]))
+    return legs, _Pose(name, qpos, points, default_pose, float(data.xpos[legs.base, 2]))
 
 
 def _add_floor_camera_and_servos(
@@ -385,17 +398,28 @@ def _add_floor_camera_and_servos(
 
 
 def _add_contact_sensors(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, pose: _Pose) -> list[str]:
-    """Into the copy: a site and touch sensor around each foot (named after its geom: the foot names, returned), and
-    a box site and touch sensor `contact_BODY` around the base and each thigh. A site of that name already on that
-    body, and a touch sensor of that name already on that site, are the model's own and kept (the shipped ANYmal D
-    has both); a site or sensor of that name elsewhere is refused."""
+    """Into the copy: a site named after each foot's geom at its foot point (the foot names, returned) with a touch
+    sensor `contact_FOOT` on a site around its sole (a sphere around a one-geom sole, else a box `contact_FOOT`), and a
+    box site and touch sensor `contact_BODY` around the base and each thigh. A site of that name already on that
+    body, and a touch sensor of that name already on a site of that body, are the model's own and kept (the shipped
+    ANYmal D has both); a site or sensor of that name elsewhere is refused."""
     foot_names = []
-    for f, (g, point, radius) in zip(legs.feet, pose.points):
-        geom = mj.body(_name(model, _BODY, f)).geoms[g - model.body_geomadr[f]]
-        geom.name = geom.name or f"{_name(model, _BODY, f)}_foot"
-        sphere = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(point), size=[1.2 * radius, 0, 0], group=4)
-        _touch_site(mj, model, f, geom.name, f"contact_{geom.name}", sphere)
-        foot_names.append(geom.name)
+    for f, foot in zip(legs.feet, pose.points):
+        body = _name(model, _BODY, f)
+        geom = mj.body(body).geoms[foot.geom - model.body_geomadr[f]]
+        geom.name = geom.name or f"{body}_foot"
+        name, sensor = geom.name, f"contact_{geom.name}"
+        own = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor) >= 0
+        size = [max(1.2 * foot.radius, 0.005), 0, 0]
+        sphere = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=list(foot.point), size=size, group=4)
+        if own or (len(foot.sole) == 1 and foot.radius > 0):
+            _touch_site(mj, model, f, name, sensor, sphere)
+        else:
+            _site(mj, model, f, name, sphere)
+            centre, half = sole_box(model, foot.sole)
+            box = dict(type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(centre), size=list(half), group=4)
+            _touch_site(mj, model, f, sensor, sensor, box)
+        foot_names.append(name)
     for s in [legs.base, *legs.thighs]:
         centre, half = _enclosing_box(model, s)
         site = f"contact_{_name(model, _BODY, s)}"
@@ -404,10 +428,9 @@ def _add_contact_sensors(mj: mujoco.MjSpec, model: mujoco.MjModel, legs: _Legs, 
     return foot_names
 
 
-def _touch_site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, sensor: str, shape: dict) -> None:
-    """A site `site` on `body` with a touch sensor `sensor` on it, in the copy: kept where the model has them (its
-    own site on that body, its own touch sensor on that site), else added (a site of `shape`: type, pos, size,
-    group); a site or sensor of that name that is something else is refused in one line."""
+def _site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, shape: dict) -> int:
+    """The id in `model` of the model's own site `site` on `body` (-1: added to the copy with `shape`: type, pos,
+    size, group); a site of that name on another body is refused in one line."""
     found = mujoco.mj_name2id(model, _SITE, site)
     if found >= 0 and model.site_bodyid[found] != body:
         raise ValueError(
@@ -416,14 +439,20 @@ def _touch_site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, 
         )
     if found < 0:
         mj.body(_name(model, _BODY, body)).add_site(name=site, **shape)
+    return found
+
+
+def _touch_site(mj: mujoco.MjSpec, model: mujoco.MjModel, body: int, site: str, sensor: str, shape: dict) -> None:
+    """A site `site` on `body` (`_site`) with a touch sensor `sensor` on it, in the copy: the model's own touch sensor
+    of that name on a site of that body is kept; a sensor of that name that is something else is refused."""
+    found = _site(mj, model, body, site, shape)
     touch = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor)
     if touch < 0:
         mj.add_sensor(name=sensor, type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=_SITE, objname=site)
     elif not (
-        found >= 0
-        and model.sensor_type[touch] == mujoco.mjtSensor.mjSENS_TOUCH
+        model.sensor_type[touch] == mujoco.mjtSensor.mjSENS_TOUCH
         and model.sensor_objtype[touch] == _SITE
-        and model.sensor_objid[touch] == found
+        and (model.sensor_objid[touch] == found or model.site_bodyid[model.sensor_objid[touch]] == body)
     ):
         raise ValueError(f"a sensor named {sensor!r} exists already, not a touch sensor on site {site!r}; rename it")
 
