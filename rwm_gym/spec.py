@@ -107,6 +107,8 @@ class RewardSpec:
     weights: dict[str, float]
     tracking_sigma: float
     feet_air_time_target: float
+    base_height_target: float = float("nan")
+    """m, the base height the `base_height` term pulls toward (a biped's; NaN where the spec gives none)."""
 
 
 @dataclass(frozen=True)
@@ -296,6 +298,18 @@ def _symmetry(table: dict | None, joints: tuple[str, ...], where: str) -> Symmet
     return SymmetrySpec(mirror, signs, groups)
 
 
+def _base_height_target(reward: dict, state: list[dict], where: str) -> float:
+    """`[reward] base_height_target` (m), required with a non-zero `base_height` weight, which also needs a
+    `base_height` state group; NaN where absent."""
+    if not reward.get("weights", {}).get("base_height"):
+        return float(reward.get("base_height_target", "nan"))
+    if "base_height_target" not in reward or not any(g.get("name") == "base_height" for g in state):
+        raise ValueError(
+            f"{where}: reward weight base_height needs [reward] base_height_target (m) and a state group 'base_height'"
+        )
+    return float(reward["base_height_target"])
+
+
 def parse_spec(text: str, where: str = "<spec>", model_dir: str | Path | None = None) -> TaskSpec:
     """Parse a spec from TOML text; `where` names its origin in error messages; `model_dir`: a folder the user vouches
     for, where `model` may lie besides the package's assets (the spec file's own folder; None for embedded specs)."""
@@ -367,6 +381,7 @@ def parse_spec(text: str, where: str = "<spec>", model_dir: str | Path | None = 
                 weights={k: float(v) for k, v in rew.get("weights", {}).items()},
                 tracking_sigma=float(rew["tracking_sigma"] if rew.get("weights") else "nan"),
                 feet_air_time_target=float(rew["feet_air_time_target"] if rew.get("weights") else "nan"),
+                base_height_target=_base_height_target(rew, raw["state"], where),
             ),
             reset=ResetSpec(**reset),
             symmetry=_symmetry(raw.get("symmetry"), joints, where),

@@ -122,7 +122,8 @@ class LocomotionCore:
         """
         actions = check_actions(actions, (self.num_envs, self.spec.action_dim))
         act = self.spec.actuator
-        ctrl = np.zeros((self.num_envs, self.model.nu))
+        # actuators the spec does not drive (a legs-only humanoid's arms) hold the keyframe's control
+        ctrl = np.repeat(self.model.key_ctrl[self.keyframe][None], self.num_envs, axis=0)
         ctrl[:, self.layout.actuator_ids] = np.asarray(act.default_pose) + act.action_scale * actions
         self.sim.step(ctrl, self.spec.substeps)
 

@@ -79,7 +79,7 @@ def reward_terms(
     standing = xp.linalg.norm(command, axis=1) < spec.command.standing_threshold
     thighs = np.flatnonzero(np.isin(spec.privileged.contact_bodies, spec.privileged.thighs)).tolist()
     joint_acc = (state[:, s["joint_vel"]] - prev_state[:, s["joint_vel"]]) / spec.policy_dt
-    return {
+    terms = {
         "track_lin_vel_xy": xp.exp(-xp.sum((command[:, :2] - lin_vel[:, :2]) ** 2, axis=1) / sigma),
         "track_ang_vel_z": xp.exp(-((command[:, 2] - ang_vel[:, 2]) ** 2) / sigma),
         "lin_vel_z": lin_vel[:, 2] ** 2,
@@ -92,12 +92,47 @@ def reward_terms(
         "stand_still": xp.sum(xp.abs(state[:, s["joint_pos"]]), axis=1) * standing,
         "flat_orientation": xp.sum(gravity[:, :2] ** 2, axis=1),
     }
+    return terms | biped_terms(spec, state, contact, moving, xp)
+
+
+BIPED_TERMS = ("base_height", "feet_slip", "single_stance")
+"""Terms computed only where the spec gives them a non-zero weight (a humanoid's; the quadrupeds' specs have none):
+
+- `base_height`: (base height - `[reward] base_height_target`)², m²; needs a `base_height` state group;
+- `feet_slip`: the base's squared horizontal speed (body frame) times the number of feet in contact, (m/s)²; a
+  foot's own velocity is not a privileged signal, so the base's stands in for it, as in MuJoCo Playground's humanoid
+  joystick tasks;
+- `single_stance`: 1 while exactly one foot touches the ground and the command asks for motion (a walking biped's
+  gait; a hop or a shuffle on both feet earns nothing).
+"""
+
+
+def biped_terms(spec: TaskSpec, state, contact, moving, xp: ModuleType = np) -> dict:
+    """The `BIPED_TERMS` with a non-zero weight in the spec, each (N,); arguments as `reward_terms`'s, `moving` (N,)
+    bool: the command asks for planar motion."""
+    weights = spec.reward.weights
+    wanted = [name for name in BIPED_TERMS if weights.get(name)]
+    if not wanted:
+        return {}
+    s = spec.state_slices
+    feet = np.flatnonzero(np.isin(spec.privileged.contact_bodies, spec.privileged.feet)).tolist()
+    on_ground = xp.sum(contact[:, feet] * 1.0, axis=1)
+    lin_vel = state[:, s["base_lin_vel"]]
+    out = {}
+    if "base_height" in wanted:
+        out["base_height"] = (state[:, s["base_height"]][:, 0] - spec.reward.base_height_target) ** 2
+    if "feet_slip" in wanted:
+        out["feet_slip"] = xp.sum(lin_vel[:, :2] ** 2, axis=1) * on_ground
+    if "single_stance" in wanted:
+        out["single_stance"] = ((on_ground == 1) & moving) * xp.ones_like(lin_vel[:, 0])
+    return out
 
 
 def total_reward(spec: TaskSpec, terms: dict[str, np.ndarray]) -> np.ndarray:
-    """Weighted sum of the terms times dt. (N,); numpy arrays or torch tensors alike."""
+    """Weighted sum of the terms times dt. (N,); numpy arrays or torch tensors alike. A biped term of weight 0 is
+    left out (`biped_terms` does not compute it)."""
     weights = spec.reward.weights
-    missing = set(weights) - set(terms)
+    missing = {name for name, w in weights.items() if name not in terms and (w or name not in BIPED_TERMS)}
     if missing:
         raise ValueError(f"task spec {spec.name}: reward weights for unknown terms {sorted(missing)}")
-    return sum(weights[name] * terms[name] for name in weights) * spec.policy_dt
+    return sum(weights[name] * terms[name] for name in weights if name in terms) * spec.policy_dt

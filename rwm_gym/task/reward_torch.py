@@ -6,8 +6,9 @@ those of `rwm_gym.task.reward`, run on tensors (`xp=torch`), so the two versions
 from the spec, as there.
 
 Gradients: every term is a smooth function of (state, prev_state, action, prev_action) except the contact terms
-(`thigh_contact`, `feet_air_time`), which depend on contact flags only, and `stand_still`'s |joint_pos| (subgradient
-sign(joint_pos)). Tensors are (N, ...) over envs; contacts are bool or 0/1 floats in the spec's contact-body order.
+(`thigh_contact`, `feet_air_time`, a biped's `single_stance`), which depend on contact flags only, and `stand_still`'s
+|joint_pos| (subgradient sign(joint_pos)). Tensors are (N, ...) over envs; contacts are bool or 0/1 floats in the
+spec's contact-body order.
 """
 
 from __future__ import annotations
