@@ -18,7 +18,8 @@ change, as in the MBPO loop). It is one MBPO data step, taken with policies that
 Writes OUT/own/part_<i>.h5 (one per policy and noise level), OUT/buffer.h5 (the base, then the parts),
 OUT/train.safetensors (the fine-tune with its optimizer state: the same command resumes it) and OUT/model.safetensors:
 the weights alone, naming the start model's reset data (found beside it or among the shipped checkpoints, as for the
-shipped model), with the physics rows behind it in `extras`. Torch's thread count changes the float sums, so the
+shipped model), with the physics rows behind its whole lineage in its provenance (`rwm_gym.model.lineage`; each
+source once) and their parts in `extras`. Torch's thread count changes the float sums, so the
 same `--threads` gives the same model.
 """
 
@@ -33,7 +34,9 @@ import torch
 
 from rwm_gym.data.collect import collect, finished_collection
 from rwm_gym.data.dataset import Dataset, DatasetError, merge_datasets
+from rwm_gym.data.lineage import total_rows
 from rwm_gym.model.checkpoint import load_checkpoint, read_meta, save_checkpoint
+from rwm_gym.model.lineage import checkpoint_lineage
 from rwm_gym.model.train import train
 from rwm_gym.resources import assets_dir
 
@@ -138,8 +141,9 @@ def main(argv: list[str] | None = None) -> Path:
 
     model, meta = load_checkpoint(fine_tune.path)
     rows = {
-        # the whole chain behind the start model where it was itself fine-tuned this way, else its training rows
-        "start_model": start.extras.get("physics_rows", {}).get("total") or start.provenance.get("dataset_steps"),
+        # the start model's whole lineage; the total is the lineage train() recorded: the start model's united with
+        # the buffer's sources, so a base the start model was trained on is not counted twice
+        "start_model": total_rows(checkpoint_lineage(start)) or None,
         "base": Dataset.load(args.base).num_steps,
         "own": sum(Dataset.load(part).num_steps for part in parts),
     }
@@ -148,7 +152,7 @@ def main(argv: list[str] | None = None) -> Path:
         "reset_data": start.extras.get("reset_data"),
         "made_by": f"python examples/make_coverage_model.py {command}",
         "policies": list(args.policies),
-        "physics_rows": {**rows, "total": sum(v or 0 for v in rows.values())},
+        "physics_rows": {**rows, "total": meta.provenance["physics_rows"]},
     }
     extras = {key: value for key, value in extras.items() if value is not None}
     out = save_checkpoint(

@@ -67,7 +67,8 @@ def main() -> int:
     import time
 
     from rwm_gym.cli import main as cli
-    from rwm_gym.resources import assets_dir
+    from rwm_gym.model.lineage import physics_rows, share_text
+    from rwm_gym.resources import assets_dir, shipped_file
     from rwm_gym.rl.score import record_walk, score
 
     policies = assets_dir() / "policies"
@@ -126,6 +127,8 @@ def main() -> int:
         f"(shipped: {policies / recipe['policy']})"
     )
     print(f"physics-trained teacher:  {score_text(teacher['score']['tracking'], teacher['score']['falls'], 54)}")
+    rows, _ = physics_rows(shipped_file(recipe["world_model"]["checkpoint"]))
+    print(f"physics samples behind the policy: {share_text(rows)}; the policy saw none, its world model's lineage")
     files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png")]
     if args.video:
         try:

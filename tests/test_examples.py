@@ -193,6 +193,8 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert len(lines) <= 20 and lines[-1].startswith("VERDICT: it does not walk yet")
     assert any(line.startswith("this policy, in physics:  tracking") for line in lines)
     assert any(line.startswith("standing still (floor):   tracking 0.23") for line in lines)
+    # the shipped model's whole lineage (docs/concepts/world-model.md), not its last fine-tune's dataset
+    assert "physics samples behind the policy: 2,496,757 (7.7 % of N_mf = 32.2 M" in run.stdout
     state = json.loads((out / "run" / "state.json").read_text())
     assert state["timesteps"] >= 64 and (out / "policy.zip").is_file()
     from rwm_gym.resources import assets_dir
@@ -477,7 +479,8 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
     )
     assert meta.provenance["init_checkpoint"] == str(start) and meta.stats["iterations"] == 4
     rows = meta.extras["physics_rows"]
-    assert rows["own"] == own_rows and rows["total"] == rows["start_model"] + rows["base"] + own_rows
+    assert rows["own"] == own_rows and rows["base"] == Dataset.load(base).num_steps
+    assert rows["total"] == rows["start_model"] + own_rows  # the base trained the start model: counted once
     assert not [k for k in load_file(model) if k.startswith(("optim/", "train/"))]
     assert any(k.startswith("optim/") for k in load_file(out / "train.safetensors"))  # the resumable one keeps them
 

@@ -47,16 +47,17 @@ from rwm_gym.rl.warm_start import CloneConfig
 
 def physics_samples(where: str, checkpoint: str | os.PathLike | None, trained_steps: int) -> tuple[int | None, str]:
     """Physics transitions the policy cost, and where that figure comes from (or why it is unknown): its own steps
-    in physics; in imagination, the rows of the world model's dataset."""
+    in physics; in imagination, the physics rows of the world model's whole lineage (its data and that of every
+    model it was fine-tuned from, each source once: `rwm_gym.model.lineage`)."""
     if where == "physics":
         return trained_steps, "the policy's own physics steps"
     if checkpoint is None:
         from rwm_gym.imagination.core import default_checkpoint
 
         checkpoint = default_checkpoint()
-    from rwm_gym.model.checkpoint import dataset_rows
+    from rwm_gym.model.lineage import physics_rows
 
-    return dataset_rows(checkpoint)
+    return physics_rows(checkpoint)
 
 
 def anneal_steps(config: PPOConfig, timesteps: int | None) -> float:
@@ -265,11 +266,11 @@ def _report(
         "kept": "ppo",  # which policy --out holds; --keep-best may hand back the clone
     }
     report["physics_samples"], report["physics_samples_source"] = physics_samples(args.where, args.checkpoint, steps)
+    from rwm_gym.model.lineage import n_mf, share_text
+
     samples = report["physics_samples"]
-    print(
-        f"physics samples behind the policy: {'?' if samples is None else f'{samples:,}'} "
-        f"({report['physics_samples_source']})"
-    )
+    report["fraction_of_n_mf"] = None if samples is None else samples / n_mf()
+    print(f"physics samples behind the policy: {share_text(samples)} ({report['physics_samples_source']})")
     return report
 
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from rwm_gym.atomic import atomic_write
 from rwm_gym.data.hdf5_guard import check_self_contained
+from rwm_gym.data.lineage import SOURCES_KEY, physics_sources, union
 from rwm_gym.spec import TaskSpec, parse_spec
 
 FORMAT_NAME = "rwm-gym-dataset"
@@ -486,8 +487,8 @@ def _common_fields(sets: list[Dataset]) -> tuple[list[str], list[str]]:
 
 
 def _merged_info(sets: list[Dataset], dropped: list[str]) -> DatasetInfo:
-    """The first dataset's info, with the policies joined, physics_params kept if all agree, and each source and the
-    dropped fields in the metadata."""
+    """The first dataset's info, with the policies joined, physics_params kept if all agree, and each source, the
+    union of their physics sources (`rwm_gym.data.lineage`) and the dropped fields in the metadata."""
     first = sets[0]
     policies = list(dict.fromkeys(d.info.policy for d in sets))
     same_physics = all(d.info.physics_params == first.info.physics_params for d in sets)
@@ -502,7 +503,8 @@ def _merged_info(sets: list[Dataset], dropped: list[str]) -> DatasetInfo:
         }
         for d in sets
     ]
-    metadata = {**first.info.metadata, "merged_from": sources}
+    lineage = union(*(physics_sources(d, s["sha256"]) for d, s in zip(sets, sources, strict=True)))
+    metadata = {**first.info.metadata, "merged_from": sources, SOURCES_KEY: lineage}
     if dropped:
         metadata["dropped_fields"] = dropped
     return replace(

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from rwm_gym.data.dataset import Dataset, DatasetInfo, write_dataset
+from rwm_gym.data.lineage import SOURCES_KEY, physics_sources
 
 
 @dataclass
@@ -122,12 +123,10 @@ def make_reset_data(
             ep["terminated"][-1], ep["truncated"][-1] = False, True
         return ep
 
-    info = DatasetInfo(
-        **{
-            **_info_fields(ds.info),
-            "metadata": {**ds.info.metadata, "reset_data_from": str(ds.path), "sha256": ds.file_hash()},
-        }
-    )
+    sha256 = ds.file_hash()
+    metadata = {**ds.info.metadata, "reset_data_from": str(ds.path), "sha256": sha256}
+    metadata[SOURCES_KEY] = physics_sources(ds, sha256)  # a cut holds rows of its source, no new ones
+    info = DatasetInfo(**{**_info_fields(ds.info), "metadata": metadata})
     write_dataset(out, info, (cut(i) for i in chosen))
     return Path(out)
 

@@ -29,12 +29,14 @@ from pathlib import Path
 import torch
 
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.data.lineage import physics_sources
 from rwm_gym.model import distributed
 from rwm_gym.model.base import WorldModel
 from rwm_gym.model.checkpoint import CheckpointError, load_checkpoint, load_training_state, save_checkpoint
 from rwm_gym.model.config import ModelConfig, TrainConfig, config_difference
 from rwm_gym.model.factory import build_model
 from rwm_gym.model.heads import StateHead
+from rwm_gym.model.lineage import lineage_provenance
 from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
 from rwm_gym.model.windows import Window, WindowData
@@ -312,6 +314,8 @@ class _Run:
             "train_windows": len(self.train_starts[config.forecasts[-1]]),
             "termination_pos_weight": pos_weight,
         }
+        self.data_sources = physics_sources(dataset, self.provenance["sha256"])
+        self.provenance.update(lineage_provenance(self.data_sources))
         self.stats: dict = {"iterations": 0, "wall_s": 0.0, "train_loss": None, "val_error": None, "log": []}
         self.started = 0.0
         self.iteration, self.running, self.parts_sum = 0, 0.0, {}
@@ -320,11 +324,12 @@ class _Run:
     def start_from(self, init: str | os.PathLike) -> None:
         """The weights of checkpoint `init` (same model config and task); with `reset_std_band`, its heads' log-std
         band reset."""
-        loaded, _ = load_checkpoint(init, device=self.device, expect_spec=self.spec)
+        loaded, meta = load_checkpoint(init, device=self.device, expect_spec=self.spec)
         if difference := config_difference(loaded.config, self.model_config):
             raise CheckpointError(f"{init}: cannot start from a model with another config ({difference})")
         self.model.load_state_dict(loaded.state_dict())
         self.provenance["init_checkpoint"] = str(init)
+        self.provenance.update(lineage_provenance(self.data_sources, meta))  # its lineage's rows, and this data's
         if self.config.reset_std_band:
             for head in self.model.modules():
                 if isinstance(head, StateHead):
