@@ -61,7 +61,7 @@ class ActuatorSpec:
 
     def per_joint(self, name: str) -> np.ndarray:
         """(A,) the figure `name` ("kp", "kd", "effort_limit", "velocity_limit") of each joint."""
-        return np.broadcast_to(np.asarray(getattr(self, name), dtype=np.float64), (len(self.joints),))
+        return np.broadcast_to(np.asarray(getattr(self, name), dtype=np.float64), (len(self.joints),)).copy()
 
 
 def _figure(act: dict, key: str, default: float, n: int, where: str) -> PerJointFigure:
