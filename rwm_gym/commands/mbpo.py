@@ -13,9 +13,6 @@ from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import (
     add_dataclass_options,
     dataclass_from_args,
-    non_negative_float,
-    non_negative_int,
-    positive_int,
 )
 from rwm_gym.output_guard import OutputError, check_folder, claim, resolved
 from rwm_gym.rl.mbpo import MBPOConfig, mbpo
@@ -71,32 +68,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `rwm-gym mbpo`: the run's files, then one flag per `MBPOConfig` and `ImaginationOptions` field."""
     for group in (RunOptions, OverwriteOption, TensorBoardOption, TorchOptions):
         add_group(parser, group)
-    counts = (
-        "iterations",
-        "ppo_timesteps",
-        "num_envs",
-        "collect_episodes",
-        "collect_steps",
-        "model_iterations",
-        "eval_seeds",
-    )
-    add_dataclass_options(
-        parser,
-        MBPOConfig,
-        skip={"imagination"},
-        types={
-            "action_noise": non_negative_float,
-            "eval_steps": positive_int,
-            "base_episodes": non_negative_int,
-            "critic_warmup_steps": non_negative_int,
-            **dict.fromkeys(counts, positive_int),
-        },
-    )
+    add_dataclass_options(parser, MBPOConfig, skip={"imagination"})
     add_imagination_options(
         parser,
         defaults=MBPOConfig().imagination,
         aliases={"episode_steps": ["--imagined-episode-steps"]},
-        types={"episode_steps": positive_int},
     )
 
 

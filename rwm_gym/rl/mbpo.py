@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from rwm_gym.atomic import save_png
 from rwm_gym.imagination.options import ImaginationOptions
+from rwm_gym.options import check_ranges, option
 from rwm_gym.spec import TaskSpec
 
 TRACKING_TARGET = 0.80
@@ -50,43 +51,46 @@ RESUME_MAY_CHANGE = ("iterations",)
 class MBPOConfig:
     """Budget of one MBPO-PPO run (PPO's own settings are `PPOConfig`)."""
 
-    iterations: int = 4
+    iterations: int = option(4, ge=1)
     """Loop iterations."""
-    ppo_timesteps: int = 300_000
+    ppo_timesteps: int = option(300_000, ge=1)
     """Imagined steps of PPO per iteration."""
-    num_envs: int = 512
+    num_envs: int = option(512, ge=1)
     """Imagined envs."""
     positive_reward_only: bool = False
     """PPO sees each imagined step's reward clipped at 0 from below (`PPOConfig.positive_reward_only`); also for an
     `init_policy`, whose zip does not carry it."""
-    log_std_init: float = 0.0
+    log_std_init: float = option(0.0, finite=True)
     """Initial log std of a fresh policy (`PPOConfig.log_std_init`; an `init_policy` keeps its own)."""
-    collect_episodes: int = 32
+    collect_episodes: int = option(32, ge=1)
     """Physics episodes collected per iteration."""
-    collect_steps: int = 250
+    collect_steps: int = option(250, ge=1)
     """Cap on a collected episode's length (policy steps)."""
-    action_noise: float | None = None
+    action_noise: float | None = option(None, ge=0)
     """Gaussian std added to the policy's actions while collecting (default: a third of the episodes each at 0, half
     and all of the policy's own mean std: the states of the deterministic policy the score judges and of the exploring
     one PPO runs in imagination)."""
-    base_episodes: int = 0
+    base_episodes: int = option(0, ge=0)
     """Episodes of the starting data kept in the buffer beside the fresh ones (0: all of it)."""
-    model_iterations: int = 1000
+    model_iterations: int = option(1000, ge=1)
     """World-model gradient steps per retraining."""
     model_finetune: bool = False
     """Fine-tune the current world model on the buffer instead of retraining it from scratch."""
-    model_lr: float = 1e-3
+    model_lr: float = option(1e-3, gt=0)
     """Adam learning rate of the world-model (re)training (lower it for fine-tuning, e.g. 3e-4)."""
-    critic_warmup_steps: int = 0
+    critic_warmup_steps: int = option(0, ge=0)
     """Imagined steps that train only the critic of `init_policy` before the first PPO iteration."""
-    eval_seeds: int = 3
+    eval_seeds: int = option(3, ge=1)
     """Physics evaluation episodes per command (3 with full episodes: the tracking score)."""
-    eval_steps: int | None = None
+    eval_steps: int | None = option(None, ge=1)
     """Policy steps per physics evaluation episode (None: the task's episode)."""
     seed: int = 0
     """Seeds PPO, collection and model training (each iteration offsets it)."""
     imagination: ImaginationOptions = field(default_factory=lambda: ImaginationOptions(episode_steps=250))
     """How PPO's imagined episodes run (their time limit: 250 policy steps; PPO bootstraps at the limit)."""
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
     def to_dict(self) -> dict:
         """The config as JSON-ready data (`imagination` a nested dict), as `mbpo.json` stores it."""
