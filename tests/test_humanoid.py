@@ -101,6 +101,8 @@ def test_a_humanoid_gets_its_two_feet_the_keyframe_it_names_and_its_servos(tmp_p
     spec = load_spec(out)
     assert spec.privileged.feet == ("l_toe", "r_toe")  # the lowest round end of each sole names the foot
     assert spec.privileged.thighs == ("l_shin", "r_shin")
+    assert spec.reward.weights == load_spec("g1").reward.weights and spec.reward.base_height_target == 0.493
+    assert "base_height" in spec.state_slices  # the biped terms read it
     assert spec.keyframe == "stand" and spec.actuator.default_pose == (0.0,) * 8
     assert spec.actuator.per_joint("kp").tolist() == [60, 60, 15, 60] * 2
     assert spec.actuator.per_joint("effort_limit").tolist() == [30, 30, 12, 30] * 2

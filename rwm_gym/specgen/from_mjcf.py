@@ -44,10 +44,10 @@ from rwm_gym.specgen.mjcf_feet import (
     sole_box,
     standing_feet,
 )
+from rwm_gym.specgen.mjcf_servos import GRAVITY, Servo, gains
 from rwm_gym.specgen.toml_text import significant
 
 _BODY, _GEOM, _SITE = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE
-GRAVITY = 9.81  # m/s²
 
 
 def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, i: int) -> str:
@@ -92,78 +92,6 @@ def _enclosing_box(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.nda
     low = np.min([model.geom_pos[g] - model.geom_rbound[g] for g in geoms], axis=0)
     high = np.max([model.geom_pos[g] + model.geom_rbound[g] for g in geoms], axis=0)
     return (low + high) / 2, 1.1 * (high - low) / 2
-
-
-@dataclass(frozen=True)
-class _Servo:
-    """Each joint's PD gains and torque limit (N·m/rad, N·m·s/rad, N·m), in joint order."""
-
-    kp: list[float]
-    kd: list[float]
-    limit: list[float]
-
-    @staticmethod
-    def figure(values: list[float]) -> float | list[float]:
-        """One number where every joint has it, else the list: how the spec writes a per-joint figure."""
-        return values[0] if len(set(values)) == 1 else values
-
-
-def _joint_actuator_figures(model: mujoco.MjModel, a: int) -> tuple[float | None, float | None, float | None]:
-    """(kp, kd, torque limit) of actuator `a` on a joint where the file gives them, else None each."""
-    gear = abs(float(model.actuator_gear[a, 0]))
-    kp = kd = limit = None
-    if int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_AFFINE) and model.actuator_gainprm[a, 0] > 0:
-        kp = float(model.actuator_gainprm[a, 0]) * gear
-        kd = max(-float(model.actuator_biasprm[a, 2]) * gear, 0.0)
-    if model.actuator_forcelimited[a]:
-        limit = float(np.abs(model.actuator_forcerange[a]).max()) * gear
-    elif model.actuator_ctrllimited[a] and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE):
-        limit = float(np.abs(model.actuator_ctrlrange[a]).max()) * gear * float(model.actuator_gainprm[a, 0])
-    return kp, kd, limit
-
-
-def _gains(
-    model: mujoco.MjModel, joints: list[int], mass: float, height: float, n_feet: int, notes: list[str]
-) -> _Servo:
-    """Each joint's kp, kd and effort limit: from the file's actuators (position servos' kp and kv, force ranges, a
-    motor's control range times its gain) and joints (`actuatorfrcrange`) where it has them, else from weight."""
-    found = {j: (None, None, None) for j in joints}
-    for a in range(model.nu):
-        j = int(model.actuator_trnid[a, 0])
-        if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT) and j in found:
-            found[j] = _joint_actuator_figures(model, a)
-    for j in joints:  # a joint's own actuator force range binds whatever drives it
-        if model.jnt_actfrclimited[j]:
-            joint_limit = float(np.abs(model.jnt_actfrcrange[j]).max())
-            kp, kd, limit = found[j]
-            found[j] = (kp, kd, joint_limit if limit is None else min(limit, joint_limit))
-    kps = [found[j][0] for j in joints]
-    if all(kp is not None for kp in kps):
-        kp = [significant(v) for v in kps]
-        kd = [significant(found[j][1]) for j in joints]
-        notes.append(f"kp {_span(kp)} N·m/rad, kd {_span(kd)} N·m·s/rad from the file's position servos")
-    else:
-        weight_kp = significant(2.0 * mass * GRAVITY * height / n_feet)
-        kp, kd = [weight_kp] * len(joints), [significant(weight_kp / 10.0)] * len(joints)
-        # kd = kp / 40 (ANYmal D's ratio) leaves light legs chattering on the floor
-        notes.append(
-            f"kp = 2 x weight x standing height / feet = {weight_kp} N·m/rad, kd = kp x 0.1 s = {kd[0]} N·m·s/rad "
-            f"(no position servo on every joint in the file)"
-        )
-    limits = [found[j][2] for j in joints]
-    if all(v is not None for v in limits):
-        limit = [significant(v) for v in limits]
-        notes.append(f"effort limits {_span(limit)} N·m per joint from the file's actuator and joint force ranges")
-    else:
-        limit = [significant(k * 1.0) if v is None else significant(v) for k, v in zip(kp, limits)]
-        notes.append(f"effort limit = kp x 1 rad where the file gives no force range: {_span(limit)} N·m")
-    return _Servo(kp, kd, limit)
-
-
-def _span(values: list[float]) -> str:
-    """ "25" for equal values, "23.7 to 45.43" for a spread."""
-    low, high = min(values), max(values)
-    return f"{low:g}" if low == high else f"{low:g} to {high:g}"
 
 
 def _task_name(name: str | None, model_name: str) -> str:
@@ -219,7 +147,7 @@ def legged_draft(
     notes: list[str] = []
     legs, pose = _find_pose(mj, model, _find_legs(model, base, feet, notes), keyframe, bool(feet), notes)
     mass = float(model.body_subtreemass[legs.base])
-    servo = _gains(model, legs.joint_ids, mass, pose.height, len(legs.feet), notes)
+    servo = gains(model, legs.joint_ids, mass, pose.height, len(legs.feet), notes)
     _add_floor_camera_and_servos(mj, model, legs, pose, servo, notes)
     foot_names = _add_contact_sensors(mj, model, legs, pose)
     own = _compile_copy(mj, path)
@@ -232,6 +160,8 @@ def legged_draft(
     dt, policy_dt, speed = _timing(model, pose.height, notes)
     task_name = _task_name(name, mj.modelname)
     tables = _tables(task_name, legs, pose, servo, foot_names, dt, policy_dt, speed)
+    if len(foot_names) == 2:
+        _biped(tables, pose.height, notes)
     robot_line = (
         f"Robot: {mass:.3g} kg, {len(legs.joints)} joints, {len(foot_names)} feet, base {legs.base_name!r} "
         f"standing at {pose.height:.3f} m. Units: SI (m, s, rad, N, N·m, kg)."
@@ -368,7 +298,7 @@ def _add_floor_camera_and_servos(
     model: mujoco.MjModel,
     legs: _Legs,
     pose: _Pose,
-    servo: _Servo,
+    servo: Servo,
     notes: list[str],
 ) -> None:
     """Into the copy: a floor plane and a "track" camera where missing, a position servo named after each joint (in
@@ -487,7 +417,7 @@ def _tables(
     task_name: str,
     legs: _Legs,
     pose: _Pose,
-    servo: _Servo,
+    servo: Servo,
     foot_names: list[str],
     dt: float,
     policy_dt: float,
@@ -593,3 +523,21 @@ def _tables(
         Table("reward.weights", dict(a.reward.weights)),
     ]
     return tables
+
+
+def _biped(tables: list[Table], height: float, notes: list[str]) -> None:
+    """A two-footed robot's reward: the weights and air-time target of the shipped biped (`envs/g1.toml`), its own
+    standing height as the base-height target, and a `base_height` state group for the term to read."""
+    g1 = load_spec("g1")
+    reward = next(t for t in tables if t.name == "reward")
+    reward.values["feet_air_time_target"] = g1.reward.feet_air_time_target
+    reward.values["base_height_target"] = significant(height)
+    next(t for t in tables if t.name == "reward.weights").values = dict(g1.reward.weights)
+    gravity = next(i for i, t in enumerate(tables) if t.name == "state" and t.values["name"] == "projected_gravity")
+    group = {"name": "base_height", "columns": ["z"], "unit": "m", "mean": [0.0], "std": [1.0]}
+    tables.insert(gravity + 1, Table("state", group, array=True))
+    notes.append(
+        f"two feet: the reward of envs/g1.toml (its biped terms base_height, feet_slip and single_stance; air-time "
+        f"target {g1.reward.feet_air_time_target} s), the base-height target the standing {height:.3f} m, and a "
+        f"base_height state group"
+    )
