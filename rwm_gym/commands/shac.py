@@ -26,7 +26,7 @@ from rwm_gym.commands._options import (
     add_group,
 )
 from rwm_gym.imagination.options import ImaginationOptions
-from rwm_gym.options import add_dataclass_options, dataclass_from_args
+from rwm_gym.options import add_dataclass_options, dataclass_from_args, option
 from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
 
 IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first_episode_length", "divergence_bound")
@@ -37,9 +37,9 @@ IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first
 class RunOptions:
     """The run's budget and what it writes (its folder: `RunFolderOptions`)."""
 
-    timesteps: int
+    timesteps: int = option(ge=1)
     """the run's budget in imagined env steps"""
-    minutes: float | None = None
+    minutes: float | None = option(None, gt=0)
     """stop this process after this wall time (default: none, the --timesteps budget alone)"""
     seed: int = 0
     out: Path = Path("policy.zip")
@@ -128,8 +128,6 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.timesteps < 1 or (args.minutes is not None and args.minutes <= 0):
-        raise SystemExit("rwm-gym shac: --timesteps and --minutes must be positive")
     config = dataclass_from_args(SHACConfig, args)
     options = imagination_from_args(args)
     try:

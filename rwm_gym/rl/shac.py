@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from rwm_gym.imagination.core import ImaginedCore, tilt_degrees
+from rwm_gym.options import check_ranges, option
 from rwm_gym.task.commands import resample_period, sample_commands
 from rwm_gym.task.observation import observation_parts
 from rwm_gym.task.reward_torch import FeetAirTime, velocity_tracking_reward
@@ -32,42 +33,38 @@ from rwm_gym.task.reward_torch import FeetAirTime, velocity_tracking_reward
 class SHACConfig:
     """SHAC's settings (`rwm-gym shac` generates its flags from these fields)."""
 
-    num_envs: int = 1024
+    num_envs: int = option(1024, ge=1)
     """Imagined robots stepped together; one update sees num_envs x horizon steps."""
-    horizon: int = 16
+    horizon: int = option(16, ge=1)
     """Imagined steps the actor's gradient flows back through (0.32 s at 50 Hz)."""
-    actor_lr: float = 1e-3
+    actor_lr: float = option(1e-3, gt=0)
     """Adam learning rate of the actor."""
-    critic_lr: float = 1e-3
+    critic_lr: float = option(1e-3, gt=0)
     """Adam learning rate of the critic."""
-    gamma: float = 0.99
+    gamma: float = option(0.99, ge=0, le=1)
     """Discount per policy step."""
-    gae_lambda: float = 0.95
+    gae_lambda: float = option(0.95, ge=0, le=1)
     """lambda of the critic's TD(lambda) targets."""
-    critic_iterations: int = 8
+    critic_iterations: int = option(8, ge=1)
     """Passes of the critic over each rollout."""
-    critic_minibatches: int = 4
+    critic_minibatches: int = option(4, ge=1)
     """Minibatches per critic pass."""
-    target_critic_alpha: float = 0.2
+    target_critic_alpha: float = option(0.2, ge=0, lt=1)
     """Share of the old weights the target critic keeps at each update (0: it is the critic)."""
-    max_grad_norm: float = 1.0
+    max_grad_norm: float = option(1.0, gt=0)
     """Global gradient-norm clip of the actor and of the critic."""
-    net_arch: tuple[int, ...] = (128, 128, 128)
+    net_arch: tuple[int, ...] = option((128, 128, 128), ge=1)
     """Hidden layers of the actor and of the (separate) critic."""
     activation: str = "elu"
     """Activation of both MLPs: elu, tanh or relu."""
-    log_std_init: float = -1.0
+    log_std_init: float = option(-1.0, finite=True)
     """Log std of the Gaussian exploration noise the rollouts sample actions with (the reparameterised sample keeps
     the gradient); it is learned with the actor."""
     positive_reward_only: bool = True
     """Clip each step's reward at 0 from below, as the PPO recipe does (no gradient through the clipped steps)."""
 
     def __post_init__(self) -> None:
-        for name in ("num_envs", "horizon", "critic_iterations", "critic_minibatches"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"SHACConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 <= self.target_critic_alpha < 1.0:
-            raise ValueError(f"SHACConfig.target_critic_alpha {self.target_critic_alpha} is not in [0, 1)")
+        check_ranges(self)
 
     def ppo_config(self):
         """The `PPOConfig` whose policy layout this learner trains (what `make_ppo` builds and saves)."""
