@@ -31,29 +31,29 @@ class ModelConfig:
     """C, number of contact flags (0: no contact head)."""
     foot_dim: int = 0
     """F, number of foot heights (0: no foot-height head)."""
-    hidden_size: int = 256
+    hidden_size: int = option(256, ge=1)
     """Width of the recurrent cores (GRU units) and of the MLP baseline's layers."""
-    num_layers: int = 2
+    num_layers: int = option(2, ge=1)
     """Stacked GRU layers (RWM, RSSM) or hidden layers (MLP)."""
-    head_hidden: int = 128
+    head_hidden: int = option(128, ge=1)
     """Width of the one hidden layer of every prediction head."""
-    ensemble_size: int = 1
+    ensemble_size: int = option(1, ge=1)
     """k state heads; their disagreement is the epistemic uncertainty (RWM-U uses 5)."""
-    log_std_min_init: float = -5.0
+    log_std_min_init: float = option(-5.0, finite=True)
     """Initial learned lower bound of the predicted log-std (normalised units)."""
-    log_std_max_init: float = 0.5
+    log_std_max_init: float = option(0.5, finite=True)
     """Initial learned upper bound of the predicted log-std (normalised units)."""
-    mlp_history: int = 4
+    mlp_history: int = option(4, ge=1)
     """Number of past (state, action) pairs the MLP baseline stacks as its input."""
-    rssm_latent: int = 32
+    rssm_latent: int = option(32, ge=1)
     """Size of the RSSM stochastic Gaussian latent."""
-    transformer_context: int = 32
+    transformer_context: int = option(32, ge=1)
     """Tokens (past (state, action) pairs) the causal Transformer attends to."""
-    transformer_dim: int = 128
+    transformer_dim: int = option(128, ge=1)
     """Token width of the Transformer."""
-    transformer_heads: int = 4
+    transformer_heads: int = option(4, ge=1)
     """Attention heads of the Transformer."""
-    transformer_layers: int = 2
+    transformer_layers: int = option(2, ge=1)
     """Encoder layers of the Transformer."""
     unit_gravity: bool = False
     """Renormalise the predicted projected gravity to a unit vector (physical units) when the spec has that group."""
@@ -63,6 +63,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
             raise ValueError(f"model kind {self.kind!r} unknown (choose from {', '.join(MODEL_KINDS)})")
+        check_ranges(self, "{field}")
         if min(self.state_dim, self.action_dim) < 1 or min(self.contact_dim, self.foot_dim) < 0:
             raise ValueError(
                 f"model sizes must be positive: state {self.state_dim}, action {self.action_dim}, "
