@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("rwm-gym score: --trust-entry-points applies to --checkpoint (a world model's spec)")
     inputs = [None if args.policy in SCRIPTED else args.policy, args.checkpoint, args.reset_data]
     try:
-        check_output(args.out, inputs=inputs, overwrite=True, folder=True)
+        check_output(args.out, overwrite=True, folder=True)  # a folder (its files are checked one by one below)
         for name in ("score.md", "score.png", *(("walk.gif", "walk.png") if args.video else ())):
             check_output(args.out / name, inputs=inputs, overwrite=args.overwrite)
         report = check_output(args.out / "score.json", inputs=inputs, overwrite=args.overwrite)
