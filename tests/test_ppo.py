@@ -209,7 +209,10 @@ def test_mbpo_loop_fine_tunes_counts_samples_and_resumes_to_the_same_numbers(tin
     assert log[0]["model_error_fresh"] is None and all(row["model_error_fresh"] for row in log[1:])
     rows = [row["physics_samples"] for row in log]
     fresh = [Dataset.load(tmp_path / "mbpo" / f"data_{k}.h5").num_steps for k in (1, 2)]
-    assert rows == [Dataset.load(data).num_steps, rows[0] + fresh[0], rows[0] + fresh[0] + fresh[1]]
+    behind_model = read_meta(tiny_checkpoint).provenance["physics_rows"]  # the starting model's own data counts too
+    assert rows == [behind_model + Dataset.load(data).num_steps, rows[0] + fresh[0], rows[0] + fresh[0] + fresh[1]]
+    model_1 = read_meta(tmp_path / "mbpo" / "model_1.safetensors").provenance["physics_rows"]
+    assert model_1 == rows[1]  # the fine-tuned model's lineage: its start's, the buffer's base and the fresh rows
     assert Dataset.load(tmp_path / "mbpo" / "buffer.h5").num_episodes == 3 + 2 + 2  # base + both collections
     assert report["best_tracking"] == max(row["tracking"] for row in log)
     assert report["ppo"] == {"init_policy": str(tmp_path / "start.zip")}  # settings from the zip, not defaults
@@ -359,10 +362,10 @@ def test_mbpo_options_come_from_its_config_fields():
     )
     assert (args.model_finetune, args.iterations, args.model_lr) == (True, 2, 3e-4)
     assert parser.parse_args(["--data", "d", "--out", "o", "--no-model-finetune"]).model_finetune is False
-    defaults = parser.parse_args(["--data", "d", "--out", "o"])
-    assert defaults.model_finetune is False and defaults.ppo_timesteps == mbpo.MBPOConfig.ppo_timesteps
+    defaults = mbpo.config_from(parser.parse_args(["--data", "d", "--out", "o"]), {})  # flags left out: None
+    assert defaults == mbpo.MBPOConfig() and not defaults.model_finetune
     assert "Fine-tune the current world model" in parser.format_help()
-    assert defaults.episode_steps == 250  # the loop's own default time limit, under its old flag name too
+    assert defaults.imagination.episode_steps == 250  # the loop's own default time limit, under its old flag name too
     assert parser.parse_args(["--data", "d", "--out", "o", "--imagined-episode-steps", "50"]).episode_steps == 50
 
 

@@ -17,9 +17,11 @@ def add_imagination_options(
     defaults: ImaginationOptions | None = None,
     aliases: Mapping[str, Sequence[str]] | None = None,
     types: Mapping[str, Callable[[str], object]] | None = None,
+    defaults_none: bool = False,
 ) -> None:
     """One flag per `ImaginationOptions` field but those in `skip`, in an "imagination" group of `parser`;
-    `defaults`: the command's own default options (default `ImaginationOptions()`)."""
+    `defaults`: the command's own default options (default `ImaginationOptions()`); `defaults_none`: every flag
+    defaults to None, so the flags given can be told from those left out (a recipe's values stand for the others)."""
     group = parser.add_argument_group("imagination", "how imagined episodes run (rwm_gym.ImaginationOptions)")
     add_dataclass_options(
         group,
@@ -28,6 +30,7 @@ def add_imagination_options(
         defaults=defaults,
         aliases=aliases,
         types=types,
+        defaults_none=defaults_none,
         choices={"matmul_precision": MATMUL_PRECISION_NAMES},
     )
 

@@ -20,16 +20,17 @@ import json
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
-from rwm_gym.atomic import save_png
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import check_ranges, option
+from rwm_gym.rl.mbpo_curve import TRACKING_TARGET, plot_curve, read_curve  # noqa: F401  (their home before)
 from rwm_gym.spec import TaskSpec
 
-TRACKING_TARGET = 0.80
-"""The tracking score the paper's comparison asks MBPO-PPO to reach (drawn as a dashed line)."""
+if TYPE_CHECKING:
+    from rwm_gym.model.config import TrainConfig
 
 TENSORBOARD_FIELDS = (
     "tracking",
@@ -122,11 +123,15 @@ def mbpo(
     model_free_curve: str | Path | None = None,
     progress: bool = True,
     tensorboard: str | Path | None = None,
+    start_train: TrainConfig | None = None,
+    start_model: dict | None = None,
 ) -> dict:
     """Run (or resume) the loop from the dataset `data` in the folder `out`; returns the report (`out/mbpo.json`).
 
     checkpoint: the world model to start from (default: trained on `data` first, with `model_iterations` steps;
-    five ensemble heads when the uncertainty penalty or halt is on, else one).
+    five ensemble heads when the uncertainty penalty or halt is on, else one). start_train: the `TrainConfig` of that
+    first training instead (its own iterations, batch and lr; the loop's seed and device); start_model: fields of its
+    `ModelConfig` (e.g. `unit_gravity`) on top of the kind's defaults.
     init_policy: an SB3 PPO zip to start from (its saved PPO settings are kept); default a fresh `PPOConfig` policy.
     model_free_curve: a CSV with `timesteps` and `tracking` columns (a model-free PPO run's physics curve, e.g.
     `benchmarks/ppo_curve.py`'s) drawn beside the loop's in `mbpo.png`.
@@ -147,6 +152,7 @@ def mbpo(
         _check_resume(report, config, report_path)
     starting = Dataset.load(data)
     loop = _Loop(out, config, device, progress, model_free, tensorboard, starting.spec())
+    loop.start_train, loop.start_model = start_train, dict(start_model or {})
     started = time.monotonic()
     if not loop.base.exists():  # a file of the starting data: the buffer's fixed part and the first reset histories
         keep = config.base_episodes or starting.num_episodes
@@ -186,6 +192,7 @@ class _Loop:
         self.spec = spec
         """The task the data come from, and the policies are judged on."""
         self.model_config = None
+        self.start_train, self.start_model = None, {}
         self.ppo_config = PPOConfig(
             num_envs=config.num_envs, log_std_init=config.log_std_init, positive_reward_only=config.positive_reward_only
         )
@@ -213,7 +220,8 @@ class _Loop:
         return PositiveReward(env) if self.config.positive_reward_only else env
 
     def retrain(self, buffer: Path, k: int, previous: Path | None) -> Path:
-        """Model k trained on `buffer` (fine-tuned from `previous` with `model_finetune`)."""
+        """Model k trained on `buffer` (fine-tuned from `previous` with `model_finetune`); the starting model (k=0,
+        no `previous`) with `start_train`'s budget and rate where given."""
         from rwm_gym.model.checkpoint import read_meta
         from rwm_gym.model.config import TrainConfig
         from rwm_gym.model.train import train
@@ -230,6 +238,8 @@ class _Loop:
             val_every=max(1, config.model_iterations // 4),
             checkpoint_every=config.model_iterations,
         )
+        if previous is None and self.start_train is not None:
+            train_config = replace(self.start_train, seed=config.seed, device=self.device)
         init = previous if config.model_finetune else None
         return train(
             buffer,
@@ -252,7 +262,9 @@ class _Loop:
         config = self.config
         if checkpoint is None:  # RWM-U's five heads where a penalty or halt reads their disagreement
             uncertain = config.imagination.acts_on_disagreement
-            self.model_config = model_config_for(model_kind, starting.spec(), ensemble_size=5 if uncertain else 1)
+            self.model_config = model_config_for(
+                model_kind, starting.spec(), **{"ensemble_size": 5 if uncertain else 1, **self.start_model}
+            )
             self.retrain(self.base if config.base_episodes else Path(data), 0, None)
         else:
             self.model_config = read_meta(checkpoint).model_config
@@ -270,6 +282,7 @@ class _Loop:
             "config": config.to_dict(),
             "data": str(data),
             "start_checkpoint": None if checkpoint is None else str(checkpoint),
+            "start_train": None if checkpoint is not None or self.start_train is None else self.start_train.to_dict(),
             "ppo": self.ppo_config.to_dict() if init_policy is None else {"init_policy": str(init_policy)},
             "log": [
                 {
@@ -278,7 +291,7 @@ class _Loop:
                     "imagined_step_reward": None,
                     **_physics(evaluation),
                     "model_error_fresh": None,
-                    "physics_samples": int(starting.num_steps),
+                    "physics_samples": _starting_rows(starting, self.model_path(0)),
                     "learning_rate": policy.learning_rate,
                     "wall_s": time.monotonic() - started,
                 }
@@ -293,6 +306,7 @@ class _Loop:
         """Iteration k (PPO in imagination, physics score, collection, model error, retraining), logged in `report`."""
         from rwm_gym.data.dataset import Dataset, is_merge_of, merge_datasets
         from rwm_gym.model.evaluate import EvalConfig, evaluate_checkpoint
+        from rwm_gym.model.lineage import share_text
         from rwm_gym.rl.evaluate_policy import evaluate_policy, format_table
         from rwm_gym.rl.ppo import learn, load_ppo, save_policy, update_callbacks
         from rwm_gym.rl.tensorboard import tensorboard_callbacks
@@ -356,7 +370,7 @@ class _Loop:
         self.log_row(row)
         tqdm.write(
             f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
-            f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {row['physics_samples']:,}, "
+            f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {share_text(row['physics_samples'])}, "
             f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}"
         )
         tqdm.write(format_table(evaluation))
@@ -381,6 +395,16 @@ class _Loop:
         report["best_iteration"], report["best_tracking"] = best["iteration"], best["tracking"]
         write_json(self.out / "mbpo.json", report)
         plot_curve(log, self.out / "mbpo.png", self.model_free)
+
+
+def _starting_rows(starting, model: Path) -> int:
+    """Physics rows behind iteration 0: the starting model's whole lineage united with the starting data's sources
+    (a model trained on that data counts it once; a model trained on other data adds its own)."""
+    from rwm_gym.data.lineage import physics_sources, total_rows, union
+    from rwm_gym.model.checkpoint import read_meta
+    from rwm_gym.model.lineage import checkpoint_lineage
+
+    return total_rows(union(checkpoint_lineage(read_meta(model)), physics_sources(starting)))
 
 
 def _collect(
@@ -432,17 +456,6 @@ def _flat(config: dict) -> dict:
     return {**{k: v for k, v in config.items() if k != "imagination"}, **config.get("imagination", {})}
 
 
-def read_curve(path: str | Path) -> list[tuple[int, float]]:
-    """(timesteps, tracking) rows of a physics-tracking curve CSV."""
-    import csv
-
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows or not {"timesteps", "tracking"} <= set(rows[0]):
-        raise ValueError(f"{path}: a curve CSV needs 'timesteps' and 'tracking' columns")
-    return [(int(float(r["timesteps"])), float(r["tracking"])) for r in rows]
-
-
 def _physics(evaluation) -> dict:
     """The log fields of a physics evaluation (`rwm_gym.rl.evaluate_policy.Evaluation`)."""
     return {
@@ -452,46 +465,3 @@ def _physics(evaluation) -> dict:
         "yaw_rate_error": evaluation.yaw_rate_error,
         "falls": evaluation.falls,
     }
-
-
-def plot_curve(log: list[dict], path: Path, model_free: list[tuple[int, float]] | None = None) -> None:
-    """Physics tracking against physics samples (beside model-free PPO's curve, if given) and against imagined steps
-    (wall-clock minutes marked), and the fresh-data model error per iteration; written atomically."""
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(16, 3.8))
-    tracking = [r["tracking"] for r in log]
-    axes[0].plot([r["physics_samples"] / 1e6 for r in log], tracking, "o-", label="MBPO-PPO")
-    if model_free:
-        axes[0].plot([s / 1e6 for s, _ in model_free], [t for _, t in model_free], "-", label="model-free PPO")
-    axes[0].set_xlabel("physics samples (M)")
-    axes[0].set_title("physics tracking score")
-    axes[0].legend()
-    imagined = [r["imagined_steps"] / 1e6 for r in log]
-    axes[1].plot(imagined, tracking, "o-")
-    for r, x, y in list(zip(log, imagined, tracking))[:: max(1, len(log) // 6)]:
-        axes[1].annotate(
-            f"{r['wall_s'] / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6), fontsize=7, ha="center"
-        )
-    for ax in axes[:2]:
-        ax.axhline(TRACKING_TARGET, color="grey", linestyle="--", linewidth=0.8)
-    axes[1].set_xlabel("imagined steps (M)")
-    axes[1].set_title("physics tracking against imagined steps (wall time)")
-    measured = [r for r in log if r["model_error_fresh"]]
-    for horizon in measured[0]["model_error_fresh"] if measured else []:
-        axes[2].plot(
-            [r["iteration"] for r in measured],
-            [r["model_error_fresh"][horizon] for r in measured],
-            "o-",
-            label=f"{horizon} steps",
-        )
-    axes[2].set_xlabel("iteration")
-    axes[2].set_title("model error on the policy's fresh physics data")
-    if measured:
-        axes[2].legend()
-    fig.tight_layout()
-    save_png(fig, path, dpi=100)
