@@ -67,6 +67,17 @@ def test_a_fine_tune_carries_its_start_models_rows_and_adds_only_new_data(files,
     assert physics_rows(scratch)[0] == _rows(a) + _rows(b)
 
 
+def test_rwm_gym_train_init_fine_tunes_with_the_start_models_rows(files, tmp_path):
+    from rwm_gym.cli import main
+
+    tiny = ["--iterations", "2", "--history", "4", "--forecast", "2", "--batch-size", "4", "--val-fraction", "0.25"]
+    first, second = tmp_path / "first.safetensors", tmp_path / "second.safetensors"
+    model = ["--model", "mlp", "--hidden-size", "8", "--head-hidden", "8"]
+    assert main(["train", "--data", str(files["a"]), "--out", str(first), *model, *tiny, "--quiet"]) == 0
+    assert main(["train", "--data", str(files["b"]), "--init", str(first), "--out", str(second), *tiny, "--quiet"]) == 0
+    assert physics_rows(second)[0] == _rows(files["a"]) + _rows(files["b"])
+
+
 def test_a_checkpoint_from_before_lineages_counts_its_dataset_and_says_so(files, tmp_path):
     model, meta = load_checkpoint(_train(files["a"], tmp_path / "m.safetensors"))
     older = tmp_path / "older.safetensors"
