@@ -36,7 +36,7 @@ class ImaginationOptions:
     """End an episode (terminated, no bootstrap) where the predicted base tilts more than this many degrees from
     upright (0: never; needs a projected_gravity state group). The model's termination head fires on predicted base
     contact, late or never, while its own predicted tilt already shows a fall; a walking robot stays far below a
-    tilt from which it rarely recovers (`benchmarks/exploitation.py --fall-tilt` measures both for a policy)."""
+    tilt from which it rarely recovers (both measured on the Policies results page)."""
     torque_halt: float = option(0.0, ge=0)
     """End an episode (terminated, no bootstrap) where a predicted joint torque reaches this fraction of the spec's
     effort limit (0: never; needs a joint_torque state group and a finite limit). Saturated actuators are states a

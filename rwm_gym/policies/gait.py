@@ -12,7 +12,7 @@ swing and stands on four force-controlled legs.
 
 The same softness bounds what the trot can track: commands are scaled down to a feasible envelope (`max_foot_speed`,
 `max_lateral_speed`) rather than followed into a fall; the tracking error that leaves is measured by
-`benchmarks/gait.py`. Leg geometry (joint offsets, axes, foot sites) is read from the task's MuJoCo model.
+`rwm-gym score --policy gait`. Leg geometry (joint offsets, axes, foot sites) is read from the task's MuJoCo model.
 
 The policy reads only the 48-d observation (`rwm_gym.task.observation`), so it runs on the physics env and on the
 imagined env alike.
