@@ -430,34 +430,49 @@ def summarise(rows: list[dict]) -> dict:
     out = {}
     for source in sorted({r["source"] for r in rows}):
         rs = [r for r in rows if r["source"] == source and "error" not in r]
-        effect = [r for r in rs if r["kind"] in ("single", "leg", "joint_type", "joint", "pair", "triple")]
-        named_right = [r for r in effect if r["correct"]]
-        errs = [e for r in named_right for e in r["magnitude_error"].values()]
-        explained = [r["explained_fraction"] for r in named_right]
-        excess = [excess_explained(r) for r in named_right]
-        unnamed = [r for r in rs if r["verdict"] == "unexplained" and r["learned_total_explained"] is not None]
         out[source] = {
             "cases": len(rs),
             "errors": len([r for r in rows if r["source"] == source and "error" in r]),
-            "named_correctly": frac([r["correct"] for r in effect]),
-            "magnitude_within_25pct_of_named": frac([e <= 0.25 for e in errs]),
-            "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
-            "mean_explained_where_named": float(np.mean(explained)) if explained else None,
-            "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
-            # rows reused from before version 17 (`--reuse above-floor`) have no rest_at_floor
-            "explained_ge_70pct_or_rest_at_its_floor_where_named": frac(
-                [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]
-            ),
-            "learned_ge_50pct_where_unexplained": frac([r["learned_total_explained"] >= 0.5 for r in unnamed]),
-            "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
-            "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
-            "both_named_in_pairs": frac([r["correct"] for r in rs if r["kind"] == "pair"]),
-            "all_three_named_in_triples": frac([r["correct"] for r in rs if r["kind"] == "triple"]),
-            "scope_right_where_grouped": frac([r["scope_correct"] for r in rs if r.get("scope_correct") is not None]),
-            "false_namings": sum(len(r["false_namings"]) for r in rs),
-            "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
+            **_where_named(rs),
+            **_by_kind(rs),
         }
     return out
+
+
+def _where_named(rs: list[dict]) -> dict:
+    """Of one source's cases with an effect: how often it was named, and how well where it was."""
+    effect = [r for r in rs if r["kind"] in ("single", "leg", "joint_type", "joint", "pair", "triple")]
+    named_right = [r for r in effect if r["correct"]]
+    errs = [e for r in named_right for e in r["magnitude_error"].values()]
+    explained = [r["explained_fraction"] for r in named_right]
+    excess = [excess_explained(r) for r in named_right]
+    return {
+        "named_correctly": frac([r["correct"] for r in effect]),
+        "magnitude_within_25pct_of_named": frac([e <= 0.25 for e in errs]),
+        "explained_ge_70pct_where_named": frac([x >= 0.7 for x in explained]),
+        "mean_explained_where_named": float(np.mean(explained)) if explained else None,
+        "excess_explained_ge_70pct_where_named": frac([x >= 0.7 for x in excess]),
+        # rows reused from before version 17 (`--reuse above-floor`) have no rest_at_floor
+        "explained_ge_70pct_or_rest_at_its_floor_where_named": frac(
+            [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]
+        ),
+    }
+
+
+def _by_kind(rs: list[dict]) -> dict:
+    """Of one source's cases: the figures of each kind of case (unexplained, none, outside, pairs, triples, scoped)
+    and the false namings."""
+    unnamed = [r for r in rs if r["verdict"] == "unexplained" and r["learned_total_explained"] is not None]
+    return {
+        "learned_ge_50pct_where_unexplained": frac([r["learned_total_explained"] >= 0.5 for r in unnamed]),
+        "none_on_nominal": frac([r["verdict"] == "none" for r in rs if r["kind"] == "none"]),
+        "outside_not_named": frac([not r["named"] for r in rs if r["kind"] == "outside"]),
+        "both_named_in_pairs": frac([r["correct"] for r in rs if r["kind"] == "pair"]),
+        "all_three_named_in_triples": frac([r["correct"] for r in rs if r["kind"] == "triple"]),
+        "scope_right_where_grouped": frac([r["scope_correct"] for r in rs if r.get("scope_correct") is not None]),
+        "false_namings": sum(len(r["false_namings"]) for r in rs),
+        "cases_with_false_namings": sum(bool(r["false_namings"]) for r in rs),
+    }
 
 
 def fast_vs_converged(rows: list[dict]) -> dict:
@@ -729,7 +744,29 @@ def shard_jobs(cases: list[Case], robots: list[str], sources: list[str], shard: 
     return [(c, s, r) for c in cases[i::n] for r in robots for s in sources]
 
 
-def main() -> None:
+def run_jobs(jobs: list[tuple], folder: Path, args: argparse.Namespace) -> None:
+    """Run each (case, source, robot) job into `folder`, except those already there with the same settings or taken
+    from an earlier run (`--reuse`)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        for case, source, robot in jobs:
+            path = folder / f"{label(source, robot)}__{case.name}.json"
+            if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args, case):
+                continue
+            if any(reuse_row(Path(d) / "cases" / path.name, path, args, when) for when, d in args.reuse):
+                continue
+            row = run_case(case, source, args, Path(tmp), robot)
+            row["source"] = label(source, robot)
+            row["robot"] = robot
+            write_json(path, row)
+            print(
+                f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
+                f"{row.get('named', row.get('error'))} {row.get('wall_s', 0):.0f}s",
+                flush=True,
+            )
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The script's options."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("results/gap_table"))
     parser.add_argument("--episodes", type=int, default=9, help="measured episodes per case")
@@ -767,6 +804,11 @@ def main() -> None:
         f"{' or '.join(REUSABLE)} (see REUSABLE); repeat to try several runs in order; each reused row keeps "
         "its version in `reused_version`",
     )
+    return parser
+
+
+def main() -> None:
+    parser = _parser()
     args = parser.parse_args()
     for when, _ in args.reuse:
         if when not in REUSABLE:
@@ -780,22 +822,8 @@ def main() -> None:
         return run_oracle([(c, s) for c, s, r in jobs if (c.truth or c.per_joint) and r == "converged"], args)
     folder = args.out / "cases"
     folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        for case, source, robot in [] if args.summary_only else jobs:
-            path = folder / f"{label(source, robot)}__{case.name}.json"
-            if path.is_file() and json.loads(path.read_text()).get("settings") == settings(args, case):
-                continue
-            if any(reuse_row(Path(d) / "cases" / path.name, path, args, when) for when, d in args.reuse):
-                continue
-            row = run_case(case, source, args, Path(tmp), robot)
-            row["source"] = label(source, robot)
-            row["robot"] = robot
-            write_json(path, row)
-            print(
-                f"{row['source']:10s} {case.name:22s} {row.get('verdict', 'error'):16s} "
-                f"{row.get('named', row.get('error'))} {row.get('wall_s', 0):.0f}s",
-                flush=True,
-            )
+    if not args.summary_only:
+        run_jobs(jobs, folder, args)
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
     rows = [
         r
