@@ -264,10 +264,24 @@ def test_shac_refuses_an_existing_out_and_a_foreign_run_folder_without_overwrite
     assert out.read_text() == "a policy of hours"
     out.unlink()
     run.mkdir()
-    (run / "log.csv").write_text("someone else's log")
+    (run / "notes.txt").write_text("someone else's notes")
     assert status(argv) == EXIT_BAD_INPUT
     one_line(capsys, "--run-dir", "--overwrite")
-    assert (run / "log.csv").read_text() == "someone else's log"
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]
+
+
+def test_a_run_killed_before_its_first_resume_point_is_continued_not_refused(tmp_path: Path, capsys) -> None:
+    from rwm_gym.output_guard import OutputError, check_folder
+    from rwm_gym.rl.training_run import TrainingRun
+
+    run = TrainingRun(tmp_path / "run")
+    run.snapshots.mkdir(parents=True)
+    run.log_path.write_text("rollout,timesteps\n")  # what a run writes before its first resume point
+    assert run.holds_only_a_run() and not run.resumable
+    (run.folder / "notes.txt").write_text("mine")
+    assert not run.holds_only_a_run()
+    with pytest.raises(OutputError, match="--overwrite"):
+        check_folder(run.folder, continues=run.holds_only_a_run(), flag="--run-dir")
 
 
 def test_score_files_follow_overwrite_and_a_refused_score_leaves_no_folder(tmp_path: Path, capsys) -> None:

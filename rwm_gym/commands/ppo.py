@@ -165,10 +165,12 @@ def run(args: argparse.Namespace) -> int:
     inputs = [args.checkpoint, args.reset_data, args.init_policy, *(args.bc_data or [])]
     from rwm_gym.rl.training_run import TrainingRun
 
-    own = args.run_dir is not None and TrainingRun(args.run_dir).resumable  # a resumed run rewrites its own files
+    folder = TrainingRun(args.run_dir) if args.run_dir is not None else None
+    own = folder is not None and folder.resumable  # a resumed run rewrites its own files
     try:
-        if args.run_dir is not None:
-            check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=own, flag="--run-dir")
+        if folder is not None:
+            continues = own or (folder.folder.is_dir() and folder.holds_only_a_run())
+            check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=continues, flag="--run-dir")
         for path in written_files(args):
             check_output(path, inputs=inputs, overwrite=args.overwrite or own)
         with claim(args.out):

@@ -92,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     own = run_folder.resumable and (run_folder.folder / "latest_shac.pt").is_file()
     inputs = [args.checkpoint, args.reset_data]
     try:
-        check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=own, flag="--run-dir")
+        continues = own or (run_folder.folder.is_dir() and run_folder.holds_only_a_run())
+        check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=continues, flag="--run-dir")
         check_output(args.out, inputs=inputs, overwrite=args.overwrite or own)
         with claim(args.out):
             return _train(args)

@@ -41,6 +41,14 @@ class TrainingRun:
     def resumable(self) -> bool:
         return self.latest.is_file() and self.state_path.is_file()
 
+    OWN_FILES = ("latest.zip", "state.json", "snapshots", "log.csv", "experience", "latest_shac.pt")
+    """What a training run writes in its folder (SHAC's optimiser state included)."""
+
+    def holds_only_a_run(self) -> bool:
+        """Whether every file in the folder is one a training run writes (or a hidden temp or lock file): a run's
+        folder, resumable or killed before its first resume point, that the same command continues."""
+        return all(p.name.startswith(".") or p.name in self.OWN_FILES for p in self.folder.iterdir())
+
     def state(self) -> dict:
         return json.loads(self.state_path.read_text()) if self.state_path.is_file() else {}
 
