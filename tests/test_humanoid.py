@@ -215,3 +215,10 @@ def test_the_g1_falls_at_zero_action_and_its_legs_only_variant_holds_the_arms() 
     key = model.key("knees_bent").id
     held = [model.actuator(name).id for name in ("left_elbow_joint", "waist_pitch_joint")]
     np.testing.assert_array_equal(data.ctrl[held], model.key_ctrl[key][held])  # not 0 rad: the keyframe's pose
+
+
+def test_fast_physics_keeps_the_explicit_pairs_and_says_so(tmp_path: Path, capsys) -> None:
+    status, out = _spec(tmp_path, "--fast-physics", "--keyframe", "stand")
+    assert status == 0 and "the file's 9 explicit contact pairs stay" in capsys.readouterr().out
+    model = mujoco.MjModel.from_xml_path(load_spec(out).model)
+    assert model.npair == 9 and (model.geom_contype == 0).sum() == model.ngeom - 1  # the floor alone has bits

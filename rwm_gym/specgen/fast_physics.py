@@ -49,20 +49,25 @@ def apply_fast_physics(mj: mujoco.MjSpec, own_timestep: float) -> str:
         setattr(mj.option, name, getattr(ref, name))
     mj.option.timestep = max(own_timestep, float(ref.timestep))
     condim = reference_condim()
-    world = {id(g) for g in mj.worldbody.geoms}
+    world = list(mj.worldbody.geoms)  # held, so that mj.geoms hands back these same wrappers (an id() of a freed one
+    # could name a robot geom)
     for geom in mj.geoms:
         if not (geom.contype or geom.conaffinity):
             continue  # visual only: stays so
-        if id(geom) in world:
+        if any(geom is w for w in world):
             geom.contype |= WORLD_CONTYPE
         else:
             geom.contype, geom.conaffinity = ROBOT_CONTYPE, ROBOT_CONAFFINITY
             geom.condim = min(geom.condim, condim)
+    for pair in mj.pairs:  # explicit pairs (MJX-style models) stay, self-contacts included, at that dimension
+        pair.condim = min(pair.condim, condim)
     cone = "pyramidal" if int(ref.cone) == int(mujoco.mjtCone.mjCONE_PYRAMIDAL) else "elliptic"
+    pairs = f"; the file's {len(mj.pairs)} explicit contact pairs stay" if len(mj.pairs) else ""
     return (
         f"fast physics: ANYmal D's solver ({cone} cone, {ref.iterations} Newton / {ref.ls_iterations} line-search / "
         f"{ref.noslip_iterations} no-slip iterations), a {mj.option.timestep:g} s step (the file's: "
         f"{own_timestep:g} s), contacts of at most {condim} dimensions, and robot geoms that touch the world only"
+        f"{pairs}"
     )
 
 
