@@ -18,9 +18,10 @@ spec) and leaves the user's file alone:
 - default pose: the keyframe `--keyframe` names, else the first, else qpos0 lowered until the feet touch the floor
   (a plane is added if the world has none).
 
-Reward weights, reset noise and action scale are ANYmal D's (`envs/anymal_d.toml`); command speeds follow
-`command_speed` (Froude number 0.4, capped at ANYmal D's 1 m/s); `fast_physics` gives the copy ANYmal D's solver
-settings. Every such choice is listed in the spec's header.
+Reward weights, reset noise and action scale are ANYmal D's (`envs/anymal_d.toml`), a two-footed robot's reward the
+shipped G1's (`envs/g1.toml`, with a `base_height` state group); command speeds follow `command_speed` (Froude
+number 0.4, capped at ANYmal D's 1 m/s); `fast_physics` gives the copy ANYmal D's solver settings. Every such choice
+is listed in the spec's header.
 """
 
 from __future__ import annotations
