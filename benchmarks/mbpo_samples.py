@@ -5,9 +5,10 @@
     python benchmarks/mbpo_samples.py --runs runs/mbpo_random_more_ppo --labels "more PPO" \
         --earlier benchmarks/figures/mbpo_policy_start_and_random_data.csv "random" --out benchmarks/figures/NAME
 
-`rwm-gym mbpo` counts the rows of its `--data` and of what it collects. A run that starts from a checkpoint or a
-policy made from other physics data has those rows behind it too: `--prior` adds them, per run, so the x axis is
-every physics sample the policy depends on. The model-free curve is the shipped physics PPO policy's
+`rwm-gym mbpo` counts the rows of its `--data`, of its starting checkpoint's lineage and of what it collects. A run
+that starts from a policy made from other physics data (or a run folder from before checkpoints recorded their
+lineage) has those rows behind it too: `--prior` adds them, per run, so the x axis is every physics sample the policy
+depends on. The model-free curve is the shipped physics PPO policy's
 (`assets/policies/anymal_d_ppo_physics_curve.csv`); N_mf is its samples when it first reached tracking 0.80.
 Writes OUT.png and OUT.csv (run, iteration, physics_samples, fraction_of_n_mf, tracking, falls). `--earlier CSV RUN`
 draws a run whose folder is gone from a CSV this script wrote: the one run whose label contains RUN.
