@@ -1,7 +1,7 @@
 """A humanoid on the legged path: `rwm-gym spec --mjcf` on a small MJX-style humanoid (box and capsule feet, every
 contact off but explicit pairs, per-class servos, two keyframes), the biped reward terms (numpy == torch; absent or
 zero weights change nothing), and the shipped Unitree G1 (falls at zero action; the legs-only variant holds its
-arms)."""
+arms; its mirror table is its physics' mirror)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,10 @@ import torch
 
 import rwm_gym  # noqa: F401  (registers the envs)
 from rwm_gym.cli import main
-from rwm_gym.spec import RewardSpec, load_spec, parse_spec
+from rwm_gym.physics.locomotion import LocomotionCore
+from rwm_gym.spec import ResetSpec, RewardSpec, load_spec, parse_spec
 from rwm_gym.task import reward, reward_torch
+from rwm_gym.task.symmetry import action_mirror, state_mirror
 
 LEG = """
       <body name="{s}_thigh" pos="0 {y} -0.05">
@@ -222,3 +224,23 @@ def test_fast_physics_keeps_the_explicit_pairs_and_says_so(tmp_path: Path, capsy
     assert status == 0 and "the file's 9 explicit contact pairs stay" in capsys.readouterr().out
     model = mujoco.MjModel.from_xml_path(load_spec(out).model)
     assert model.npair == 9 and (model.geom_contype == 0).sum() == model.ngeom - 1  # the floor alone has bits
+
+
+def test_the_g1_mirror_table_is_its_physics_mirror() -> None:
+    """A mirrored action sequence from the (symmetric) keyframe gives the mirrored state: the joint map and signs of
+    `[symmetry]` match the model's axes. The unmirrored states differ by radians, so a wrong sign cannot pass."""
+    spec = replace(load_spec("g1"), reset=ResetSpec())
+    act, state = action_mirror(spec), state_mirror(spec)
+    cores = [LocomotionCore(spec) for _ in range(2)]
+    for core in cores:
+        core.reset(np.array([0]))
+    groups = ("base_lin_vel", "base_ang_vel", "projected_gravity", "base_height", "joint_pos")
+    kept = np.concatenate([np.arange(spec.state_dim)[spec.state_slices[g]] for g in groups])
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        a = rng.uniform(-0.3, 0.3, (1, spec.action_dim))
+        cores[0].step(a)
+        cores[1].step(a[:, act.index] * act.sign)
+        one, other = (core.current.state[0] for core in cores)
+        assert np.abs((one[state.index] * state.sign - other)[kept]).max() < 0.02
+        assert np.abs((one - other)[kept]).max() > 0.5
