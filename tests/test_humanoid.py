@@ -244,3 +244,21 @@ def test_the_g1_mirror_table_is_its_physics_mirror() -> None:
         one, other = (core.current.state[0] for core in cores)
         assert np.abs((one[state.index] * state.sign - other)[kept]).max() < 0.02
         assert np.abs((one - other)[kept]).max() > 0.5
+
+
+def test_feet_air_time_pays_each_of_two_feet_its_swing_at_touchdown() -> None:
+    """A walking biped's alternating steps: each touchdown pays that foot's swing time less the target, once; both feet
+    down pays nothing (the timers are those of any number of feet)."""
+    dt, target, swing = 0.02, 0.2, 15  # 0.3 s swings
+    timers = reward.FeetAirTime(1, 2)
+    payouts = []
+    for step in range(4 * swing):
+        left_up = (step // swing) % 2 == 1
+        contact = np.array([[not left_up, left_up or step < swing]])
+        payouts.append(float(timers.update(contact, dt, target)[0]))
+    paid = {i: p for i, p in enumerate(payouts) if p != 0.0}
+    assert list(paid) == [2 * swing, 3 * swing]  # the left foot lands, then the right; both down before: nothing
+    for p in paid.values():
+        assert p == pytest.approx(swing * dt - target)  # 0.3 s - 0.2 s, the flicker filter's step included
+    with pytest.raises(ValueError, match="needs checkpoint=PATH"):
+        gym.make("RWM-G1-v0")
