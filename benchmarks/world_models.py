@@ -213,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     data = Dataset.load(dataset(options))
     spec = data.spec()
     evaluation = EvalConfig(
+        max_horizon=368,
         max_windows=options.max_windows,
         seed=options.seed,
         device=options.device,

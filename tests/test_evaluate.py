@@ -166,3 +166,17 @@ def test_the_plotted_line_meets_every_table_value(data: Path, tmp_path: Path) ->
     )
     plot_running_mean({"no change": result}, tmp_path / "plot.png")
     assert (tmp_path / "plot.png").stat().st_size > 0
+
+
+def test_the_defaults_skip_the_slow_extras(data: Path) -> None:
+    """By default evaluate reports the asked horizons only (no longer cap, no robustness passes); each extra is an
+    option: `max_horizon` adds the longest horizon the episodes allow, `noise_levels` a pass per level."""
+    ds = Dataset.load(data)
+    model, norm = build_model(model_config_for("no_change", SPEC)), Normalizer.from_spec(SPEC)
+    assert EvalConfig().noise_levels == () and EvalConfig().max_horizon is None and EvalConfig().max_windows == 256
+    quick = evaluate(model, ds, norm, SPEC, EvalConfig(history=8, horizons=(4, 8)), progress=False)
+    assert quick["horizons"] == [4, 8] and quick["noise"] == {}
+    more = EvalConfig(history=8, horizons=(4, 8), max_horizon=20, noise_levels=(0.1,))
+    full = evaluate(model, ds, norm, SPEC, more, progress=False)
+    assert full["horizons"] == [4, 8, 20] and set(full["noise"]["0.1"]) == {"4", "8", "20"}
+    assert full["error"]["8"] == quick["error"]["8"]  # the same windows: an extra adds rows, it changes none

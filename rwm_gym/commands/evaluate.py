@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     results = {}
     try:
-        if max(args.horizons) > args.max_horizon:
+        if args.max_horizon is not None and max(args.horizons) > args.max_horizon:
             raise ValueError(f"--horizons {max(args.horizons)} is above --max-horizon {args.max_horizon}")
         if args.out:
             inputs = [args.checkpoint, *args.data, *args.training_data]

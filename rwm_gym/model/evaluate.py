@@ -3,8 +3,10 @@
 Windows from held-out episodes: H true rows of history (warm-up), then open-loop prediction of N rows feeding back the
 mean predictions, with the true actions (causal: state[t], action[t] -> state[t+1]). Error of a predicted row =
 sum |pred - true| / sum |true| over the normalised state dims; the error at horizon N is its mean over the N rows and
-all windows. Reported for N = 8, 32, 100 and the longest the episodes allow (capped), per state group of the spec,
-with contact accuracy, and again with Gaussian noise added to the history's states and actions (robustness).
+all windows. Reported for N = 8, 32, 100 (and the longest the episodes allow, where that is shorter), per state group
+of the spec, with contact accuracy. Two extras cost more passes and are asked for: a longer cap (`max_horizon`: the
+paper's 368 steps take about three times the rest together) and the robustness test (`noise_levels`: each level is
+one more pass over every horizon, with Gaussian noise added to the history's states and actions).
 
 Two floors come with every table, on the same windows and without training anything: "no change" (the last history
 row predicted for ever) and "predict the mean" (the mean normalised state of the evaluated file, a constant). The
@@ -39,13 +41,14 @@ class EvalConfig:
     history: int = option(32, ge=1)
     """H: true rows the model warms up on."""
     horizons: tuple[int, ...] = option((8, 32, 100), ge=1)
-    """N: open-loop rows to report (plus the longest the episodes allow)."""
-    max_horizon: int = option(368, ge=1)
-    """Cap of the longest horizon."""
-    noise_levels: tuple[float, ...] = option((0.1, 0.2, 0.4, 0.8), ge=0)
-    """Stds of the Gaussian noise added to the normalised history states and actions in the robustness test (none:
-    no such test)."""
-    max_windows: int = option(512, ge=1)
+    """N: open-loop rows to report (plus the longest the episodes allow, up to `max_horizon`)."""
+    max_horizon: int | None = option(None, ge=1)
+    """Cap of the longest horizon the episodes allow, reported beside `horizons` (default: the largest of
+    `horizons`; the paper's 368 costs about three times the default horizons together)."""
+    noise_levels: tuple[float, ...] = option((), ge=0)
+    """Stds of the Gaussian noise added to the normalised history states and actions in the robustness test (default
+    none: no such test; the paper's levels are 0.1 0.2 0.4 0.8, each one more pass over every horizon)."""
+    max_windows: int = option(256, ge=1)
     """Windows per horizon (a seeded subset when more fit)."""
     batch_size: int = option(512, ge=1)
     """Windows per forward pass."""
@@ -121,7 +124,8 @@ def evaluate(
     episodes = np.arange(dataset.num_episodes) if episodes is None else np.asarray(episodes)
     model = model.to(config.device).eval()
     windows = WindowData(dataset, normalizer, config.device)
-    longest = min(int(dataset.episode_lengths[episodes].max()) - config.history, config.max_horizon)
+    cap = max(config.horizons) if config.max_horizon is None else config.max_horizon
+    longest = min(int(dataset.episode_lengths[episodes].max()) - config.history, cap)
     if longest < 1:
         raise ValueError(f"{dataset.path}: no evaluated episode is longer than the history ({config.history} rows)")
     horizons = sorted({n for n in config.horizons if n <= longest} | {longest})

@@ -348,7 +348,7 @@ class _Loop:
         model_error = evaluate_checkpoint(
             self.model_path(k - 1),
             fresh,
-            EvalConfig(horizons=(8, 32), max_horizon=100, noise_levels=(), device=self.device),
+            EvalConfig(horizons=(8, 32), max_horizon=100, max_windows=512, device=self.device),
             all_episodes=True,
             progress=False,
         )["error"]
