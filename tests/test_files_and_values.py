@@ -411,15 +411,21 @@ def test_a_commands_own_refusal_exits_2_not_1_in_a_real_process(tmp_path: Path) 
     assert done.stderr.strip().splitlines() == [f"rwm-gym score: --policy {tmp_path / 'no.zip'}: no such file"]
 
 
-def test_ctrl_c_exits_130(monkeypatch, capsys) -> None:
+def test_ctrl_c_exits_130(monkeypatch, capsys, tmp_path: Path) -> None:
     import rwm_gym.commands.export as export
+    import rwm_gym.commands.train as train
 
-    def interrupted(args):
+    def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(export, "run", interrupted)
+    monkeypatch.setattr(export, "run", interrupted)  # a command that leaves Ctrl-C to the CLI
     assert status(["export", "--minari", "d.h5", "--out", "x"]) == EXIT_INTERRUPTED
-    one_line(capsys, "interrupted")
+    one_line(capsys, "rwm-gym export: interrupted")
+    monkeypatch.setattr(train, "train", interrupted)  # one that says what it kept
+    data = write_linear_dataset(tmp_path / "d.h5", num_episodes=4)
+    argv = ["train", "--data", str(data), "--out", str(tmp_path / "m.safetensors"), "--iterations", "1"]
+    assert status([*argv, "--quiet"]) == EXIT_INTERRUPTED
+    one_line(capsys, "rwm-gym train: interrupted")
 
 
 def test_a_full_disk_under_safetensors_is_one_line_naming_out(tmp_path: Path, capsys, monkeypatch) -> None:

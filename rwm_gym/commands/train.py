@@ -194,6 +194,9 @@ def run(args: argparse.Namespace) -> int:
                 clock=time.process_time if args.cpu_minutes is not None else time.monotonic,
             )
     except KeyboardInterrupt:
+        if distributed.current_world().is_main:
+            kept = f"{args.out} holds a resumable checkpoint (--resume continues it)" if Path(args.out).exists() else ""
+            print(f"rwm-gym train: interrupted{'; ' + kept if kept else ''}", file=sys.stderr)
         return 130
     except (ValueError, OSError, DatasetError, CheckpointError, SafetensorError) as err:
         if isinstance(err, SafetensorError):  # safetensors' own error for a write that failed (a full disk)
