@@ -70,11 +70,12 @@ def select_effects(
     memo: FitMemo | None = None,
     floor_of: Callable[..., np.ndarray] | None = None,
 ) -> Selection:
-    """Forward selection of effects on top of `base` (see the module docstring); `before` and `floor` (W, 3) are the
-    nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for a gap near the floor,
-    called once if step 1's best candidate needs them (None: the held-out test alone); `memo`: step 1's fits where
-    they were made already (`fit.FitMemo`; the solver check's under the solver it took); `floor_of`: the noise floor
-    of a simulator, for the steps after the first (None: the nominal `floor` at every step)."""
+    """Forward selection of effects on top of `base` (this module's docstring and `gap.search`'s); `before` and
+    `floor` (W, 3) are the nominal held-out gap and its noise floor per window; `cross`: builds the swapped windows for
+    a gap near the floor, called once if step 1's best candidate needs them (None: the held-out test alone); `memo`:
+    step 1's fits where they were made already (`fit.FitMemo`; the solver check's under the solver it took);
+    `floor_of`: the noise floor of a simulator, for the steps after the first (None: the nominal `floor` at every
+    step)."""
     search = Search(
         effects, spec, resim, train, held, base, floor, config, progress, cross, memo, floor_of, floor_config
     )
