@@ -455,6 +455,18 @@ def _judge(
     print(f"plot: {plot(evaluation, out.with_suffix('.png'))}")
 
 
+def _run_environment(args: argparse.Namespace, imagined: dict, judged_on: dict) -> dict:
+    """What a run folder records of the env it trains in (a resumed run must train in the same one)."""
+    environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
+    if args.env is not None:
+        environment["env"] = args.env
+    if judged_on.get("physics"):
+        environment["physics"] = judged_on["physics"]
+    if args.init_policy is not None:
+        environment["init_policy"] = str(args.init_policy)
+    return environment
+
+
 def run_resumable(
     args: argparse.Namespace, config: PPOConfig, env: VecEnv, imagined: dict, judged_on: dict | None = None
 ) -> int:
@@ -468,14 +480,8 @@ def run_resumable(
     saved = {**json.loads(json.dumps(PPOConfig().to_dict())), **state.get("ppo", {})}  # a field added since: default
     if run.resumable and saved != json.loads(json.dumps(config.to_dict())):
         raise SystemExit(f"rwm-gym ppo: {run.folder} was started with other PPO settings (see its state.json)")
-    environment = {"where": args.where, "checkpoint": args.checkpoint and str(args.checkpoint), "imagination": imagined}
-    if args.env is not None:
-        environment["env"] = args.env
     judged_on = judged_on or {}
-    if judged_on.get("physics"):
-        environment["physics"] = judged_on["physics"]
-    if args.init_policy is not None:
-        environment["init_policy"] = str(args.init_policy)
+    environment = _run_environment(args, imagined, judged_on)
     if run.resumable and state.get("env", environment) != json.loads(json.dumps(environment)):
         raise SystemExit(
             f"rwm-gym ppo: {run.folder} was started in another env ({state['env']}); use another --run-dir"
