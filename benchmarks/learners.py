@@ -179,6 +179,7 @@ def plot(runs: list[dict], path: Path) -> None:
     from rwm_gym.atomic import save_png
 
     colours = dict(zip(LEARNERS, ("tab:blue", "tab:orange", "tab:green"), strict=True))
+    markers = dict(zip(LEARNERS, ("o", "s", "^"), strict=True))  # distinct shapes: runs that stand overlap
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
     for learner in LEARNERS:
         mine = [r for r in runs if r["learner"] == learner]
@@ -188,6 +189,9 @@ def plot(runs: list[dict], path: Path) -> None:
             [r["model"]["tracking"] for r in mine],
             [r["physics"]["tracking"] for r in mine],
             color=colours[learner],
+            marker=markers[learner],
+            s=70 - 20 * LEARNERS.index(learner),
+            alpha=0.8,
             label=learner,
         )
         for r in mine:
