@@ -273,7 +273,10 @@ def build_spec(
     path = Path(xml_file) if xml_file is not None else spec.model_path
     if not path.is_file():
         raise FileNotFoundError(f"robot model {path} not found")
-    mj = mujoco.MjSpec.from_file(str(path))
+    try:
+        mj = mujoco.MjSpec.from_file(str(path))
+    except ValueError as err:  # MuJoCo's parser: its message alone may not say which file
+        raise ValueError(f"robot model {path}: MuJoCo cannot load it ({' '.join(str(err).split())})") from None
     if solver is not None:
         solver.apply(mj)
     if params.solver is not None:
