@@ -129,6 +129,19 @@ def claim(out: str | os.PathLike) -> Iterator[Path]:
             _remove_empty(_MADE.pop(path, []))
 
 
+@contextmanager
+def no_empty_folder(folder: str | os.PathLike) -> Iterator[None]:
+    """For a command whose output is a folder it creates: if the block fails, the folder (and the parents made with
+    it) is removed again where it is still empty, so a refused run leaves nothing behind."""
+    path = resolved(folder)
+    made = [p for p in (path, *path.parents) if not p.exists()]
+    try:
+        yield
+    except BaseException:
+        _remove_empty(made)
+        raise
+
+
 def _remove_empty(folders: list[Path]) -> None:
     """Remove each of `folders` (deepest first) that is empty; stop at the first that is not."""
     for folder in folders:

@@ -331,6 +331,17 @@ def test_a_folder_of_other_files_is_written_into_only_with_overwrite(tmp_path: P
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
 
 
+@pytest.mark.parametrize("command", ["mbpo", "gap"])
+def test_a_refused_run_leaves_no_empty_out_folder(tmp_path: Path, capsys, command) -> None:
+    data, out = tmp_path / "d.h5", tmp_path / "new" / "out"
+    data.write_bytes(b"")  # not a dataset: refused once the run has made its folder
+    flag = "--data" if command == "mbpo" else "--measured"
+    extra = [] if command == "mbpo" else ["--world-model", "none"]
+    assert status([command, flag, str(data), "--out", str(out), *extra]) == EXIT_BAD_INPUT
+    one_line(capsys, "d.h5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.h5"]
+
+
 def test_a_failed_policy_save_leaves_no_temp_zip(tmp_path: Path) -> None:
     from rwm_gym.rl.policy_file import save_policy
 

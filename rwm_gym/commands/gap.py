@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         noise = SensorNoise(**json_flag(args.sensor_noise, "--sensor-noise")) if args.sensor_noise else SensorNoise()
         if args.joint_candidates < 0:
             raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
-        from rwm_gym.output_guard import check_folder
+        from rwm_gym.output_guard import check_folder, no_empty_folder
 
         world_model = resolve_world_model(args.world_model, args.sim, sim_kwargs)
         if world_model is not None and not world_model.is_file():
@@ -117,17 +117,18 @@ def run(args: argparse.Namespace) -> int:
             inputs=[args.measured, args.world_model if args.world_model not in ("auto", "none") else None],
             overwrite=args.overwrite,
         )
-        report = run_gap(
-            args.sim,
-            args.measured,
-            args.out,
-            sim_kwargs=sim_kwargs,
-            config=dataclass_from_args(GapConfig, args, solver=solver_option(args.solver_iterations)),
-            fit_config=dataclass_from_args(FitConfig, args),
-            sensor_noise=noise,
-            world_model=world_model,
-            wm_config=wm_config,
-        )
+        with no_empty_folder(args.out):  # run_gap makes the folder: a refused run leaves none
+            report = run_gap(
+                args.sim,
+                args.measured,
+                args.out,
+                sim_kwargs=sim_kwargs,
+                config=dataclass_from_args(GapConfig, args, solver=solver_option(args.solver_iterations)),
+                fit_config=dataclass_from_args(FitConfig, args),
+                sensor_noise=noise,
+                world_model=world_model,
+                wm_config=wm_config,
+            )
     except (ValueError, FileNotFoundError, TypeError) as err:  # DatasetError and CheckpointError are ValueErrors
         print(f"rwm-gym gap: {err}", file=sys.stderr)
         return 2

@@ -24,7 +24,7 @@ from rwm_gym.options import (
     add_dataclass_options,
     dataclass_from_args,
 )
-from rwm_gym.output_guard import OutputError, check_folder, claim, resolved
+from rwm_gym.output_guard import OutputError, check_folder, claim, no_empty_folder, resolved
 from rwm_gym.rl.mbpo import MBPOConfig, mbpo
 
 RUN_FILES = re.compile(r"(data_\d+\.h5|buffer(_base)?\.h5|model_\d+\.safetensors|policy_\d+\.zip|mbpo\.(json|png))")
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         curve = args.model_free_curve or _shipped(recipe.get("model_free_curve"))
         inputs = [args.data, args.checkpoint, args.init_policy, curve]
         check_run_folder(args.out, inputs, overwrite=args.overwrite)
-        with claim(args.out):
+        with claim(args.out), no_empty_folder(args.out):
             data = args.data or collect_start_data(recipe, args.out)
             start_train, start_model = start_model_settings(recipe)
             report = mbpo(
