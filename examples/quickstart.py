@@ -14,6 +14,8 @@
 
 The recipe walks (tracking >= 0.80 with at most 2 falls in 54) at its default 11.8 M imagined steps on its three
 measured seeds; `--recipe anymal_d_ppo_imagination` runs the 40 M-step recipe of the shipped 4096-robot policy instead.
+`--checkpoint CKPT` trains in another world model of the task, e.g. an MLP one (`rwm-gym train --model mlp
+--ensemble-size 5`: the recipe's penalty reads five heads; its products stay float32).
 docs/results/time-to-walk.md has the measured times. Run the command again after an interruption to continue.
 """
 
@@ -44,6 +46,12 @@ def main() -> int:
         "--timesteps", type=int, default=None, help="PPO budget in imagined steps (default: the recipe's)"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="another world model to train in, e.g. an MLP one (`rwm-gym train --model mlp`; default: the recipe's)",
+    )
     parser.add_argument("--num-envs", type=int, default=None, help="imagined robots (default: the recipe's)")
     parser.add_argument("--score-seeds", type=int, default=3, help="physics episodes per scoring command")
     parser.add_argument("--score-steps", type=int, default=None, help="policy steps per scoring episode (default 20 s)")
@@ -67,6 +75,7 @@ def main() -> int:
     import time
 
     from rwm_gym.cli import main as cli
+    from rwm_gym.model.checkpoint import read_meta
     from rwm_gym.model.lineage import physics_rows, share_text
     from rwm_gym.resources import assets_dir, shipped_file
     from rwm_gym.rl.score import record_walk, score
@@ -77,10 +86,11 @@ def main() -> int:
         known = sorted(p.stem for p in policies.glob("*.json") if from_scratch(json.loads(p.read_text())))
         parser.error(f"--recipe {args.recipe}: not a from-scratch recipe in {policies} (known: {', '.join(known)})")
     timesteps = args.timesteps or recipe["imagined_steps"]
-    precision = args.precision or default_precision(args.device)
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
+    checkpoint = args.checkpoint or shipped_file(recipe["world_model"]["checkpoint"])
+    precision = args.precision or default_precision(args.device, read_meta(checkpoint).model_config.kind)
     print(
-        f"PPO from scratch in {Path(recipe['world_model']['checkpoint']).stem}: {num_envs} imagined "
+        f"PPO from scratch in {checkpoint.stem}: {num_envs} imagined "
         f"robots, {timesteps:,} steps, {args.threads} threads, {precision} products"
     )
     started = time.monotonic()
@@ -89,7 +99,7 @@ def main() -> int:
             "ppo",
             "--in",
             "imagination",
-            *ppo_options(recipe),
+            *ppo_options(recipe, checkpoint),
             f"--num-envs={num_envs}",
             "--matmul-precision",
             precision,
@@ -127,7 +137,7 @@ def main() -> int:
         f"(shipped: {policies / recipe['policy']})"
     )
     print(f"physics-trained teacher:  {score_text(teacher['score']['tracking'], teacher['score']['falls'], 54)}")
-    rows, _ = physics_rows(shipped_file(recipe["world_model"]["checkpoint"]))
+    rows, _ = physics_rows(checkpoint)
     print(f"physics samples behind the policy: {share_text(rows)}; the policy saw none, its world model's lineage")
     files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png")]
     if args.video:
@@ -151,8 +161,11 @@ def from_scratch(recipe: dict) -> bool:
     return recipe.get("env", {}).get("where") == "imagination" and "seeds" in recipe and "ppo" in recipe
 
 
-def default_precision(device: str) -> str:
-    """bfloat16 where its products are fast (a CUDA device, or a CPU with AVX512-BF16 or AMX), else float32."""
+def default_precision(device: str, kind: str = "rwm") -> str:
+    """bfloat16 where its products are fast (a CUDA device, or a CPU with AVX512-BF16 or AMX) for an RWM model (the
+    only kind with bf16 products), else float32."""
+    if kind != "rwm":
+        return "float32"
     if device.startswith("cuda"):
         return "bfloat16"
     try:
@@ -166,11 +179,12 @@ def score_text(tracking: float, falls: int, episodes: int) -> str:
     return f"tracking {tracking:.3f}, falls {falls}/{episodes}"
 
 
-def ppo_options(recipe: dict) -> list[str]:
-    """`rwm-gym ppo` options of the recipe, read from its JSON (its numbers live there once)."""
+def ppo_options(recipe: dict, checkpoint: Path | None = None) -> list[str]:
+    """`rwm-gym ppo` options of the recipe, read from its JSON (its numbers live there once), in `checkpoint`
+    (default: the recipe's world model)."""
     from rwm_gym.resources import shipped_file
 
-    options = ["--checkpoint", str(shipped_file(recipe["world_model"]["checkpoint"]))]
+    options = ["--checkpoint", str(checkpoint or shipped_file(recipe["world_model"]["checkpoint"]))]
     for name, value in recipe["env"]["imagination"].items():
         if value is not None:  # reset_data None: the windows the checkpoint names
             options.append(f"--{name.replace('_', '-')}={value}")
