@@ -25,7 +25,7 @@ from rwm_gym.commands._options import (
     parse_physics,
 )
 from rwm_gym.imagination.options import ImaginationOptions
-from rwm_gym.options import add_dataclass_options, dataclass_from_args, non_negative_float, non_negative_int, option
+from rwm_gym.options import add_dataclass_options, dataclass_from_args, option
 from rwm_gym.output_guard import OutputError, check_folder, check_output, claim
 from rwm_gym.policy_zip import load_policy
 from rwm_gym.rl.policy_file import save_policy
@@ -73,9 +73,9 @@ class RunOptions:
 
     where: str = option("imagination", flags=["--in"], choices=WHERE)
     """train in the imagined env (world model) or in physics (model-free baseline)"""
-    timesteps: int | None = option(None, parse=non_negative_int)
+    timesteps: int | None = option(None, ge=0)
     """budget in env steps (default: none; with neither budget, --minutes 8)"""
-    minutes: float | None = option(None, parse=non_negative_float)
+    minutes: float | None = option(None, ge=0)
     """budget in wall-clock minutes (default: none; 8 when --timesteps is not given either)"""
     env: str | None = None
     """with --in physics: the physics env id or task spec to train in (default: the shipped legged task); a
