@@ -99,6 +99,9 @@ def test_cli_trains_resumes_scores_and_writes_a_policy_that_score_reads(tmp_path
     with pytest.raises(SystemExit, match=r"policy\.zip") as refused:  # a new run may not replace another's policy
         cli([*fresh, "--timesteps", "64"])
     assert refused.value.code == 2
+    for written in (run / "latest.zip", run / "latest_dreamer.pt", policy, policy.with_suffix(".json")):
+        written.unlink()  # as if killed before its first resume point: the folder is still the run's to start again
+    assert cli([*command, "--timesteps", "64"]) == 0 and policy.is_file()
     score = ["score", "--policy", str(policy), "--out", str(tmp_path / "score"), "--seeds", "1", "--steps", "10"]
     assert cli(score) == 0
     assert json.loads((tmp_path / "score" / "score.json").read_text())["episodes"] == 18

@@ -93,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     own = run_folder.resumable and (run_folder.folder / STATE_FILE).is_file()
     inputs = [args.checkpoint, args.reset_data]
     try:
-        check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=own, flag="--run-dir")
+        continues = own or (run_folder.folder.is_dir() and run_folder.holds_only_a_run())  # killed before a save
+        check_folder(args.run_dir, inputs=inputs, overwrite=args.overwrite, continues=continues, flag="--run-dir")
         check_output(args.out, inputs=inputs, overwrite=args.overwrite or own)
         check_output(score_path(args.out), inputs=inputs, overwrite=args.overwrite or own)
         with claim(args.out):

@@ -41,8 +41,16 @@ class TrainingRun:
     def resumable(self) -> bool:
         return self.latest.is_file() and self.state_path.is_file()
 
-    OWN_FILES = ("latest.zip", "state.json", "snapshots", "log.csv", "experience", "latest_shac.pt")
-    """What a training run writes in its folder (SHAC's optimiser state included)."""
+    OWN_FILES = (
+        "latest.zip",
+        "state.json",
+        "snapshots",
+        "log.csv",
+        "experience",
+        "latest_shac.pt",
+        "latest_dreamer.pt",
+    )
+    """What a training run writes in its folder (SHAC's and the Dreamer-style learner's optimiser state included)."""
 
     def holds_only_a_run(self) -> bool:
         """Whether every file in the folder is one a training run writes (or a hidden temp or lock file): a run's
