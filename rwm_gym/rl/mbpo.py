@@ -52,8 +52,8 @@ RESUME_MAY_CHANGE = ("iterations",)
 class MBPOConfig:
     """Budget of one MBPO-PPO run (PPO's own settings are `PPOConfig`)."""
 
-    iterations: int = option(4, ge=1)
-    """Loop iterations."""
+    iterations: int = option(4, ge=0)
+    """Loop iterations (0: only iteration 0, the starting model and policy scored)."""
     ppo_timesteps: int = option(300_000, ge=1)
     """Imagined steps of PPO per iteration."""
     num_envs: int = option(512, ge=1)
