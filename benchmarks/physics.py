@@ -51,7 +51,7 @@ def previous_model_xml(folder: Path) -> Path:
 
 
 def timed_rate(env: LocomotionSB3VecEnv, actions: np.ndarray, seconds: float) -> float:
-    """Env-steps/s of `env` stepping `actions` (k, n, 12) in turn for about `seconds`."""
+    """Env-steps/s of `env` stepping `actions` (k, n, A) in turn for about `seconds`."""
     env.step(actions[0])  # warm-up
     steps, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:

@@ -15,25 +15,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 from pathlib import Path
 
 import numpy as np
+from physics import timed_rate  # benchmarks/physics.py: run as a script, this folder is on the path
 
 from rwm_gym.atomic import write_json, write_text
 from rwm_gym.registration import resolve_spec
 from rwm_gym.rl.score import score
 from rwm_gym.vector.sb3_vec_env import LocomotionSB3VecEnv
-
-
-def timed_rate(env: LocomotionSB3VecEnv, actions: np.ndarray, seconds: float) -> float:
-    """Env-steps/s of `env` stepping `actions` (k, n, A) in turn for about `seconds`."""
-    env.step(actions[0])  # warm-up
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        env.step(actions[steps % len(actions)])
-        steps += 1
-    return steps * env.num_envs / (time.perf_counter() - start)
 
 
 def main() -> None:
