@@ -34,6 +34,8 @@ import mujoco
 import numpy as np
 
 from rwm_gym.spec import load_spec
+from rwm_gym.specgen.dmc_model import name_of as _name
+from rwm_gym.specgen.dmc_model import subtree as _subtree
 from rwm_gym.specgen.draft import SpecDraft, Table
 from rwm_gym.specgen.fast_physics import apply_fast_physics, compare
 from rwm_gym.specgen.mjcf_feet import (
@@ -49,22 +51,6 @@ from rwm_gym.specgen.mjcf_servos import GRAVITY, Servo, gains
 from rwm_gym.specgen.toml_text import significant
 
 _BODY, _GEOM, _SITE = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE
-
-
-def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, i: int) -> str:
-    return mujoco.mj_id2name(model, kind, i) or ""
-
-
-def _subtree(model: mujoco.MjModel, body: int) -> list[int]:
-    return [b for b in range(model.nbody) if b == body or _is_below(model, b, body)]
-
-
-def _is_below(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
-    while body > 0:
-        body = int(model.body_parentid[body])
-        if body == ancestor:
-            return True
-    return False
 
 
 def _find_base(model: mujoco.MjModel, base: str | None) -> int:
