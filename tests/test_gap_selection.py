@@ -431,7 +431,7 @@ def test_later_steps_refit_the_best_candidates_with_the_named_effects(monkeypatc
 
     def fake_fit(effect, resim, train, base, config, start, bracket, max_evaluations=None):
         seen.append(effect.name)
-        assert base == PhysicsParams() and bracket == (0.0, 0.0)
+        assert base == PhysicsParams() and bracket is None
         values = list(start)
         values[0] = 0.05  # the named armature, refitted
         return CandidateFit(effect.name, [], [], values, [0.01] * len(values), 0.0)
@@ -1469,3 +1469,17 @@ def test_a_named_effect_that_adds_nothing_at_the_final_values_is_dropped(
     assert checks[0]["effect"] == "joint_damping" and checks[0]["dropped"] == dropped
     assert checks[0]["share_above_floor"] == pytest.approx((gap_without_damping - 1.0) / (gap_without_damping - 0.5))
     assert len(checks) == (1 if dropped else 2) and not any(c["dropped"] for c in checks[1:])  # armature stays
+
+
+def test_a_lone_one_parameter_effect_refitted_without_a_bracket_searches_its_range(tmp_path):
+    """The joint refit and the solver check refit the named effects together with no bracket of their own: a lone
+    one-parameter effect is then searched over its whole range, not pinned at zero (joint friction 1.5 N·m hidden in
+    noise-free data is found again)."""
+    path = make_measured(
+        {"joint_friction": [1.5]}, 2, tmp_path / "m.h5", max_steps=40, noise=SensorNoise(scale=0.0), progress=False
+    )
+    windows = make_windows(Dataset.load(path), np.arange(2), 5, 6)
+    effect = EFFECTS["joint_friction"]
+    resim = Resimulator(SPEC, solver=CONVERGED_SOLVER)  # the measured robot's own solve
+    fit = fit_effect(effect, resim, windows, PhysicsParams(), FitConfig(), np.array([1.0]), None)
+    assert abs(fit.values[0] - 1.5) < 0.15, fit.values

@@ -240,11 +240,12 @@ def fit_effect(
     base: PhysicsParams,
     config: FitConfig,
     start: np.ndarray,
-    bracket: tuple[float, float],
+    bracket: tuple[float, float] | None,
     rejected: list[str] | None = None,
     max_evaluations: int | None = None,
 ) -> CandidateFit:
-    """Refine `effect`'s parameters (on top of `base`) from `start`, the first within `bracket`, on training windows."""
+    """Refine `effect`'s parameters (on top of `base`) from `start`, the first within `bracket` (None: its whole
+    range), on training windows."""
     rejected = [] if rejected is None else rejected
     residual = _objective(effect, resim, train, base, config.fit_horizon, rejected)
     budget = max_evaluations or config.max_evaluations
@@ -253,7 +254,7 @@ def fit_effect(
         return float(np.mean(residual(values) ** 2))
 
     first = effect.parameters[0]
-    lo, hi = bracket
+    lo, hi = (first.low, first.high) if bracket is None else bracket
     values = start.copy()
     lows = np.array([p.low for p in effect.parameters])
     highs = np.array([p.high for p in effect.parameters])
@@ -307,15 +308,16 @@ SCALAR_FIRST_EVALUATIONS = 12
 
 
 def first_along_bracket(
-    effect: Effect, cost, start: np.ndarray, bracket: tuple[float, float], evaluations: int
+    effect: Effect, cost, start: np.ndarray, bracket: tuple[float, float] | None, evaluations: int
 ) -> np.ndarray:
     """`start` with its first parameter moved to a bounded Brent minimum within `bracket` (the others held), if that
     costs less. The screened point is only the best of a coarse grid; least squares from it can stall on a rough cost
     whose valley in the first parameter is narrow (a torque-speed limit's slope: 5.3 for a true 7.5, at 13x the true
-    point's cost), and a scalar search crosses such a valley where a finite-difference step does not."""
-    lo, hi = bracket
-    if hi <= lo:
+    point's cost), and a scalar search crosses such a valley where a finite-difference step does not. No bracket (a
+    joint refit from fitted values): `start` as it is."""
+    if bracket is None or bracket[1] <= bracket[0]:
         return start
+    lo, hi = bracket
 
     def along(x: float) -> float:
         return cost(np.concatenate([[x], start[1:]]))

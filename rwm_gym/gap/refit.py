@@ -81,7 +81,7 @@ def joint_candidates(
         combined = combine([*named, (effect, fit)])
         start = np.concatenate([*(f.values for _, f in named), values])
         joint = fit_effect(
-            combined, resim, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
+            combined, resim, train, base, config, start, None, max_evaluations=2 * config.max_evaluations
         )
         score_fit(joint, combined, resim, held, base, current, config)
         if joint.status != "ok":
@@ -126,9 +126,7 @@ def joint_refit(
     """Refit every parameter of `named` together; keep the result if the held-out gap does not grow."""
     combined = combine(named)
     start = np.concatenate([fit.values for _, fit in named])
-    fit = fit_effect(
-        combined, resim, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
-    )
+    fit = fit_effect(combined, resim, train, base, config, start, None, max_evaluations=2 * config.max_evaluations)
     score_fit(fit, combined, resim, held, base, sequential_gap, config)
     kept = fit.status == "ok" and fit.gap_mean <= float(sequential_gap.mean())
     info = {

@@ -234,9 +234,7 @@ def _refit_under(
     values, params = start, base
     if effects:
         combined = combine(effects)
-        fit = fit_effect(
-            combined, other, train, base, config, start, (0.0, 0.0), max_evaluations=2 * config.max_evaluations
-        )
+        fit = fit_effect(combined, other, train, base, config, start, None, max_evaluations=2 * config.max_evaluations)
         values, params = fit.values, combined.physics(fit.values, base)
         if fit.status != "ok":
             return values, None, f"the named effects' refit under the converged solve failed ({fit.status})"
