@@ -18,6 +18,7 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from rwm_gym.commands._differentiable import IMAGINATION_FIELDS, append_log_row, jsonable, refuse_entry_points
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
 from rwm_gym.commands._options import (
     OverwriteOption,
@@ -27,7 +28,6 @@ from rwm_gym.commands._options import (
     WorldModelOptions,
     add_group,
 )
-from rwm_gym.commands.shac import IMAGINATION_FIELDS, _jsonable, _log, _refuse_entry_points
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, option
 from rwm_gym.rl.dreamer import Dreamer, DreamerConfig
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from rwm_gym.tensorboard import check_tensorboard
 
     check_tensorboard(args.tensorboard, "rwm-gym dreamer")
-    _refuse_entry_points(args.checkpoint, "rwm-gym dreamer", "the Dreamer-style learner")
+    refuse_entry_points(args.checkpoint, "rwm-gym dreamer", "the Dreamer-style learner")
     run_folder = TrainingRun(args.run_dir)
     own = run_folder.resumable and (run_folder.folder / STATE_FILE).is_file()
     inputs = [args.checkpoint, args.reset_data]
@@ -144,7 +144,7 @@ def _train(args: argparse.Namespace) -> int:
     environment = {"checkpoint": args.checkpoint and str(args.checkpoint), "imagination": asdict(options)}
     state = run_folder.state()
     resumed = run_folder.resumable and (run_folder.folder / STATE_FILE).is_file()
-    if resumed and (state.get("dreamer") != _jsonable(asdict(config)) or state.get("env") != _jsonable(environment)):
+    if resumed and (state.get("dreamer") != jsonable(asdict(config)) or state.get("env") != jsonable(environment)):
         raise SystemExit(f"rwm-gym dreamer: {run_folder.folder} was started with other settings (see its state.json)")
     if resumed:
         from rwm_gym.policy_zip import load_policy
@@ -155,7 +155,7 @@ def _train(args: argparse.Namespace) -> int:
     restarts = state.get("restarts", -1) + 1
     seeds = [args.seed + 7919 * restarts + i for i in range(core.num_envs)]
     imagination.reset(list(range(core.num_envs)), seeds)
-    record = {"dreamer": _jsonable(asdict(config)), "env": _jsonable(environment), "restarts": restarts}
+    record = {"dreamer": jsonable(asdict(config)), "env": jsonable(environment), "restarts": restarts}
     last = train(learner, model, run_folder, args, state.get("wall_s", 0.0) if resumed else 0.0, record)
     out = save_policy(model, args.out)
     print(f"{run_folder.folder}: {learner.timesteps:,} imagined steps in all; wrote {out}")
@@ -224,7 +224,7 @@ def train(learner: Dreamer, model, run_folder, args: argparse.Namespace, prior_w
                 save_policy(model, run_folder.snapshots / f"step_{learner.timesteps}.zip")
             stats = learner.update()
             update += 1
-            _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
+            append_log_row(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
             if writer is not None:
                 for name, value in asdict(stats).items():
                     if name != "timesteps":

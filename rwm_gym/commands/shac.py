@@ -11,11 +11,11 @@ command again continues to the same `--timesteps`; a resumed run restarts its en
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from rwm_gym.commands._differentiable import IMAGINATION_FIELDS, append_log_row, jsonable, refuse_entry_points
 from rwm_gym.commands._imagination import add_imagination_options, imagination_from_args
 from rwm_gym.commands._options import (
     OverwriteOption,
@@ -27,10 +27,7 @@ from rwm_gym.commands._options import (
 )
 from rwm_gym.imagination.options import ImaginationOptions
 from rwm_gym.options import add_dataclass_options, dataclass_from_args, option
-from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig, UpdateStats
-
-IMAGINATION_FIELDS = ("episode_steps", "fall_tilt", "torque_halt", "random_first_episode_length", "divergence_bound")
-"""The `ImaginationOptions` SHAC's stepper implements (flags generated from their field docstrings)."""
+from rwm_gym.rl.shac import SHAC, DifferentiableImagination, SHACConfig
 
 
 @dataclass(frozen=True)
@@ -87,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from rwm_gym.tensorboard import check_tensorboard
 
     check_tensorboard(args.tensorboard, "rwm-gym shac")
-    _refuse_entry_points(args.checkpoint)
+    refuse_entry_points(args.checkpoint)
     run_folder = TrainingRun(args.run_dir)
     own = run_folder.resumable and (run_folder.folder / "latest_shac.pt").is_file()
     inputs = [args.checkpoint, args.reset_data]
@@ -99,23 +96,6 @@ def run(args: argparse.Namespace) -> int:
             return _train(args)
     except OutputError as err:
         raise SystemExit(f"rwm-gym shac: {err}") from None
-
-
-def _refuse_entry_points(checkpoint: str | None, command: str = "rwm-gym shac", learner: str = "SHAC") -> None:
-    """SHAC (and `rwm-gym dreamer`) differentiate the velocity-tracking reward and the terminations they implement
-    themselves: a checkpoint whose spec names its own (`[imagination]` entry points) is refused in one line rather
-    than trained on another task's reward."""
-    if checkpoint is None:  # the shipped model names none
-        return
-    from rwm_gym.model.checkpoint import read_meta
-    from rwm_gym.task.entry_points import spec_entry_points
-
-    if named := spec_entry_points(read_meta(checkpoint).spec):
-        raise SystemExit(
-            f"{command}: {checkpoint}'s task spec names its own {' and '.join(named)} function "
-            f"({', '.join(named.values())}); {learner} differentiates the velocity-tracking reward it implements, so "
-            "it cannot train on them (rwm-gym ppo --trust-entry-points can)"
-        )
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -143,7 +123,7 @@ def _train(args: argparse.Namespace) -> int:
     environment = {"checkpoint": args.checkpoint and str(args.checkpoint), "imagination": asdict(options)}
     state = run_folder.state()
     resumed = run_folder.resumable and (run_folder.folder / "latest_shac.pt").is_file()
-    if resumed and (state.get("shac") != _jsonable(asdict(config)) or state.get("env") != _jsonable(environment)):
+    if resumed and (state.get("shac") != jsonable(asdict(config)) or state.get("env") != jsonable(environment)):
         raise SystemExit(f"rwm-gym shac: {run_folder.folder} was started with other settings (see its state.json)")
     model = make_ppo(CoreSB3VecEnv(core), config.ppo_config(), seed=args.seed, device=args.device)
     learner = SHAC(imagination, model.policy, config, seed=args.seed)
@@ -193,8 +173,8 @@ def train(
         write_json(
             run_folder.state_path,
             {
-                "shac": _jsonable(asdict(config)),
-                "env": _jsonable(environment),
+                "shac": jsonable(asdict(config)),
+                "env": jsonable(environment),
                 "timesteps": learner.timesteps,
                 "restarts": restarts,
                 "wall_s": prior_wall_s + time.monotonic() - started,
@@ -217,7 +197,7 @@ def train(
                 save_policy(model, run_folder.snapshots / f"step_{learner.timesteps}.zip")
             stats = learner.update()
             update += 1
-            _log(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
+            append_log_row(run_folder.log_path, stats, prior_wall_s + time.monotonic() - started)
             if writer is not None:
                 for name, value in asdict(stats).items():
                     if name != "timesteps":  # the step itself
@@ -235,19 +215,3 @@ def train(
         bar.close()
         if writer is not None:
             writer.close()
-
-
-def _log(path: Path, stats: UpdateStats, total_wall_s: float) -> None:
-    row = {"total_wall_s": round(total_wall_s, 2), **asdict(stats)}
-    new = not path.is_file()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-
-
-def _jsonable(value):
-    import json
-
-    return json.loads(json.dumps(value, default=str))
