@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 
 from rwm_gym.atomic import atomic_write, save_png, write_json
+from rwm_gym.registration import resolve_spec
 from rwm_gym.rl.score import score
 from rwm_gym.rl.training_run import TrainingRun
 
@@ -148,7 +149,7 @@ def main() -> None:
             "rows": rows,
         },
     )
-    _plot(rows, floor, args.threshold, out / "curve.png", args.trained_in)
+    _plot(rows, floor, args.threshold, out / "curve.png", args.trained_in, resolve_spec(args.env))
     print(
         f"floor (zero action): tracking {floor['tracking']:.3f}; best snapshot: {best}; "
         f"N_mf (tracking >= {args.threshold}, falls <= {args.max_falls}): {n_mf}"
@@ -162,7 +163,7 @@ def _write_csv(path: str, rows: list[dict]) -> None:
         writer.writerows(rows)
 
 
-def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_in: str = "physics") -> None:
+def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_in: str = "physics", task=None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -183,10 +184,11 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_i
         axes[0].plot(*zip(*imagined), "s--", color="tab:orange", label="the same, inside the world model")
     axes[0].set_ylabel("tracking score (physics unless said)")
     axes[0].legend()
+    task = task or resolve_spec("anymal_d")
     fig.suptitle(
-        "PPO from scratch in imagination (RWM-AnymalD-v0), scored in MuJoCo physics, ANYmal D"
+        f"PPO from scratch in imagination ({task.imagined_env_id}), scored in MuJoCo physics, {task.name}"
         if trained_in == "imagination"
-        else "model-free PPO in MuJoCo physics, ANYmal D"
+        else f"model-free PPO in MuJoCo physics ({task.physics_env_id})"
     )
     fig.tight_layout()
     save_png(fig, path, dpi=100)
