@@ -134,7 +134,7 @@ def _physics(**kw):
         (_train_config, {"minutes": math.inf}, "minutes"),
         (_train_config, {"minutes": -1.0}, "minutes"),
         (_eval_config, {"noise_levels": (0.1, math.nan)}, "noise_levels"),
-        (_physics, {"payload_mass": -1.0}, "payload_mass"),
+        (_physics, {"payload_mass": -2e4}, "payload_mass"),
         (_physics, {"kp_scale": -0.5}, "kp_scale"),
         (_physics, {"joint_friction": [0.1] * 11 + [-0.1]}, "joint_friction"),
         (_physics, {"ground_friction": 1e300}, "ground_friction"),
@@ -168,8 +168,8 @@ def test_sensor_noise_is_a_finite_std() -> None:
 
 def test_physics_flag_with_an_unphysical_or_too_deep_value_is_one_line(tmp_path: Path, capsys) -> None:
     argv = ["collect", "--episodes", "1", "--max-steps", "2", "--out", str(tmp_path / "d.h5")]
-    assert status([*argv, "--physics", '{"payload_mass": -3}']) == EXIT_BAD_INPUT
-    one_line(capsys, "--physics", "payload_mass", ">= 0")
+    assert status([*argv, "--physics", '{"payload_mass": -3e4}']) == EXIT_BAD_INPUT
+    one_line(capsys, "--physics", "payload_mass", ">= -10000")
     assert status([*argv, "--physics", "[" * 100_000 + "]" * 100_000]) == EXIT_BAD_INPUT
     one_line(capsys, "--physics", "nested too deeply")
     assert list(tmp_path.iterdir()) == []

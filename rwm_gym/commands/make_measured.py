@@ -27,7 +27,8 @@ class MeasuredOptions:
     effect: tuple[str, ...] = option((), append=True)
     """effect of the vocabulary to hide (repeatable; default: none, the nominal simulator)"""
     magnitude: tuple[str, ...] = option((), append=True)
-    """its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic)"""
+    """its parameter value(s), e.g. 2.0 or 0.7,1.2 (one per --effect; default: realistic); negative ones with a
+    comma after an equals sign: --magnitude=-5,0.1"""
     physics: str | None = None
     """JSON dict of further PhysicsParams to hide (per-joint ok), or a JSON file of one"""
     policy: str = "excitation"

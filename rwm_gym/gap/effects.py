@@ -31,7 +31,14 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from rwm_gym.physics.params import CONES, CONVERGED_SOLVER, PhysicsParams, SolverSettings, build_model
+from rwm_gym.physics.params import (
+    CONES,
+    CONVERGED_SOLVER,
+    PhysicsParams,
+    SolverSettings,
+    build_model,
+    lightest_payload,
+)
 from rwm_gym.spec import TaskSpec
 
 
@@ -93,10 +100,6 @@ class Effect:
         return values
 
 
-def _payload(v: np.ndarray, spec: TaskSpec) -> dict[str, object]:
-    return {"payload_mass": float(v[0]), "payload_com": (float(v[1]), float(v[2]), 0.0)}
-
-
 TORQUE_SPEED_KNEE = PhysicsParams().torque_speed_knee
 """rad/s, the knee of the `torque_speed_limit` effect where only its slope is given (`PhysicsParams`' default)."""
 
@@ -152,7 +155,8 @@ def vocabulary(
     spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None
 ) -> dict[str, Effect]:
     """Every effect the workflow knows, with nominal values and ranges resolved against the task spec (effort limit,
-    physics dt), the robot model (floor friction) and the simulator's `solver` (None: the MJCF's)."""
+    physics dt), the robot model (floor friction, the base body's mass a lighter robot lacks) and the simulator's
+    `solver` (None: the MJCF's)."""
     limits, dt = spec.actuator.per_joint("effort_limit"), spec.physics_dt
     limit = float(limits.max())  # the strongest drive's; weaker drives scale with it
     model = build_model(spec, xml_file, solver=solver)
@@ -205,9 +209,10 @@ def vocabulary(
         ),
         Effect(
             "payload",
-            "unmodelled point mass on the base at a horizontal offset from the base origin",
+            "unmodelled point mass on the base at a horizontal offset from the base origin (negative: mass the base "
+            "body lacks, a robot lighter than its model)",
             (
-                Parameter("payload_mass", "kg", 0.0, 0.0, 30.0, 8.0),
+                Parameter("payload_mass", "kg", 0.0, lightest_payload(model, spec), 30.0, 8.0),
                 Parameter("payload_com_x", "m", 0.0, -0.4, 0.4, 0.1),
                 Parameter("payload_com_y", "m", 0.0, -0.2, 0.2, 0.0),
             ),

@@ -113,7 +113,8 @@ def make_measured(
     `excitation` (default), `gait`, `random` or the path of an SB3 `.zip`. `solver`: how the robot's physics is
     solved (default: each step to convergence, as a real robot's physics is; None: the MJCF's own settings). Where
     that physics blows up in any episode (the MJCF's 4 iterations on ice, ground friction 0.05), the data show no
-    robot's motion: a ValueError says so and nothing is written.
+    robot's motion: a ValueError says so and nothing is written; so does a hidden robot that cannot be built (a
+    negative payload heavier than half the base body).
     """
     out = Path(out)
     if out.exists() and not overwrite:
@@ -121,6 +122,7 @@ def make_measured(
     env_kwargs = dict(env_kwargs or {})
     nominal = make_physics_core(env_id, 1, **env_kwargs)
     hidden = combined_physics(effects, nominal.spec, nominal.params.replace(**dict(extra_physics or {})))
+    make_physics_core(env_id, 1, **{**env_kwargs, "physics": hidden})  # a robot that cannot be built: before any file
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, raw = tempfile.mkstemp(suffix=".h5", dir=out.parent)
     os.close(fd)

@@ -50,10 +50,11 @@ class PhysicsParams:
     """Reflected rotor inertia added at each joint (kg·m²)."""
     action_delay: float = option(0.0, ge=0, le=1)
     """Delay between a position target and its effect in the actuator (s); a multiple of the physics dt."""
-    payload_mass: float = option(0.0, ge=0, le=1e4)
-    """Point mass added to the base (kg)."""
+    payload_mass: float = option(0.0, ge=-1e4, le=1e4)
+    """Point mass added to the base (kg); negative: mass taken from the base body (`lighter_base`), at most
+    `MAX_REMOVED_SHARE` of it."""
     payload_com: tuple[float, float, float] = option((0.0, 0.0, 0.0), ge=-10, le=10)
-    """Position of the payload in the base frame (m)."""
+    """Position of the payload (or of the mass taken away) in the base frame (m)."""
     ground_friction: float | None = option(None, ge=0, le=10)
     """Sliding friction coefficient of the floor (1); None keeps the model's."""
     backlash: PerJoint = option(0.0, ge=0, le=1)
@@ -203,6 +204,32 @@ CONVERGED_SOLVER = SolverSettings(iterations=100, ls_iterations=50)
 PAYLOAD_INERTIA = 1e-4
 """The payload's principal inertia per kg (m²): a compact point-like mass."""
 
+MAX_REMOVED_SHARE = 0.5
+"""The largest share of the base body's mass a negative payload may take away (a battery out, a lighter shell)."""
+
+
+def lighter_base(
+    mass: float, inertia: np.ndarray, com: np.ndarray, removed: float, at: tuple[float, float, float]
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """The base body's mass (kg), principal inertia (3,) (kg·m²) and centre of mass (3,) (m, base frame) with `removed`
+    kg taken away at `at` (base frame): mass and inertia scale by the share left (a uniformly lighter body, so the
+    inertia stays physical), and the centre of mass moves as taking a point mass from `at` moves it (the inverse of a
+    payload of `removed` kg added there). A one-line ValueError where more than `MAX_REMOVED_SHARE` would go."""
+    if removed > MAX_REMOVED_SHARE * mass:
+        raise ValueError(
+            f"physics parameter 'payload_mass' {-removed:g} kg takes more than {MAX_REMOVED_SHARE:.0%} of the base "
+            f"body's {mass:.4g} kg (lowest: {-MAX_REMOVED_SHARE * mass:.4g} kg)"
+        )
+    left = mass - removed
+    return left, np.asarray(inertia) * (left / mass), (mass * np.asarray(com) - removed * np.asarray(at)) / left
+
+
+def lightest_payload(model: mujoco.MjModel, spec: TaskSpec) -> float:
+    """The most negative `payload_mass` (kg) the robot of the compiled nominal `model` allows (0 without a base
+    body): `MAX_REMOVED_SHARE` of its base body's mass."""
+    base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, spec.base_body) if spec.base_body else -1
+    return -MAX_REMOVED_SHARE * float(model.body_mass[base]) if base >= 0 else 0.0
+
 
 @dataclass(frozen=True)
 class JointFigures:
@@ -303,6 +330,8 @@ def build_spec(
         payload.inertia = [PAYLOAD_INERTIA * params.payload_mass] * 3
         payload.explicitinertial = True
         payload.ipos = [0.0, 0.0, 0.0]  # else the compiler places the mass at 2 x payload_com and to_xml drops it
+    elif params.payload_mass < 0:
+        _lighten_base(mj, spec, params)
     floor_fields = {
         "ground_friction": params.ground_friction,
         "ground_solref": params.ground_solref,
@@ -325,6 +354,24 @@ def build_spec(
     return mj
 
 
+def _lighten_base(mj: mujoco.MjSpec, spec: TaskSpec, params: PhysicsParams) -> None:
+    """Write `lighter_base`'s inertial into the base body of `mj` as an explicit one, from the compiled nominal's."""
+    nominal = mj.compile()
+    b = nominal.body(spec.base_body).id
+    mass, inertia, com = lighter_base(
+        float(nominal.body_mass[b]),
+        nominal.body_inertia[b],
+        nominal.body_ipos[b],
+        -params.payload_mass,
+        params.payload_com,
+    )
+    base = mj.body(spec.base_body)
+    base.explicitinertial = True
+    base.mass, base.inertia, base.ipos = mass, list(inertia), list(com)
+    base.iquat = list(nominal.body_iquat[b])
+    base.fullinertia = [np.nan] + [0.0] * 5  # else the MJCF's fullinertia would stand in for inertia and iquat
+
+
 def ground_solref(values: tuple[float, float]) -> list[float]:
     """Checked solref (time constant s > 0, damping ratio > 0) of the floor."""
     values = [float(v) for v in np.atleast_1d(values)]
@@ -345,11 +392,11 @@ class ModelCache:
     """`build_model` for many parameter sets of one robot, without compiling each.
 
     Fitting a sim-to-real gap re-simulates hundreds of candidate parameter sets, and compiling each took a sixth of a
-    fit's time. Each structure (payload or not, delay in physics steps, which floor fields are set, solver settings) is
-    compiled once; the figures of `params` are written into a copy of it, and `mj_setConst` recomputes what the
-    compiler derives from them (the mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The
-    result equals `build_model(spec, xml_file, params, solver)` field for field, up to rounding
-    (tests/test_physics_params.py).
+    fit's time. Each structure (a payload body or not, delay in physics steps, which floor fields are set, solver
+    settings) is compiled once (a negative payload changes the base body's figures, no structure); the figures of
+    `params` are written into a copy of it, and `mj_setConst` recomputes what the compiler derives from them (the
+    mass matrix at qpos0 that armature enters, the bodies' subtree masses, ...). The result equals
+    `build_model(spec, xml_file, params, solver)` field for field, up to rounding (tests/test_gap.py).
     """
 
     def __init__(self, spec: TaskSpec, xml_file: str | Path | None = None, solver: SolverSettings | None = None):
@@ -388,6 +435,15 @@ class ModelCache:
             model.body_mass[body] = params.payload_mass
             model.body_inertia[body] = PAYLOAD_INERTIA * params.payload_mass
             model.body_pos[body] = params.payload_com
+        elif params.payload_mass < 0:
+            base = model.body(self.spec.base_body).id
+            model.body_mass[base], model.body_inertia[base], model.body_ipos[base] = lighter_base(
+                float(template.body_mass[base]),
+                template.body_inertia[base],
+                template.body_ipos[base],
+                -params.payload_mass,
+                params.payload_com,
+            )
         floor_geom = mujoco.mj_name2id(model, obj.mjOBJ_GEOM, "floor")
         if floor[0]:
             model.geom_friction[floor_geom, 0] = params.ground_friction
