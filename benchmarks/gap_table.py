@@ -1,6 +1,7 @@
 """The gap workflow over a grid of hidden cases, on excitation data and on an ordinary walking policy's data.
 
-The grid: every effect of the vocabulary at 0.5x, 1x and 2x its realistic default; per-leg and per-joint-type
+The grid: every effect of the vocabulary at 0.5x, 1x and 2x its realistic default; a robot lighter than its model
+(a negative payload of 5, 10 and 15 % of its total mass); per-leg and per-joint-type
 variants (values in some joints only, hidden through per-joint `PhysicsParams`); pairs and triples of effects; effects
 outside the vocabulary (a torsion spring in one joint type, edited into the MJCF directly,
 `measured.write_spring_model`); and no effect, also with half and twice the sensor noise the workflow assumes. Every
@@ -37,6 +38,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 from rwm_gym.atomic import write_json, write_text
@@ -49,11 +51,12 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor, noise_floor
 from rwm_gym.gap.resim import Resimulator
 from rwm_gym.gap.scope import joint_groups
 from rwm_gym.gap.workflow import GapConfig, drop_diverged, held_out_windows, run_gap
-from rwm_gym.physics.params import CONVERGED_SOLVER
+from rwm_gym.physics.params import CONVERGED_SOLVER, build_model
 from rwm_gym.spec import load_spec
 
 SPEC = load_spec("anymal_d")
 EFFECTS = vocabulary(SPEC)
+ROBOT_MASS_KG = mujoco.mj_getTotalmass(build_model(SPEC))
 SIM = "AnymalD-MuJoCo-v0"
 ROBOT_SOLVERS = {"converged": CONVERGED_SOLVER, "fast": None}
 """How the stand-in robot's physics is solved (`make_measured`'s solver): to convergence, or as the sim env is."""
@@ -118,6 +121,17 @@ def magnitude(name: str, scale: float) -> list[float]:
     return EFFECTS[name].values_from_magnitude(value).tolist()
 
 
+LIGHTER_SHARES = (0.05, 0.10, 0.15)
+"""A robot lighter than its model by these shares of its total mass (a battery out, a lighter shell)."""
+
+
+def lighter(share: float) -> Case:
+    """The robot lighter by `share` of its total mass (read from its model): a negative payload at the base origin."""
+    removed = share * ROBOT_MASS_KG
+    payload = EFFECTS["payload"].values_from_magnitude(-removed).tolist()
+    return Case(f"lighter_{round(100 * share)}pct", "single", {"payload": payload})
+
+
 def grid() -> list[Case]:
     """Every case, in run order: the most informative first, so a partial run covers every kind."""
     first = [
@@ -178,7 +192,7 @@ def grid() -> list[Case]:
             **LONGER_DATA,
         ),
     ]
-    return first + triples + rest
+    return first + triples + rest + [lighter(share) for share in LIGHTER_SHARES]
 
 
 CASES = {case.name: case for case in grid()}
@@ -417,11 +431,14 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             stands (solver_check.lost_in_reselection), which also reaches only rows that took the converged solve
     # version 31: of several named effects, one that adds nothing at the final values is dropped (select.drop_idle);
     #             only rows that named two or more effects can differ from version 30 (`--reuse at-most-one-named`)
+    # version 32: the payload's mass reaches below zero (a robot lighter than its model, down to half its base body's
+    #             mass), so its screening grid and searches differ wherever it is a candidate: every row can differ
+    #             from version 31
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 31,
+        "version": 32,
     }
 
 
