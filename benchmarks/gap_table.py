@@ -8,9 +8,9 @@ outside the vocabulary (a torsion spring in one joint type, edited into the MJCF
 case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait` or an SB3 `.zip` for
 the walking policy) and run through `rwm-gym gap --world-model none`.
 
-Per case: the named effects (order, scope), the fitted magnitude's error relative to the true distance from nominal,
-the explained fraction of the held-out gap (and the learned correction's where one was fitted), whether what the named
-effects leave is at the corrected simulator's own noise floor (`rest_at_floor`), false namings.
+Per case: the named effects (order, scope), the fitted magnitude and its error relative to the true distance from
+nominal, the explained fraction of the held-out gap (and the learned correction's where one was fitted), whether what
+the named effects leave is at the corrected simulator's own noise floor (`rest_at_floor`), false namings.
 
 The robot stands in for a real one in two ways (`--robots`): `converged` solves each of its physics steps to
 convergence; `fast` is the package's own physics as users train in it (the MJCF's solver settings), the case of a user
@@ -262,7 +262,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         }
     named = [(e["effect"], e["scope"]) for e in report["effects"]]
     true = case.true_names()
-    errors = {}
+    errors, fitted_first = {}, {}
     for item in report["effects"]:
         name = item["effect"]
         if name in case.truth:
@@ -270,6 +270,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
             fitted = item["parameters"].get(p.name)
             if fitted is not None:
                 errors[name] = abs(fitted - case.truth[name][0]) / abs(case.truth[name][0] - p.nominal)
+                fitted_first[name] = fitted
         elif case.per_joint and name == case.per_joint[0] and item["scope"] == case.per_joint[1]:
             _, _, group, value = case.per_joint
             p = EFFECTS[name].parameters[0]
@@ -299,6 +300,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         ),
         "false_namings": sorted({n for n, _ in named} - true),
         "magnitude_error": errors,
+        "fitted_magnitude": fitted_first,
         "explained_fraction": report["explained_fraction"],
         "learned_explained_fraction": learned["explained_fraction"] if learned and learned["status"] == "ok" else None,
         "learned_total_explained": (1.0 - learned["gap_after"] / report["gap_before"])
