@@ -62,3 +62,33 @@ def test_cloning_refuses_empty_data():
     model = make_ppo(make_env("physics", TINY.num_envs, seed=0), TINY, seed=0)
     with pytest.raises(ValueError, match="no usable"):
         behaviour_clone(model, [], CloneConfig(steps=1))
+
+
+def test_mirror_keeps_the_better_side_and_adds_its_mirror_image(trot):
+    from rwm_gym.rl.warm_start import Demonstrations, mirrored_better_half
+    from rwm_gym.task.observation import observation_slices
+    from rwm_gym.task.symmetry import action_mirror, observation_mirror
+
+    spec = trot.spec()
+    demos = demonstrations([trot])
+    vy = observation_slices(spec)["command"].start + 1
+    right = demos.observations[:, vy] < 0
+    assert right.any() and (~right).any()
+    reward = np.where(right, 1.0, 0.1).astype(np.float32)  # the demonstrator tracks right-hand commands better
+    mirrored = mirrored_better_half(Demonstrations(demos.observations, demos.actions, demos.episode, reward), spec)
+    n = int(right.sum())
+    assert len(mirrored.actions) == 2 * n
+    assert np.array_equal(mirrored.observations[:n], demos.observations[right])
+    assert np.array_equal(mirrored.observations[n:], observation_mirror(spec)(demos.observations[right]))
+    assert np.array_equal(mirrored.actions[n:], action_mirror(spec)(demos.actions[right]))
+    assert (mirrored.observations[n:, vy] > 0).all()  # the images are left-hand commands
+    assert not set(mirrored.episode[:n]) & set(mirrored.episode[n:])  # an image is an episode of its own
+    # the other side wins when it tracks better
+    flipped = mirrored_better_half(Demonstrations(demos.observations, demos.actions, demos.episode, 1 - reward), spec)
+    assert np.array_equal(flipped.observations[: int((~right).sum())], demos.observations[~right])
+
+
+def test_mirrored_cloning_fits_both_sides(trot):
+    model = make_ppo(make_env("physics", TINY.num_envs, seed=0), TINY, seed=0)
+    stats = behaviour_clone(model, [trot], CloneConfig(steps=300, batch_size=256, mirror=True, seed=0))
+    assert stats.train_mse_after < 0.5 * stats.train_mse_before

@@ -105,6 +105,9 @@ class BCOptions:
     """behaviour-cloning Adam steps"""
     bc_log_std: float = option(CloneConfig.log_std, finite=True)
     """action log std after cloning"""
+    bc_mirror: bool = False
+    """clone the half of the commands the demonstrator tracks better and its left-right mirror image (the spec's
+    [symmetry]), so a demonstrator that walks to one side only teaches both"""
     keep_best: bool = False
     """with --bc-data: if the physics tracking score after PPO is below the clone's, write the clone as --out (said
     in the output and the JSON; the PPO policy stays as *_ppo.zip)"""
@@ -362,7 +365,7 @@ def _behaviour_clone(args: argparse.Namespace, model, env_kwargs: dict | None = 
         behaviour_clone(
             model,
             args.bc_data,
-            CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std, seed=args.seed),
+            CloneConfig(steps=args.bc_steps, log_std=args.bc_log_std, mirror=args.bc_mirror, seed=args.seed),
             progress=True,
         )
     )

@@ -25,6 +25,7 @@ import numpy as np
 from stable_baselines3 import PPO
 
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.spec import TaskSpec
 from rwm_gym.task.observation import build_observation
 
 DEMOS_FILE = "anymal_d_demos.h5"
@@ -52,6 +53,9 @@ class CloneConfig:
     observation_noise: float = 0.0
     """Scale of the spec's uniform observation noise added to the other inputs while cloning (0: none, 1: the
     spec's)."""
+    mirror: bool = False
+    """Clone the half of the commands the demonstrator tracks better and that half's left-right mirror image (the
+    spec's `[symmetry]`) in place of all pairs: a demonstrator that walks to one side only teaches both sides."""
     val_fraction: float = 0.1
     """Episodes held out to report the validation MSE."""
     seed: int = 0
@@ -94,11 +98,13 @@ class Demonstrations:
     """(P, A) float32 in [-1, 1]."""
     episode: np.ndarray
     """(P,) int64, a running episode index over all datasets."""
+    reward: np.ndarray
+    """(P,) float32, the step reward of each pair."""
 
 
 def demonstrations(datasets: Sequence[Dataset | str | os.PathLike], *, drop_before_fall: int = 50) -> Demonstrations:
     """All (observation, action) pairs of `datasets` (see the module docstring for which rows are used)."""
-    obs, act, eps, offset = [], [], [], 0
+    obs, act, eps, rew, offset = [], [], [], [], 0
     for source in datasets:
         ds = source if isinstance(source, Dataset) else Dataset.load(source)
         spec = ds.spec()
@@ -119,10 +125,35 @@ def demonstrations(datasets: Sequence[Dataset | str | os.PathLike], *, drop_befo
         obs.append(build_observation(spec, state[keep], command[keep], last[keep]))
         act.append(action[keep].astype(np.float32))
         eps.append(episode[keep])
+        rew.append(ds["reward"][keep].astype(np.float32))
     if not obs or sum(len(a) for a in act) == 0:
         names = ", ".join(str(d if not isinstance(d, Dataset) else d.path) for d in datasets) or "(none)"
         raise ValueError(f"behaviour cloning: no usable (observation, action) pairs in {names}")
-    return Demonstrations(np.concatenate(obs), np.concatenate(act), np.concatenate(eps))
+    return Demonstrations(np.concatenate(obs), np.concatenate(act), np.concatenate(eps), np.concatenate(rew))
+
+
+def mirrored_better_half(demos: Demonstrations, spec: TaskSpec) -> Demonstrations:
+    """The pairs on the side of the commands with the higher mean reward, and their mirror images.
+
+    The sides are the signs of the first command the mirror negates (the lateral velocity of a legged task); the
+    image of a pair is the mirrored observation and action, in an episode of its own (index offset past the last)."""
+    from rwm_gym.task.observation import observation_slices
+    from rwm_gym.task.symmetry import action_mirror, observation_mirror, symmetry_table
+
+    signs = symmetry_table(spec).signs.get("command")
+    if signs is None or min(signs) > 0:
+        raise ValueError(f"behaviour cloning --bc-mirror: task spec {spec.name} mirrors no command")
+    column = observation_slices(spec)["command"].start + int(np.argmin(signs))
+    negative = demos.observations[:, column] < 0.0
+    sides = [side for side in (negative, ~negative) if side.any()]
+    keep = max(sides, key=lambda side: float(demos.reward[side].mean()))
+    offset = int(demos.episode.max()) + 1
+    return Demonstrations(
+        np.concatenate([demos.observations[keep], observation_mirror(spec)(demos.observations[keep])]),
+        np.concatenate([demos.actions[keep], action_mirror(spec)(demos.actions[keep])]),
+        np.concatenate([demos.episode[keep], demos.episode[keep] + offset]),
+        np.concatenate([demos.reward[keep], demos.reward[keep]]),
+    )
 
 
 def mean_action(model: PPO, observations):
@@ -172,6 +203,9 @@ def behaviour_clone(
 
     started = time.monotonic()
     demos = demonstrations(datasets, drop_before_fall=config.drop_before_fall)
+    if config.mirror:
+        first = datasets[0] if isinstance(datasets[0], Dataset) else Dataset.load(datasets[0])
+        demos = mirrored_better_half(demos, first.spec())
     rng = np.random.default_rng(config.seed)
     episodes = np.unique(demos.episode)
     n_val = int(round(config.val_fraction * len(episodes))) if len(episodes) > 1 else 0
