@@ -27,8 +27,9 @@ import os
 import sys
 from pathlib import Path
 
-RECIPE = "anymal_d_ppo_quickstart"
-"""The recipe JSON in assets/policies the quick start runs: its settings, shipped policy and measured seeds."""
+ROBOT = "anymal_d"
+"""The robot of the default recipe, assets/policies/ROBOT_ppo_quickstart.json: its settings, shipped policy and
+measured seeds; the robot's physics teacher is ROBOT_ppo_physics.json beside it."""
 
 WALKS = (0.80, 2)
 """(tracking, falls in 54): the policy walks at tracking >= 0.80 with at most 2 falls (the zero-action floor stands
@@ -38,9 +39,14 @@ at 0.23 with none)."""
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
+        "--robot",
+        default=ROBOT,
+        help=f"the robot whose quick-start recipe runs, assets/policies/ROBOT_ppo_quickstart.json (default {ROBOT})",
+    )
+    parser.add_argument(
         "--recipe",
-        default=RECIPE,
-        help=f"a recipe JSON in assets/policies (default {RECIPE}; anymal_d_ppo_imagination: the 40 M-step one)",
+        default=None,
+        help="a recipe JSON in assets/policies in place of --robot's (anymal_d_ppo_imagination: the 40 M-step one)",
     )
     parser.add_argument(
         "--timesteps", type=int, default=None, help="PPO budget in imagined steps (default: the recipe's)"
@@ -81,10 +87,11 @@ def main() -> int:
     from rwm_gym.rl.score import record_walk, score
 
     policies = assets_dir() / "policies"
-    recipe_file = policies / f"{Path(args.recipe).stem}.json"
+    recipe_file = policies / f"{Path(args.recipe or f'{args.robot}_ppo_quickstart').stem}.json"
     if not recipe_file.is_file() or not from_scratch(recipe := json.loads(recipe_file.read_text())):
         known = sorted(p.stem for p in policies.glob("*.json") if from_scratch(json.loads(p.read_text())))
-        parser.error(f"--recipe {args.recipe}: not a from-scratch recipe in {policies} (known: {', '.join(known)})")
+        given = f"--recipe {args.recipe}" if args.recipe else f"--robot {args.robot}"
+        parser.error(f"{given}: no from-scratch recipe in {policies} (known: {', '.join(known)})")
     timesteps = args.timesteps or recipe["imagined_steps"]
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
     checkpoint = args.checkpoint or shipped_file(recipe["world_model"]["checkpoint"])
@@ -127,8 +134,10 @@ def main() -> int:
     trained = time.monotonic() - started
     policy = args.out / "policy.zip"
     steps = json.loads((args.out / "run" / "state.json").read_text())["timesteps"]
-    result = score(str(policy), seeds=args.score_seeds, steps=args.score_steps)
-    floor, teacher = recipe["score"]["floor"], json.loads((policies / "anymal_d_ppo_physics.json").read_text())
+    task = read_meta(checkpoint).spec
+    result = score(str(policy), seeds=args.score_seeds, steps=args.score_steps, spec=task)
+    robot = recipe_file.stem.rsplit("_ppo_", 1)[0]
+    floor, teacher = recipe["score"]["floor"], json.loads((policies / f"{robot}_ppo_physics.json").read_text())
     print(f"this policy, in physics:  {score_text(result.tracking, result.falls, result.episodes)}")
     print(f"standing still (floor):   {score_text(floor['tracking'], floor['falls'], recipe['score']['episodes'])}")
     print(
@@ -139,10 +148,10 @@ def main() -> int:
     print(f"physics-trained teacher:  {score_text(teacher['score']['tracking'], teacher['score']['falls'], 54)}")
     rows, _ = physics_rows(checkpoint)
     print(f"physics samples behind the policy: {share_text(rows)}; the policy saw none, its world model's lineage")
-    files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png")]
+    files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png", task.name)]
     if args.video:
         try:
-            files.append(record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png")[0])
+            files.append(record_walk(str(policy), args.out / "walk.gif", args.out / "walk.png", spec=task)[0])
         except Exception as error:  # no offscreen GL here: the score above still stands
             print(f"no video ({type(error).__name__}); set MUJOCO_GL=egl where libEGL is installed")
     print("files: " + ", ".join(str(f) for f in files))
@@ -201,7 +210,7 @@ def ppo_options(recipe: dict, checkpoint: Path | None = None) -> list[str]:
     return options
 
 
-def plot_curve(recipe: dict, timesteps: int, tracking: float, floor: float, path: Path) -> Path:
+def plot_curve(recipe: dict, timesteps: int, tracking: float, floor: float, path: Path, robot: str) -> Path:
     """This run's point on the recipe's measured physics tracking against imagined steps (one line per seed)."""
     import matplotlib
 
@@ -224,7 +233,7 @@ def plot_curve(recipe: dict, timesteps: int, tracking: float, floor: float, path
     ax.axhline(WALKS[0], color="tab:green", ls=":", label=f"walks ({WALKS[0]}, <= {WALKS[1]} falls)")
     ax.set_xlabel("imagined env steps (M)")
     ax.set_ylabel("tracking score in physics")
-    ax.set_title("PPO from scratch in the shipped world model, scored in MuJoCo (ANYmal D)")
+    ax.set_title(f"PPO from scratch in the shipped world model, scored in MuJoCo ({robot})")
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     save_png(fig, path, dpi=100)

@@ -219,15 +219,15 @@ def test_quickstart_refuses_a_recipe_it_cannot_run_in_one_line(tmp_path):
     with one line that lists the ones it can run, before any training."""
     import subprocess
 
-    for recipe in ("no_such_recipe", "anymal_d_mbpo_ppo"):
+    for flag, name in (("--recipe", "no_such_recipe"), ("--recipe", "anymal_d_mbpo_ppo"), ("--robot", "no_such_robot")):
         run = subprocess.run(
-            [sys.executable, str(EXAMPLES / "quickstart.py"), "--recipe", recipe, "--out", str(tmp_path / "qs")],
+            [sys.executable, str(EXAMPLES / "quickstart.py"), flag, name, "--out", str(tmp_path / "qs")],
             capture_output=True,
             text=True,
             timeout=120,
         )
         assert run.returncode == 2 and not (tmp_path / "qs").exists()
-        assert f"--recipe {recipe}: not a from-scratch recipe" in run.stderr.splitlines()[-1]
+        assert f"{flag} {name}: no from-scratch recipe" in run.stderr.splitlines()[-1]
         assert "anymal_d_ppo_quickstart" in run.stderr.splitlines()[-1]
 
 
