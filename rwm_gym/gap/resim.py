@@ -84,6 +84,9 @@ class Windows:
     """(W, C) measured contact flags at row start."""
     horizon: int
     warmup: int
+    gap_ceiling: np.ndarray | None = None
+    """(len(gap_horizons(horizon)),) the most one window's gap counts at each gap horizon (`fit.gap_ceiling`);
+    None: uncapped."""
 
     def __len__(self) -> int:
         return len(self.start)
@@ -96,12 +99,14 @@ class Windows:
                 f"{other.horizon}/{other.warmup}"
             )
         take = {k: np.concatenate([getattr(self, k), getattr(other, k)]) for k in WINDOW_ARRAYS}
-        return Windows(**take, horizon=self.horizon, warmup=self.warmup)
+        ceilings = (self.gap_ceiling, other.gap_ceiling)
+        ceiling = None if any(c is None for c in ceilings) else np.maximum(*ceilings)
+        return Windows(**take, horizon=self.horizon, warmup=self.warmup, gap_ceiling=ceiling)
 
     def subset(self, mask: np.ndarray) -> Windows:
         """The windows where `mask` (W,) holds."""
         take = {k: getattr(self, k)[mask] for k in WINDOW_ARRAYS}
-        return Windows(**take, horizon=self.horizon, warmup=self.warmup)
+        return Windows(**take, horizon=self.horizon, warmup=self.warmup, gap_ceiling=self.gap_ceiling)
 
 
 def make_windows(dataset: Dataset, episodes: np.ndarray, horizon: int, stride: int, warmup: int = WARMUP) -> Windows:

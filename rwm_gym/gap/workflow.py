@@ -27,7 +27,7 @@ from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.cross_fit import CrossFit
 from rwm_gym.gap.diagnose import locate_gap
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_horizons, gap_per_window
+from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_ceiling, gap_horizons, gap_per_window
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.learned import LearnedCorrectionConfig, fit_learned_correction, save_correction
 from rwm_gym.gap.measured import SensorNoise
@@ -154,6 +154,7 @@ def run_gap(
     train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
     resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=core.solver.then(config.solver))
     held, dropped_held = drop_diverged(resim, held, base, measured)
+    held = gap_ceiling(resim, held, base)
     train, dropped_train = drop_diverged(resim, train, base, measured)
     choice = SolverChoice(
         resim, {"checked": False, "taken": "own", "reason": "not asked for (GapConfig.solver_check)"}, None
@@ -307,9 +308,8 @@ def _cross_fit_windows(
         if not built:
             fit = make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
             score = make_windows(data, train_ids, horizon, config.eval_stride, config.warmup)
-            built.append(
-                CrossFit(drop_diverged(resim, fit, base, measured)[0], drop_diverged(resim, score, base, measured)[0])
-            )
+            score = gap_ceiling(resim, drop_diverged(resim, score, base, measured)[0], base)
+            built.append(CrossFit(drop_diverged(resim, fit, base, measured)[0], score))
         return built[0]
 
     return cross
