@@ -107,6 +107,11 @@ SPARSE_EFFECTS = ("torque_speed_limit", "torque_limit", "base_velocity_bias")
 """Effects whose single cases are measured on `LONGER_DATA`."""
 
 
+JOINT_LOSSES = ("joint_damping", "joint_friction")
+"""Viscous and Coulomb joint loss, which mimic each other (torque x joint speed, or x its sign): each also at 1.5x
+its default, between the 1x and 2x rows."""
+
+
 def single(name: str, scale: float) -> Case:
     """The effect `name` alone at `scale` x its default distance from nominal (on `LONGER_DATA` if it is sparse)."""
     data = LONGER_DATA if name in SPARSE_EFFECTS else {}
@@ -154,6 +159,7 @@ def grid() -> list[Case]:
     ]
     first += [single(n, 1) for n in ROBOT_EFFECTS if n != "action_delay"]
     rest = [single(n, s) for s in (0.5, 2.0) for n in ROBOT_EFFECTS]
+    rest += [single(n, 1.5) for n in JOINT_LOSSES]
     rest += [
         Case("strength_RH_0.6", "leg", per_joint=("motor_strength", "leg", "RH", 0.6)),
         Case("armature_HFE_0.1", "joint_type", per_joint=("armature", "joint_type", "HFE", 0.1)),
@@ -436,11 +442,13 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 32: the payload's mass reaches below zero (a robot lighter than its model, down to half its base body's
     #             mass), so its screening grid and searches differ wherever it is a candidate: every row can differ
     #             from version 31
+    # version 33: no held-out window's gap counts for more than the nominal simulator's worst at that horizon
+    #             (fit.gap_ceiling); joint damping and joint friction also at 1.5x; every row can differ from version 32
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 32,
+        "version": 33,
     }
 
 
