@@ -202,10 +202,10 @@ def behaviour_clone(
     from tqdm import tqdm
 
     started = time.monotonic()
+    datasets = [d if isinstance(d, Dataset) else Dataset.load(d) for d in datasets]  # each file read once
     demos = demonstrations(datasets, drop_before_fall=config.drop_before_fall)
     if config.mirror:
-        first = datasets[0] if isinstance(datasets[0], Dataset) else Dataset.load(datasets[0])
-        demos = mirrored_better_half(demos, first.spec())
+        demos = mirrored_better_half(demos, datasets[0].spec())
     rng = np.random.default_rng(config.seed)
     episodes = np.unique(demos.episode)
     n_val = int(round(config.val_fraction * len(episodes))) if len(episodes) > 1 else 0
