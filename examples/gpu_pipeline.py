@@ -22,17 +22,15 @@ and GPU names, the CPU model, its core count and torch's thread count, the load 
 from __future__ import annotations
 
 import os
-import platform
-import shlex
-import subprocess
 import sys
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
-import rwm_gym
+sys.path.insert(0, str(Path(__file__).parent))  # the record of timed stages, a sibling script
+from timed_stages import CLI, machine, stage
+
 from rwm_gym.atomic import write_json
 from rwm_gym.data.dataset import merge_datasets
 from rwm_gym.options import parse_dataclass_args
@@ -71,58 +69,6 @@ class Options:
     seed: int = 0
 
 
-def cpu_model() -> str:
-    """The CPU's model name (Linux: /proc/cpuinfo), else what `platform` knows."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def commit() -> str | None:
-    """The checkout's commit, where this runs from a git checkout."""
-    done = subprocess.run(
-        ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, check=False
-    )
-    return done.stdout.strip() or None
-
-
-def machine(device: str) -> dict:
-    """The hardware and software the stages ran on."""
-    cuda = torch.device(device).type == "cuda"
-    return {
-        "device": torch.cuda.get_device_name(0) if cuda else "cpu",
-        "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "cuda": torch.version.cuda,
-        "rwm_gym": rwm_gym.__version__,
-        "commit": commit(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "loadavg_before": os.getloadavg(),
-    }
-
-
-def stage(name: str, command: list[str], timings: dict, record: Path) -> None:
-    """Run one command, fail loudly, record its wall time and write the record so far."""
-    print(f"[{name}] {shlex.join(command)}", flush=True)
-    tic = time.perf_counter()
-    subprocess.run(command, check=True)
-    timings["stages"][name] = {
-        "command": shlex.join(command),
-        "wall_s": time.perf_counter() - tic,
-        "loadavg_after": os.getloadavg(),
-    }
-    write_json(record, timings)
-
-
 def main(argv: list[str] | None = None) -> dict:
     options = parse_dataclass_args(Options, argv)
     out = Path(options.out)
@@ -130,7 +76,6 @@ def main(argv: list[str] | None = None) -> dict:
     cuda = torch.device(options.device).type == "cuda"
     gpus = options.gpus or (torch.cuda.device_count() if cuda else 1)
     workers = options.workers or os.cpu_count() or 1
-    cli = [sys.executable, "-m", "rwm_gym.cli"]
     record = out / "timings.json"
     timings = {"options": asdict(options), "machine": machine(options.device), "stages": {}}
 
@@ -143,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
         stage(
             f"collect_{policy}",
             [
-                *cli,
+                *CLI,
                 "collect",
                 "--policy",
                 policy,
@@ -176,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     launcher = (
         [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={gpus}", "-m", "rwm_gym.cli"]
         if gpus > 1
-        else cli
+        else CLI
     )
     checkpoint.unlink(missing_ok=True)
     stage(
@@ -204,7 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
     stage(
         "evaluate",
         [
-            *cli,
+            *CLI,
             "evaluate",
             "--checkpoint",
             str(checkpoint),
@@ -220,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict:
         record,
     )
     ppo = [
-        *cli,
+        *CLI,
         "ppo",
         "--in",
         "imagination",
