@@ -10,10 +10,11 @@ runs/cover/model/buffer.h5` with the new policies, so the model keeps the earlie
 
 Policies trained from scratch inside a model find where it is wrong: an annealed from-scratch policy fell three times
 on the fastest diagonal command, where the shipped MBPO model predicts it upright with no fall 25 steps out. The cause
-is data coverage, so this collects each policy's own physics episodes (`--episodes` per action-noise level, from
-consecutive seeds), merges them after the base mix (the task's ordinary motions, so the model keeps what it knew) and
-fine-tunes the model on the merge with the model's own training settings (only the budget, learning rate and seed
-change, as in the MBPO loop). It is one MBPO data step, taken with policies that were themselves trained from scratch.
+is data coverage, so this collects each policy's own physics episodes in the start model's robot (`--episodes` per
+action-noise level, from consecutive seeds), merges them after the base mix (the task's ordinary motions, so the
+model keeps what it knew) and fine-tunes the model on the merge with the model's own training settings (only the
+budget, learning rate and seed change, as in the MBPO loop). It is one MBPO data step, taken with policies that were
+themselves trained from scratch.
 
 Writes OUT/own/part_<i>.h5 (one per policy and noise level), OUT/buffer.h5 (the base, then the parts),
 OUT/train.safetensors (the fine-tune with its optimizer state: the same command resumes it) and OUT/model.safetensors:
@@ -83,8 +84,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def collect_parts(args: argparse.Namespace) -> list[Path]:
-    """One file per (policy, noise level); a part already complete with its seed is kept (the command resumes)."""
+def collect_parts(args: argparse.Namespace, robot: str) -> list[Path]:
+    """One file per (policy, noise level) in `robot`'s physics (an env id); a part already complete with its seed is
+    kept (the command resumes)."""
     parts = []
     for i, (policy, noise) in enumerate((p, n) for p in args.policies for n in args.noise):
         part, seed = args.out / "own" / f"part_{i}.h5", args.first_seed + 100 * i
@@ -94,7 +96,7 @@ def collect_parts(args: argparse.Namespace) -> list[Path]:
             raise SystemExit(str(error)) from None
         if not finished:
             collect(
-                "AnymalD-MuJoCo-v0",
+                robot,
                 policy,
                 args.episodes,
                 part,
@@ -113,12 +115,12 @@ def main(argv: list[str] | None = None) -> Path:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     (args.out / "own").mkdir(parents=True, exist_ok=True)
-    parts = collect_parts(args)
+    start = read_meta(args.checkpoint)
+    parts = collect_parts(args, start.spec.physics_env_id)  # the start model's robot
     buffer = args.out / "buffer.h5"
     if not buffer.exists():  # merged once (atomic writes): a resumed fine-tune finds the file it started on
         merge_datasets([args.base, *parts], buffer)
 
-    start = read_meta(args.checkpoint)
     config = replace(
         start.train_config,
         iterations=args.iterations,

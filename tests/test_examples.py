@@ -403,9 +403,10 @@ def test_gap_table_measures_a_case_on_the_fast_robot_and_compares_like_with_like
 
 
 def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp_path):
-    """One part per (policy, noise level) from its own seeds, merged after the base; the fine-tune keeps the start
-    model's training settings except budget, lr and seed; the written model carries no optimizer state and counts
-    the physics rows behind it; the same command again collects nothing and gives the same model."""
+    """One part per (policy, noise level) from its own seeds in the start model's robot (here the Go2), merged after
+    the base; the fine-tune keeps the start model's training settings except budget, lr and seed; the written model
+    carries no optimizer state and counts the physics rows behind it; the same command again collects nothing and
+    gives the same model."""
     from safetensors.torch import load_file
 
     from rwm_gym.data.collect import collect
@@ -416,10 +417,8 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
     from rwm_gym.model.train import train
     from rwm_gym.spec import load_spec
 
-    base = collect(
-        "AnymalD-MuJoCo-v0", "random", 4, tmp_path / "base.h5", seed=0, num_envs=4, max_steps=40, progress=False
-    )
-    config = model_config_for("rwm", load_spec("anymal_d"), hidden_size=32, num_layers=1, head_hidden=32)
+    base = collect("Go2-MuJoCo-v0", "random", 4, tmp_path / "base.h5", seed=0, num_envs=4, max_steps=40, progress=False)
+    config = model_config_for("rwm", load_spec("go2"), hidden_size=32, num_layers=1, head_hidden=32)
     start = train(
         base,
         config,
@@ -462,6 +461,7 @@ def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp
 
     parts = sorted((out / "own").glob("part_*.h5"))
     assert [Dataset.load(p).info.seed for p in parts] == [500, 600, 700, 800]
+    assert {Dataset.load(p).info.env_id for p in parts} == {"Go2-MuJoCo-v0"}  # the start model's robot
     own_rows = sum(Dataset.load(p).num_steps for p in parts)
     assert Dataset.load(out / "buffer.h5").num_steps == Dataset.load(base).num_steps + own_rows
     meta, started = read_meta(model), read_meta(start)
