@@ -308,6 +308,7 @@ def run_case(case: Case, source: str, args: argparse.Namespace, tmp: Path, robot
         "magnitude_error": errors,
         "fitted_magnitude": fitted_first,
         "explained_fraction": report["explained_fraction"],
+        "gap_measure": report["gap_measure"],
         "learned_explained_fraction": learned["explained_fraction"] if learned and learned["status"] == "ok" else None,
         "learned_total_explained": (1.0 - learned["gap_after"] / report["gap_before"])
         if learned and learned["status"] == "ok"
@@ -482,6 +483,10 @@ def _where_named(rs: list[dict]) -> dict:
         # rows reused from before version 17 (`--reuse above-floor`) have no rest_at_floor
         "explained_ge_70pct_or_rest_at_its_floor_where_named": frac(
             [x >= 0.7 or r.get("rest_at_floor", False) for x, r in zip(explained, named_right)]
+        ),
+        # the gap by the report's own measure (`gap.distribution.headline`), in rows that record it
+        "report_gap_falls_where_named": frac(
+            [r["gap_measure"]["explained_fraction"] > 0 for r in rs if r.get("named") and "gap_measure" in r]
         ),
     }
 

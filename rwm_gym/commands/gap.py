@@ -144,9 +144,10 @@ def run(args: argparse.Namespace) -> int:
             spread = item.get("bootstrap", {}).get(name)
             interval = " (bootstrap 95 %: {:.4g} to {:.4g})".format(*spread["interval"]) if spread else ""
             print(f"    {name} = {value:.4g} ± {item['uncertainty'][name]:.2g} {item['units'][name]}{interval}")
+    chosen = report["gap_measure"]
     print(
-        f"gap before {report['gap_before']:.4g}, after {report['gap_after']:.4g} "
-        f"(explained {report['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}"
+        f"gap ({chosen['measure']}) before {chosen['gap_before']:.4g}, after {chosen['gap_after']:.4g} "
+        f"(explained {chosen['explained_fraction']:.1%}); report: {Path(args.out) / 'report.md'}"
     )
     learned = report["learned_correction"]
     if learned and learned["status"] == "ok":

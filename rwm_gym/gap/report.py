@@ -9,7 +9,9 @@ named parameter its `std` and `interval` over resampled fitting episodes, `gap.b
 (each of several named effects tested for what it adds at the final values, `select.drop_idle`),
 `explained_fraction`, `gap_before`, `gap_after` (normalised state MSE averaged over `gap_horizons`,
 1, 5 and 25 steps or fewer where the held-out episodes are shorter, after the named effects),
-`gap_before_per_horizon`, `gap_after_per_horizon`,
+`gap_before_per_horizon`, `gap_after_per_horizon`, `distribution_gap` (the distance between distributions of
+per-window statistics of foot slip, contact timing and base motion, before and after, `gap.distribution`),
+`gap_measure` (which of the two gaps heads the report, its figures and why),
 `noise_floor` (the floor, the test of the nominal gap against it, the sensor-noise model), `residual` (the same test
 after the named effects), `identifiability` (per effect: signal at its default magnitude / floor), `where`,
 `selection_steps` (per step: floor test, candidates, decision), `candidates` (step 1's), `rejected` (parameter points
@@ -77,6 +79,7 @@ def markdown(report: dict) -> str:
         _verdict,
         _named_effects,
         _gap_per_horizon,
+        _gap_measures,
         _learned_correction,
         _identifiability,
         _where_the_gap_lives,
@@ -98,8 +101,19 @@ def _verdict(report: dict) -> list[str]:
             f"Held-out gap {floor['gap']:.4g}, sensor-noise floor {floor['floor']:.4g} "
             f"(ratio {floor['ratio']:.2f}, p={floor['p_value']:.2g}; {floor['test']}).\n"
         ),
+        *_headline(report.get("gap_measure")),
         *_noise_check(floor.get("noise_check")),
         *_solver(report.get("solver")),
+    ]
+
+
+def _headline(chosen: dict | None) -> list[str]:
+    """The gap by the measure the verdict is judged by (`gap.distribution.headline`)."""
+    if not chosen:
+        return []
+    return [
+        f"Gap by the report's measure (`{chosen['measure']}`, see Gap measures): {chosen['gap_before']:.4g} before, "
+        f"{chosen['gap_after']:.4g} after the correction ({chosen['explained_fraction']:.1%} explained).\n"
     ]
 
 
@@ -170,6 +184,29 @@ def _gap_per_horizon(report: dict) -> list[str]:
         f"{report['residual'].get('floor_of', 'the nominal simulator')}"
         f"{' (significantly above it)' if report['residual']['above_floor'] else ''}.\n"
     )
+    return lines
+
+
+def _gap_measures(report: dict) -> list[str]:
+    """Both gap measures before and after the correction, the one the verdict is judged by, and why."""
+    dist, chosen = report.get("distribution_gap"), report.get("gap_measure")
+    if not dist or not chosen:
+        return []
+    lines = [
+        "## Gap measures\n",
+        "| measure | gap before | gap after | explained |\n|---|---|---|---|",
+        f"| state_mse: normalised state MSE, step by step | {report['gap_before']:.4g} | {report['gap_after']:.4g} | "
+        f"{report['explained_fraction']:.1%} |",
+        f"| window_distribution: distance between distributions of window statistics | {dist['gap_before']:.4g} | "
+        f"{dist['gap_after']:.4g} | {dist['explained_fraction']:.1%} |",
+        f"\nThe report's gap measure is `{chosen['measure']}`: {chosen['reason']}.\n",
+        "| window statistic | distance before | distance after |\n|---|---|---|",
+        *(
+            f"| {name} ({dist['statistics'][name]}) | {d['before']:.3g} | {d['after']:.3g} |"
+            for name, d in dist["per_statistic"].items()
+        ),
+        f"\nDistance: {dist['metric']}; {dist['windows']} held-out windows.\n",
+    ]
     return lines
 
 

@@ -175,9 +175,9 @@ class Resimulator:
         correction: TorqueCorrection | None = None,
     ) -> dict[str, np.ndarray]:
         """`rollout` with the raw arrays too: {"state" (W, H, S), "qpos" (W, H, nq), "qvel" (W, H, nv),
-        "joint_torque" (W, H, A)}, all as the sensors read them (the measured rows are readings: a sensor bias of
-        `params` is undone on each before the simulation takes it, `rwm_gym.physics.sensors`); `correction` adds a
-        learned joint torque at every policy step."""
+        "joint_torque" (W, H, A), "contact" (W, H, C) bool}, all as the sensors read them (the measured rows are
+        readings: a sensor bias of `params` is undone on each before the simulation takes it,
+        `rwm_gym.physics.sensors`); `correction` adds a learned joint torque at every policy step."""
         spec, horizon = self.spec, horizon or windows.horizon
         model = self.model(params)
         layout = RobotLayout.from_model(model, spec)
@@ -217,6 +217,7 @@ class Resimulator:
             "qpos": np.empty((n, horizon, model.nq)),
             "qvel": np.empty((n, horizon, model.nv)),
             "joint_torque": np.empty((n, horizon, spec.action_dim)),
+            "contact": np.empty((n, horizon, spec.contact_dim), bool),
         }
         with held_warnings():
             for i in range(k):
@@ -233,7 +234,8 @@ class Resimulator:
                 if bias is not None:
                     read_qpos, read_qvel = bias.read(arrays["qpos"], arrays["qvel"])
                     arrays = {**arrays, "qpos": read_qpos, "qvel": read_qvel}
-                out["state"][:, h] = measure(layout, spec, **arrays).state
+                measured = measure(layout, spec, **arrays)
+                out["state"][:, h], out["contact"][:, h] = measured.state, measured.contact
                 out["qpos"][:, h], out["qvel"][:, h] = arrays["qpos"], arrays["qvel"]
                 out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]
         check_diverged(np.array(sim.batch.warning[:, :, 1]) - warnings_before, out["state"])

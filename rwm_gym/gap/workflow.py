@@ -26,6 +26,7 @@ from rwm_gym.gap.bootstrap import bootstrap
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.cross_fit import CrossFit
 from rwm_gym.gap.diagnose import locate_gap
+from rwm_gym.gap.distribution import distribution_gap, headline
 from rwm_gym.gap.effects import vocabulary
 from rwm_gym.gap.fit import GAP_HORIZONS, FitConfig, gap_ceiling, gap_horizons, gap_per_window
 from rwm_gym.gap.identifiability import identifiability
@@ -229,10 +230,15 @@ def run_gap(
     corrected_sim = resim.rollout(held, corrected_params) if selection.named else chosen.nominal_sim
 
     plots, located = _plots(spec, held, horizon, chosen.nominal_sim, corrected_sim, chosen.before, out)
+    numbers = _gap_numbers(chosen.before, after, gap_horizons(horizon))
+    distribution = distribution_gap(resim, data, held, base, corrected_params, sensor_noise)
+    by_spread = any(fit.spread is not None for _, fit in selection.named)
     report = {
         **named_section(selection, spread),
         "bootstrap": spread,
-        **_gap_numbers(chosen.before, after, gap_horizons(horizon)),
+        **numbers,
+        "distribution_gap": distribution,
+        "gap_measure": headline(numbers, distribution, by_spread),
         "noise_floor": {
             **chosen.floor_test,
             "sensor_noise": dataclasses.asdict(sensor_noise),
