@@ -174,10 +174,13 @@ def _plot(rows: list[dict], floor: dict, threshold: float, path: Path, trained_i
     tracking = [float(r["tracking"]) for r in rows]
     imagined = [(x, float(r["imagined_tracking"])) for x, r in zip(steps, rows) if r.get("imagined_tracking")]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    floor_text = "stands still" if not floor.get("falls") else f"falls {floor['falls']} times"
     steps_label = f"{'imagined' if trained_in == 'imagination' else 'physics'} env steps (M)"
     for ax, x, label in ((axes[0], steps, steps_label), (axes[1], walls, "training wall time (min)")):
-        ax.plot(x, tracking, "o-", label="PPO snapshot, in physics")
-        ax.axhline(floor["tracking"], color="0.5", ls="--", label="zero action (stands still)")
+        ax.plot(x, tracking, "o-", label="PPO snapshot, in physics (falls in 54 beside it)")
+        for xi, yi, r in zip(x, tracking, rows):
+            ax.annotate(str(r["falls"]), (xi, yi), textcoords="offset points", xytext=(3, 4), fontsize=7)
+        ax.axhline(floor["tracking"], color="0.5", ls="--", label=f"zero action ({floor_text})")
         ax.axhline(threshold, color="tab:green", ls=":", label=f"target {threshold}")
         ax.set_xlabel(label)
     if imagined:
