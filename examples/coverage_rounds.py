@@ -36,7 +36,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))  # sibling scripts: the coverage step, the quick start's recipe
 import make_coverage_model
-from quickstart import WALKS, default_precision, from_scratch, ppo_options, score_text
+from quickstart import default_precision, from_scratch, ppo_options, score_text, walking
 from timed_stages import cli_stage, timed
 
 from rwm_gym.atomic import write_json
@@ -105,11 +105,6 @@ def next_policies(run: Path, timesteps: int) -> list[str]:
     snapshots = TrainingRun(run).snapshot_files()
     nearest = [min(snapshots, key=lambda p: abs(int(p.stem.split("_")[1]) - f * timesteps)) for f in SNAPSHOT_FRACTIONS]
     return list(dict.fromkeys(str(p) for p in [*nearest, run / "policy.zip"]))
-
-
-def walks(row: dict) -> bool:
-    """Whether a round's policy walks (`quickstart.WALKS`)."""
-    return row["tracking"] >= WALKS[0] and row["falls"] <= WALKS[1]
 
 
 def run_round(
@@ -192,14 +187,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
             rows.append(run_round(options, k, model, buffer, policies, recipe, timesteps))
             write_json(table, rows)
         row = rows[k - 1]
-        verdict = "walks" if walks(row) else "does not walk"
+        verdict = "walks" if walking(row["tracking"], row["falls"]) else "does not walk"
         print(
             f"round {k}: {score_text(row['tracking'], row['falls'], row['episodes'])} (floor "
             f"{row['floor']['tracking']:.3f}), {verdict}; {row['physics_rows']['total']:,} physics rows behind "
             f"{row['model']}",
             flush=True,
         )
-        if walks(row) and not options.keep_going:
+        if walking(row["tracking"], row["falls"]) and not options.keep_going:
             break
         folder = options.out / f"round_{k}"
         model, buffer = folder / "model.safetensors", folder / "buffer.h5"

@@ -155,7 +155,7 @@ def main() -> int:
         except Exception as error:  # no offscreen GL here: the score above still stands
             print(f"no video ({type(error).__name__}); set MUJOCO_GL=egl where libEGL is installed")
     print("files: " + ", ".join(str(f) for f in files))
-    walks = result.tracking >= WALKS[0] and result.falls <= WALKS[1]
+    walks = walking(result.tracking, result.falls)
     print(
         ("VERDICT: it walks" if walks else "VERDICT: it does not walk yet")
         + f" after {steps / 1e6:.1f} M imagined steps in {trained / 60:.1f} min (walking: tracking >= {WALKS[0]}"
@@ -163,6 +163,11 @@ def main() -> int:
         + ("" if walks else "; a larger --timesteps continues this run (curve.png: the recipe's seeds)")
     )
     return 0
+
+
+def walking(tracking: float, falls: int) -> bool:
+    """Whether a policy's physics score walks (`WALKS`)."""
+    return tracking >= WALKS[0] and falls <= WALKS[1]
 
 
 def from_scratch(recipe: dict) -> bool:
