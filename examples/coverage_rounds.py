@@ -10,20 +10,20 @@ policy in the fine-tuned model then finds the next gap. Round k:
 1. fine-tunes model k-1 (round 1: --checkpoint) on buffer k-1 (round 1: --base) plus the physics episodes of the
    round's policies (round 1: --policies), collection seeds from 80000 + 1000 k;
 2. trains a fresh policy from scratch in model k with the quick start's recipe (`rwm-gym ppo --in imagination` with
-   `examples/quickstart.py`'s options, seed k) from the --reset-data windows;
-3. scores it in physics on the model's own task (`rwm-gym score`) and appends a row to OUT/rounds.json;
-4. hands round k+1 this policy and its PPO snapshots nearest 50 % and 75 % of the budget.
+   `examples/quickstart.py`'s options, seed k, and one more per --extra-seeds) from the --reset-data windows;
+3. scores each in physics on the model's own task (`rwm-gym score`) and appends a row to OUT/rounds.json;
+4. hands round k+1 these policies and their PPO snapshots nearest 50 % and 75 % of the budget.
 
-It stops after --rounds rounds, or at the first round whose policy walks (tracking >= 0.80 with at most 2 falls in
-54, `quickstart.WALKS`) unless --keep-going. It prints one line per round with the score.
+It stops after --rounds rounds, or at the first round where a policy walks (tracking >= 0.80 with at most 2 falls in
+54, `quickstart.WALKS`) unless --keep-going. It prints one line per round and policy with the score.
 
 Each round writes OUT/round_k/: make_coverage_model's files (own/part_<i>.h5, buffer.h5, train.safetensors,
 model.safetensors), ppo/ (the PPO run folder with snapshots/step_N.zip, policy.zip and its report policy.json),
-ppo/score/ (score.json, score.md, score.png) and timings.json (each stage's command, wall seconds and load average
-after it, `examples/timed_stages.py`). A row of OUT/rounds.json holds the round's model, the physics rows behind it,
-the policy's tracking and falls beside the zero-action floor, and the stages' wall seconds and load averages. The
-same command resumes after a kill: a finished step is skipped, the fine-tune and PPO continue from their resume
-points.
+ppo/score/ (score.json, score.md, score.png), ppo_s<seed>/ the same for each extra seed, and timings.json (each
+stage's command, wall seconds and load average after it, `examples/timed_stages.py`). A row of OUT/rounds.json holds
+the round's model, the physics rows behind it, seed k's policy's tracking and falls beside the zero-action floor,
+every seed's in `runs`, and the stages' wall seconds and load averages. The same command resumes after a kill: a
+finished step is skipped, the fine-tune and PPO continue from their resume points.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from quickstart import default_precision, from_scratch, ppo_options, score_text,
 from timed_stages import cli_stage, timed
 
 from rwm_gym.atomic import write_json
-from rwm_gym.model.checkpoint import read_meta
+from rwm_gym.model.checkpoint import CheckpointMeta, read_meta
 from rwm_gym.options import option, parse_dataclass_args
 from rwm_gym.resources import assets_dir
 from rwm_gym.rl.training_run import TrainingRun
@@ -89,6 +89,8 @@ class Options:
     """policy steps per scoring episode (default: the task's, 20 s)"""
     score_commands: int = option(16, ge=0)
     """random commands in the scoring set, beside standing and 1 m/s forward"""
+    extra_seeds: tuple[int, ...] = option((), nargs="*")
+    """PPO seeds trained in every round besides seed k (OUT/round_k/ppo_s<seed>); the next round collects them all"""
     threads: int = option(2, ge=1)
     """torch CPU threads (the same --threads gives the same fine-tuned models)"""
     device: str = "cpu"
@@ -127,16 +129,66 @@ def run_round(
         what = shlex.join(["python", "examples/make_coverage_model.py", *argv])
         timed("fine_tune", what, lambda: make_coverage_model.main(argv), timings, record)
     meta = read_meta(model)
-    run = folder / "ppo"
+    runs = [
+        train_and_score(options, run_dir(folder, seed, k), seed, model, meta, recipe, timesteps, timings, record)
+        for seed in seeds(options, k)
+    ]
+    stages = timings["stages"]
+    first = runs[0]
+    return {
+        "round": k,
+        "model": str(model),
+        "physics_rows": meta.extras["physics_rows"],
+        "policies": meta.extras["policies"],
+        "policy": first["policy"],
+        "timesteps": TrainingRun(Path(first["policy"]).parent).state()["timesteps"],
+        **{key: first[key] for key in ("tracking", "falls", "episodes", "floor")},
+        "runs": runs,
+        "wall_s": {name: stage["wall_s"] for name, stage in stages.items()},
+        "loadavg": {name: list(stage["loadavg_after"]) for name, stage in stages.items()},
+    }
+
+
+def seeds(options: Options, k: int) -> list[int]:
+    """Round k's PPO seeds: k, then --extra-seeds (each once)."""
+    return list(dict.fromkeys([k, *options.extra_seeds]))
+
+
+def run_dir(folder: Path, seed: int, k: int) -> Path:
+    """The PPO run folder of `seed` in round k's `folder`: ppo/ for seed k, ppo_s<seed>/ for an extra seed."""
+    return folder / ("ppo" if seed == k else f"ppo_s{seed}")
+
+
+def train_and_score(
+    options: Options,
+    run: Path,
+    seed: int,
+    model: Path,
+    meta: CheckpointMeta,
+    recipe: dict,
+    timesteps: int,
+    timings: dict,
+    record: Path,
+) -> dict:
+    """PPO from scratch in `model` with `seed`, then its physics score, each skipped where complete; the run's row."""
+    name = run.name.replace("ppo", "")  # "" for seed k, "_s<seed>" for an extra seed: the stages' names
     if not ppo_finished(run, timesteps):
         cli_stage(
-            "ppo",
+            f"ppo{name}",
             [
                 *("ppo", "--in", "imagination", *ppo_options(recipe, model), "--reset-data", str(options.reset_data)),
                 *("--num-envs", str(options.num_envs or recipe["ppo"]["num_envs"]), "--timesteps", str(timesteps)),
                 *("--matmul-precision", default_precision(options.device, meta.model_config.kind)),
                 *("--run-dir", str(run), "--save-every", "5", "--snapshot-every", "24", "--device", options.device),
-                *("--threads", str(options.threads), "--seed", str(k), "--no-eval", "--out", str(run / "policy.zip")),
+                *(
+                    "--threads",
+                    str(options.threads),
+                    "--seed",
+                    str(seed),
+                    "--no-eval",
+                    "--out",
+                    str(run / "policy.zip"),
+                ),
             ],
             timings,
             record,
@@ -144,7 +196,7 @@ def run_round(
     scored = run / "score"
     if not (scored / "score.json").is_file():
         cli_stage(
-            "score",
+            f"score{name}",
             [
                 *("score", "--policy", str(run / "policy.zip"), "--env", meta.spec.physics_env_id),
                 *("--seeds", str(options.score_seeds), "--commands", str(options.score_commands)),
@@ -155,17 +207,10 @@ def run_round(
             record,
         )
     report = json.loads((scored / "score.json").read_text())
-    stages = timings["stages"]
     return {
-        "round": k,
-        "model": str(model),
-        "physics_rows": meta.extras["physics_rows"],
-        "policies": meta.extras["policies"],
+        "seed": seed,
         "policy": str(run / "policy.zip"),
-        "timesteps": TrainingRun(run).state()["timesteps"],
         **{key: report[key] for key in ("tracking", "falls", "episodes", "floor")},
-        "wall_s": {name: stage["wall_s"] for name, stage in stages.items()},
-        "loadavg": {name: list(stage["loadavg_after"]) for name, stage in stages.items()},
     }
 
 
@@ -187,18 +232,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
             rows.append(run_round(options, k, model, buffer, policies, recipe, timesteps))
             write_json(table, rows)
         row = rows[k - 1]
-        verdict = "walks" if walking(row["tracking"], row["falls"]) else "does not walk"
-        print(
-            f"round {k}: {score_text(row['tracking'], row['falls'], row['episodes'])} (floor "
-            f"{row['floor']['tracking']:.3f}), {verdict}; {row['physics_rows']['total']:,} physics rows behind "
-            f"{row['model']}",
-            flush=True,
-        )
-        if walking(row["tracking"], row["falls"]) and not options.keep_going:
+        runs = row.get("runs") or [{"seed": k, **{key: row[key] for key in ("tracking", "falls", "episodes", "floor")}}]
+        for run in runs:
+            verdict = "walks" if walking(run["tracking"], run["falls"]) else "does not walk"
+            print(
+                f"round {k}, seed {run['seed']}: {score_text(run['tracking'], run['falls'], run['episodes'])} (floor "
+                f"{run['floor']['tracking']:.3f}), {verdict}; {row['physics_rows']['total']:,} physics rows behind "
+                f"{row['model']}",
+                flush=True,
+            )
+        if any(walking(run["tracking"], run["falls"]) for run in runs) and not options.keep_going:
             break
         folder = options.out / f"round_{k}"
         model, buffer = folder / "model.safetensors", folder / "buffer.h5"
-        policies = next_policies(folder / "ppo", timesteps)
+        policies = [p for seed in seeds(options, k) for p in next_policies(run_dir(folder, seed, k), timesteps)]
     return rows
 
 
