@@ -113,7 +113,8 @@ def run_round(
     options: Options, k: int, start: Path, buffer: Path, policies: list[str], recipe: dict, timesteps: int
 ) -> dict:
     """Round k: fine-tune `start` on `buffer` and the physics episodes of `policies`, train PPO for `timesteps` in
-    the new model and score it, each stage skipped where its files are complete; returns the round's row."""
+    the new model with each of the round's seeds and score each, every stage skipped where its files are complete;
+    returns the round's row."""
     folder = options.out / f"round_{k}"
     folder.mkdir(parents=True, exist_ok=True)
     record = folder / "timings.json"
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             rows.append(run_round(options, k, model, buffer, policies, recipe, timesteps))
             write_json(table, rows)
         row = rows[k - 1]
-        runs = row.get("runs") or [{"seed": k, **{key: row[key] for key in ("tracking", "falls", "episodes", "floor")}}]
+        runs = row["runs"]
         for run in runs:
             verdict = "walks" if walking(run["tracking"], run["falls"]) else "does not walk"
             print(
