@@ -72,6 +72,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=27, help="the fine-tune's seed (windows, validation split)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--mirror", action="store_true", help="fine-tune on mirrored windows too (TrainConfig.mirror; else the start's)"
+    )
     args = parser.parse_args(argv)
     for given in (args.base, args.checkpoint):
         if not given.is_file():
@@ -130,6 +133,7 @@ def main(argv: list[str] | None = None) -> Path:
         val_every=max(1, args.iterations // 4),
         checkpoint_every=100,
         device="cpu",
+        mirror=args.mirror or start.train_config.mirror,
     )
     fine_tune = train(
         buffer,

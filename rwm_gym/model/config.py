@@ -159,6 +159,9 @@ class TrainConfig:
     """Weight of the RSSM KL term (posterior from the true next state vs prior)."""
     kl_free_nats: float = option(1.0, ge=0)
     """KL below this many nats per step is not penalised (RSSM)."""
+    mirror: bool = False
+    """Train on each window or, with probability 1/2, its left-right mirror image (the spec's `[symmetry]`): a
+    symmetric robot's data, doubled. Validation windows are never mirrored."""
 
     def __post_init__(self) -> None:
         check_ranges(self)

@@ -39,7 +39,7 @@ from rwm_gym.model.heads import StateHead
 from rwm_gym.model.lineage import lineage_provenance
 from rwm_gym.model.losses import SegmentLoss, relative_error
 from rwm_gym.model.normalization import Normalizer
-from rwm_gym.model.windows import Window, WindowData
+from rwm_gym.model.windows import Window, WindowData, WindowMirror
 from rwm_gym.progress import BudgetBar
 
 RESUME_MAY_CHANGE = ("iterations", "minutes", "schedule_start", "device", "val_every", "checkpoint_every")
@@ -124,10 +124,12 @@ def sample_batch(
     ensemble_size: int,
     generator: torch.Generator | None = None,
     world: distributed.World = distributed.SINGLE,
+    mirror: WindowMirror | None = None,
 ) -> SegmentBatch:
     """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
     head per segment, from `generator` (torch's global RNG if None; a seeded run draws the same batches). In a
-    distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`)."""
+    distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`). With `mirror`, each
+    segment is replaced by its mirror image with probability 1/2 (`TrainConfig.mirror`)."""
     segments = config.batch_size // config.branches
     index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
     member = None
@@ -136,6 +138,9 @@ def sample_batch(
             distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world), starts.device
         )
     window, real_rows = windows.gather_clipped(starts[_upload(index, starts.device)], config.segment_rows)
+    if mirror is not None:
+        flip = distributed.shard(torch.rand(segments, generator=generator) < 0.5, world)
+        window = mirror(window, flip)
     return SegmentBatch(window, member, real_rows)
 
 
@@ -286,6 +291,7 @@ class _Run:
         self.sampler = torch.Generator().manual_seed(config.seed)  # window draws, identical on every rank
         self.model = model = build_model(model_config, spec).to(device).train()
         self.windows = windows = WindowData(dataset, self.normalizer, device)
+        self.mirror = WindowMirror(spec, self.normalizer, device) if config.mirror else None
         pos_weight = windows.termination_pos_weight(train_ids)
         # per forecast length F trained with (one, or the curriculum's): where a window of H + F rows starts, and the
         # loss of its segments
@@ -443,6 +449,7 @@ class _Run:
             self.model_config.ensemble_size,
             self.sampler,
             self.world,
+            self.mirror,
         )
         loss, parts = train_step(compute_loss[config.forecast], self.optimizer, self.params, batch, config.grad_clip)
         self.iteration += 1

@@ -16,6 +16,7 @@ import torch
 
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model.normalization import Normalizer
+from rwm_gym.spec import TaskSpec
 
 
 @dataclass
@@ -36,6 +37,46 @@ class Window:
     def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> Window:
         """A Window with `fn` applied to every tensor (e.g. picking rows)."""
         return Window(*(fn(getattr(self, f.name)) for f in fields(self)))
+
+
+class WindowMirror:
+    """The left-right mirror image of windows (the spec's `[symmetry]`): states through the state mirror, in
+    normalised units (an affine map of the normalised state), actions through the action mirror, contact flags and
+    foot heights with their bodies' sides swapped. A symmetric robot's mirrored window is as true as the window."""
+
+    def __init__(self, spec: TaskSpec, normalizer: Normalizer, device: torch.device | str = "cpu") -> None:
+        from rwm_gym.task.symmetry import action_mirror, contact_mirror, foot_mirror, state_mirror
+
+        state, action = state_mirror(spec), action_mirror(spec)
+        mean, std = normalizer.state_mean, normalizer.state_std
+        # physical x' = sign * x[index]; normalised n' = n[index] * scale + offset
+        scale = state.sign * std[state.index] / std
+        offset = (state.sign * mean[state.index] - mean) / std
+
+        def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(array), dtype=dtype, device=device)
+
+        self.state_index, self.state_scale = tensor(state.index, torch.long), tensor(scale)
+        self.state_offset = tensor(offset)
+        self.action_index, self.action_sign = tensor(action.index, torch.long), tensor(action.sign)
+        self.contact_index = tensor(contact_mirror(spec), torch.long)
+        self.foot_index = tensor(foot_mirror(spec), torch.long)
+
+    def __call__(self, window: Window, flip: torch.Tensor) -> Window:
+        """`window` with the windows where `flip` (B,) bool is set replaced by their mirror images."""
+        mirrored = Window(
+            window.states[..., self.state_index] * self.state_scale + self.state_offset,
+            window.actions[..., self.action_index] * self.action_sign,
+            window.contacts[..., self.contact_index],
+            window.foot_heights[..., self.foot_index],
+            window.terminated,
+        )
+        pick = flip.to(window.states.device)
+
+        def choose(mine: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+            return torch.where(pick.view(-1, *([1] * (mine.dim() - 1))), image, mine)
+
+        return Window(*(choose(getattr(window, f.name), getattr(mirrored, f.name)) for f in fields(Window)))
 
 
 class WindowData:

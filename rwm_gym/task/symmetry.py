@@ -100,3 +100,47 @@ def action_mirror(spec: TaskSpec) -> Mirror:
 def state_mirror(spec: TaskSpec) -> Mirror:
     """Mirror of the world-model state (the `[[state]]` groups)."""
     return _mirror(spec, tuple(g.name for g in spec.state))
+
+
+def side_tokens(spec: TaskSpec) -> dict[str, str]:
+    """The name tokens that swap sides, read off the joint pairs: `FL_hip_joint` <-> `FR_hip_joint` gives FL <-> FR,
+    `left_knee_joint` <-> `right_knee_joint` gives left <-> right. Names split at underscores; a pair whose names
+    differ in more than one token says nothing (ValueError if no pair does)."""
+    table = symmetry_table(spec)
+    tokens: dict[str, str] = {}
+    for joint, partner in zip(spec.actuator.joints, table.joints):
+        a, b = joint.split("_"), partner.split("_")
+        differ = [(x, y) for x, y in zip(a, b) if x != y] if len(a) == len(b) else []
+        if len(differ) == 1:
+            tokens[differ[0][0]] = differ[0][1]
+            tokens[differ[0][1]] = differ[0][0]
+    if not tokens:
+        raise ValueError(
+            f"task spec {spec.name}: no [symmetry] joint pair differs in one underscore-separated token (e.g. "
+            f"FL_hip <-> FR_hip), so the mirror of a body's name is unknown"
+        )
+    return tokens
+
+
+def name_mirror(spec: TaskSpec, names: tuple[str, ...] | list[str]) -> np.ndarray:
+    """(N,) int: the position in `names` of each name's mirror image (its side tokens swapped, `side_tokens`); a name
+    with no side token is its own image. ValueError when an image is not in `names`."""
+    tokens = side_tokens(spec)
+    names = list(names)
+    index = []
+    for name in names:
+        image = "_".join(tokens.get(part, part) for part in name.split("_"))
+        if image not in names:
+            raise ValueError(f"task spec {spec.name}: body {name!r} mirrors to {image!r}, which is not beside it")
+        index.append(names.index(image))
+    return np.asarray(index, dtype=np.int64)
+
+
+def contact_mirror(spec: TaskSpec) -> np.ndarray:
+    """(C,) int: the mirror permutation of the contact flags (`privileged.contact_bodies`)."""
+    return name_mirror(spec, spec.privileged.contact_bodies)
+
+
+def foot_mirror(spec: TaskSpec) -> np.ndarray:
+    """(F,) int: the mirror permutation of the foot heights (`privileged.feet`)."""
+    return name_mirror(spec, spec.privileged.feet)
