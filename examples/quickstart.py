@@ -147,7 +147,10 @@ def main() -> int:
     )
     print(f"physics-trained teacher:  {score_text(teacher['score']['tracking'], teacher['score']['falls'], 54)}")
     rows, _ = physics_rows(checkpoint)
-    print(f"physics samples behind the policy: {share_text(rows)}; the policy saw none, its world model's lineage")
+    print(
+        f"physics samples behind the policy: {share_text(rows, task.physics_env_id)}; the policy saw none, its world "
+        "model's lineage"
+    )
     files = [policy, plot_curve(recipe, steps, result.tracking, floor["tracking"], args.out / "curve.png", task.name)]
     if args.video:
         try:

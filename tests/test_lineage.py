@@ -97,6 +97,15 @@ def test_share_of_n_mf_is_worded_against_the_teachers_steps():
     assert share_text(None) == "?"
 
 
+def test_n_mf_is_the_tasks_own_teachers():
+    assert n_mf("Go2-MuJoCo-v0") == 53_084_160  # the Go2 teacher's record, not ANYmal D's
+    assert share_text(5_308_416, "Go2-MuJoCo-v0").startswith("5,308,416 (10.0 % of N_mf = 53.1 M")
+    assert n_mf("G1Legs-MuJoCo-v0") is None  # its teacher never reached 0.80: the rows alone, no share
+    assert share_text(1_000, "G1Legs-MuJoCo-v0") == (
+        "1,000 (no N_mf: no shipped model-free teacher of G1Legs-MuJoCo-v0 reached tracking 0.80)"
+    )
+
+
 def test_the_shipped_models_carry_their_documented_lineage():
     folder = assets_dir() / "checkpoints"
     documented = {  # docs/concepts/world-model.md: each model's data plus every model it was fine-tuned from

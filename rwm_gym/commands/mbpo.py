@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     best = report["log"][report["best_iteration"]]
     print(
         f"best physics tracking {report['best_tracking']:.3f} at iteration {report['best_iteration']}, physics samples "
-        f"behind it {share_text(best['physics_samples'])}; report {args.out / 'mbpo.json'}, curve "
+        f"behind it {share_text(best['physics_samples'], report['task'])}; report {args.out / 'mbpo.json'}, curve "
         f"{args.out / 'mbpo.png'}"
     )
     return 0

@@ -273,9 +273,10 @@ def _report(
     report["physics_samples"], report["physics_samples_source"] = physics_samples(args.where, args.checkpoint, steps)
     from rwm_gym.model.lineage import n_mf, share_text
 
-    samples = report["physics_samples"]
-    report["fraction_of_n_mf"] = None if samples is None else samples / n_mf()
-    print(f"physics samples behind the policy: {share_text(samples)} ({report['physics_samples_source']})")
+    samples, task = report["physics_samples"], _task_trained_on(args).physics_env_id
+    n = n_mf(task)
+    report["fraction_of_n_mf"] = None if samples is None or n is None else samples / n
+    print(f"physics samples behind the policy: {share_text(samples, task)} ({report['physics_samples_source']})")
     return report
 
 

@@ -2,8 +2,8 @@
 
 A checkpoint's provenance holds its lineage (`rwm_gym.data.lineage`): the physics sources of the data it was
 trained on, united with those of the checkpoint it was fine-tuned from, each source once. `physics_rows` reads the
-total; `share_text` words it against N_mf, the physics steps the model-free teacher needed to reach tracking 0.80
-(`assets/policies/anymal_d_ppo_physics.json`: 32.2 M), the reference of every sample-efficiency figure here.
+total; `share_text` words it against N_mf, the physics steps the task's model-free teacher needed to reach tracking
+0.80 (ANYmal D's `assets/policies/anymal_d_ppo_physics.json`: 32.2 M), the reference of every sample-efficiency figure.
 """
 
 from __future__ import annotations
@@ -45,17 +45,32 @@ def physics_rows(path: str | os.PathLike) -> tuple[int | None, str]:
     return rows, source + ("; models it was fine-tuned from are not counted" if rows is not None else "")
 
 
+DEFAULT_TASK = "AnymalD-MuJoCo-v0"
+"""The task whose N_mf a figure is worded against when it names none."""
+
+
 @cache
-def n_mf() -> int:
-    """N_mf: the model-free teacher's physics steps to tracking 0.80 (the shipped `anymal_d_ppo_physics.json`)."""
+def n_mf(env_id: str = DEFAULT_TASK) -> int | None:
+    """N_mf of a task (its physics env id): the physics steps its model-free teacher needed to reach tracking 0.80,
+    read from the shipped `<spec>_ppo_physics.json` of the task's spec file (`envs/<spec>.toml`); None where no
+    shipped teacher of it records one."""
     from rwm_gym.resources import assets_dir
+    from rwm_gym.spec import parse_spec, specs_dir
 
-    record = json.loads((assets_dir() / "policies" / "anymal_d_ppo_physics.json").read_text())
-    return int(record["n_mf"]["physics_steps"])
+    for path in sorted(specs_dir().glob("*.toml")):
+        if parse_spec(path.read_text(), where=str(path)).physics_env_id == env_id:
+            record = assets_dir() / "policies" / f"{path.stem}_ppo_physics.json"
+            if record.is_file() and "n_mf" in (teacher := json.loads(record.read_text())):
+                return int(teacher["n_mf"]["physics_steps"])
+    return None
 
 
-def share_text(rows: int | None) -> str:
-    """'2,496,757 (7.7 % of N_mf = 32.2 M, the model-free teacher's physics steps to tracking 0.80)', or '?'."""
+def share_text(rows: int | None, env_id: str = DEFAULT_TASK) -> str:
+    """'2,496,757 (7.7 % of N_mf = 32.2 M, model-free PPO's to tracking 0.80)' against the task's N_mf; the rows
+    alone where the task has none; '?' for unknown rows."""
     if rows is None:
         return "?"
-    return f"{rows:,} ({100 * rows / n_mf():.1f} % of N_mf = {n_mf() / 1e6:.1f} M, model-free PPO's to tracking 0.80)"
+    n = n_mf(env_id)
+    if n is None:
+        return f"{rows:,} (no N_mf: no shipped model-free teacher of {env_id} reached tracking 0.80)"
+    return f"{rows:,} ({100 * rows / n:.1f} % of N_mf = {n / 1e6:.1f} M, model-free PPO's to tracking 0.80)"

@@ -160,6 +160,7 @@ def mbpo(
     if report is None:  # iteration 0: the starting model and policy, scored
         report = loop.start(data, starting, checkpoint, init_policy, model_kind, started)
     loop.model_config = read_meta(loop.model_path(0)).model_config
+    report.setdefault("task", starting.spec().physics_env_id)  # a report written before it named its task
     started = time.monotonic() - report["log"][-1]["wall_s"]
     done = report["log"][-1]["iteration"]
     for k in tqdm(
@@ -279,6 +280,7 @@ class _Loop:
         save_policy(policy, self.out / "policy_0.zip")
         evaluation = evaluate_policy(policy, seeds=range(config.eval_seeds), steps=config.eval_steps, spec=self.spec)
         report = {
+            "task": self.spec.physics_env_id,
             "config": config.to_dict(),
             "data": str(data),
             "start_checkpoint": None if checkpoint is None else str(checkpoint),
@@ -370,7 +372,8 @@ class _Loop:
         self.log_row(row)
         tqdm.write(
             f"iteration {k}: physics tracking {row['tracking']:.3f}, falls {row['falls']}, "
-            f"|dv_xy| {row['lin_vel_error']:.3f}, physics samples {share_text(row['physics_samples'])}, "
+            f"|dv_xy| {row['lin_vel_error']:.3f}, "
+            f"physics samples {share_text(row['physics_samples'], physics_env_id)}, "
             f"imagined steps {row['imagined_steps']:,}, model error on fresh data {model_error}"
         )
         tqdm.write(format_table(evaluation))
