@@ -77,6 +77,8 @@ class Options:
     """cap on a collected episode's policy steps"""
     iterations: int = option(1500, ge=1)
     """fine-tuning steps per round"""
+    mirror: bool = False
+    """fine-tune on mirrored windows too (`rwm-gym train --mirror`: a robot whose model is left-right symmetric)"""
     recipe: Path | None = None
     """recipe JSON of PPO in imagination (default: assets/policies/anymal_d_ppo_quickstart.json, the quick start's)"""
     timesteps: int | None = option(None, ge=1)
@@ -126,6 +128,7 @@ def run_round(
             *("--episodes", str(options.episodes), "--max-steps", str(options.max_steps)),
             *("--iterations", str(options.iterations), "--threads", str(options.threads)),
             *("--first-seed", str(80_000 + 1000 * k), "--quiet"),
+            *(("--mirror",) if options.mirror else ()),
         ]
         what = shlex.join(["python", "examples/make_coverage_model.py", *argv])
         timed("fine_tune", what, lambda: make_coverage_model.main(argv), timings, record)

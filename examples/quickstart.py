@@ -14,6 +14,8 @@
 
 The recipe walks (tracking >= 0.80 with at most 2 falls in 54) at its default 11.8 M imagined steps on its three
 measured seeds; `--recipe anymal_d_ppo_imagination` runs the 40 M-step recipe of the shipped 4096-robot policy instead.
+`--robot go2` runs the same recipe in the Go2's shipped world model (`go2_ppo_quickstart.json`: its measured seeds,
+the default the seed of its shipped policy).
 `--checkpoint CKPT` trains in another world model of the task, e.g. an MLP one (`rwm-gym train --model mlp
 --ensemble-size 5`: the recipe's penalty reads five heads; its products stay float32).
 docs/results/time-to-walk.md has the measured times. Run the command again after an interruption to continue.
@@ -51,7 +53,7 @@ def main() -> int:
     parser.add_argument(
         "--timesteps", type=int, default=None, help="PPO budget in imagined steps (default: the recipe's)"
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=None, help="PPO's seed (default: the recipe's shipped policy's)")
     parser.add_argument(
         "--checkpoint",
         type=Path,
@@ -93,12 +95,13 @@ def main() -> int:
         given = f"--recipe {args.recipe}" if args.recipe else f"--robot {args.robot}"
         parser.error(f"{given}: no from-scratch recipe in {policies} (known: {', '.join(known)})")
     timesteps = args.timesteps or recipe["imagined_steps"]
+    seed = recipe.get("seed", 0) if args.seed is None else args.seed
     num_envs = args.num_envs or recipe["ppo"]["num_envs"]
     checkpoint = args.checkpoint or shipped_file(recipe["world_model"]["checkpoint"])
     precision = args.precision or default_precision(args.device, read_meta(checkpoint).model_config.kind)
     print(
         f"PPO from scratch in {checkpoint.stem}: {num_envs} imagined "
-        f"robots, {timesteps:,} steps, {args.threads} threads, {precision} products"
+        f"robots, {timesteps:,} steps, seed {seed}, {args.threads} threads, {precision} products"
     )
     started = time.monotonic()
     code = cli(
@@ -123,7 +126,7 @@ def main() -> int:
             "--threads",
             args.threads,
             "--seed",
-            str(args.seed),
+            str(seed),
             "--no-eval",
             "--out",
             str(args.out / "policy.zip"),

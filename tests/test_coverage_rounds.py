@@ -25,7 +25,7 @@ def test_two_tiny_go2_rounds_chain_model_buffer_and_policies_then_resume_to_noth
         *("--checkpoint", str(start), "--base", str(base), "--policies", "zero", "--reset-data", str(reset)),
         *("--out", str(out), "--rounds", "2", "--keep-going", "--episodes", "2", "--max-steps", "30"),
         *("--iterations", "4", "--timesteps", "384", "--num-envs", "8", "--threads", "1"),
-        *("--score-seeds", "1", "--score-steps", "20", "--score-commands", "0", "--extra-seeds", "5"),
+        *("--score-seeds", "1", "--score-steps", "20", "--score-commands", "0", "--extra-seeds", "5", "--mirror"),
     ]
     example = load_script(EXAMPLES / "coverage_rounds.py", "example_coverage_rounds")
     rows = example.main(argv)
@@ -44,6 +44,7 @@ def test_two_tiny_go2_rounds_chain_model_buffer_and_policies_then_resume_to_noth
     first, second = (out / f"round_{k}" for k in (1, 2))
     meta = read_meta(second / "model.safetensors")
     assert meta.provenance["init_checkpoint"] == str(first / "model.safetensors")
+    assert meta.train_config.mirror and read_meta(first / "model.safetensors").train_config.mirror  # --mirror
     # each round-1 run's snapshot nearest 50 % and 75 % of its budget (2 rollouts, snapshot every 24: only step 0),
     # then its policy
     runs = [first / "ppo", first / "ppo_s5"]

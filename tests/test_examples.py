@@ -214,6 +214,27 @@ def test_quickstart_trains_from_scratch_in_imagination_scores_in_physics_and_res
     assert json.loads((out / "run" / "state.json").read_text())["timesteps"] == state["timesteps"]
 
 
+def test_quickstart_robot_go2_trains_in_the_go2_model_from_its_shipped_seed(tmp_path):
+    import os
+    import subprocess
+
+    tiny = ["--timesteps", "64", "--num-envs", "8", "--score-seeds", "1", "--score-steps", "20", "--no-video"]
+    run = subprocess.run(
+        [sys.executable, str(EXAMPLES / "quickstart.py"), "--robot", "go2", *tiny, "--out", str(tmp_path / "qs")],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "PPO from scratch in go2_rwm: 8 imagined robots, 64 steps, seed 7," in run.stdout
+    # the Go2 model's lineage against the Go2 teacher's N_mf, not ANYmal D's
+    assert "physics samples behind the policy: 3,921,261 (7.4 % of N_mf = 53.1 M" in run.stdout
+    assert "physics-trained teacher:  tracking 0.837" in run.stdout
+    state = json.loads((tmp_path / "qs" / "run" / "state.json").read_text())
+    assert state["env"]["checkpoint"].endswith("go2_rwm.safetensors") and state["timesteps"] >= 64
+
+
 def test_quickstart_refuses_a_recipe_it_cannot_run_in_one_line(tmp_path):
     """--recipe names a shipped from-scratch recipe; anything else (a missing file, an MBPO policy's JSON) stops
     with one line that lists the ones it can run, before any training."""
