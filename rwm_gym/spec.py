@@ -407,8 +407,14 @@ def load_spec(name_or_path: str | Path) -> TaskSpec:
 
 def shipped_spec(env_id: str) -> TaskSpec | None:
     """The shipped spec (`envs/*.toml`) whose physics or imagined env id is `env_id`; None if none."""
+    found = shipped_spec_file(env_id)
+    return None if found is None else found[1]
+
+
+def shipped_spec_file(env_id: str) -> tuple[Path, TaskSpec] | None:
+    """The shipped spec file whose physics or imagined env id is `env_id`, and its spec; None if none."""
     for path in sorted(specs_dir().glob("*.toml")):
         spec = parse_spec(path.read_text(), where=str(path))
         if env_id in (spec.physics_env_id, spec.imagined_env_id):
-            return spec
+            return path, spec
     return None

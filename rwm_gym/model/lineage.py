@@ -55,14 +55,13 @@ def n_mf(env_id: str = DEFAULT_TASK) -> int | None:
     read from the shipped `<spec>_ppo_physics.json` of the task's spec file (`envs/<spec>.toml`); None where no
     shipped teacher of it records one."""
     from rwm_gym.resources import assets_dir
-    from rwm_gym.spec import parse_spec, specs_dir
+    from rwm_gym.spec import shipped_spec_file
 
-    for path in sorted(specs_dir().glob("*.toml")):
-        if parse_spec(path.read_text(), where=str(path)).physics_env_id == env_id:
-            record = assets_dir() / "policies" / f"{path.stem}_ppo_physics.json"
-            if record.is_file() and "n_mf" in (teacher := json.loads(record.read_text())):
-                return int(teacher["n_mf"]["physics_steps"])
-    return None
+    found = shipped_spec_file(env_id)
+    record = None if found is None else assets_dir() / "policies" / f"{found[0].stem}_ppo_physics.json"
+    if record is None or not record.is_file() or "n_mf" not in (teacher := json.loads(record.read_text())):
+        return None
+    return int(teacher["n_mf"]["physics_steps"])
 
 
 def share_text(rows: int | None, env_id: str = DEFAULT_TASK) -> str:
