@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from rwm_gym.cli import build_parser
 from rwm_gym.cli import main as cli
@@ -89,3 +90,33 @@ def test_without_data_or_a_recipe_that_collects_it_is_one_line(tmp_path):
         cli(["mbpo", "--out", str(tmp_path / "run")])
     assert refused.value.code == 2
     assert not Path(tmp_path / "run").exists()
+
+
+def test_a_run_killed_while_training_a_model_continues_that_model_from_its_checkpoint(tmp_path, monkeypatch):
+    import rwm_gym.model.train as training
+    from rwm_gym.model.checkpoint import load_checkpoint
+
+    recipe_file = tmp_path / "tiny.json"
+    recipe_file.write_text(json.dumps({**TINY_RECIPE, "mbpo": {**TINY_RECIPE["mbpo"], "iterations": 0}}))
+    command = ["mbpo", "--recipe", str(recipe_file), "--threads", "1"]
+    assert cli([*command, "--out", str(tmp_path / "whole")]) == 0
+
+    train, trained, stop_at = training.train, [], [3]
+
+    def killed_at_iteration_3(*args, **kwargs):
+        def callback(iteration, stats):
+            trained.append(iteration)
+            if iteration in stop_at:
+                raise KeyboardInterrupt
+
+        return train(*args, **kwargs, callback=callback)
+
+    monkeypatch.setattr(training, "train", killed_at_iteration_3)
+    killed = tmp_path / "killed"
+    assert cli([*command, "--out", str(killed)]) == 130  # interrupted
+    assert read_meta(killed / "model_0.safetensors").stats["iterations"] == 3
+    trained.clear(), stop_at.clear()
+    assert cli([*command, "--out", str(killed)]) == 0
+    assert trained == [4, 5, 6]  # the model's three iterations left, not all six again
+    whole, resumed = (load_checkpoint(f / "model_0.safetensors")[0].state_dict() for f in (tmp_path / "whole", killed))
+    assert all(torch.equal(whole[name], resumed[name]) for name in whole)

@@ -223,7 +223,7 @@ class _Loop:
     def retrain(self, buffer: Path, k: int, previous: Path | None) -> Path:
         """Model k trained on `buffer` (fine-tuned from `previous` with `model_finetune`); the starting model (k=0,
         no `previous`) with `start_train`'s budget and rate where given."""
-        from rwm_gym.model.checkpoint import read_meta
+        from rwm_gym.model.checkpoint import CheckpointError, read_meta
         from rwm_gym.model.config import TrainConfig
         from rwm_gym.model.train import train
 
@@ -242,15 +242,14 @@ class _Loop:
         if previous is None and self.start_train is not None:
             train_config = replace(self.start_train, seed=config.seed, device=self.device)
         init = previous if config.model_finetune else None
-        return train(
-            buffer,
-            self.model_config,
-            train_config,
-            self.model_path(k),
-            progress=self.progress,
-            init=init,
-            overwrite=True,
-        ).path
+        out = self.model_path(k)
+        settings = dict(progress=self.progress, init=init)
+        if out.exists():  # a killed run's checkpoint of this model: continue it (a finished one returns at once)
+            try:
+                return train(buffer, self.model_config, train_config, out, resume=True, **settings).path
+            except CheckpointError as error:  # another run's model: trained again below
+                tqdm.write(f"{out}: not resumed ({error}); training it again")
+        return train(buffer, self.model_config, train_config, out, overwrite=True, **settings).path
 
     def start(self, data, starting, checkpoint, init_policy, model_kind: str, started: float) -> dict:
         """Iteration 0: the starting model (trained on `data`, or a copy of `checkpoint`) and policy, scored."""
