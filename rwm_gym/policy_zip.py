@@ -90,6 +90,8 @@ SETTINGS = {  # the `data` fields copied onto the model, with their JSON types (
     "action_noise": (None,),
 }
 _CLASS_TEXT = re.compile(r"<class '([A-Za-z_][\w.]*)'>")
+TASK_ID = re.compile(r"[A-Za-z][\w.:-]{0,99}")
+"""A task's physics env id as a policy names it (e.g. `Go2-MuJoCo-v0`)."""
 
 
 def read_zip(path: str | os.PathLike) -> tuple[dict, dict[str, bytes]]:
@@ -293,10 +295,17 @@ def _net_arch(value) -> object:
 
 
 def _extractor_kwargs(value, observation_dim: int) -> dict:
-    if not isinstance(value, dict) or not set(value) <= {"mean", "std"}:
-        raise _Bad("features_extractor_kwargs holds other than mean and std")
+    if not isinstance(value, dict) or not set(value) <= {"mean", "std", "task"}:
+        raise _Bad("features_extractor_kwargs holds other than mean, std and task")
     out = {}
+    if "task" in value:  # the physics env id the policy was made for
+        task = value["task"]
+        if not (task is None or (isinstance(task, str) and TASK_ID.fullmatch(task))):
+            raise _Bad(f"features_extractor_kwargs task is {str(task)[:80]!r}, not an env id")
+        out["task"] = task
     for key, v in value.items():
+        if key == "task":
+            continue
         array = _floats(v, key)
         if array.size != observation_dim or not np.isfinite(array).all():
             raise _Bad(f"features_extractor_kwargs {key} is not {observation_dim} finite numbers")
@@ -426,10 +435,15 @@ def load_policy(path: str | os.PathLike, *, env=None, device: str = "cpu", spec=
     policy whose observation or action size is not that task's (a cheetah policy given to ANYmal)."""
     model = load_sb3(path, env=env, device=device, algorithm=algorithm)
     if spec is not None:
-        obs, act = model.observation_space.shape, model.action_space.shape
-        if obs != (spec.observation_dim,) or act != (spec.action_dim,):
-            raise PolicyFileError(
-                f"policy {path} acts on observations {obs} with actions {act}; {spec.name} has "
-                f"({spec.observation_dim},) and ({spec.action_dim},)"
-            )
+        check_spaces(model, spec, path)
     return model
+
+
+def check_spaces(model, spec, path: str | os.PathLike) -> None:
+    """Refuse, in one line, a loaded policy whose observation or action size is not `spec`'s."""
+    obs, act = model.observation_space.shape, model.action_space.shape
+    if obs != (spec.observation_dim,) or act != (spec.action_dim,):
+        raise PolicyFileError(
+            f"policy {path} acts on observations {obs} with actions {act}; {spec.name} has "
+            f"({spec.observation_dim},) and ({spec.action_dim},)"
+        )

@@ -119,6 +119,32 @@ def test_scoring_in_a_world_model_starts_from_the_given_reset_data(tmp_path, cap
         )
 
 
+def test_score_without_env_judges_a_policy_on_the_robot_it_names_and_refuses_an_unknown_one(tmp_path):
+    """Go2 and ANYmal D policies have the same sizes and observation scale: the zip names its task, so `rwm-gym
+    score` without --env judges it on its own robot."""
+    import json
+
+    from rwm_gym.cli import main
+    from rwm_gym.policy_zip import load_policy
+    from rwm_gym.resources import assets_dir, specs_dir
+    from rwm_gym.rl.policy_file import save_policy
+    from rwm_gym.rl.ppo import trained_task
+
+    robots = sorted((p.stem for p in specs_dir().glob("*.toml")), key=len, reverse=True)
+    for shipped in (assets_dir() / "policies").glob("*.zip"):  # each names the robot its file name starts with
+        robot = next(name for name in robots if shipped.name.startswith(name + "_"))
+        assert trained_task(load_policy(shipped)) == load_spec(robot).physics_env_id, shipped.name
+    go2 = assets_dir() / "policies" / "go2_ppo_quickstart.zip"
+    assert main(["score", "--policy", str(go2), "--out", str(tmp_path / "s"), "--seeds", "1", "--steps", "5"]) == 0
+    assert json.loads((tmp_path / "s" / "score.json").read_text())["task"] == "Go2"
+    other = load_policy(go2)
+    other.policy_kwargs["features_extractor_kwargs"]["task"] = "MyRobot-MuJoCo-v0"  # a robot of a user's own spec
+    save_policy(other, tmp_path / "own.zip")
+    with pytest.raises(SystemExit, match="made for MyRobot-MuJoCo-v0, which is not a registered physics env"):
+        main(["score", "--policy", str(tmp_path / "own.zip"), "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o" / "score.json").exists()
+
+
 FORWARD = (1.0, 0.0, 0.0)
 
 

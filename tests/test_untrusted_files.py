@@ -308,6 +308,11 @@ def test_no_crafted_pickle_runs_wherever_it_sits_in_a_policy_zip(tmp_path, opcod
         ("policy_kwargs", {"net_arch": [4096, 4096, 4096]}, ["parameters", "policy.pth"]),
         ("policy_kwargs", {"device": "cpu", "squash_output": "yes"}, ["true or false"]),
         ("policy_kwargs", {"lambda": 1}, ["'lambda'"]),
+        (
+            "policy_kwargs",
+            {"features_extractor_kwargs": {"mean": [0.0] * 48, "std": [1.0] * 48, "task": "../../etc/passwd"}},
+            ["not an env id"],
+        ),
         ("n_steps", 1e400, ["n_steps"]),
         ("n_envs", 10**9, ["rollout buffer"]),
         ("clip_range", {":type:": "<class 'stable_baselines3.common.utils.FloatSchedule'>", "value_schedule": "x"}, []),

@@ -26,7 +26,7 @@ class ScoreOptions:
     """folder for score.json, score.md, score.png"""
     env: str | None = None
     """the task scored on, a physics env id (e.g. Go2-MuJoCo-v0) or a task spec file: its robot, command ranges and
-    falls (default: --checkpoint's task, else the shipped ANYmal D task)"""
+    falls (default: --checkpoint's task, else the task the policy names, else the shipped ANYmal D task)"""
     checkpoint: str | None = None
     """score in this world model (the imagined env) instead of physics, same commands and seeds"""
     reset_data: Path | None = None
@@ -89,10 +89,23 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"rwm-gym score: {err}") from None
 
 
-def _task(args: argparse.Namespace):
-    """The task scored on: --env's, else --checkpoint's, else ANYmal D's; one line on a bad --env or a mismatch."""
+def _task(args: argparse.Namespace, policy=None):
+    """The task scored on: --env's, else --checkpoint's, else the one the policy names (`trained_task`), else ANYmal
+    D's; one line on a bad --env, a mismatch or a policy of a task that is not registered."""
     from rwm_gym.registration import resolve_spec
 
+    if args.env is None and args.checkpoint is None and policy is not None:
+        from rwm_gym.rl.ppo import trained_task
+
+        named = trained_task(policy)
+        if named is not None:
+            try:
+                return resolve_spec(named)
+            except ValueError:
+                raise SystemExit(
+                    f"rwm-gym score: --policy {args.policy} was made for {named}, which is not a registered physics "
+                    "env: name its task with --env (its spec file)"
+                ) from None
     try:
         task = resolve_spec(args.env or "anymal_d")
     except ValueError as err:
@@ -108,13 +121,15 @@ def _task(args: argparse.Namespace):
 
 
 def _score(args: argparse.Namespace) -> int:
-    task = _task(args)
     if args.policy not in SCRIPTED:
-        from rwm_gym.policy_zip import load_policy
+        from rwm_gym.policy_zip import check_spaces, load_policy
 
-        policy = as_policy(load_policy(args.policy, spec=task))  # refused here, in one line
+        model = load_policy(args.policy)
+        task = _task(args, model)
+        check_spaces(model, task, args.policy)  # refused here, in one line
+        policy = as_policy(model)
     else:
-        policy = args.policy
+        task, policy = _task(args), args.policy
     if args.reset_data is not None and args.checkpoint is None:
         raise SystemExit("rwm-gym score: --reset-data applies to --checkpoint (a world model)")
     if args.reset_data is not None and not args.reset_data.is_file():

@@ -174,15 +174,24 @@ def observation_scale(spec: TaskSpec) -> tuple[list[float], list[float]]:
 
 
 class ScaledObservation(BaseFeaturesExtractor):
-    """(obs - mean) / std with fixed, saved constants (part of the policy, so the SB3 zip stays self-contained)."""
+    """(obs - mean) / std with fixed, saved constants (part of the policy, so the SB3 zip stays self-contained), and
+    the physics env id of the task the policy was made for (`task`), so the zip names its robot: a Go2 and an ANYmal
+    D policy have the same sizes and scale."""
 
-    def __init__(self, observation_space, mean: list[float], std: list[float]):
+    def __init__(self, observation_space, mean: list[float], std: list[float], task: str | None = None):
         super().__init__(observation_space, observation_space.shape[0])
         self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.tensor(std, dtype=torch.float32))
+        self.task = task
 
     def forward(self, observations):
         return (observations - self.mean) / self.std
+
+
+def trained_task(model: PPO) -> str | None:
+    """The physics env id of the task a policy was made for (its `ScaledObservation`'s `task`); None for a policy
+    that does not name one (made before policies did, or without the scale)."""
+    return getattr(getattr(model.policy, "features_extractor", None), "task", None)
 
 
 class PositiveReward(VecEnvWrapper):
@@ -233,7 +242,7 @@ def make_ppo(env: VecEnv, config: PPOConfig, *, seed: int = 0, device: str = "cp
             "activation_fn": activation,
             "log_std_init": config.log_std_init,
             "features_extractor_class": ScaledObservation,
-            "features_extractor_kwargs": {"mean": mean, "std": std},
+            "features_extractor_kwargs": {"mean": mean, "std": std, "task": spec.physics_env_id},
         },
     )
     if config.symmetry:
