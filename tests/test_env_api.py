@@ -102,6 +102,17 @@ def test_imagined_sb3_vec_env_reports_episode_returns():
         assert infos[i]["episode"]["r"] == pytest.approx(total[i], rel=1e-5)
 
 
+def test_sb3_infos_hold_each_envs_entries_of_the_batched_arrays():
+    from rwm_gym.vector.sb3_vec_env import per_env_infos
+
+    info = {"reward/lin_vel": np.array([0.5, 0.25]), "fall_tilt": np.array([True, False]), "command": np.eye(2)}
+    infos = per_env_infos(info, 2)
+    assert [d["reward/lin_vel"] for d in infos] == [0.5, 0.25] and [d["fall_tilt"] for d in infos] == [True, False]
+    assert all(np.array_equal(infos[i]["command"], np.eye(2)[i]) for i in range(2))
+    infos[0]["terminal_observation"] = 1  # each env's own dict
+    assert "terminal_observation" not in infos[1] and per_env_infos({}, 3) == [{}, {}, {}]
+
+
 def test_a_copy_of_the_shipped_checkpoint_finds_its_reset_data(tmp_path):
     copy = tmp_path / "mine.safetensors"
     shutil.copy(default_checkpoint(), copy)

@@ -23,6 +23,17 @@ from rwm_gym.spec import TaskSpec
 from rwm_gym.vector.autoreset import seeds_per_env, step_with_autoreset
 
 
+def per_env_infos(info: dict[str, np.ndarray], num_envs: int) -> list[dict]:
+    """SB3's list of one info dict per env from a core's batched arrays: a 1-D array's entries as Python scalars, a
+    2-D array's rows as arrays. Built column by column: indexing every array per env took 3 ms a step at 1024 envs,
+    5 % of a quick-start run."""
+    if not info:
+        return [{} for _ in range(num_envs)]
+    keys = list(info)
+    columns = [v.tolist() if v.ndim == 1 else list(v) for v in map(np.asarray, info.values())]
+    return [dict(zip(keys, row)) for row in zip(*columns)]
+
+
 class CoreSB3VecEnv(VecEnv):
     """Stable-Baselines3 `VecEnv` over a batched core (numpy in and out, SB3's auto-reset rules)."""
 
@@ -54,7 +65,7 @@ class CoreSB3VecEnv(VecEnv):
         obs, reward, terminated, truncated, info, done, final_obs = step_with_autoreset(self.core, self._actions)
         self._returns += reward
         self._lengths += 1
-        infos = [{k: v[i] for k, v in info.items()} for i in range(self.num_envs)]
+        infos = per_env_infos(info, self.num_envs)
         elapsed = round(time.time() - self._start, 6)
         for row, i in enumerate(done):
             infos[i]["terminal_observation"] = final_obs[row]
