@@ -12,7 +12,7 @@
 3. `curve.png` places this run on the recipe's measured seeds, and `walk.gif` shows the policy walking (needs offscreen
    GL, `MUJOCO_GL=egl`).
 
-The recipe walks (tracking >= 0.80 with at most 2 falls in 54) at its default 11.8 M imagined steps on its three
+The recipe walks (tracking >= 0.80 with at most 2 falls in 54) at its default 15.9 M imagined steps on its three
 measured seeds; `--recipe anymal_d_ppo_imagination` runs the 40 M-step recipe of the shipped 4096-robot policy instead.
 `--robot go2` runs the same recipe in the Go2's shipped world model (`go2_ppo_quickstart.json`: its measured seeds,
 the default the seed of its shipped policy).
