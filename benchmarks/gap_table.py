@@ -463,8 +463,16 @@ def summarise(rows: list[dict]) -> dict:
             "errors": len([r for r in rows if r["source"] == source and "error" in r]),
             **_where_named(rs),
             **_by_kind(rs),
+            "median_minutes_per_case": median_minutes(rs),
+            "median_minutes_one_effect": median_minutes([r for r in rs if r["kind"] == "single"]),
         }
     return out
+
+
+def median_minutes(rs: list[dict]) -> float | None:
+    """The median wall time of these cases' workflow runs, in minutes (None where none recorded it)."""
+    times = [r["wall_s"] for r in rs if r.get("wall_s") is not None]
+    return float(np.median(times)) / 60.0 if times else None
 
 
 def _where_named(rs: list[dict]) -> dict:
@@ -548,18 +556,21 @@ def frac(flags: list[bool]) -> dict | None:
 
 
 def markdown(rows: list[dict], summary: dict) -> str:
-    header = "| source | case | kind | named (scope) | correct | magnitude error | explained | learned | gap / floor |"
-    lines = [header, "|---|---|---|---|---|---|---|---|---|"]
+    header = (
+        "| source | case | kind | named (scope) | correct | magnitude error | explained | learned | gap / floor | min |"
+    )
+    lines = [header, "|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["source"], r["kind"], r["case"])):
         if "error" in r:
-            lines.append(f"| {r['source']} | {r['case']} | {r['kind']} | error: {r['error'][:60]} | | | | | |")
+            lines.append(f"| {r['source']} | {r['case']} | {r['kind']} | error: {r['error'][:60]} | | | | | | |")
             continue
         named = ", ".join(f"{n} ({s})" for n, s in r["named"]) or r["verdict"]
         err = ", ".join(f"{v:.0%}" for v in r["magnitude_error"].values()) or "-"
         learned = f"{r['learned_total_explained']:.0%}" if r["learned_total_explained"] is not None else "-"
+        minutes = f"{r['wall_s'] / 60:.1f}" if r.get("wall_s") is not None else "-"
         lines.append(
             f"| {r['source']} | {r['case']} | {r['kind']} | {named} | {'yes' if r['correct'] else 'no'} | "
-            f"{err} | {r['explained_fraction']:.0%} | {learned} | {r['floor_ratio']:.2f} |"
+            f"{err} | {r['explained_fraction']:.0%} | {learned} | {r['floor_ratio']:.2f} | {minutes} |"
         )
     lines += ["", "| figure | " + " | ".join(summary) + " |", "|---|" + "---|" * len(summary)]
     keys = next(iter(summary.values()), {}).keys()

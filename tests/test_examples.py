@@ -421,6 +421,9 @@ def test_gap_table_measures_a_case_on_the_fast_robot_and_compares_like_with_like
         "gait": {"cases": 1, "converged_correct": 1.0, "fast_correct": 0.0, "differ": ["x"]}
     }
     assert "contact_solver_1x" not in {c.name for c in gap_table.grid()}  # no robot hides the simulator's solver
+    timed = [{"kind": "single", "wall_s": 120.0}, {"kind": "single", "wall_s": 240.0}, {"kind": "pair", "wall_s": 9e2}]
+    assert gap_table.median_minutes(timed) == 4.0 and gap_table.median_minutes(timed[:2]) == 3.0
+    assert gap_table.median_minutes([{"kind": "none"}]) is None  # a row reused from before it was timed
 
 
 def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp_path):
