@@ -174,6 +174,7 @@ def grid() -> list[Case]:
             {"joint_damping": magnitude("joint_damping", 1.5), "backlash": magnitude("backlash", 1.0)},
         ),
         Case("spring_HFE_20", "outside", spring=("HFE", 20.0)),
+        Case("spring_HFE_40", "outside", spring=("HFE", 40.0)),
         Case("none_seed1", "none"),
         Case("none_noise_0.5x", "none", noise_scale=0.5),
         Case("none_noise_2x", "none", noise_scale=2.0),
