@@ -115,7 +115,8 @@ def test_a_run_killed_while_training_a_model_continues_that_model_from_its_check
     killed = tmp_path / "killed"
     assert cli([*command, "--out", str(killed)]) == 130  # interrupted
     assert read_meta(killed / "model_0.safetensors").stats["iterations"] == 3
-    trained.clear(), stop_at.clear()
+    trained.clear()
+    stop_at.clear()
     assert cli([*command, "--out", str(killed)]) == 0
     assert trained == [4, 5, 6]  # the model's three iterations left, not all six again
     whole, resumed = (load_checkpoint(f / "model_0.safetensors")[0].state_dict() for f in (tmp_path / "whole", killed))
