@@ -1,12 +1,12 @@
 """The gap workflow over a grid of hidden cases, on excitation data and on an ordinary walking policy's data.
 
 The grid: every effect of the vocabulary at 0.5x, 1x and 2x its realistic default; a robot lighter than its model
-(a negative payload of 5, 10 and 15 % of its total mass); per-leg and per-joint-type
-variants (values in some joints only, hidden through per-joint `PhysicsParams`); pairs and triples of effects; effects
-outside the vocabulary (a torsion spring in one joint type, edited into the MJCF directly,
-`measured.write_spring_model`); and no effect, also with half and twice the sensor noise the workflow assumes. Every
-case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait` or an SB3 `.zip` for
-the walking policy) and run through `rwm-gym gap --world-model none`.
+(a negative payload of 5, 10 and 15 % of its total mass); per-leg, per-joint-type and one-joint variants (values in
+some joints only, hidden through per-joint `PhysicsParams`; friction in one joint of each type at 2, 4 and 6 N·m);
+pairs and triples of effects; effects outside the vocabulary (a torsion spring in one joint type, edited into the
+MJCF directly, `measured.write_spring_model`); and no effect, also with half and twice the sensor noise the workflow
+assumes. Every case is measured with sensor noise from both data sources (`--sources`: `excitation`, and `gait` or an
+SB3 `.zip` for the walking policy) and run through `rwm-gym gap --world-model none`.
 
 Per case: the named effects (order, scope), the fitted magnitude and its error relative to the true distance from
 nominal, the explained fraction of the held-out gap (and the learned correction's where one was fitted), whether what
@@ -130,6 +130,17 @@ LIGHTER_SHARES = (0.05, 0.10, 0.15)
 """A robot lighter than its model by these shares of its total mass (a battery out, a lighter shell)."""
 
 
+ONE_JOINT_FRICTION = {"LF_HAA": (2.0, 4.0, 6.0), "LF_HFE": (2.0, 4.0, 6.0), "LF_KFE": (2.0, 4.0)}
+"""Friction (N·m) in one joint of each type, the rest nominal: a worn joint (`friction_LF_KFE_6` is among the
+first cases)."""
+
+
+def one_joint(joint: str, friction: float) -> Case:
+    """Coulomb friction in `joint` alone (12 episodes: enough fitting windows for the per-joint scope)."""
+    name = f"friction_{joint}_{friction:g}"
+    return Case(name, "joint", per_joint=("joint_friction", "joint", joint, friction), episodes=12)
+
+
 def lighter(share: float) -> Case:
     """The robot lighter by `share` of its total mass (read from its model): a negative payload at the base origin."""
     removed = share * ROBOT_MASS_KG
@@ -150,7 +161,7 @@ def grid() -> list[Case]:
             {"joint_friction": magnitude("joint_friction", 1.5), "payload": magnitude("payload", 1.0)},
         ),
         Case("friction_LF_6", "leg", per_joint=("joint_friction", "leg", "LF", 6.0)),
-        Case("friction_LF_KFE_6", "joint", per_joint=("joint_friction", "joint", "LF_KFE", 6.0), episodes=12),
+        one_joint("LF_KFE", 6.0),
         Case(
             "delay+armature",
             "pair",
@@ -199,7 +210,8 @@ def grid() -> list[Case]:
             **LONGER_DATA,
         ),
     ]
-    return first + triples + rest + [lighter(share) for share in LIGHTER_SHARES]
+    joints = [one_joint(joint, value) for joint, values in ONE_JOINT_FRICTION.items() for value in values]
+    return first + triples + rest + [lighter(share) for share in LIGHTER_SHARES] + joints
 
 
 CASES = {case.name: case for case in grid()}

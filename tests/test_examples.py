@@ -426,6 +426,22 @@ def test_gap_table_measures_a_case_on_the_fast_robot_and_compares_like_with_like
     assert gap_table.median_minutes([{"kind": "none"}]) is None  # a row reused from before it was timed
 
 
+def test_gap_table_one_joint_cases_hide_friction_in_that_joint_alone():
+    """The one-joint rows: friction at the named joint's index of the per-joint field, nominal in the 11 others, on
+    enough episodes for the per-joint scope; one case per (joint, magnitude)."""
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_one_joint")
+    cases = {c.name: c for c in gap_table.grid() if c.kind == "joint"}
+    expected = {f"friction_{j}_{v:g}" for j, values in gap_table.ONE_JOINT_FRICTION.items() for v in values}
+    assert expected | {"friction_LF_KFE_6"} == set(cases)
+    joints = list(gap_table.SPEC.actuator.joints)
+    for case in cases.values():
+        _, _, joint, value = case.per_joint
+        (friction,) = gap_table.hidden_physics(case).values()
+        assert friction[joints.index(joint)] == value
+        assert [f for i, f in enumerate(friction) if i != joints.index(joint)] == [0.0] * (len(joints) - 1)
+        assert case.episodes == 12
+
+
 def test_make_coverage_model_fine_tunes_on_the_policies_episodes_and_resumes(tmp_path):
     """One part per (policy, noise level) from its own seeds in the start model's robot (here the Go2), merged after
     the base; the fine-tune keeps the start model's training settings except budget, lr and seed; the written model
