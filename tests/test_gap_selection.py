@@ -285,6 +285,29 @@ def test_no_joint_stands_out_on_nominal_data(nominal_data):
     assert outlying_joint(SPEC, Resimulator(SPEC), train, PhysicsParams()) is None
 
 
+def test_the_deviant_joint_is_measured_against_the_same_joint_in_the_other_legs(monkeypatch):
+    """A hip flexion joint whose residual is 1.5x its siblings' but below every knee's stands out against its type
+    (`deviant_joint`) though not against every joint (`outlying_joint`); it gets the single-joint fits, and a joint
+    that is also the outlier is not fitted twice."""
+    from rwm_gym.gap import scope
+
+    joints = list(SPEC.actuator.joints)
+    err = np.array([0.3 if j.endswith("HAA") else 0.4 if j.endswith("HFE") else 1.0 for j in joints])
+    err[joints.index("RF_KFE")] = 1.1
+    err[joints.index("LF_HFE")] = 0.6
+    monkeypatch.setattr(scope, "_joint_residuals_under", lambda *args: err)
+    assert scope.outlying_joint(SPEC, None, None, None) is None
+    assert scope.deviant_joint(SPEC, None, None, None) == joints.index("LF_HFE")
+    fitted = []
+    monkeypatch.setattr(scope, "_single_joint_fits", lambda joint, effects, inputs: fitted.append(joint) or ["fits"])
+    inputs = FitInputs(SimpleNamespace(spec=SPEC), None, None, PhysicsParams(), None, FitConfig())
+    assert scope.deviant_joint_fits(EFFECTS, inputs) == ["fits"] and fitted == [joints.index("LF_HFE")]
+    err[joints.index("LF_HFE")] = 3.0  # now also the outlier: scope_candidates fitted it already
+    assert scope.deviant_joint_fits(EFFECTS, inputs) == [] and fitted == [joints.index("LF_HFE")]
+    off = dataclasses.replace(inputs, config=FitConfig(scopes=("leg", "joint_type")))
+    assert scope.deviant_joint_fits(EFFECTS, off) == []
+
+
 def test_solver_settings_are_an_env_option_and_the_gap_default():
     assert build_model(SPEC).opt.iterations == 4  # the fast MJCF for PPO
     model = build_model(SPEC, solver=CONVERGED_SOLVER)
@@ -521,6 +544,7 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     _patch(monkeypatch, "fit_all", fits)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("backlash", "joint_friction", "armature", "payload")}
@@ -579,6 +603,7 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     _patch(monkeypatch, "fit_all", fit_all)
     _patch(monkeypatch, "scope_candidates", lambda *args, **kwargs: [])
     _patch(monkeypatch, "every_scope", lambda *args, **kwargs: [])
+    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
     _patch(
         monkeypatch,
@@ -824,6 +849,7 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     _patch(monkeypatch, "fit_all", lambda effects, *args: [fitted(n, 0.0) for n in effects])
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", every)
+    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(
         monkeypatch,
         "joint_refit",
@@ -899,6 +925,7 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
     _patch(monkeypatch, "fit_all", fit_all)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("motor_strength", "ground_friction", "payload", "armature")}
@@ -1262,6 +1289,7 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     _patch(monkeypatch, "fit_all", fits)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
+    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "joint_candidates", lambda candidates, *args: candidates)
     _patch(monkeypatch, "_name", name)
     refits = []
