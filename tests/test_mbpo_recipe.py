@@ -16,6 +16,7 @@ from rwm_gym.cli import main as cli
 from rwm_gym.commands.mbpo import config_from, load_recipe
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.model.checkpoint import read_meta
+from rwm_gym.resources import assets_dir
 
 TINY_RECIPE = {
     "start_data": {"policy": "random", "episodes": 4, "max_steps": 40, "seed": 5, "num_envs": 4},
@@ -57,6 +58,17 @@ def test_the_shipped_recipe_is_the_fast_history_recipe_from_random_data():
     assert overridden.ppo_timesteps == config.ppo_timesteps  # the rest stays the recipe's
     with pytest.raises(ValueError, match="no such recipe"):
         load_recipe("no_such_recipe")
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (assets_dir() / "recipes").glob("*.json")))
+def test_every_shipped_recipe_builds_its_loop_and_starting_model(name):
+    """Each shipped recipe reads into an `MBPOConfig` (its fields known, its values in range), says what it is, how
+    its loop ran and the command that runs it, and starts from random-action data."""
+    recipe = load_recipe(name)
+    config = config_from(_args(["--out", "x", "--recipe", name]), recipe)
+    assert config.iterations > 0 and config.imagination.matmul_precision == "bfloat16"
+    assert recipe["what"] and recipe["status"] and f"--recipe {name}" in recipe["command"]
+    assert recipe["start_data"]["policy"] == "random" and recipe["start_model"]["train"]["iterations"] > 0
 
 
 def test_one_command_runs_the_recipe_from_nothing_counts_every_row_and_resumes(tmp_path):
