@@ -16,9 +16,9 @@ adds it where it is not), so none of those leads to the per-joint fit. The data 
 nominal residual on the fitting windows is `OUTLIER_RATIO` times the next joint's (`outlying_joint`), every joint
 effect is also fitted at that joint alone (one parameter; scope "joint", the other joints nominal), charged one
 `SCOPE_CHARGE` for the choice of joint. Where a smaller fault hides under the rest of the data's scatter (friction of
-2-6 N·m in one hip or knee: 1.1-1.5x the next joint) and step 1 would call the gap `unexplained`, the joint that
+2-6 N·m in one hip or knee: at most 1.5x the next joint) and step 1 would call the gap `unexplained`, the joint that
 stands out most against the same joint in the other legs (`deviant_joint`) gets the same single-joint fits, charged
-alike (`every_scope`).
+alike (`deviant_joint_fits`).
 
 Groups come from the actuated joints' names in the task spec, "<leg>_<type>": the leg is the part before the first
 "_", the joint type the rest (ANYmal D: legs LF, RF, LH, RH; types HAA, HFE, KFE). A grouping with fewer than two
@@ -157,8 +157,8 @@ def deviant_joint(spec: TaskSpec, resim: Resimulator, train: Windows, base: Phys
     """The actuated joint whose residual under `base` is the largest multiple of the largest among the same joint in
     the other legs (the joints of its type; where the names give no types, of every other joint's), whatever that
     multiple; None without per-joint signals. The joint of a type moves alike in every leg, so its siblings tell how
-    much residual its motion leaves: friction of 4 N·m in one hip flexion joint on excitation data left its residual
-    1.5x its siblings' and 0.9x the knees'."""
+    much residual its motion leaves: friction of 6 N·m in one hip flexion joint on excitation data left its residual
+    1.7-1.8x its siblings' but below a knee's."""
     err = _joint_residuals_under(spec, resim, train, base)
     if err is None or len(err) < 2:
         return None
