@@ -146,11 +146,7 @@ def joint_residuals(spec: TaskSpec, simulated: np.ndarray, windows: Windows, hor
 
 def outlying_joint(spec: TaskSpec, resim: Resimulator, train: Windows, base: PhysicsParams) -> int | None:
     """The actuated joint whose residual under `base` is `OUTLIER_RATIO` times every other joint's, or None."""
-    err = _joint_residuals_under(spec, resim, train, base)
-    if err is None or len(err) < 2:
-        return None
-    first, second = np.sort(err)[::-1][:2]
-    return int(np.argmax(err)) if first >= OUTLIER_RATIO * second else None
+    return _outlier(_joint_residuals_under(spec, resim, train, base))
 
 
 def deviant_joint(spec: TaskSpec, resim: Resimulator, train: Windows, base: PhysicsParams) -> int | None:
@@ -159,7 +155,19 @@ def deviant_joint(spec: TaskSpec, resim: Resimulator, train: Windows, base: Phys
     multiple; None without per-joint signals. The joint of a type moves alike in every leg, so its siblings tell how
     much residual its motion leaves: friction of 6 N·m in one hip flexion joint on excitation data left its residual
     1.7-1.8x its siblings' but below a knee's."""
-    err = _joint_residuals_under(spec, resim, train, base)
+    return _deviant(spec, _joint_residuals_under(spec, resim, train, base))
+
+
+def _outlier(err: np.ndarray | None) -> int | None:
+    """`outlying_joint` of the per-joint residuals `err`."""
+    if err is None or len(err) < 2:
+        return None
+    first, second = np.sort(err)[::-1][:2]
+    return int(np.argmax(err)) if first >= OUTLIER_RATIO * second else None
+
+
+def _deviant(spec: TaskSpec, err: np.ndarray | None) -> int | None:
+    """`deviant_joint` of the per-joint residuals `err`."""
     if err is None or len(err) < 2:
         return None
     types = joint_groups(spec, "joint_type") or {"all": list(range(len(err)))}
@@ -295,9 +303,9 @@ def deviant_joint_fits(
     otherwise."""
     if "joint" not in inputs.config.scopes:
         return []
-    spec, resim, train, base = inputs.spec, inputs.resim, inputs.train, inputs.base
-    joint = deviant_joint(spec, resim, train, base)
-    if joint is None or joint == outlying_joint(spec, resim, train, base):
+    err = _joint_residuals_under(inputs.spec, inputs.resim, inputs.train, inputs.base)  # one re-simulation for both
+    joint = _deviant(inputs.spec, err)
+    if joint is None or joint == _outlier(err):
         return []
     return remembered(
         memo_for(memo, inputs),
