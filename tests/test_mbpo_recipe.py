@@ -133,3 +133,21 @@ def test_a_run_killed_while_training_a_model_continues_that_model_from_its_check
     assert trained == [4, 5, 6]  # the model's three iterations left, not all six again
     whole, resumed = (load_checkpoint(f / "model_0.safetensors")[0].state_dict() for f in (tmp_path / "whole", killed))
     assert all(torch.equal(whole[name], resumed[name]) for name in whole)
+
+
+def test_a_loop_with_symmetry_trains_every_policy_on_mirrored_samples(tmp_path, monkeypatch):
+    import rwm_gym.rl.mirror_buffer as mirror_buffer
+
+    use_mirrored_buffer, mirrored = mirror_buffer.use_mirrored_buffer, []
+
+    def recorded(model, spec):
+        mirrored.append(spec.name)
+        return use_mirrored_buffer(model, spec)
+
+    monkeypatch.setattr(mirror_buffer, "use_mirrored_buffer", recorded)
+    recipe_file = tmp_path / "tiny.json"
+    recipe_file.write_text(json.dumps(TINY_RECIPE))
+    out = tmp_path / "run"
+    assert cli(["mbpo", "--recipe", str(recipe_file), "--out", str(out), "--threads", "1", "--symmetry"]) == 0
+    assert json.loads((out / "mbpo.json").read_text())["config"]["symmetry"] is True
+    assert mirrored == ["AnymalD", "AnymalD"]  # the fresh policy of iteration 0 and iteration 1's, loaded again

@@ -63,6 +63,9 @@ class MBPOConfig:
     `init_policy`, whose zip does not carry it."""
     log_std_init: float = option(0.0, finite=True)
     """Initial log std of a fresh policy (`PPOConfig.log_std_init`; an `init_policy` keeps its own)."""
+    symmetry: bool = False
+    """PPO trains on each imagined sample and its left-right mirror image (`PPOConfig.symmetry`; the task spec's
+    `[symmetry]` table)."""
     collect_episodes: int = option(32, ge=1)
     """Physics episodes collected per iteration."""
     collect_steps: int = option(250, ge=1)
@@ -195,7 +198,10 @@ class _Loop:
         self.model_config = None
         self.start_train, self.start_model = None, {}
         self.ppo_config = PPOConfig(
-            num_envs=config.num_envs, log_std_init=config.log_std_init, positive_reward_only=config.positive_reward_only
+            num_envs=config.num_envs,
+            log_std_init=config.log_std_init,
+            positive_reward_only=config.positive_reward_only,
+            symmetry=config.symmetry,
         )
 
     def model_path(self, k: int) -> Path:
