@@ -154,8 +154,15 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
             torch.randn(envs),
         )
     buffer.compute_returns_and_advantage(torch.randn(envs), np.zeros(envs, bool))
+    assert buffer.original_kl is None
     batches = list(buffer.get(batch))
     assert len(batches) == steps * envs // batch
+    # the KL of the original halves: the policy's log-probability against the rollout's, SB3's approximation
+    ratios = [
+        Policy.evaluate_actions(b.observations[:batch], b.actions[:batch])[1] - b.old_log_prob[:batch] for b in batches
+    ]
+    expected = np.mean([float(torch.mean(torch.exp(r) - 1 - r)) for r in ratios])
+    assert buffer.original_kl == pytest.approx(expected) and expected > 0
     seen = []
     for b in batches:
         assert b.observations.shape == (2 * batch, 48) and b.actions.shape == (2 * batch, 12)
@@ -190,7 +197,10 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     stats = learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
     assert stats.timesteps == 512 and all(np.isfinite(row["mean_step_reward"]) for row in stats.log)
     rollout = config.num_envs * config.n_steps  # once per rollout: the mirrored samples' log-probabilities
-    assert sizes == ([rollout] + [2 * rollout // config.num_minibatches] * (4 * 2)) * 2
+    batch = rollout // config.num_minibatches  # per minibatch: the original half's KL, then SB3's doubled batch
+    assert sizes == ([rollout] + [batch, 2 * batch] * (4 * 2)) * 2
+    kl = model.rollout_buffer.original_kl  # the adaptive learning rate's input: the original half's KL, not SB3's
+    assert kl is not None and kl >= 0 and kl != model.logger.name_to_value["train/approx_kl"]
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
 
     del model.policy.evaluate_actions

@@ -11,7 +11,9 @@ towards the symmetric gaits a left-right symmetric robot can use.
 
 SB3 normalises advantages per minibatch; a minibatch of n samples and their copies has the same mean and a standard
 deviation smaller by sqrt((2n - 2) / (2n - 1)) (1 - 1e-4 at n = 3072), which is left as it is.
-SB3's `train/approx_kl` (and so the adaptive learning rate) is measured over both halves.
+The KL that adapts the learning rate (`original_kl`) is measured on the original half only, as rsl_rl's symmetric
+PPO does: on the mirrored half an asymmetric policy is pulled towards its mirror image, a change the rate should not
+be cut for. SB3's logged `train/approx_kl` still covers both halves.
 
 The buffer is installed on a built model (`use_mirrored_buffer`), not through SB3's `rollout_buffer_class`, so saved
 policies carry no reference to it and load anywhere.
@@ -68,7 +70,14 @@ class MirroredRolloutBuffer(RolloutBuffer):
     def get(self, batch_size: int | None = None):
         if not self.generator_ready:  # once per rollout, before SB3 flattens the arrays
             self.mirrored_log_probs = self.swap_and_flatten(self._mirrored_log_probs())
+            self.kls: list[float] = []
         yield from super().get(batch_size)
+
+    @property
+    def original_kl(self) -> float | None:
+        """The last update's mean approximate KL over its minibatches' original halves (None before any update)."""
+        kls = getattr(self, "kls", None)
+        return float(np.mean(kls)) if kls else None
 
     @torch.no_grad()
     def _mirrored_log_probs(self) -> np.ndarray:
@@ -81,6 +90,9 @@ class MirroredRolloutBuffer(RolloutBuffer):
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> RolloutBufferSamples:
         samples = super()._get_samples(batch_inds, env)
+        with torch.no_grad():  # SB3's approximate KL, on the original half, by the policy before this minibatch's step
+            log_ratio = self.policy.evaluate_actions(samples.observations, samples.actions)[1] - samples.old_log_prob
+            self.kls.append(float(torch.mean(torch.exp(log_ratio) - 1 - log_ratio)))
         (obs_index, obs_sign), (act_index, act_sign) = self.mirrors
         return RolloutBufferSamples(
             observations=torch.cat([samples.observations, samples.observations[:, obs_index] * obs_sign]),

@@ -332,7 +332,9 @@ class _Progress(BaseCallback):
         return self.minutes is None or seconds < 60 * self.minutes
 
     def _on_rollout_end(self) -> None:
-        kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
+        kl = getattr(self.model.rollout_buffer, "original_kl", None)  # the mirrored buffer's: its original half
+        if kl is None:
+            kl = self.model.logger.name_to_value.get("train/approx_kl")  # previous update's (the logger dumps later)
         lr = previous = self.model.lr_schedule(1.0)
         share = annealed_fraction(self.num_timesteps, self.end, self.anneal_steps, self.rollout)
         if share < 1.0:  # scale the previous update's lr by the ratio of shares: resumes from the saved lr alone
