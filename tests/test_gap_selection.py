@@ -287,8 +287,8 @@ def test_no_joint_stands_out_on_nominal_data(nominal_data):
 
 def test_the_deviant_joint_is_measured_against_the_same_joint_in_the_other_legs(monkeypatch):
     """A hip flexion joint whose residual is 1.5x its siblings' but below every knee's stands out against its type
-    (`deviant_joint`) though not against every joint (`outlying_joint`); it gets the single-joint fits, and a joint
-    that is also the outlier is not fitted twice."""
+    (`deviant_joint`) though not against every joint (`outlying_joint`); it gets the single-joint fits beside the
+    outlier's, and a joint that is both is fitted once."""
     from rwm_gym.gap import scope
 
     joints = list(SPEC.actuator.joints)
@@ -301,11 +301,18 @@ def test_the_deviant_joint_is_measured_against_the_same_joint_in_the_other_legs(
     fitted = []
     monkeypatch.setattr(scope, "_single_joint_fits", lambda joint, effects, inputs: fitted.append(joint) or ["fits"])
     inputs = FitInputs(SimpleNamespace(spec=SPEC), None, None, PhysicsParams(), None, FitConfig())
-    assert scope.deviant_joint_fits(EFFECTS, inputs) == ["fits"] and fitted == [joints.index("LF_HFE")]
-    err[joints.index("LF_HFE")] = 3.0  # now also the outlier: scope_candidates fitted it already
-    assert scope.deviant_joint_fits(EFFECTS, inputs) == [] and fitted == [joints.index("LF_HFE")]
+    assert scope.single_joint_candidates(EFFECTS, inputs) == ["fits"] and fitted == [joints.index("LF_HFE")]
+    err[joints.index("RF_KFE")] = 3.0  # an outlier (3x every other joint, 3x its siblings) beside the deviant
+    err[[i for i, j in enumerate(joints) if j.endswith("HFE") and j != "LF_HFE"]] = 0.1  # joint (6x its siblings)
+    assert scope.outlying_joint(SPEC, None, None, None) == joints.index("RF_KFE")
+    fitted.clear()
+    assert scope.single_joint_candidates(EFFECTS, inputs) == ["fits", "fits"]
+    assert fitted == [joints.index("RF_KFE"), joints.index("LF_HFE")]
+    err[joints.index("LF_HFE")] = 9.0  # the deviant joint is also the outlier: fitted once
+    fitted.clear()
+    assert scope.single_joint_candidates(EFFECTS, inputs) == ["fits"] and fitted == [joints.index("LF_HFE")]
     off = dataclasses.replace(inputs, config=FitConfig(scopes=("leg", "joint_type")))
-    assert scope.deviant_joint_fits(EFFECTS, off) == []
+    assert scope.single_joint_candidates(EFFECTS, off) == []
 
 
 def test_solver_settings_are_an_env_option_and_the_gap_default():
@@ -384,7 +391,7 @@ def test_the_two_best_joint_effects_that_reduce_the_gap_are_fitted_in_their_scop
     ]
     tried = []
     monkeypatch.setattr(scope, "_scoped_fits", lambda best, effect, *args: tried.append(effect.name) or [])
-    monkeypatch.setattr(scope, "outlying_joint", lambda *args: None)
+    monkeypatch.setattr(scope, "single_joint_candidates", lambda *args: [])
     no_sim = SimpleNamespace(spec=SPEC)  # nothing is simulated: the fits are stubbed
     scope.scope_candidates(fits, EFFECTS, FitInputs(no_sim, None, None, PhysicsParams(), None, FitConfig()))
     assert tried == ["joint_damping", "joint_friction"]
@@ -544,7 +551,6 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
     _patch(monkeypatch, "fit_all", fits)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
-    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 1.0 - explained))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("backlash", "joint_friction", "armature", "payload")}
@@ -603,7 +609,6 @@ def _stub_selection(monkeypatch, fits, above, gap_of, cross_p: float) -> list[st
     _patch(monkeypatch, "fit_all", fit_all)
     _patch(monkeypatch, "scope_candidates", lambda *args, **kwargs: [])
     _patch(monkeypatch, "every_scope", lambda *args, **kwargs: [])
-    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
     _patch(
         monkeypatch,
@@ -849,7 +854,6 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     _patch(monkeypatch, "fit_all", lambda effects, *args: [fitted(n, 0.0) for n in effects])
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", every)
-    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(
         monkeypatch,
         "joint_refit",
@@ -925,7 +929,6 @@ def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch)
     _patch(monkeypatch, "fit_all", fit_all)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
-    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "gap_per_window", lambda spec, sim, held: np.full((20, 3), 0.5))
     resim = SimpleNamespace(spec=SPEC, rollout=lambda held, params: None)
     effects = {n: EFFECTS[n] for n in ("motor_strength", "ground_friction", "payload", "armature")}
@@ -1289,7 +1292,6 @@ def test_later_steps_test_the_gap_against_the_floor_of_the_simulator_so_far(monk
     _patch(monkeypatch, "fit_all", fits)
     _patch(monkeypatch, "scope_candidates", lambda *args: [])
     _patch(monkeypatch, "every_scope", lambda *args: [])
-    _patch(monkeypatch, "deviant_joint_fits", lambda *args, **kwargs: [])
     _patch(monkeypatch, "joint_candidates", lambda candidates, *args: candidates)
     _patch(monkeypatch, "_name", name)
     refits = []

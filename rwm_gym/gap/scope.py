@@ -15,10 +15,11 @@ An effect held by one joint alone (a worn knee) explains nothing in the global, 
 adds it where it is not), so none of those leads to the per-joint fit. The data point at it instead: when one joint's
 nominal residual on the fitting windows is `OUTLIER_RATIO` times the next joint's (`outlying_joint`), every joint
 effect is also fitted at that joint alone (one parameter; scope "joint", the other joints nominal), charged one
-`SCOPE_CHARGE` for the choice of joint. Where a smaller fault hides under the rest of the data's scatter (friction of
-2-6 N·m in one hip or knee: at most 1.5x the next joint) and step 1 would call the gap `unexplained`, the joint that
-stands out most against the same joint in the other legs (`deviant_joint`) gets the same single-joint fits, charged
-alike (`deviant_joint_fits`).
+`SCOPE_CHARGE` for the choice of joint. A smaller fault hides under the rest of the data's scatter (friction of
+2-6 N·m in one hip or knee: at most 1.5x the next joint), so the joint that stands out most against the same joint
+in the other legs (`deviant_joint`) gets the same single-joint fits, charged alike, at every step
+(`single_joint_candidates`): offered only where the gap would otherwise be called `unexplained`, friction of 4 and
+6 N·m in one hip abduction joint was named as global joint friction instead, since that form already passed.
 
 Groups come from the actuated joints' names in the task spec, "<leg>_<type>": the leg is the part before the first
 "_", the joint type the rest (ANYmal D: legs LF, RF, LH, RH; types HAA, HFE, KFE). A grouping with fewer than two
@@ -231,8 +232,8 @@ def scope_candidates(
 ) -> list[tuple[Effect, CandidateFit]]:
     """The scoped forms (`config.scopes`) of the `config.scoped_effects` best-scoring global joint effects among
     `fits` whose global form reduces the held-out gap, each fitted on top of `inputs.base` and scored on the held-out
-    windows;
-    [] if none has a scoped form. `memo`: scoped fits taken from it where it has them (`fit.FitMemo`).
+    windows, and the single-joint fits (`single_joint_candidates`); [] if there are none. `memo`: scoped fits taken
+    from it where it has them (`fit.FitMemo`).
 
     Whether one is named is `select`'s call, with the penalty for its extra parameters."""
     # Only effects whose global form helps are scoped: scoping every joint effect costs up to 40 % more fitting time
@@ -254,16 +255,24 @@ def scope_candidates(
             ("scoped", best.effect, best.score, top),
             lambda best=best: _scoped_fits(best, effects[best.effect], inputs, top),
         )
-    joint = (
-        outlying_joint(inputs.spec, inputs.resim, inputs.train, inputs.base)
-        if "joint" in inputs.config.scopes
-        else None
-    )
-    if joint is not None:
+    return out + single_joint_candidates(effects, inputs, memo)
+
+
+def single_joint_candidates(
+    effects: dict[str, Effect], inputs: FitInputs, memo: FitMemo | None = None
+) -> list[tuple[Effect, CandidateFit]]:
+    """Every joint effect fitted at the `outlying_joint` alone and at the `deviant_joint` alone (once where they are
+    the same joint), each scored on the held-out windows and charged one `SCOPE_CHARGE` for the choice of joint; []
+    where the per-joint scope is not tried. One re-simulation finds both joints."""
+    if "joint" not in inputs.config.scopes:
+        return []
+    err = _joint_residuals_under(inputs.spec, inputs.resim, inputs.train, inputs.base)
+    joints = dict.fromkeys(j for j in (_outlier(err), _deviant(inputs.spec, err)) if j is not None)
+    memo, names = memo_for(memo, inputs), tuple(n for n in JOINT_EFFECTS if n in effects)
+    out: list[tuple[Effect, CandidateFit]] = []
+    for joint in joints:
         out += remembered(
-            memo,
-            ("single joint", joint, tuple(n for n in JOINT_EFFECTS if n in effects)),
-            lambda: _single_joint_fits(joint, effects, inputs),
+            memo, ("single joint", joint, names), lambda joint=joint: _single_joint_fits(joint, effects, inputs)
         )
     return out
 
@@ -292,26 +301,6 @@ def every_scope(
                 lambda fit=fit: _scoped_fits(fit, effects[fit.effect], inputs),
             )
     return out
-
-
-def deviant_joint_fits(
-    effects: dict[str, Effect], inputs: FitInputs, memo: FitMemo | None = None
-) -> list[tuple[Effect, CandidateFit]]:
-    """Every joint effect fitted at the `deviant_joint` alone and scored on the held-out windows, charged one
-    `SCOPE_CHARGE` for the choice of joint; [] where that joint is the `outlying_joint` (`scope_candidates` fitted
-    it already) or the per-joint scope is not tried. `select` runs this only where no candidate can be named
-    otherwise."""
-    if "joint" not in inputs.config.scopes:
-        return []
-    err = _joint_residuals_under(inputs.spec, inputs.resim, inputs.train, inputs.base)  # one re-simulation for both
-    joint = _deviant(inputs.spec, err)
-    if joint is None or joint == _outlier(err):
-        return []
-    return remembered(
-        memo_for(memo, inputs),
-        ("single joint", joint, tuple(n for n in JOINT_EFFECTS if n in effects)),
-        lambda: _single_joint_fits(joint, effects, inputs),
-    )
 
 
 def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs) -> list[tuple[Effect, CandidateFit]]:

@@ -14,8 +14,7 @@ than the step's gap lies above the step's floor: near the floor, a candidate tha
 
 Before step 1 calls a gap above the floor `unexplained`, every effect is refined (not only the best screened,
 `FitConfig.refine_every_effect`) and every joint effect is fitted in its scopes too (`scope.every_scope`), also those
-whose global form explained nothing, and at the joint that stands out most against its siblings in the other legs
-(`scope.deviant_joint_fits`); a best candidate that then explains enough but fails only its held-out test is
+whose global form explained nothing; a best candidate that then explains enough but fails only its held-out test is
 tested again cross-fitted on every episode (a torque limit 2x on walking data explained 89 % of a gap 300x the floor
 at p = 0.034 on the held-out third); last, an effect whose own noise spread covers the data is named
 (`spread.name_by_spread`).
@@ -35,7 +34,7 @@ from rwm_gym.gap.judge import best_of, judge
 from rwm_gym.gap.noise_floor import FloorConfig
 from rwm_gym.gap.refit import Candidate, joint_candidates, named_params
 from rwm_gym.gap.resim import Resimulator, Windows
-from rwm_gym.gap.scope import deviant_joint_fits, every_scope, scope_candidates
+from rwm_gym.gap.scope import every_scope, scope_candidates
 from rwm_gym.gap.spread import SpreadInputs, name_by_spread
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.spec import TaskSpec
@@ -209,14 +208,12 @@ def _fit_every_scope(
     search: Search, step: Step, remaining: dict[str, Effect], params: PhysicsParams, current: np.ndarray
 ) -> None:
     """Step 1, gap above the floor, still nothing named: fit every joint effect in its scopes too (also those whose
-    global form explained nothing), and at the joint that stands out against the same joint in the other legs
-    (`scope.deviant_joint_fits`), and judge again."""
+    global form explained nothing), and judge again."""
     if not _undecided(step) or not search.config.every_scope:
         return
     scoped = {f.effect for _, f in step.candidates if f.scope != "global"}
     inputs = search.on_top_of(params, current)
     more = every_scope(step.fits, scoped, remaining, inputs, **search.first_step(0))
-    more += deviant_joint_fits(remaining, inputs, **search.first_step(0))
     if more:
         step.candidates += more
         step.pick, step.decision, step.rival = _judge(search, step.candidates, current, step.significance, step.floor)
