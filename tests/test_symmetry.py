@@ -128,7 +128,7 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
     act_space = gym.spaces.Box(-1.0, 1.0, (12,), np.float32)
     steps, envs, batch = 6, 4, 8
 
-    class Policy(torch.nn.Module):  # a known log-probability, so the mirrored half's can be checked
+    class Policy(torch.nn.Module):  # a known log-probability, so the original half's KL can be checked
         @staticmethod
         def evaluate_actions(obs, actions):
             return None, (obs[:, :12] * actions).sum(1) + obs[:, 20], None
@@ -172,9 +172,8 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
         for name in ("old_values", "advantages", "returns"):
             values = getattr(b, name)
             assert values.shape == (2 * batch,) and torch.equal(values[:batch], values[batch:])
-        # the mirrored half's old log-probability is the policy's own for the mirrored action in the mirrored state
-        mirrored = Policy.evaluate_actions(b.observations[batch:], b.actions[batch:])[1]
-        torch.testing.assert_close(b.old_log_prob[batch:], mirrored)
+        # the mirrored half's old log-probability is the original's: that of the rollout policy's mirror image
+        assert torch.equal(b.old_log_prob[:batch], b.old_log_prob[batch:])
         seen.append(first)
     # the first halves are the rollout, each sample once
     rollout = buffer.observations.reshape(-1, 48)
@@ -196,9 +195,8 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     before = [p.detach().clone() for p in model.policy.parameters()]
     stats = learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
     assert stats.timesteps == 512 and all(np.isfinite(row["mean_step_reward"]) for row in stats.log)
-    rollout = config.num_envs * config.n_steps  # once per rollout: the mirrored samples' log-probabilities
-    batch = rollout // config.num_minibatches  # per minibatch: the original half's KL, then SB3's doubled batch
-    assert sizes == ([rollout] + [batch, 2 * batch] * (4 * 2)) * 2
+    batch = config.num_envs * config.n_steps // config.num_minibatches  # the original half's KL, SB3's doubled batch
+    assert sizes == [batch, 2 * batch] * (4 * 2) * 2
     kl = model.rollout_buffer.original_kl  # the adaptive learning rate's input: the original half's KL, not SB3's
     assert kl is not None and kl >= 0 and kl != model.logger.name_to_value["train/approx_kl"]
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))

@@ -1,19 +1,20 @@
 """PPO's rollout buffer with left-right mirror augmentation (`PPOConfig.symmetry`).
 
 Every minibatch carries each sample and, after it, its mirror image (`rwm_gym.task.symmetry`): mirrored observation
-and action, the same advantage, return and old value. The mirrored sample's old log-probability is the rollout
-policy's own for the mirrored action in the mirrored state, computed once per rollout before the update: PPO's ratio
-then starts at 1 for both halves, and the KL that adapts the learning rate measures the update, not the policy's
-asymmetry (with the original's log-probability instead, an asymmetric young policy shows a large KL on the mirrored
-half and the adaptive rule drives the learning rate to its floor). The number of minibatches stays the same;
-each one doubles. The policy learns from twice the data for the same number of (imagined) steps, and is pushed
-towards the symmetric gaits a left-right symmetric robot can use.
+and action, the same advantage, return, old value and old log-probability. The mirrored samples are what the rollout
+policy's mirror image would have done, so the original's old log-probability is theirs (as in rsl_rl's symmetric
+PPO): PPO's ratio on the mirrored half compares the policy with that mirror image, stays bounded by the policy's own
+densities, and the update pulls an asymmetric policy towards the mirror of its own behaviour. (The rollout policy's
+own log-probability of the mirrored action has no such bound: where the policy has grown asymmetric the ratio can
+overflow, and a loop from random data with it, its learning rate no longer cut, ended in a NaN policy in its first
+iteration.) The number of minibatches stays the same; each one doubles. The policy learns from twice the data for the
+same number of (imagined) steps, and is pushed towards the symmetric gaits a left-right symmetric robot can use.
 
 SB3 normalises advantages per minibatch; a minibatch of n samples and their copies has the same mean and a standard
 deviation smaller by sqrt((2n - 2) / (2n - 1)) (1 - 1e-4 at n = 3072), which is left as it is.
-The KL that adapts the learning rate (`original_kl`) is measured on the original half only, as rsl_rl's symmetric
-PPO does: on the mirrored half an asymmetric policy is pulled towards its mirror image, a change the rate should not
-be cut for. SB3's logged `train/approx_kl` still covers both halves.
+The KL that adapts the learning rate (`original_kl`) is measured on the original half only, as rsl_rl's is: on the
+mirrored half an asymmetric policy starts far from its mirror image, and a KL over both halves drove the adaptive
+rate to its floor within three iterations of a loop from random data. SB3's logged `train/approx_kl` covers both.
 
 The buffer is installed on a built model (`use_mirrored_buffer`), not through SB3's `rollout_buffer_class`, so saved
 policies carry no reference to it and load anywhere.
@@ -68,8 +69,7 @@ class MirroredRolloutBuffer(RolloutBuffer):
         )
 
     def get(self, batch_size: int | None = None):
-        if not self.generator_ready:  # once per rollout, before SB3 flattens the arrays
-            self.mirrored_log_probs = self.swap_and_flatten(self._mirrored_log_probs())
+        if not self.generator_ready:  # a new update: its first epoch
             self.kls: list[float] = []
         yield from super().get(batch_size)
 
@@ -78,15 +78,6 @@ class MirroredRolloutBuffer(RolloutBuffer):
         """The last update's mean approximate KL over its minibatches' original halves (None before any update)."""
         kls = getattr(self, "kls", None)
         return float(np.mean(kls)) if kls else None
-
-    @torch.no_grad()
-    def _mirrored_log_probs(self) -> np.ndarray:
-        """(buffer_size, n_envs) log-probability of each mirrored action in its mirrored state under the policy."""
-        (obs_index, obs_sign), (act_index, act_sign) = self.mirrors
-        obs = self.to_torch(self.observations.reshape(-1, *self.obs_shape))[:, obs_index] * obs_sign
-        actions = self.to_torch(self.actions.reshape(-1, self.action_dim))[:, act_index] * act_sign
-        log_probs = [self.policy.evaluate_actions(o, a)[1] for o, a in zip(obs.split(65536), actions.split(65536))]
-        return torch.cat(log_probs).cpu().numpy().reshape(self.buffer_size, self.n_envs)
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> RolloutBufferSamples:
         samples = super()._get_samples(batch_inds, env)
@@ -98,9 +89,7 @@ class MirroredRolloutBuffer(RolloutBuffer):
             observations=torch.cat([samples.observations, samples.observations[:, obs_index] * obs_sign]),
             actions=torch.cat([samples.actions, samples.actions[:, act_index] * act_sign]),
             old_values=samples.old_values.repeat(2),
-            old_log_prob=torch.cat(
-                [samples.old_log_prob, self.to_torch(self.mirrored_log_probs[batch_inds].flatten())]
-            ),
+            old_log_prob=samples.old_log_prob.repeat(2),
             advantages=samples.advantages.repeat(2),
             returns=samples.returns.repeat(2),
         )
