@@ -460,7 +460,7 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     # version 33: no held-out window's gap counts for more than the nominal simulator's worst at that horizon
     #             (fit.gap_ceiling); joint damping and joint friction also at 1.5x; every row can differ from version 32
     # version 34: where step 1 would call a gap above the floor `unexplained`, every joint effect is also fitted at the
-    #             joint that stands out most against the same joint in the other legs (scope.single_joint_candidates);
+    #             joint that stands out most against the same joint in the other legs (then deviant_joint_fits);
     #             only rows whose step 1 reached that search (`unexplained`, or named there by a scoped form, the
     #             cross-fitted test or an effect's spread) can differ from version 33
     # version 35: that joint's single-joint fits are offered at every step, beside the outlying joint's
