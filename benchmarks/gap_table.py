@@ -465,11 +465,15 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             cross-fitted test or an effect's spread) can differ from version 33
     # version 35: that joint's single-joint fits are offered at every step, beside the outlying joint's
     #             (scope.single_joint_candidates); every row can differ from version 34
+    # version 36: those single-joint forms no longer count as their effect's group scopes in step 1's last search
+    #             (scope.every_scope fitted nothing wherever they were offered); only rows whose step 1 reached that
+    #             search (`unexplained`, or named there by a scoped form, the cross-fitted test or an effect's spread)
+    #             can differ from version 35
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 35,
+        "version": 36,
     }
 
 

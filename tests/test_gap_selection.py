@@ -884,6 +884,11 @@ def test_every_joint_effect_is_scoped_before_a_gap_is_called_unexplained(monkeyp
     assert len(calls) == 1
     above[0] = False
     assert run().verdict == "none" and len(calls) == 1
+    # a single-joint form (one value, scope "joint") among the step's candidates leaves its effect's groups unfitted
+    above[0] = True
+    single = fitted("armature", 0.0, scope_name="joint")
+    _patch(monkeypatch, "scope_candidates", lambda *args: [(EFFECTS["armature"], single)])
+    assert run().verdict == "armature" and calls[-1] == []
 
 
 def test_every_effect_is_refined_before_a_gap_is_called_unexplained(monkeypatch):

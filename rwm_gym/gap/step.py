@@ -211,7 +211,8 @@ def _fit_every_scope(
     global form explained nothing), and judge again."""
     if not _undecided(step) or not search.config.every_scope:
         return
-    scoped = {f.effect for _, f in step.candidates if f.scope != "global"}
+    # effects already fitted per group; a single-joint form (one value) does not stand for its effect's groups
+    scoped = {f.effect for _, f in step.candidates if f.scope != "global" and len(f.values) > 1}
     inputs = search.on_top_of(params, current)
     more = every_scope(step.fits, scoped, remaining, inputs, **search.first_step(0))
     if more:
