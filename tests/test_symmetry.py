@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import zipfile
+from types import SimpleNamespace
 
 import gymnasium as gym
 import mujoco
@@ -133,6 +134,10 @@ def test_augmented_buffer_yields_doubled_minibatches_whose_second_half_is_the_mi
         def evaluate_actions(obs, actions):
             return None, (obs[:, :12] * actions).sum(1) + obs[:, 20], None
 
+        @staticmethod
+        def get_distribution(obs):
+            return SimpleNamespace(log_prob=lambda actions: Policy.evaluate_actions(obs, actions)[1])
+
     buffer = MirroredRolloutBuffer(
         steps,
         obs_space,
@@ -195,8 +200,8 @@ def test_tiny_ppo_with_symmetry_trains_in_imagination_and_saves_a_plain_policy(t
     before = [p.detach().clone() for p in model.policy.parameters()]
     stats = learn(model, timesteps=2 * config.num_envs * config.n_steps, progress=False)
     assert stats.timesteps == 512 and all(np.isfinite(row["mean_step_reward"]) for row in stats.log)
-    batch = config.num_envs * config.n_steps // config.num_minibatches  # the original half's KL, SB3's doubled batch
-    assert sizes == [batch, 2 * batch] * (4 * 2) * 2
+    batch = config.num_envs * config.n_steps // config.num_minibatches  # SB3's doubled minibatches, nothing more
+    assert sizes == [2 * batch] * (4 * 2) * 2
     kl = model.rollout_buffer.original_kl  # the adaptive learning rate's input: the original half's KL, not SB3's
     assert kl is not None and kl >= 0 and kl != model.logger.name_to_value["train/approx_kl"]
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))

@@ -82,7 +82,8 @@ class MirroredRolloutBuffer(RolloutBuffer):
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> RolloutBufferSamples:
         samples = super()._get_samples(batch_inds, env)
         with torch.no_grad():  # SB3's approximate KL, on the original half, by the policy before this minibatch's step
-            log_ratio = self.policy.evaluate_actions(samples.observations, samples.actions)[1] - samples.old_log_prob
+            log_prob = self.policy.get_distribution(samples.observations).log_prob(samples.actions)  # no critic
+            log_ratio = log_prob - samples.old_log_prob
             self.kls.append(float(torch.mean(torch.exp(log_ratio) - 1 - log_ratio)))
         (obs_index, obs_sign), (act_index, act_sign) = self.mirrors
         return RolloutBufferSamples(
