@@ -114,11 +114,16 @@ def test_physics_overrides_change_the_model():
         LocomotionEnv(physics={"not_a_param": 1.0})
 
 
-def test_batched_env_matches_single_envs_step_for_step():
+@pytest.mark.parametrize(
+    "physics",
+    [{}, {"backlash": 0.02, "torque_speed_slope": 4.0}],
+    ids=["nominal", "drive-rewrites"],
+)
+def test_batched_env_matches_single_envs_step_for_step(physics):
     n, steps, seed = 3, 40, 11
     rng = np.random.default_rng(1)
     actions = rng.uniform(-1, 1, (steps, n, 12))
-    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", nthread=2)
+    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", nthread=2, physics=physics)
     obs_b, _ = vec.reset(seed=seed)
     batched = [obs_b]
     rewards_b = []
@@ -127,7 +132,7 @@ def test_batched_env_matches_single_envs_step_for_step():
         batched.append(obs_b)
         rewards_b.append(r)
     for i in range(n):
-        env = LocomotionEnv()
+        env = LocomotionEnv(physics=physics)
         obs, _ = env.reset(seed=seed + i)
         np.testing.assert_array_equal(obs, batched[0][i])
         for t in range(steps):

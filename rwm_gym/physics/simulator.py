@@ -114,10 +114,12 @@ class BatchSimulator:
             self._bound["ctrl"][:] = ctrl
             self.batch.step(nstep=nstep, stage=mujoco.mjtStage.mjSTAGE_ACC)
         else:
-            for _ in range(nstep):
+            # the rewrite reads only the state (qpos, qvel); the derived fields are computed after the last substep
+            for i in range(nstep):
                 qpos, qvel = np.asarray(self._bound["qpos"]), np.asarray(self._bound["qvel"])
                 self._bound["ctrl"][:] = rewritten(self.drives, ctrl, qpos, qvel)
-                self.batch.step(nstep=1, stage=mujoco.mjtStage.mjSTAGE_ACC)
+                last = i == nstep - 1
+                self.batch.step(nstep=1, stage=mujoco.mjtStage.mjSTAGE_ACC if last else mujoco.mjtStage.mjSTAGE_NONE)
         self.diverged = self._divergences() > before
 
     def _divergences(self) -> np.ndarray:
