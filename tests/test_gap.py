@@ -99,6 +99,24 @@ def test_resimulation_reproduces_noise_free_data_exactly(tmp_path, physics):
     np.testing.assert_allclose(simulated, windows.target, atol=1e-4)  # state is stored as float32
 
 
+def test_resimulator_hands_out_a_repeated_rollout_again_as_a_copy(tmp_path, monkeypatch):
+    path = make_measured({}, 2, tmp_path / "m.h5", max_steps=40, progress=False)
+    windows = make_windows(Dataset.load(path), np.arange(2), 5, 7)
+    resim = Resimulator(SPEC)
+    runs = []
+    simulate = resim._simulate
+    monkeypatch.setattr(resim, "_simulate", lambda *args: runs.append(args[1]) or simulate(*args))
+    first = resim.rollout(windows, PhysicsParams())
+    first[:] = 0.0  # a caller's change reaches no later caller
+    again = resim.rollout(windows, PhysicsParams())
+    assert len(runs) == 1 and np.abs(again).sum() > 0
+    np.testing.assert_array_equal(again, simulate(windows, PhysicsParams(), windows.horizon, None)["state"])
+    resim.rollout(windows, PhysicsParams(joint_friction=1.0))
+    resim.rollout(windows.subset(np.ones(len(windows), bool)), PhysicsParams())  # equal windows, another object
+    resim.rollout(windows, PhysicsParams(), horizon=2)
+    assert len(runs) == 4
+
+
 def test_corrected_mjcf_is_the_corrected_robot(tmp_path):
     params = PhysicsParams(
         joint_friction=1.5,
