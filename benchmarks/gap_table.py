@@ -469,11 +469,16 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             (scope.every_scope fitted nothing wherever they were offered); only rows whose step 1 reached that
     #             search (`unexplained`, or named there by a scoped form, the cross-fitted test or an effect's spread)
     #             can differ from version 35
+    # version 37: where a step with its gap above the floor names nothing, the best unrelated effects are fitted
+    #             together in pairs and a pair whose every effect adds to the other is named (gap.pairs); only rows
+    #             that ended on such a step (`unexplained` at step 1, or stopped above a later step's floor) can differ
+    #             from version 36. Re-simulation also keeps its last rollouts and skips a forward pass that changed
+    #             nothing (the same states)
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 36,
+        "version": 37,
     }
 
 

@@ -1234,7 +1234,9 @@ def test_rivals_that_stay_alike_are_told_apart_by_where_each_leads(monkeypatch, 
     _patch(  # worse windows wherever the gap is larger
         monkeypatch, "paired_p_value", lambda larger, smaller, *args: 1e-4 if larger.mean() > smaller.mean() else 0.5
     )
-    selection = _select(0.1, FitConfig(look_ahead=look_ahead, drop_idle=False))  # gaps stubbed per named set
+    selection = _select(
+        0.1, FitConfig(look_ahead=look_ahead, drop_idle=False, pair_candidates=0)
+    )  # gaps stubbed per named set
     assert [e.name for e, _ in selection.named] == named, selection.reason
     assert selection.verdict == (named[0] if named else "unexplained")
     first = selection.steps[0]
@@ -1571,3 +1573,67 @@ def test_one_window_a_candidate_loses_does_not_outweigh_the_rest():
     np.testing.assert_allclose(capped.gap_ceiling, spread[-1] ** 2)
     assert named(capped) == "joint_damping"
     assert named(capped.subset(np.arange(w) < w - 1)) == "joint_damping"  # the ceiling travels with the windows
+
+
+@pytest.mark.parametrize(
+    "pair_gap,pairs,named",
+    [
+        (0.45, 3, ["joint_friction", "payload"]),  # together 61 % of the gap above the floor, each adds a third
+        (0.70, 3, []),  # together 33 %, but the payload adds 6 % on top of the friction: it is the friction alone
+        (0.45, 0, []),  # no pairs tried
+    ],
+)
+def test_where_no_single_effect_passes_a_pair_that_does_is_named(monkeypatch, pair_gap, pairs, named):
+    """Three effects at once, each explaining about a quarter of the gap above the floor alone (a step needs 30 %):
+    the best unrelated effects are fitted together in pairs, and a pair is named where it explains enough and each of
+    its effects adds to the other."""
+    from rwm_gym.gap import pairs as pairs_module
+    from rwm_gym.gap.fit import CandidateFit
+
+    alone = {"joint_friction": 0.75, "payload": 0.78, "armature": 0.80}
+
+    def gap_of(params: PhysicsParams) -> float:
+        present = {
+            n
+            for n, on in (
+                ("joint_friction", np.any(np.asarray(params.joint_friction) != 0)),
+                ("payload", params.payload_mass != 0),
+                ("armature", np.any(np.asarray(params.armature) != 0)),
+            )
+            if on
+        }
+        if present == {"joint_friction", "payload"}:
+            return pair_gap
+        if len(present) == 2:
+            return 0.70
+        return alone[present.pop()] if present else 1.0
+
+    def fits(name, gap):
+        return (alone.get(name, 1.0), 1e-6) if gap == 1.0 else (gap, 1.0)
+
+    def fit_effect(effect, resim, train, base, config, start, bracket, *args, **kwargs):
+        names = [p.name for p in effect.parameters]
+        return CandidateFit(effect.name, names, ["1"] * len(names), list(start), [0.1] * len(names), 0.0)
+
+    def score_fit(fit, effect, resim, held, base, before, config):
+        fit.gap_mean, fit.p_value = gap_of(effect.physics(np.asarray(fit.values), base)), 1e-6
+        fit.score = 1.0 - fit.gap_mean / float(before.mean())
+        return np.full((20, 3), fit.gap_mean)
+
+    _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.3, gap_of, 1.0)
+    for name, value in (("fit_effect", fit_effect), ("score_fit", score_fit), ("paired_p_value", lambda *a: 1e-6)):
+        monkeypatch.setattr(pairs_module, name, value)
+    monkeypatch.setattr(pairs_module, "gap_per_window", lambda spec, params, held: np.full((20, 3), gap_of(params)))
+    selection = _select(0.1, FitConfig(pair_candidates=pairs, spread_check=False, joint_candidates=0, drop_idle=False))
+    assert [e.name for e, _ in selection.named] == named, selection.reason
+    assert selection.verdict == (named[0] if named else "unexplained")
+    if pairs:
+        tried = selection.steps[0]["pairs"]["pairs"]
+        assert [p["effects"] for p in tried] == [
+            ["joint_friction", "payload"],
+            ["joint_friction", "armature"],
+            ["payload", "armature"],
+        ]
+    if named:
+        assert "both are named" in selection.reason or "named in order" in selection.reason
+        assert selection.named[0][1].values == [0.7] and selection.params.payload_mass != 0

@@ -112,6 +112,9 @@ class FitConfig:
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second
     (armature can absorb an action delay on walking data), and on top of it, frozen, the second then
     explains nothing."""
+    pair_candidates: int = 3
+    """Where a step with its gap above the noise floor names nothing, the best this many unrelated effects are fitted
+    together in pairs, and a pair whose every effect adds to the other is named (`gap.pairs`; 0: off)."""
     drop_idle: bool = True
     """Of several named effects, drop one that adds nothing at the final values (`select.drop_idle`)."""
     look_ahead: bool = True

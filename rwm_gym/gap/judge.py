@@ -38,7 +38,8 @@ def best_of(candidates: list[Candidate]) -> Candidate | None:
     return max((c for c in candidates if c[1].status == "ok"), key=lambda c: c[1].score, default=None)
 
 
-def _related(a: Effect, b: Effect) -> bool:
+def related(a: Effect, b: Effect) -> bool:
+    """The same effect, or one nests the other."""
     return a.name == b.name or a.name in b.nested_in or b.name in a.nested_in
 
 
@@ -73,7 +74,7 @@ def name_step(
     for other_effect, other in ranked[1:]:
         alike = left_above_floor(other) < left_above_floor(best) * (1.0 + config.ambiguity_ratio)
         explains = other.excess_explained >= config.rival_excess_explained
-        if not _related(effect, other_effect) and alike and explains:
+        if not related(effect, other_effect) and alike and explains:
             return (
                 None,
                 (

@@ -28,6 +28,7 @@ import numpy as np
 from rwm_gym.gap.fit import gap_per_window
 from rwm_gym.gap.judge import best_of, ranked, resolve_rivals
 from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
+from rwm_gym.gap.pairs import best_pair
 from rwm_gym.gap.refit import Candidate, joint_refit, named_params
 from rwm_gym.gap.resim import SimulationDiverged
 from rwm_gym.gap.significance import paired_p_value
@@ -91,7 +92,11 @@ def _forward(search: Search, path: Path, look_ahead: bool) -> Path:
         if judged.spread is not None:
             step["spread"] = judged.spread
         if pick is None and judged.rival is not None and not below and look_ahead:
-            return _look_ahead(search, path, judged)
+            taken = _look_ahead(search, path, judged)
+            if taken is not path:
+                return taken
+        if pick is None and not below and _name_a_pair(search, path, judged):
+            continue
         if pick is None:
             break
         _take(search, path, pick)
@@ -109,6 +114,37 @@ def _take(search: Search, path: Path, pick: Candidate) -> None:
         path.named, path.params, path.current, path.refit = joint_refit(
             path.named, search.resim, search.train, search.held, search.base, path.current, search.config
         )
+
+
+def _name_a_pair(search: Search, path: Path, step: Step) -> bool:
+    """The step names nothing, its gap above the floor: name two effects that pass together (`pairs.best_pair`), where
+    there is room for two more; whether it did. The pair's record joins the step's."""
+    config = search.config
+    if not config.pair_candidates or len(path.named) + 2 > config.max_effects:
+        return False
+    floor = float(np.nanmean(step.floor))
+    members, record = best_pair(
+        step.candidates, search.resim, search.train, search.held, path.params, path.current, floor, config
+    )
+    path.steps[-1]["pairs"] = record
+    if members is None:
+        return False
+    (first, fit), (second, _) = members
+    tried = next(p for p in record["pairs"] if p["effects"] == [first.name, second.name])
+    path.reason = (
+        f"{path.reason}; fitted together, {first.name} and {second.name} explain {fit.excess_explained:.0%} of the "
+        f"gap above the floor (p={fit.p_value:.2g}), and each on top of the other "
+        + " and ".join(f"{a['excess_explained']:.0%}" for a in tried["on_top_of_the_other"])
+        + ": both are named"
+    )
+    path.steps[-1].update(decision=path.reason, named=f"{first.name} ({first.scope}) + {second.name} ({second.scope})")
+    for member in members:
+        path.params, path.current = _name(search, member, path.named, path.params)
+    if len(path.named) > 2:
+        path.named, path.params, path.current, path.refit = joint_refit(
+            path.named, search.resim, search.train, search.held, search.base, path.current, search.config
+        )
+    return True
 
 
 def _look_ahead(search: Search, path: Path, step: Step) -> Path:
