@@ -15,6 +15,7 @@ import pytest
 
 from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
+from rwm_gym.gap import resim as resim_module
 from rwm_gym.gap import solver_check
 from rwm_gym.gap.correct import write_corrected
 from rwm_gym.gap.effects import EFFECT_NAMES, combined_physics, parse_effects, vocabulary
@@ -115,6 +116,10 @@ def test_resimulator_hands_out_a_repeated_rollout_again_as_a_copy(tmp_path, monk
     resim.rollout(windows.subset(np.ones(len(windows), bool)), PhysicsParams())  # equal windows, another object
     resim.rollout(windows, PhysicsParams(), horizon=2)
     assert len(runs) == 4
+    monkeypatch.setattr(resim_module, "RECENT_BYTES", 0)  # none fits: each rollout runs again
+    resim.rollout(windows, PhysicsParams(joint_friction=2.0))
+    resim.rollout(windows, PhysicsParams(joint_friction=2.0))
+    assert len(runs) == 6
 
 
 def test_corrected_mjcf_is_the_corrected_robot(tmp_path):

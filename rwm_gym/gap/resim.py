@@ -64,6 +64,9 @@ RECENT_ROLLOUTS = 32
 """Re-simulations a `Resimulator` keeps to hand out again (the workflow asks for the nominal one of the same windows
 several times, and a search for the point it evaluated last)."""
 
+RECENT_BYTES = 256 * 2**20
+"""Memory the kept re-simulations may take; the oldest are dropped first."""
+
 WINDOW_ARRAYS = ("episode", "start", "qpos", "qvel", "actions", "state0", "target", "contact0")
 
 
@@ -195,9 +198,10 @@ class Resimulator:
         if kept is None or kept[0] is not windows:
             kept = (windows, self._simulate(windows, params, horizon, None))
             self._recent[key] = kept
-            if len(self._recent) > RECENT_ROLLOUTS:
+            while len(self._recent) > RECENT_ROLLOUTS or _bytes(self._recent) > RECENT_BYTES:
                 self._recent.popitem(last=False)
-        self._recent.move_to_end(key)
+        if key in self._recent:
+            self._recent.move_to_end(key)
         return {k: v.copy() for k, v in kept[1].items()}
 
     def _simulate(
@@ -266,6 +270,10 @@ class Resimulator:
                 out["joint_torque"][:, h] = arrays["actuator_force"][:, layout.actuator_ids]
         check_diverged(np.array(sim.batch.warning[:, :, 1]) - warnings_before, out["state"])
         return out
+
+
+def _bytes(kept: OrderedDict[tuple, tuple[Windows, dict[str, np.ndarray]]]) -> int:
+    return sum(a.nbytes for _, arrays in kept.values() for a in arrays.values())
 
 
 def _hashable(params: PhysicsParams) -> bool:
