@@ -27,7 +27,7 @@ from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.physics.params import PhysicsParams
 
 
-def pair_candidates(candidates: list[Candidate], share: float, count: int) -> list[Candidate]:
+def candidates_to_pair(candidates: list[Candidate], share: float, count: int) -> list[Candidate]:
     """The best `count` global candidates (by score) of unrelated effects that each explain `share` of the gap above
     the floor alone."""
     out: list[Candidate] = []
@@ -52,10 +52,10 @@ def best_pair(
 ) -> tuple[list[Candidate] | None, dict]:
     """The pair to name on top of `params` (held-out gap `current` (W, 3), floor mean `floor`) among the step's
     `candidates`, best single effect first, or None; and the record of every pair tried (see the module docstring)."""
-    top = pair_candidates(candidates, config.rival_excess_explained, config.pair_candidates)
-    pairs = list(itertools.combinations(top, 2))
-    significance = config.significance / max(len(pairs), 1)
     excess = float(current.mean()) - floor
+    top = candidates_to_pair(candidates, config.rival_excess_explained, config.pair_candidates)
+    pairs = list(itertools.combinations(top, 2)) if excess > 0 else []
+    significance = config.significance / max(len(pairs), 1)
     tried, passed = [], []
     for first, second in pairs:
         record, members = _fit_pair(first, second, resim, train, held, params, current, excess, significance, config)
@@ -63,7 +63,7 @@ def best_pair(
         if members is not None:
             passed.append((record["score"], members))
     record = {"significance": significance, "pairs": tried}
-    if excess <= 0 or not passed:
+    if not passed:
         return None, record
     members = max(passed, key=lambda sm: sm[0])[1]
     record["named"] = [e.name for e, _ in members]
@@ -82,14 +82,14 @@ def _fit_pair(
     significance: float,
     config: FitConfig,
 ) -> tuple[dict, list[Candidate] | None]:
-    """`first` and `second` fitted together on top of `params` and tested: the record, and the two as named
-    candidates at their values in the pair where it passes, else None."""
+    """`first` and `second` fitted together on top of `params` and tested against the gap above the floor `excess`
+    (> 0): the record, and the two as named candidates at their values in the pair where it passes, else None."""
     combined = combine([first, second])
     start = np.concatenate([first[1].values, second[1].values])
     fit = fit_effect(combined, resim, train, params, config, start, None, max_evaluations=2 * config.max_evaluations)
     after = score_fit(fit, combined, resim, held, params, current, config)
     record = {"effects": [first[0].name, second[0].name], "values": fit.values, "status": fit.status}
-    if fit.status != "ok" or excess <= 0:
+    if fit.status != "ok":
         return record, None
     share = (float(current.mean()) - fit.gap_mean) / excess
     record.update(gap=fit.gap_mean, score=fit.score, excess_explained=share, p_value=fit.p_value)
