@@ -266,3 +266,30 @@ def test_cli_init_takes_the_checkpoints_model_config(data: Path, tmp_path: Path,
     assert read_meta(tmp_path / "b.safetensors").model_config == config
     assert main([*common, "--out", str(tmp_path / "c.safetensors"), "--model", "mlp"]) == 2
     assert "cannot start a mlp model from a rwm checkpoint" in capsys.readouterr().err
+
+
+def test_recent_share_draws_that_share_of_each_batch_from_the_last_episodes(data: Path, monkeypatch) -> None:
+    import rwm_gym.model.train as trainer
+
+    ds = Dataset.load(data)
+    episode_of = np.repeat(np.arange(ds.num_episodes), ds.episode_lengths)
+    drawn, sample = [], trainer.sample_batch
+
+    def spy(windows, starts, config, ensemble_size, generator, world, mirror, recent):
+        batch = sample(windows, starts, config, ensemble_size, generator, world, mirror, recent)
+        first_rows = torch.argmin((batch.window.states[:, :1] - windows.states.unsqueeze(0)).abs().sum(-1), 1)
+        drawn.append(episode_of[first_rows.numpy()])
+        return batch
+
+    monkeypatch.setattr(trainer, "sample_batch", spy)
+    config = model_config_for("rwm", SPEC, **TINY)
+    recent = TrainConfig(
+        **{**FAST.to_dict(), "batch_size": 16, "iterations": 20, "recent_episodes": 2, "recent_share": 0.5}
+    )
+    train(data, config, recent, progress=False)
+    last = ds.num_episodes - 2
+    assert all((episodes[:8] >= last).all() for episodes in drawn)  # the first half: the last two episodes
+    assert any((episodes[8:] < last).any() for episodes in drawn)  # the rest: the whole training split
+    drawn.clear()
+    train(data, config, TrainConfig(**{**recent.to_dict(), "recent_share": 0.0}), progress=False)
+    assert np.mean(np.concatenate(drawn) >= last) < 0.5  # uniform: the last two of the episodes are a small share

@@ -162,6 +162,12 @@ class TrainConfig:
     mirror: bool = False
     """Train on each window or, with probability 1/2, its left-right mirror image (the spec's `[symmetry]`): a
     symmetric robot's data, doubled. Validation windows are never mirrored."""
+    recent_episodes: int = option(0, ge=0)
+    """The dataset's last this many episodes are its recent data (a merged buffer keeps its files' order, so an MBPO
+    buffer's newest collection comes last); 0: none."""
+    recent_share: float = option(0.0, ge=0, le=1)
+    """Share of each batch's segments drawn from the windows of the recent training episodes, the rest from every
+    training window (0: all uniform): fresh data the policy just found outweighs a large buffer."""
 
     def __post_init__(self) -> None:
         check_ranges(self)

@@ -125,19 +125,25 @@ def sample_batch(
     generator: torch.Generator | None = None,
     world: distributed.World = distributed.SINGLE,
     mirror: WindowMirror | None = None,
+    recent: torch.Tensor | None = None,
 ) -> SegmentBatch:
     """Draw `batch_size / branches` segments uniformly from `starts` (window starts of H + F rows) and an ensemble
     head per segment, from `generator` (torch's global RNG if None; a seeded run draws the same batches). In a
     distributed world every rank draws the whole batch and keeps its slice (`distributed.shard`). With `mirror`, each
-    segment is replaced by its mirror image with probability 1/2 (`TrainConfig.mirror`)."""
+    segment is replaced by its mirror image with probability 1/2 (`TrainConfig.mirror`). With `recent` (the window
+    starts of the recent episodes), the first `TrainConfig.recent_share` of the segments are drawn from those."""
     segments = config.batch_size // config.branches
-    index = distributed.shard(torch.randint(len(starts), (segments,), generator=generator), world)
+    index = torch.randint(len(starts), (segments,), generator=generator)
     member = None
     if ensemble_size > 1:
         member = _upload(
             distributed.shard(torch.randint(ensemble_size, (segments,), generator=generator), world), starts.device
         )
-    window, real_rows = windows.gather_clipped(starts[_upload(index, starts.device)], config.segment_rows)
+    picked = starts[_upload(index, starts.device)]
+    fresh = int(round(config.recent_share * segments)) if recent is not None and len(recent) else 0
+    if fresh:
+        picked[:fresh] = recent[_upload(torch.randint(len(recent), (fresh,), generator=generator), recent.device)]
+    window, real_rows = windows.gather_clipped(distributed.shard(picked, world), config.segment_rows)
     if mirror is not None:
         flip = distributed.shard(torch.rand(segments, generator=generator) < 0.5, world)
         window = mirror(window, flip)
@@ -296,10 +302,13 @@ class _Run:
         # per forecast length F trained with (one, or the curriculum's): where a window of H + F rows starts, and the
         # loss of its segments
         self.train_starts: dict[int, torch.Tensor] = {}
+        self.recent_starts: dict[int, torch.Tensor] = {}  # of the last `recent_episodes` episodes that train
+        recent_ids = train_ids[train_ids >= dataset.num_episodes - config.recent_episodes]
         self.loss_fns: dict[int, SegmentLoss] = {}
         for forecast in config.forecasts:
             rows = config.history + forecast
             self.train_starts[forecast] = windows.window_starts(train_ids, rows)
+            self.recent_starts[forecast] = windows.window_starts(recent_ids, rows)
             if len(self.train_starts[forecast]) == 0:
                 raise ValueError(f"{dataset.path}: no training episode has {rows} rows (history + forecast)")
             self.loss_fns[forecast] = SegmentLoss(model, config.stage_of(forecast), pos_weight)
@@ -450,6 +459,7 @@ class _Run:
             self.sampler,
             self.world,
             self.mirror,
+            self.recent_starts[config.forecast] if config.recent_share else None,
         )
         loss, parts = train_step(compute_loss[config.forecast], self.optimizer, self.params, batch, config.grad_clip)
         self.iteration += 1

@@ -82,6 +82,9 @@ class MBPOConfig:
     """Fine-tune the current world model on the buffer instead of retraining it from scratch."""
     model_lr: float = option(1e-3, gt=0)
     """Adam learning rate of the world-model (re)training (lower it for fine-tuning, e.g. 3e-4)."""
+    model_recent_share: float = option(0.0, ge=0, le=1)
+    """Share of each model training batch drawn from the episodes the iteration just collected
+    (`TrainConfig.recent_share`; 0: every buffer window alike)."""
     critic_warmup_steps: int = option(0, ge=0)
     """Imagined steps that train only the critic of `init_policy` before the first PPO iteration."""
     eval_seeds: int = option(3, ge=1)
@@ -244,6 +247,8 @@ class _Loop:
             lr=config.model_lr,
             val_every=max(1, config.model_iterations // 4),
             checkpoint_every=config.model_iterations,
+            recent_episodes=config.collect_episodes if config.model_recent_share else 0,
+            recent_share=config.model_recent_share,
         )
         if previous is None and self.start_train is not None:
             train_config = replace(self.start_train, seed=config.seed, device=self.device)
