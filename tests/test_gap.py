@@ -482,6 +482,33 @@ def test_solver_recheck_takes_a_converged_solve_where_the_named_effects_fit_mate
 
 
 @pytest.mark.parametrize(
+    ("named", "converged_gap", "taken"),
+    [(["joint_friction"], 0.6, "converged"), (["joint_friction"], 0.9, "own"), ([], 0.6, "own")],
+)
+def test_where_the_own_solver_names_nothing_a_converged_selection_that_names_and_fits_better_is_taken(
+    named, converged_gap, taken
+):
+    """The own solver named nothing with the gap above the floor (about 1.0 per held-out window); the selection under
+    the converged solve named `named` and left `converged_gap` times that. It is taken where it names something and
+    leaves materially less; the check records the test either way."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+    ripple = 1 + 0.1 * (np.arange(32) % 3)
+    vocab = vocabulary(SPEC, None, None)
+    check = {"checked": True, "taken": "own", "reason": "fitted alone"}
+    out = solver_check.named_only_under_converged(
+        check,
+        np.outer(ripple, [1, 1]),
+        [(vocab[n], SimpleNamespace(values=[2.0])) for n in named],
+        np.outer(converged_gap * ripple, [1, 1]),
+        held,
+        FitConfig(),
+    )
+    record = out["unexplained_under_own"]
+    assert (out["taken"], record["taken"], record["named"]) == (taken, taken, named), record["reason"]
+    assert check["taken"] == "own"  # the check handed in is left as it was
+
+
+@pytest.mark.parametrize(
     ("iterations", "converged_gap", "taken"), [(40, 0.95, "converged"), (40, 1.05, "own"), (4, 0.5, None)]
 )
 def test_solver_recheck_after_a_finer_contact_solver_was_named(monkeypatch, iterations, converged_gap, taken):

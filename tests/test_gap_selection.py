@@ -566,9 +566,9 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
 def _patch(monkeypatch, name: str, value) -> None:
     """Stub `name` in every module of the selection that looks it up (the final choice, the search, a step, the
     judge, the cross-fitting and the refits)."""
-    from rwm_gym.gap import cross_fit, judge, refit, search, select, step
+    from rwm_gym.gap import cross_fit, judge, refit, search, select, sets, step
 
-    for module in (cross_fit, judge, refit, search, select, step):
+    for module in (cross_fit, judge, refit, search, select, sets, step):
         if hasattr(module, name):
             monkeypatch.setattr(module, name, value)
 
@@ -1637,3 +1637,65 @@ def test_where_no_single_effect_passes_a_pair_that_does_is_named(monkeypatch, pa
     if named:
         assert "both are named" in selection.reason or "named in order" in selection.reason
         assert selection.named[0][1].values == [0.7] and selection.params.payload_mass != 0
+
+
+@pytest.mark.parametrize(
+    "all_three_gap,sets,named",
+    [
+        (0.20, True, ["joint_friction", "armature", "payload"]),  # each adds 44-78 % on top of the other two
+        (0.58, True, []),  # the payload adds 2 % on top of the other two: no set
+        (0.20, False, []),  # no set built
+    ],
+)
+def test_where_no_effect_and_no_pair_passes_a_set_built_step_by_step_is_named(monkeypatch, all_three_gap, sets, named):
+    """Three effects that hide one another: the friction explains 28 % of the gap above the floor alone (a step needs
+    30 %), the armature and the payload 3-6 %, so no pair has two members that explain 15 % alone; on top of the
+    friction the armature lowers the gap, and on top of both the payload. The set is named where each of its effects
+    adds to the others."""
+    gaps = {
+        frozenset(): 1.0,
+        frozenset({"joint_friction"}): 0.75,
+        frozenset({"armature"}): 0.95,
+        frozenset({"payload"}): 0.97,
+        frozenset({"joint_friction", "armature"}): 0.60,
+        frozenset({"joint_friction", "payload"}): 0.70,
+        frozenset({"armature", "payload"}): 0.90,
+        frozenset({"joint_friction", "armature", "payload"}): all_three_gap,
+    }
+
+    def present(params: PhysicsParams) -> frozenset:
+        on = {
+            "joint_friction": np.any(np.asarray(params.joint_friction) != 0),
+            "armature": np.any(np.asarray(params.armature) != 0),
+            "payload": params.payload_mass != 0,
+        }
+        return frozenset(n for n, v in on.items() if v)
+
+    def fits(name, gap):
+        """Each effect's gap on top of the simulator whose gap is `gap` (the named set is the one with that gap)."""
+        base = next(s for s, g in gaps.items() if np.isclose(g, gap))
+        if name == "torque_limit" or name in base:
+            return gap, 1.0
+        return gaps[base | {name}], 1e-6
+
+    _stub_selection(monkeypatch, fits, lambda gap, windows: gap > 0.3, lambda params: gaps[present(params)], 1.0)
+    _patch(monkeypatch, "paired_p_value", lambda *args: 1e-6)
+    refitted = []
+
+    def fit_effect(effect, resim, train, base, config, start, bracket, *args, **kwargs):
+        refitted.append(effect.name)
+        return _fit_of(effect.name, 1.0, 1.0, 1.0)
+
+    _patch(monkeypatch, "fit_effect", fit_effect)
+    config = FitConfig(spread_check=False, joint_candidates=0, drop_idle=False, stepwise_sets=sets)
+    selection = _select(0.1, config)
+    assert [e.name for e, _ in selection.named] == named, selection.reason
+    if sets:
+        built = selection.steps[0]["set"]
+        assert [b["effect"] for b in built["built"]] == ["joint_friction", "armature", "payload"]
+        assert built["passes"] == bool(named)
+        assert refitted == ["joint_friction", "armature", "payload"]  # each refitted on top of the others, once
+    if named:
+        assert "all are named" in selection.reason and selection.params.payload_mass != 0
+    else:
+        assert selection.verdict == "unexplained"

@@ -115,6 +115,9 @@ class FitConfig:
     pair_candidates: int = 3
     """Where a step with its gap above the noise floor names nothing, the best this many unrelated effects are fitted
     together in pairs, and a pair whose every effect adds to the other is named (`gap.pairs`; 0: off)."""
+    stepwise_sets: bool = True
+    """Where such a step names no pair either, build a set step by step (the best effect on top of the set at each)
+    and name it where every effect adds to the others (`gap.sets`; off: the step names nothing)."""
     drop_idle: bool = True
     """Of several named effects, drop one that adds nothing at the final values (`select.drop_idle`)."""
     look_ahead: bool = True

@@ -31,6 +31,7 @@ from rwm_gym.gap.noise_floor import FloorConfig, compare_with_floor
 from rwm_gym.gap.pairs import best_pair
 from rwm_gym.gap.refit import Candidate, joint_refit, named_params
 from rwm_gym.gap.resim import SimulationDiverged
+from rwm_gym.gap.sets import best_set
 from rwm_gym.gap.significance import paired_p_value
 from rwm_gym.gap.step import Search, Step, judge_step
 from rwm_gym.physics.params import PhysicsParams
@@ -95,7 +96,7 @@ def _forward(search: Search, path: Path, look_ahead: bool) -> Path:
             taken = _look_ahead(search, path, judged)
             if taken is not path:
                 return taken
-        if pick is None and not below and _name_a_pair(search, path, judged):
+        if pick is None and not below and (_name_a_pair(search, path, judged) or _name_a_set(search, path, judged)):
             continue
         if pick is None:
             break
@@ -114,6 +115,46 @@ def _take(search: Search, path: Path, pick: Candidate) -> None:
         path.named, path.params, path.current, path.refit = joint_refit(
             path.named, search.resim, search.train, search.held, search.base, path.current, search.config
         )
+
+
+def _name_a_set(search: Search, path: Path, step: Step) -> bool:
+    """The step names nothing, its gap above the floor, and no pair passes: name a set built step by step that passes
+    (`sets.best_set`), where there is room for two more; whether it did. The set's record joins the step's."""
+    config = search.config
+    room = config.max_effects - len(path.named)
+    if not config.stepwise_sets or room < 2:
+        return False
+    remaining = {n: e for n, e in search.effects.items() if n not in {e.name for e, _ in path.named}}
+    members, record = best_set(
+        step.candidates,
+        remaining,
+        search.resim,
+        search.train,
+        search.held,
+        path.params,
+        path.current,
+        float(np.nanmean(step.floor)),
+        room,
+        config,
+    )
+    path.steps[-1]["set"] = record
+    if members is None:
+        return False
+    names = " + ".join(e.name for e, _ in members)
+    path.reason = (
+        f"{path.reason}; built step by step and fitted together, {names} explain {record['excess_explained']:.0%} of "
+        f"the gap above the floor (p={record['p_value']:.2g}), and each on top of the others "
+        + " and ".join(f"{a['excess_explained']:.0%}" for a in record["on_top_of_the_others"])
+        + ": all are named"
+    )
+    path.steps[-1].update(decision=path.reason, named=" + ".join(f"{e.name} ({e.scope})" for e, _ in members))
+    for member in members:
+        path.params, path.current = _name(search, member, path.named, path.params)
+    if len(path.named) > len(members):
+        path.named, path.params, path.current, path.refit = joint_refit(
+            path.named, search.resim, search.train, search.held, search.base, path.current, search.config
+        )
+    return True
 
 
 def _name_a_pair(search: Search, path: Path, step: Step) -> bool:

@@ -51,6 +51,7 @@ from rwm_gym.gap.solver_check import (
     choose_solver,
     corrected_solver,
     lost_in_reselection,
+    named_only_under_converged,
     recheck_with_named,
     solver_settings,
 )
@@ -208,6 +209,16 @@ def run_gap(
             else:
                 rechecked = dataclasses.replace(choice, check=check)
         choice = rechecked
+    elif not chosen.selection.named and choice.converged is not None and chosen.floor_test["above_floor"]:
+        other, memo = choice.converged
+        again = select_under(SolverChoice(other, choice.check, memo))
+        check = named_only_under_converged(
+            choice.check, chosen.selection.gap_after, again.selection.named, again.selection.gap_after, held, fit_config
+        )
+        if check["taken"] == "converged":
+            chosen, choice = again, SolverChoice(other, check, memo)
+        else:
+            choice = dataclasses.replace(choice, check=check)
     resim, selection, floor = choice.resim, chosen.selection, chosen.floor
     corrected_params, after = selection.params, selection.gap_after
     spread = bootstrap(
