@@ -565,10 +565,10 @@ def test_a_gap_near_the_floor_is_judged_by_the_candidates_own_test(monkeypatch, 
 
 def _patch(monkeypatch, name: str, value) -> None:
     """Stub `name` in every module of the selection that looks it up (the final choice, the search, a step, the
-    judge, the cross-fitting and the refits)."""
-    from rwm_gym.gap import cross_fit, judge, refit, search, select, sets, step
+    judge, the cross-fitting, the refits, pairs and sets)."""
+    from rwm_gym.gap import cross_fit, judge, pairs, refit, search, select, sets, step
 
-    for module in (cross_fit, judge, refit, search, select, sets, step):
+    for module in (cross_fit, judge, pairs, refit, search, select, sets, step):
         if hasattr(module, name):
             monkeypatch.setattr(module, name, value)
 

@@ -19,6 +19,7 @@ import itertools
 
 import numpy as np
 
+from rwm_gym.gap.effects import Effect
 from rwm_gym.gap.fit import CandidateFit, FitConfig, fit_effect, gap_per_window, score_fit
 from rwm_gym.gap.judge import ranked, related
 from rwm_gym.gap.refit import Candidate, combine
@@ -95,21 +96,14 @@ def _fit_pair(
     record.update(gap=fit.gap_mean, score=fit.score, excess_explained=share, p_value=fit.p_value)
     cut = len(first[1].values)
     values = (fit.values[:cut], fit.values[cut:])
-    added = []
-    for keep, kept_values in ((second, values[1]), (first, values[0])):  # each member dropped in turn
-        try:
-            without = gap_per_window(resim.spec, resim.rollout(held, keep[0].physics(kept_values, params)), held)
-        except SimulationDiverged:
-            return record, None
-        p = paired_p_value(without.mean(1), after.mean(1), held, config.block_rows, significance)
-        added.append({"excess_explained": (float(without.mean()) - fit.gap_mean) / excess, "p_value": p})
-    record["on_top_of_the_other"] = added
-    passes = (
-        fit.p_value < significance
-        and share >= config.min_excess_explained
-        and all(a["excess_explained"] >= config.rival_excess_explained and a["p_value"] < significance for a in added)
+    added = each_on_top_of_the_others(
+        [(first[0], values[0]), (second[0], values[1])], resim, held, params, after, excess, significance, config
     )
-    record["passes"] = bool(passes)
+    if added is None:
+        return record, None
+    record["on_top_of_the_other"] = added
+    passes = passes_together(fit.p_value, share, added, significance, config)
+    record["passes"] = passes
     if not passes:
         return record, None
     members = []
@@ -134,3 +128,42 @@ def _fit_pair(
         )
         members.append((effect, named))
     return record, members
+
+
+def each_on_top_of_the_others(
+    members: list[tuple[Effect, list[float]]],
+    resim: Resimulator,
+    held: Windows,
+    params: PhysicsParams,
+    after: np.ndarray,
+    excess: float,
+    significance: float,
+    config: FitConfig,
+) -> list[dict] | None:
+    """What each of `members` (effect, its values together with the others) adds on top of the others at their values,
+    the simulator with all of them leaving the held-out gap `after`: its share of the gap above the floor `excess` and
+    the p-value of that reduction; None where a simulation without one of them blows up."""
+    added = []
+    for i, (effect, _) in enumerate(members):
+        others = members[:i] + members[i + 1 :]
+        without_it = params
+        for other, values in others:
+            without_it = other.physics(values, without_it)
+        try:
+            without = gap_per_window(resim.spec, resim.rollout(held, without_it), held)
+        except SimulationDiverged:
+            return None
+        p = paired_p_value(without.mean(1), after.mean(1), held, config.block_rows, significance)
+        share = (float(without.mean()) - float(after.mean())) / excess
+        added.append({"effect": effect.name, "excess_explained": share, "p_value": p})
+    return added
+
+
+def passes_together(p_value: float, share: float, added: list[dict], significance: float, config: FitConfig) -> bool:
+    """The rule of effects named together: they explain `min_excess_explained` of the gap above the floor (`share`) at
+    p < `significance`, and each still explains `rival_excess_explained` on top of the others at that p (`added`)."""
+    return bool(
+        p_value < significance
+        and share >= config.min_excess_explained
+        and all(a["excess_explained"] >= config.rival_excess_explained and a["p_value"] < significance for a in added)
+    )

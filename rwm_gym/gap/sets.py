@@ -26,6 +26,7 @@ import numpy as np
 from rwm_gym.gap.effects import Effect
 from rwm_gym.gap.fit import FitConfig, FitInputs, fit_all, fit_effect, gap_per_window
 from rwm_gym.gap.judge import ranked, related
+from rwm_gym.gap.pairs import each_on_top_of_the_others, passes_together
 from rwm_gym.gap.refit import Candidate, combine, joint_refit
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.significance import paired_p_value
@@ -89,15 +90,11 @@ def best_set(
         excess_explained=share,
         p_value=p_value,
     )
-    added = _each_on_top_of_the_others(members, resim, held, params, after, excess, significance, config)
+    at_values = [(effect, fit.values) for effect, fit in members]
+    added = each_on_top_of_the_others(at_values, resim, held, params, after, excess, significance, config)
     record["on_top_of_the_others"] = added
-    passes = (
-        added is not None
-        and p_value < significance
-        and share >= config.min_excess_explained
-        and all(a["excess_explained"] >= config.rival_excess_explained and a["p_value"] < significance for a in added)
-    )
-    record["passes"] = bool(passes)
+    passes = added is not None and passes_together(p_value, share, added, significance, config)
+    record["passes"] = passes
     if not passes:
         return None, record
     for _, fit in members:
@@ -129,29 +126,3 @@ def _lowers(candidate: Candidate, current: np.ndarray, significance: float) -> b
     fit = candidate[1]
     alone = fit.scope == "global" and fit.named_refit is None
     return alone and fit.gap_mean < float(current.mean()) and fit.p_value < significance
-
-
-def _each_on_top_of_the_others(
-    members: list[Candidate],
-    resim: Resimulator,
-    held: Windows,
-    params: PhysicsParams,
-    after: np.ndarray,
-    excess: float,
-    significance: float,
-    config: FitConfig,
-) -> list[dict] | None:
-    """What each member adds on top of the others at their values in the set: its share of the gap above the floor
-    `excess` and the p-value of that reduction; None where a simulation without one of them blows up."""
-    added = []
-    for i in range(len(members)):
-        others = members[:i] + members[i + 1 :]
-        values = np.concatenate([fit.values for _, fit in others])
-        try:
-            without = gap_per_window(resim.spec, resim.rollout(held, combine(others).physics(values, params)), held)
-        except SimulationDiverged:
-            return None
-        p = paired_p_value(without.mean(1), after.mean(1), held, config.block_rows, significance)
-        share = (float(without.mean()) - float(after.mean())) / excess
-        added.append({"effect": members[i][0].name, "excess_explained": share, "p_value": p})
-    return added
