@@ -23,7 +23,7 @@ from rwm_gym.gap.fit import FitConfig
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
 from rwm_gym.gap.scope import leg_groups, per_leg
-from rwm_gym.gap.workflow import GapConfig, run_gap
+from rwm_gym.gap.workflow import GapConfig, fitting_windows, run_gap
 from rwm_gym.gap.world_model import WorldModelGapConfig
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
@@ -322,6 +322,28 @@ def test_workflow_defaults_fit_two_pd_gains_under_the_sim_envs_own_solver(tmp_pa
     assert check["named_set"]["reason"] in (tmp_path / "report" / "report.md").read_text()
 
 
+class _Episodes:
+    """`episodes` episodes of `rows` rows of every field `make_windows` reads (zeros)."""
+
+    def __init__(self, episodes: int, rows: int):
+        self.rows, self.episode_lengths = rows, [rows] * episodes
+
+    def episode(self, e: int) -> dict:
+        shapes = {"state": 4, "qpos": 3, "qvel": 2, "action": 2, "contact": 1}
+        return {k: np.zeros((self.rows, n)) for k, n in shapes.items()}
+
+
+@pytest.mark.parametrize(("episodes", "rows", "kept"), [(6, 150, 108), (8, 150, 144), (11, 250, 144), (30, 250, 144)])
+def test_fitting_windows_beyond_the_cap_are_thinned_evenly(episodes, rows, kept):
+    """9 and 12 x 150-step data's fitting episodes keep every window (every 8th row: 108 and 144); 16 x 250's (341)
+    and more keep 144, spread evenly over every episode, so a fit's cost stops growing with the data."""
+    windows = fitting_windows(_Episodes(episodes, rows), np.arange(episodes), 5, GapConfig())
+    assert len(windows) == kept
+    per_episode = np.bincount(windows.episode, minlength=episodes)
+    assert per_episode.max() - per_episode.min() <= 1
+    assert np.all(np.diff(windows.start[windows.episode == 0]) >= GapConfig().fit_stride)
+
+
 class _StubResimulator:
     """What `choose_solver` reads of a re-simulator (its best candidate is stubbed in the test)."""
 
@@ -337,7 +359,7 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
     gaps = {False: 1.0, True: converged_gap}
 
-    def best_candidate(resim, train, held, base, config, progress, every_scope_if_none=False):
+    def best_candidate(resim, train, held, base, config, progress, every_scope_if_none=False, scoped=True, memo=None):
         gap = gaps[resim.solver is not None and resim.solver.iterations == CONVERGED_SOLVER.iterations]
         per_window = gap * (1 + 0.1 * (np.arange(len(held.start)) % 3))
         return {
@@ -359,6 +381,48 @@ def test_solver_check_takes_a_converged_solve_only_where_it_fits_materially_bett
     assert choice.first_step == f"memo of {gaps[taken == 'converged']}"
     assert (choice.converged is None) == (taken == "converged")
     assert solver_check.corrected_solver(choice.resim, check) == (choice.resim.solver if taken == "converged" else None)
+
+
+@pytest.mark.parametrize(
+    ("own_global", "own_scoped", "conv_global", "conv_scoped", "taken", "scoped_fitted"),
+    [
+        (0.8, 0.8, 0.5, 0.5, "converged", False),  # the globals show the converged solve better: no scoped form
+        (0.5, 0.5, 0.8, 0.3, "own", False),  # the converged globals leave more: no scoped form either
+        (0.8, 0.3, 0.7, 0.7, "own", True),  # the globals leave it open: the scoped forms decide, as before
+        (0.8, 0.8, 0.7, 0.3, "converged", True),
+        (1.0, 0.3, 0.5, 0.5, "own", True),  # no global lowers the own gap: its scoped forms get their say
+    ],
+)
+def test_the_solver_check_fits_scoped_forms_only_where_the_global_forms_leave_it_open(
+    monkeypatch, own_global, own_scoped, conv_global, conv_scoped, taken, scoped_fitted
+):
+    """The nominal held-out gap is 1.0 under either solver. Where the converged solve's best global effect already
+    leaves materially less than the own solver's best global one (which lowers the gap), the converged solve is taken
+    without fitting a scoped form, and where it leaves more, the own solver is kept so; else the scoped forms are
+    fitted under both (from the memo of the globals) and decide."""
+    held = SimpleNamespace(episode=np.repeat(np.arange(4), 8), start=np.tile(np.arange(0, 160, 20), 4))
+    calls = []
+
+    def best_candidate(resim, train, held, base, config, progress, every_scope_if_none=False, scoped=True, memo=None):
+        conv = resim.solver is not None and resim.solver.iterations == CONVERGED_SOLVER.iterations
+        calls.append((conv, scoped, memo))
+        gap = {(False, False): own_global, (False, True): own_scoped, (True, False): conv_global}
+        gap = gap.get((conv, scoped), conv_scoped)
+        per_window = gap * (1 + 0.1 * (np.arange(len(held.start)) % 3))
+        effect = "none" if gap >= 1.0 else "joint_friction"
+        found = {"effect": effect, "scope": "global", "values": [1.0], "gap": float(per_window.mean())}
+        return {**found, "per_window": per_window}, f"memo {conv}"
+
+    monkeypatch.setattr(solver_check, "best_candidate", best_candidate)
+    monkeypatch.setattr(solver_check, "is_converged", lambda resim: False)
+    monkeypatch.setattr(solver_check, "Resimulator", _StubResimulator)
+    choice = solver_check.choose_solver(_StubResimulator(), None, held, PhysicsParams(), FitConfig(), progress=False)
+    assert choice.check["taken"] == taken, choice.check["reason"]
+    assert [c[:2] for c in calls[:2]] == [(False, False), (True, False)]
+    assert (len(calls) == 4) == scoped_fitted
+    if scoped_fitted:  # the scoped search starts from the globals' fits
+        assert calls[2] == (False, True, "memo False") and calls[3] == (True, True, "memo True")
+    assert choice.check["reason"].startswith("fitted alone" if scoped_fitted else "in their global forms")
 
 
 @pytest.mark.parametrize(("selected_again", "taken"), [(0.0126, "own"), (0.0032, "converged")])
