@@ -164,7 +164,8 @@ def choose_solver(
         conv_best, conv_memo = best_candidate(other, train, held, base, config, progress, scoped=False)
         forms = "in their global forms"
         take, p = _converged_better(own_best, conv_best, held, config)
-        if not (take and own_best["effect"] != "none") and conv_best["gap"] < own_best["gap"]:
+        decided = (take and own_best["effect"] != "none") or conv_best["gap"] >= own_best["gap"]
+        if not decided:
             forms = "fitted alone"
             own_best, own_memo = best_candidate(
                 resim, train, held, base, config, progress, every_scope_if_none=True, memo=own_memo
