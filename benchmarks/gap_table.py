@@ -478,10 +478,8 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             named (gap.sets); and where the own solver names nothing with the gap above the floor, the selection
     #             under the converged solve is taken where it names something and leaves materially less; the same
     #             rows as version 37 can differ from it
-    # version 39: fitting windows beyond GapConfig.max_fit_windows (144) and held-out windows beyond
-    #             GapConfig.max_scored_windows (128) are thinned evenly (Windows.thinned), and the solver check fits
-    #             the scoped forms only where the global forms leave the choice open (solver_check.choose_solver); rows
-    #             of 16 x 250 steps and rows where the check decided on the global forms can differ from version 38
+    # version 39: the solver check fits the scoped forms only where the global forms leave the choice of solver open
+    #             (solver_check.choose_solver); a row can differ from version 38 only where the solver taken differs
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,

@@ -23,7 +23,7 @@ from rwm_gym.gap.fit import FitConfig
 from rwm_gym.gap.measured import SensorNoise, make_measured
 from rwm_gym.gap.resim import Resimulator, make_windows, normalised_residual
 from rwm_gym.gap.scope import leg_groups, per_leg
-from rwm_gym.gap.workflow import GapConfig, fitting_windows, run_gap
+from rwm_gym.gap.workflow import GapConfig, run_gap
 from rwm_gym.gap.world_model import WorldModelGapConfig
 from rwm_gym.model.config import TrainConfig
 from rwm_gym.model.factory import model_config_for
@@ -320,28 +320,6 @@ def test_workflow_defaults_fit_two_pd_gains_under_the_sim_envs_own_solver(tmp_pa
     # the named gains refitted under the converged solve do not fit materially better either, and the report says so
     assert check["named_set"]["effects"] == ["pd_gains"] and check["named_set"]["taken"] == "own"
     assert check["named_set"]["reason"] in (tmp_path / "report" / "report.md").read_text()
-
-
-class _Episodes:
-    """`episodes` episodes of `rows` rows of every field `make_windows` reads (zeros)."""
-
-    def __init__(self, episodes: int, rows: int):
-        self.rows, self.episode_lengths = rows, [rows] * episodes
-
-    def episode(self, e: int) -> dict:
-        shapes = {"state": 4, "qpos": 3, "qvel": 2, "action": 2, "contact": 1}
-        return {k: np.zeros((self.rows, n)) for k, n in shapes.items()}
-
-
-@pytest.mark.parametrize(("episodes", "rows", "kept"), [(6, 150, 108), (8, 150, 144), (11, 250, 144), (30, 250, 144)])
-def test_fitting_windows_beyond_the_cap_are_thinned_evenly(episodes, rows, kept):
-    """9 and 12 x 150-step data's fitting episodes keep every window (every 8th row: 108 and 144); 16 x 250's (341)
-    and more keep 144, spread evenly over every episode, so a fit's cost stops growing with the data."""
-    windows = fitting_windows(_Episodes(episodes, rows), np.arange(episodes), 5, GapConfig())
-    assert len(windows) == kept
-    per_episode = np.bincount(windows.episode, minlength=episodes)
-    assert per_episode.max() - per_episode.min() <= 1
-    assert np.all(np.diff(windows.start[windows.episode == 0]) >= GapConfig().fit_stride)
 
 
 class _StubResimulator:

@@ -111,14 +111,6 @@ class Windows:
         ceiling = None if any(c is None for c in ceilings) else np.maximum(*ceilings)
         return Windows(**take, horizon=self.horizon, warmup=self.warmup, gap_ceiling=ceiling)
 
-    def thinned(self, most: int) -> Windows:
-        """At most `most` of these windows, evenly spread over them (all where there are no more)."""
-        if len(self) <= most:
-            return self
-        mask = np.zeros(len(self), bool)
-        mask[np.round(np.linspace(0, len(self) - 1, most)).astype(int)] = True
-        return self.subset(mask)
-
     def subset(self, mask: np.ndarray) -> Windows:
         """The windows where `mask` (W,) holds."""
         take = {k: getattr(self, k)[mask] for k in WINDOW_ARRAYS}

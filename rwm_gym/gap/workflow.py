@@ -72,15 +72,8 @@ class GapConfig:
     split_seed: int = 0
     fit_stride: int = 8
     """Rows between the starts of fitting windows."""
-    max_fit_windows: int = 144
-    """Fitting windows beyond this many are thinned, evenly over the fitting episodes (`Windows.thinned`), so a fit's
-    cost stops growing with the data: 16 episodes x 250 steps hold 341 windows at `fit_stride`, 12 x 150 hold 144."""
     eval_stride: int = 5
     """Rows between the starts of held-out windows."""
-    max_scored_windows: int = 128
-    """Held-out windows beyond this many are thinned alike: the tests pool an episode's rows into blocks
-    (`FitConfig.block_rows`), so their power comes from the blocks, each still held by its windows (16 x 250 steps:
-    225 windows starting 5 rows apart, 25 rows long; 12 x 150: 100)."""
     warmup: int = WARMUP
     """Measured steps replayed before each window (fills the actuator delay buffer and the solver's warm start)."""
     learned_correction: bool = True
@@ -125,14 +118,7 @@ def held_out_windows(data: Dataset, config: GapConfig) -> tuple[np.ndarray, np.n
     """The fitting and held-out episodes of `data`, and the held-out windows the gap is scored on."""
     train_ids, held_ids = data.split_episodes(config.val_fraction, config.split_seed)
     horizon = scored_horizon(data, held_ids, config.warmup)
-    held = make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
-    return train_ids, held_ids, held.thinned(config.max_scored_windows)
-
-
-def fitting_windows(data: Dataset, episodes: np.ndarray, horizon: int, config: GapConfig) -> Windows:
-    """The fitting windows of `episodes`: every `config.fit_stride`-th, at most `config.max_fit_windows` of them."""
-    windows = make_windows(data, episodes, horizon, config.fit_stride, config.warmup)
-    return windows.thinned(config.max_fit_windows)
+    return train_ids, held_ids, make_windows(data, held_ids, horizon, config.eval_stride, config.warmup)
 
 
 def run_gap(
@@ -167,7 +153,7 @@ def run_gap(
         raise ValueError(f"{measured}: field 'state': columns differ from the simulator {sim}'s task spec")
     train_ids, held_ids, held = held_out_windows(data, config)
     horizon = held.horizon
-    train = fitting_windows(data, train_ids, fit_config.fit_horizon, config)
+    train = make_windows(data, train_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
     resim = Resimulator(spec, sim_kwargs.get("xml_file"), solver=core.solver.then(config.solver))
     held, dropped_held = drop_diverged(resim, held, base, measured)
     held = gap_ceiling(resim, held, base)
@@ -337,9 +323,8 @@ def _cross_fit_windows(
 
     def cross() -> CrossFit:
         if not built:
-            fit = fitting_windows(data, held_ids, fit_config.fit_horizon, config)
+            fit = make_windows(data, held_ids, fit_config.fit_horizon, config.fit_stride, config.warmup)
             score = make_windows(data, train_ids, horizon, config.eval_stride, config.warmup)
-            score = score.thinned(config.max_scored_windows)
             score = gap_ceiling(resim, drop_diverged(resim, score, base, measured)[0], base)
             built.append(CrossFit(drop_diverged(resim, fit, base, measured)[0], score))
         return built[0]
