@@ -110,7 +110,8 @@ def best_candidate(
 ) -> tuple[dict, FitMemo]:
     """Step 1 under `resim`'s solver: every effect but `contact_solver` fitted and scored, and (`scoped`) the scoped
     forms of the best joint effects (`scope.scope_candidates`); the best held-out gap {"effect", "scope", "values",
-    "gap", "per_window" (W,)} (the nominal simulator's where no effect lowers it), and the fits, which the selection's
+    "gap", "per_window" (W,), "nominal_gap"} (the nominal simulator's where no effect lowers it; "nominal_gap" the
+    nominal simulator's either way), and the fits, which the selection's
     first step under this solver takes rather than fitting them again (`fit.FitMemo`; `memo`: one from an earlier
     call on the same windows, whose fits are taken from it).
 
