@@ -54,7 +54,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window
+from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, memo_for
 from rwm_gym.gap.refit import Candidate, combine
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.scope import every_scope, scope_candidates
@@ -123,7 +123,7 @@ def best_candidate(
     nominal = float(before.mean())
     best = {"effect": "none", "scope": None, "values": [], "gap": nominal, "per_window": before.mean(1)}
     inputs = FitInputs(resim, train, held, base, before, config)
-    memo = memo if memo is not None and memo.covers(inputs) else FitMemo(inputs)
+    memo = memo_for(memo, inputs) or FitMemo(inputs)
     fits = fit_all(effects, inputs, progress, memo=memo)
     forms = scope_candidates(fits, effects, inputs, memo) if scoped else []
 
