@@ -15,7 +15,16 @@ from rwm_gym.cli import main
 from rwm_gym.data.dataset import Dataset
 from rwm_gym.gap.cross_fit import CrossFit, cross_fitted_p_value
 from rwm_gym.gap.effects import vocabulary
-from rwm_gym.gap.fit import FitConfig, FitInputs, FitMemo, fit_all, fit_effect, gap_per_window, score_fit
+from rwm_gym.gap.fit import (
+    FitConfig,
+    FitInputs,
+    FitMemo,
+    fit_all,
+    fit_effect,
+    gap_per_window,
+    score_fit,
+    screen_grid,
+)
 from rwm_gym.gap.identifiability import identifiability
 from rwm_gym.gap.judge import resolve_rivals
 from rwm_gym.gap.learned import (
@@ -118,6 +127,28 @@ def test_fits_made_once_are_taken_again_only_on_the_same_inputs(nominal_data):
     other = PhysicsParams(armature=0.01)
     fit_all({"armature": EFFECTS["armature"]}, dataclasses.replace(inputs, base=other), False, memo=memo)
     assert rollouts  # another base: fitted afresh, not answered from the memo
+
+
+@pytest.mark.parametrize("stride", [2, 1])
+def test_the_coarse_grid_is_screened_on_every_other_fitting_window_and_refined_on_all(tmp_path, stride):
+    """Screening only ranks effects and brackets their refinement: it re-simulates every `screen_stride`-th fitting
+    window (its nominal cost on the same ones); the refinement then fits every window."""
+    armature = EFFECTS["armature"].values_from_magnitude(0.1)
+    data = Dataset.load(make_measured({"armature": armature}, 3, tmp_path / "m.h5", max_steps=60, progress=False))
+    train, held = make_windows(data, np.arange(2), 5, 4), make_windows(data, [2], 25, 5)
+    resim, base = Resimulator(SPEC), PhysicsParams()
+    config = FitConfig(refine_top=1, max_evaluations=3, screen_stride=stride)
+    inputs = FitInputs(resim, train, held, base, gap_per_window(SPEC, resim.rollout(held, base), held), config)
+    fitted = []  # windows of each re-simulation of fitting windows (the held-out ones are 25 steps long)
+    rollout = resim.rollout
+    resim.rollout = lambda windows, params, **kw: (
+        (fitted.append(len(windows)) if windows.horizon == 5 else None) or rollout(windows, params, **kw)
+    )
+    (fit,) = fit_all({"armature": EFFECTS["armature"]}, inputs, False)
+    screened = len(range(0, len(train), stride))
+    grid = len(screen_grid(EFFECTS["armature"], config.grid_fractions))  # the nominal point's cost is the first
+    assert len(train) == 28 and fitted[:grid] == [screened] * grid and len(fitted) > grid
+    assert fitted[grid:] == [len(train)] * (len(fitted) - grid) and not np.isnan(fit.uncertainty[0])  # refined
 
 
 def test_joint_groups_come_from_the_joint_names():
