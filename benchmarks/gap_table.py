@@ -480,8 +480,8 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             rows as version 37 can differ from it
     # version 39: the solver check fits the scoped forms only where the global forms leave the choice of solver open
     #             (solver_check.choose_solver); a row can differ from version 38 only where the solver taken differs
-    # version 40: the coarse grid is screened on every other fitting window (FitConfig.screen_stride), and a
-    #             single-joint search takes a group's budget (scope.group_evaluations); every row can differ
+    # version 40: the coarse grid is screened on every other fitting window (FitConfig.screen_stride); every row can
+    #             differ
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,

@@ -33,7 +33,6 @@ import numpy as np
 from rwm_gym.gap.effects import Effect, Parameter
 from rwm_gym.gap.fit import (
     CandidateFit,
-    FitConfig,
     FitInputs,
     FitMemo,
     fit_coordinatewise,
@@ -315,37 +314,11 @@ def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs
             continue
         p = form.parameters[0]
         fit = fit_coordinatewise(
-            form, resim, train, base, config, np.array([p.nominal]), [(p.low, p.high)], group_evaluations(config), 1
+            form, resim, train, base, config, np.array([p.nominal]), [(p.low, p.high)], config.max_evaluations, sweeps=1
         )
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit, choices=1)))
     return out
-
-
-def group_evaluations(config: FitConfig) -> int:
-    """Re-simulations of one group's (or one joint's) bounded search: fewer than a global fit's, since a scoped form
-    has several such searches, and a value within a few % of the range decides whether the form is named."""
-    return config.max_evaluations // 2 + 2
-
-
-def _group_fit(form: Effect, inputs: FitInputs, start: np.ndarray, sweeps: int) -> CandidateFit:
-    """`sweeps` coordinate-wise sweeps of a per-group `form` from `start` (every group over the parameter's whole
-    range), scored on the held-out windows and charged for its parameters beyond the first."""
-    p = form.parameters[0]
-    brackets = [(p.low, p.high)] * len(start)
-    fit = fit_coordinatewise(
-        form,
-        inputs.resim,
-        inputs.train,
-        inputs.base,
-        inputs.config,
-        start,
-        brackets,
-        group_evaluations(inputs.config),
-        sweeps=sweeps,
-    )
-    score_fit(fit, form, inputs.resim, inputs.heldout, inputs.base, inputs.before, inputs.config)
-    return _charge_scope(fit)
 
 
 def _scoped_fits(
@@ -363,7 +336,19 @@ def _scoped_fits(
         if form is None or 1.0 - SCOPE_CHARGE * (len(form.parameters) - 1) <= to_beat:
             continue
         start = np.full(len(form.parameters), p.nominal)  # an effect in one group: the others stay nominal
-        out.append((form, _group_fit(form, inputs, start, sweeps=config.group_sweeps)))
+        fit = fit_coordinatewise(
+            form,
+            resim,
+            train,
+            base,
+            config,
+            start,
+            [(p.low, p.high)] * len(start),
+            config.max_evaluations // 2 + 2,
+            sweeps=config.group_sweeps,
+        )
+        score_fit(fit, form, resim, heldout, base, before, config)
+        out.append((form, _charge_scope(fit)))
     grouped = [f for _, f in out if f.status == "ok"]
     form = scoped(effect, spec, "joint") if "joint" in config.scopes else None
     if (
