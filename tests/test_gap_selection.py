@@ -149,6 +149,8 @@ def test_the_coarse_grid_is_screened_on_every_other_fitting_window_and_refined_o
     grid = len(screen_grid(EFFECTS["armature"], config.grid_fractions))  # the nominal point's cost is the first
     assert len(train) == 28 and fitted[:grid] == [screened] * grid and len(fitted) > grid
     assert fitted[grid:] == [len(train)] * (len(fitted) - grid) and not np.isnan(fit.uncertainty[0])  # refined
+    with pytest.raises(ValueError, match="screen_stride must be >= 1"):
+        FitConfig(screen_stride=0)
 
 
 def test_joint_groups_come_from_the_joint_names():

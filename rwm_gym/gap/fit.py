@@ -38,6 +38,7 @@ from tqdm import tqdm
 from rwm_gym.gap.effects import Effect
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows, normalised_residual
 from rwm_gym.gap.significance import paired_p_value
+from rwm_gym.options import check_ranges, option
 from rwm_gym.physics.params import PhysicsParams
 
 GAP_HORIZONS: tuple[int, ...] = (1, 5, 25)
@@ -60,7 +61,7 @@ class FitConfig:
     """Steps of each training window in the fit objective."""
     grid_fractions: tuple[float, ...] = (0.12, 0.35, 1.0)
     """Screening grid of the first parameter: these fractions of the way from nominal to each bound."""
-    screen_stride: int = 2
+    screen_stride: int = option(2, ge=1)
     """The coarse grid is screened on every this-many-th fitting window (1: all). It only ranks the effects and
     brackets their refinement, which runs on every window; half the windows gave the same verdicts at half the
     screening's cost."""
@@ -137,6 +138,9 @@ class FitConfig:
     """Values of each effect's first parameter across its range in that search."""
     spread_bisections: int = 4
     """Bisections between the covering value of least spread and its neighbour that does not cover."""
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 @dataclass
