@@ -153,6 +153,40 @@ def test_the_coarse_grid_is_screened_on_every_other_fitting_window_and_refined_o
         FitConfig(screen_stride=0)
 
 
+@pytest.mark.parametrize("stride", [2, 1])
+def test_the_group_and_single_joint_searches_fit_every_other_window_and_the_per_joint_one_all(
+    nominal_data, monkeypatch, stride
+):
+    """The per-leg, per-joint-type and single-joint searches re-simulate every `search_stride`-th fitting window; the
+    per-joint form (12 parameters) fits all of them; every form is scored on the held-out windows."""
+    from rwm_gym.gap import scope
+
+    train, held = make_windows(nominal_data, np.arange(2), 5, 4), make_windows(nominal_data, [2], 25, 5)
+    resim, base = Resimulator(SPEC), PhysicsParams()
+    config = FitConfig(max_evaluations=3, group_sweeps=1, search_stride=stride)
+    inputs = FitInputs(resim, train, held, base, gap_per_window(SPEC, resim.rollout(held, base), held), config)
+    fitted, scored = [], []
+    rollout = resim.rollout
+    resim.rollout = lambda windows, params, **kw: (
+        (fitted if windows.horizon == 5 else scored).append(len(windows)) or rollout(windows, params, **kw)
+    )
+    friction = {"joint_friction": EFFECTS["joint_friction"]}
+    searched = len(range(0, len(train), stride))
+    assert len(train) == 28 and len(scope._single_joint_fits(2, friction, inputs)) == 1
+    assert fitted and set(fitted) == {searched} and set(scored) == {len(held)}
+    fitted.clear()
+    monkeypatch.setattr(scope, "MIN_WINDOWS_PER_PARAMETER", 1)
+    (global_fit,) = fit_all(friction, inputs, False)
+    global_fit.score = -np.inf  # every group form beats it: the per-joint form is fitted too
+    fitted.clear()
+    forms = scope._scoped_fits(global_fit, EFFECTS["joint_friction"], inputs)
+    assert [f.scope for _, f in forms] == ["leg", "joint_type", "joint"]
+    # the group forms' searches first, on the every-other windows; then the per-joint one (a search per joint) on all
+    assert fitted == sorted(fitted) and set(fitted) == {searched, len(train)} and fitted.count(len(train)) > 12
+    with pytest.raises(ValueError, match="search_stride must be >= 1"):
+        FitConfig(search_stride=0)
+
+
 def test_joint_groups_come_from_the_joint_names():
     assert joint_groups(SPEC, "joint_type") == {"HAA": [0, 3, 6, 9], "HFE": [1, 4, 7, 10], "KFE": [2, 5, 8, 11]}
     assert joint_groups(SPEC, "leg")["RH"] == [9, 10, 11] and len(joint_groups(SPEC, "joint")) == 12

@@ -65,6 +65,9 @@ class FitConfig:
     """The coarse grid is screened on every this-many-th fitting window (1: all). It only ranks the effects and
     brackets their refinement, which runs on every window; half the windows gave the same verdicts at half the
     screening's cost."""
+    search_stride: int = option(2, ge=1)
+    """The per-group and single-joint searches (`gap.scope`) fit on every this-many-th fitting window (1: all); their
+    fits are scored on every held-out window, as every candidate's."""
     max_evaluations: int = 12
     """Cap on re-simulations of the local search."""
     penalty_per_parameter: float = 0.1
@@ -561,7 +564,7 @@ def fit_all(
     memo = memo_for(memo, inputs)
     bar = tqdm(total=2 * len(effects) + refine_top, desc="fit effects", unit="step", disable=not progress)
     h = config.fit_horizon
-    screening = train.subset(np.arange(len(train)) % config.screen_stride == 0)
+    screening = train.every(config.screen_stride)
     nominal_cost = remembered(
         memo,
         ("screening nominal cost",),

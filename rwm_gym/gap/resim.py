@@ -116,6 +116,10 @@ class Windows:
         take = {k: getattr(self, k)[mask] for k in WINDOW_ARRAYS}
         return Windows(**take, horizon=self.horizon, warmup=self.warmup, gap_ceiling=self.gap_ceiling)
 
+    def every(self, stride: int) -> Windows:
+        """Every `stride`-th window, from the first (all of them at 1)."""
+        return self if stride == 1 else self.subset(np.arange(len(self)) % stride == 0)
+
 
 def make_windows(dataset: Dataset, episodes: np.ndarray, horizon: int, stride: int, warmup: int = WARMUP) -> Windows:
     """Every `stride`-th window of `horizon` transitions in the given episodes (none crosses an episode's end)."""
