@@ -25,7 +25,7 @@ from rwm_gym.gap.fit import (
     score_fit,
     screen_grid,
 )
-from rwm_gym.gap.identifiability import identifiability
+from rwm_gym.gap.identifiability import WINDOW_STRIDE, identifiability
 from rwm_gym.gap.judge import resolve_rivals
 from rwm_gym.gap.learned import (
     LearnedCorrectionConfig,
@@ -295,7 +295,7 @@ def test_spring_outside_the_vocabulary_is_unexplained_then_learned(tmp_path):
 
 def test_walking_policy_data_and_identifiability(tmp_path, capsys):
     """make-measured --policy gait: an ordinary walking log; the identifiability section says, per effect, whether
-    such data can reveal it at all."""
+    such data can reveal it at all, measured on every other held-out window."""
     out = tmp_path / "walk.h5"
     assert main(["make-measured", "--policy", "gait", "--episodes", "2", "--max-steps", "60", "--out", str(out)]) == 0
     assert "(hidden: nothing)" in capsys.readouterr().out
@@ -309,8 +309,11 @@ def test_walking_policy_data_and_identifiability(tmp_path, capsys):
     windows = make_windows(data, np.arange(2), 25, 10)
     resim = Resimulator(SPEC)
     nominal = resim.rollout(windows, PhysicsParams())
+    simulated, rollout = [], resim.rollout
+    resim.rollout = lambda w, params, **kw: simulated.append(len(w)) or rollout(w, params, **kw)
     table = identifiability(EFFECTS, resim, windows, PhysicsParams(), nominal, 1e-3)
     assert set(table) == set(EFFECTS)
+    assert len(windows) == 8 and simulated == [len(range(0, 8, WINDOW_STRIDE))] * len(EFFECTS)  # every other window
     assert all(v["signal"] >= 0 and v["identifiable"] == (v["signal_to_floor"] >= 1.0) for v in table.values())
     assert table["ground_friction"]["signal"] > table["backlash"]["signal"]
     json.dumps(table)
