@@ -305,10 +305,10 @@ def every_scope(
 
 def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs) -> list[tuple[Effect, CandidateFit]]:
     """Every joint effect fitted at `joint` alone (from nominal, one bounded search on every
-    `FitConfig.search_stride`-th fitting window) and scored on held-out windows."""
+    `FitConfig.single_joint_stride`-th fitting window) and scored on held-out windows."""
     spec, resim, heldout, base = inputs.spec, inputs.resim, inputs.heldout, inputs.base
     before, config = inputs.before, inputs.config
-    search = inputs.train.every(config.search_stride)
+    search = inputs.train.every(config.single_joint_stride)
     out: list[tuple[Effect, CandidateFit]] = []
     for name in JOINT_EFFECTS:
         form = single_joint(effects[name], spec, joint) if name in effects else None
@@ -325,10 +325,9 @@ def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs
 def _scoped_fits(
     best: CandidateFit, effect: Effect, inputs: FitInputs, to_beat: float = -np.inf
 ) -> list[tuple[Effect, CandidateFit]]:
-    """`effect` (whose global fit is `best`) fitted per leg and per joint type (on every `FitConfig.search_stride`-th
-    fitting window), and per joint (on all of them) where a group form beat the global one and the data suffice. A
-    form is not fitted where its best possible score (no gap left, less its charge) cannot beat `to_beat`, the step's
-    best candidate so far: it could never be named."""
+    """`effect` (whose global fit is `best`) fitted per leg and per joint type, and per joint where a group form beat
+    the global one and the data suffice. A form is not fitted where its best possible score (no gap left, less its
+    charge) cannot beat `to_beat`, the step's best candidate so far: it could never be named."""
     spec, resim, train, heldout, base = inputs.spec, inputs.resim, inputs.train, inputs.heldout, inputs.base
     before, config = inputs.before, inputs.config
     p = effect.parameters[0]
@@ -341,7 +340,7 @@ def _scoped_fits(
         fit = fit_coordinatewise(
             form,
             resim,
-            train.every(config.search_stride),
+            train,
             base,
             config,
             start,
