@@ -482,13 +482,11 @@ def settings(args: argparse.Namespace, case: Case) -> dict:
     #             (solver_check.choose_solver); a row can differ from version 38 only where the solver taken differs
     # version 40: the coarse grid is screened on every other fitting window (FitConfig.screen_stride); every row can
     #             differ
-    # version 41: the single-joint searches fit on every other fitting window (FitConfig.single_joint_stride); every
-    #             row can differ
     return {
         "episodes": case.episodes or args.episodes,
         "steps": case.steps or args.steps,
         "seed": args.seed,
-        "version": 41,
+        "version": 40,
     }
 
 

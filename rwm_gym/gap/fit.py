@@ -65,10 +65,6 @@ class FitConfig:
     """The coarse grid is screened on every this-many-th fitting window (1: all). It only ranks the effects and
     brackets their refinement, which runs on every window; half the windows gave the same verdicts at half the
     screening's cost."""
-    single_joint_stride: int = option(2, ge=1)
-    """The single-joint searches (`gap.scope`) fit on every this-many-th fitting window (1: all); their fits are scored
-    on every held-out window, as every candidate's. The per-group searches fit every window: on every other one,
-    friction of 4 N·m in the knees (converged robot, excitation data) came out global, not per joint type."""
     max_evaluations: int = 12
     """Cap on re-simulations of the local search."""
     penalty_per_parameter: float = 0.1

@@ -22,10 +22,6 @@ from rwm_gym.physics.params import PhysicsParams
 SIGNAL_TO_FLOOR = 1.0
 """An effect at its default magnitude must open a gap of at least this multiple of the floor to be identifiable."""
 
-WINDOW_STRIDE = 2
-"""The signal is measured on every this-many-th window. Held-out windows overlap (25 steps, one every 5 rows), so every
-other one still covers each row twice or more, at half the re-simulation; the figure decides no verdict."""
-
 
 def identifiability(
     effects: dict[str, Effect],
@@ -36,8 +32,7 @@ def identifiability(
     floor: float,
 ) -> dict[str, dict]:
     """{effect: {magnitude, signal, signal_to_floor, identifiable}} on `windows`; `nominal` (W, H, S) is the base
-    simulator's re-simulation of them and `floor` the mean noise floor. Measured on every `WINDOW_STRIDE`-th window."""
-    windows, nominal = windows.every(WINDOW_STRIDE), nominal[::WINDOW_STRIDE]
+    simulator's re-simulation of them and `floor` the mean noise floor."""
     reference = dataclasses.replace(windows, target=nominal)
     out = {}
     for name, effect in effects.items():

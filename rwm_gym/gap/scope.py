@@ -304,19 +304,18 @@ def every_scope(
 
 
 def _single_joint_fits(joint: int, effects: dict[str, Effect], inputs: FitInputs) -> list[tuple[Effect, CandidateFit]]:
-    """Every joint effect fitted at `joint` alone (from nominal, one bounded search on every
-    `FitConfig.single_joint_stride`-th fitting window) and scored on held-out windows."""
-    spec, resim, heldout, base = inputs.spec, inputs.resim, inputs.heldout, inputs.base
+    """Every joint effect fitted at `joint` alone (from nominal, one bounded search) and scored on held-out windows."""
+    spec, resim, train, heldout, base = inputs.spec, inputs.resim, inputs.train, inputs.heldout, inputs.base
     before, config = inputs.before, inputs.config
-    search = inputs.train.every(config.single_joint_stride)
     out: list[tuple[Effect, CandidateFit]] = []
     for name in JOINT_EFFECTS:
         form = single_joint(effects[name], spec, joint) if name in effects else None
         if form is None:
             continue
         p = form.parameters[0]
-        start, bracket = np.array([p.nominal]), [(p.low, p.high)]
-        fit = fit_coordinatewise(form, resim, search, base, config, start, bracket, config.max_evaluations, sweeps=1)
+        fit = fit_coordinatewise(
+            form, resim, train, base, config, np.array([p.nominal]), [(p.low, p.high)], config.max_evaluations, sweeps=1
+        )
         score_fit(fit, form, resim, heldout, base, before, config)
         out.append((form, _charge_scope(fit, choices=1)))
     return out
