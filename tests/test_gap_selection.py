@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from types import SimpleNamespace
 
 import mujoco
@@ -97,6 +98,25 @@ def test_noise_floor_of_exact_simulator_matches_nominal_gap(nominal_data):
     gap = gap_per_window(SPEC, resim.rollout(windows, PhysicsParams()), windows)
     assert 0.4 < gap.mean() / floor.mean() < 2.5
     assert noise_floor(resim, windows, PhysicsParams(), SensorNoise(scale=0.0)).mean() < 1e-6 < floor.mean()
+
+
+def test_a_window_whose_every_noise_draw_blows_up_has_no_floor_and_no_warning(nominal_data):
+    """Where the noisy twin of a window blows up in every draw, its floor is NaN (left out of the test), the other
+    windows' floors are the mean of their draws, and no warning reaches the user."""
+    windows = make_windows(nominal_data, np.arange(2), 25, 10)
+    resim = Resimulator(SPEC)
+    rollout = resim.rollout
+
+    def first_window_blows_up(twin, params, **kw):
+        if len(twin) == len(windows):
+            raise SimulationDiverged("blew up", np.arange(len(twin)) == 0)
+        return rollout(twin, params, **kw)
+
+    resim.rollout = first_window_blows_up
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        floor = noise_floor(resim, windows, PhysicsParams(), SensorNoise())
+    assert np.isnan(floor[0]).all() and np.isfinite(floor[1:]).all() and (floor[1:] > 0).all()
 
 
 def test_fits_made_once_are_taken_again_only_on_the_same_inputs(nominal_data):
