@@ -697,7 +697,7 @@ def test_cli_without_effect_says_none(tmp_path, capsys):
     assert main(["gap", "--measured", str(measured), "--out", str(out), "--world-model", str(missing)]) == 2
     assert "missing.safetensors not found" in capsys.readouterr().err
     assert main(["gap", "--measured", str(measured), "--out", str(out), "--joint-candidates", "-1"]) == 2
-    assert "--joint-candidates: -1 is negative" in capsys.readouterr().err
+    assert "argument --joint-candidates: must be >= 0, got -1" in capsys.readouterr().err
     assert (out / "report.md").is_file() and (out / "residual_channels.png").is_file()
 
 

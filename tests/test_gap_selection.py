@@ -173,6 +173,15 @@ def test_the_coarse_grid_is_screened_on_every_other_fitting_window_and_refined_o
         FitConfig(screen_stride=0)
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "rule"),
+    [("max_evaluations", 0, ">= 1"), ("significance", 1.0, "> 0 and < 1"), ("spread_points", 1, ">= 2")],
+)
+def test_a_fit_setting_out_of_range_is_refused_by_name(field, value, rule):
+    with pytest.raises(ValueError, match=f"FitConfig.{field} must be {rule}, got {value}"):
+        FitConfig(**{field: value})
+
+
 def test_joint_groups_come_from_the_joint_names():
     assert joint_groups(SPEC, "joint_type") == {"HAA": [0, 3, 6, 9], "HFE": [1, 4, 7, 10], "KFE": [2, 5, 8, 11]}
     assert joint_groups(SPEC, "leg")["RH"] == [9, 10, 11] and len(joint_groups(SPEC, "joint")) == 12

@@ -87,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         FitConfig,
         "fit",
         only={"scopes", "max_effects", "joint_candidates"},
-        types={"scopes": scope_list, "max_effects": number(int, Range(ge=1))},
+        types={"scopes": scope_list},
     )
     add_group(
         parser,
@@ -105,8 +105,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         sim_kwargs = json_flag(args.sim_kwargs, "--sim-kwargs") if args.sim_kwargs else {}
         noise = SensorNoise(**json_flag(args.sensor_noise, "--sensor-noise")) if args.sensor_noise else SensorNoise()
-        if args.joint_candidates < 0:
-            raise ValueError(f"--joint-candidates: {args.joint_candidates} is negative (0 turns joint refits off)")
         from rwm_gym.output_guard import check_folder, no_empty_folder
 
         world_model = resolve_world_model(args.world_model, args.sim, sim_kwargs)

@@ -57,7 +57,7 @@ def gap_horizons(horizon: int) -> tuple[int, ...]:
 class FitConfig:
     """How candidates are fitted and judged."""
 
-    fit_horizon: int = 5
+    fit_horizon: int = option(5, ge=1)
     """Steps of each training window in the fit objective."""
     grid_fractions: tuple[float, ...] = (0.12, 0.35, 1.0)
     """Screening grid of the first parameter: these fractions of the way from nominal to each bound."""
@@ -65,34 +65,34 @@ class FitConfig:
     """The coarse grid is screened on every this-many-th fitting window (1: all). It only ranks the effects and
     brackets their refinement, which runs on every window; half the windows gave the same verdicts at half the
     screening's cost."""
-    max_evaluations: int = 12
+    max_evaluations: int = option(12, ge=1)
     """Cap on re-simulations of the local search."""
-    penalty_per_parameter: float = 0.1
+    penalty_per_parameter: float = option(0.1, ge=0)
     """Each parameter beyond the first inflates the remaining gap by this fraction in the score."""
-    significance: float = 0.01
+    significance: float = option(0.01, gt=0, lt=1)
     """p-value under which a reduction of the held-out gap is significant."""
-    ambiguity_ratio: float = 0.25
+    ambiguity_ratio: float = option(0.25, ge=0)
     """A different effect whose penalised remaining gap above the noise floor is within this factor of the best's makes
     it `unexplained`."""
-    rival_excess_explained: float = 0.15
+    rival_excess_explained: float = option(0.15, ge=0, le=1)
     """... if that effect itself explains at least this share of the gap above the floor: one that explains nothing is
     no rival, even where the penalty for the best's parameters leaves the two penalised gaps alike."""
-    block_rows: int = 25
+    block_rows: int = option(25, ge=1)
     """Rows of an episode pooled into one sample of the significance test."""
-    refine_top: int = 3
+    refine_top: int = option(3, ge=0)
     """Effects (best on the coarse grid) whose parameters are refined; the rest keep their best grid point."""
-    max_effects: int = 3
+    max_effects: int = option(3, ge=1)
     """Forward selection names at most this many effects."""
-    min_excess_explained: float = 0.3
+    min_excess_explained: float = option(0.3, ge=0, le=1)
     """Share of the gap still above the noise floor that an effect must explain to be named."""
     scopes: tuple[str, ...] = ("leg", "joint_type", "joint")
     """Joint-group scopes tried for the best joint effects of each selection step (`gap.scope`): leg, joint_type
     and/or joint, each kept only if held-out data pays (none: the global forms only; on the command line,
     comma-separated)."""
-    group_sweeps: int = 2
+    group_sweeps: int = option(2, ge=1)
     """Sweeps of the coordinate-wise fit of a per-leg or per-joint-type form. One costs half as much, but the groups
     fitted first soak up part of an effect held by a later group (knee friction), which a second sweep gives back."""
-    scoped_effects: int = 2
+    scoped_effects: int = option(2, ge=0)
     """How many joint effects (best global fit first) are also fitted in their scopes: an effect held by a few
     joints may explain little in its global form and rank below another joint effect that mimics it there."""
     every_scope: bool = True
@@ -112,12 +112,12 @@ class FitConfig:
     reduction, as step 1 does near the floor (Bonferroni, the best cross-fitted on every episode): the held-out third
     has few blocks, and a third effect of a triple in 9 walking episodes left 3x its floor at p = 0.017. Off: such a
     step stops selection without fitting."""
-    joint_candidates: int = 2
+    joint_candidates: int = option(2, ge=0)
     """At selection steps after the first, the best candidates of the step (this many) and of the step before are
     also fitted together with the effects named before them: a first effect fitted alone may soak up part of a second
     (armature can absorb an action delay on walking data), and on top of it, frozen, the second then
-    explains nothing."""
-    pair_candidates: int = 3
+    explains nothing. 0: off."""
+    pair_candidates: int = option(3, ge=0)
     """Where a step with its gap above the noise floor names nothing, the best this many unrelated effects are fitted
     together in pairs, and a pair whose every effect adds to the other is named (`gap.pairs`; 0: off)."""
     stepwise_sets: bool = True
@@ -134,9 +134,9 @@ class FitConfig:
     own noise spread covers the data, and name one that does on held-out data and removes the nominal simulator's
     systematic misfit (`gap.spread`): a slippery floor under a coarse contact solver turns start noise into another
     slide, and least squares never moves towards it."""
-    spread_points: int = 9
+    spread_points: int = option(9, ge=2)
     """Values of each effect's first parameter across its range in that search."""
-    spread_bisections: int = 4
+    spread_bisections: int = option(4, ge=0)
     """Bisections between the covering value of least spread and its neighbour that does not cover."""
 
     def __post_init__(self) -> None:
