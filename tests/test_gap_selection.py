@@ -36,7 +36,7 @@ from rwm_gym.gap.learned import (
     save_correction,
 )
 from rwm_gym.gap.measured import SensorNoise, make_measured, write_spring_model
-from rwm_gym.gap.noise_floor import noise_floor
+from rwm_gym.gap.noise_floor import FloorConfig, noise_floor
 from rwm_gym.gap.refit import joint_candidates, named_params
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, make_windows, normalised_residual
 from rwm_gym.gap.scope import JOINT_EFFECTS, joint_groups, outlying_joint, per_joint_brackets, scope_candidates, scoped
@@ -174,12 +174,19 @@ def test_the_coarse_grid_is_screened_on_every_other_fitting_window_and_refined_o
 
 
 @pytest.mark.parametrize(
-    ("field", "value", "rule"),
-    [("max_evaluations", 0, ">= 1"), ("significance", 1.0, "> 0 and < 1"), ("spread_points", 1, ">= 2")],
+    ("config", "field", "value", "rule"),
+    [
+        (FitConfig, "max_evaluations", 0, ">= 1"),
+        (FitConfig, "significance", 1.0, "> 0 and < 1"),
+        (FitConfig, "spread_points", 1, ">= 2"),
+        (GapConfig, "fit_stride", 0, ">= 1"),
+        (GapConfig, "warmup", -1, ">= 0"),
+        (FloorConfig, "draws", 0, ">= 1"),
+    ],
 )
-def test_a_fit_setting_out_of_range_is_refused_by_name(field, value, rule):
-    with pytest.raises(ValueError, match=f"FitConfig.{field} must be {rule}, got {value}"):
-        FitConfig(**{field: value})
+def test_a_gap_setting_out_of_range_is_refused_by_name(config, field, value, rule):
+    with pytest.raises(ValueError, match=f"{config.__name__}.{field} must be {rule}, got {value}"):
+        config(**{field: value})
 
 
 def test_joint_groups_come_from_the_joint_names():

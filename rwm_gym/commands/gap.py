@@ -80,7 +80,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         GapConfig,
         "workflow",
         only={"val_fraction", "learned_correction", "solver_check", "bootstrap"},
-        types={"val_fraction": number(float, Range(gt=0, lt=1)), "bootstrap": number(int, Range(ge=0))},
     )
     add_group(
         parser,

@@ -28,6 +28,7 @@ from rwm_gym.gap.fit import gap_horizons, gap_per_window
 from rwm_gym.gap.measured import SensorNoise, noisy_measurement
 from rwm_gym.gap.resim import Resimulator, SimulationDiverged, Windows
 from rwm_gym.gap.significance import paired_p_value, paired_test
+from rwm_gym.options import check_ranges, option
 from rwm_gym.physics.params import PhysicsParams
 from rwm_gym.physics.robot import RobotLayout
 
@@ -36,13 +37,16 @@ from rwm_gym.physics.robot import RobotLayout
 class FloorConfig:
     """How the floor is computed and the gap tested against it."""
 
-    draws: int = 2
+    draws: int = option(2, ge=1)
     """Noise draws averaged into the floor."""
-    significance: float = 0.01
+    significance: float = option(0.01, gt=0, lt=1)
     """p-value under which the gap is significantly above the floor."""
-    min_ratio: float = 1.2
+    min_ratio: float = option(1.2, ge=0)
     """The gap must also be at least this multiple of the floor."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 def noise_floor(

@@ -57,6 +57,7 @@ from rwm_gym.gap.solver_check import (
 )
 from rwm_gym.gap.world_model import WorldModelGapConfig, compare_predictors, config_dict, fine_tune, regenerate
 from rwm_gym.model.evaluate import plot_curves
+from rwm_gym.options import check_ranges, option
 from rwm_gym.physics.params import PhysicsParams, SolverSettings
 from rwm_gym.physics.robot import RobotLayout
 from rwm_gym.resources import assets_dir
@@ -67,14 +68,14 @@ from rwm_gym.spec import shipped_spec
 class GapConfig:
     """Data handling of the workflow (the fit's own options are `FitConfig`, the floor's `FloorConfig`)."""
 
-    val_fraction: float = 0.34
+    val_fraction: float = option(0.34, gt=0, lt=1)
     """Share of measured episodes held out (never fitted); at least one."""
     split_seed: int = 0
-    fit_stride: int = 8
+    fit_stride: int = option(8, ge=1)
     """Rows between the starts of fitting windows."""
-    eval_stride: int = 5
+    eval_stride: int = option(5, ge=1)
     """Rows between the starts of held-out windows."""
-    warmup: int = WARMUP
+    warmup: int = option(WARMUP, ge=0)
     """Measured steps replayed before each window (fills the actuator delay buffer and the solver's warm start)."""
     learned_correction: bool = True
     """Learn a residual torque when a gap above the noise floor remains (`gap.learned`)."""
@@ -85,10 +86,13 @@ class GapConfig:
     solver_check: bool = True
     """Fit the first selection step under a converged solve too, and re-simulate with it where it reproduces the data
     materially better than the sim env's own solver (`gap.solver_check`; a no-op where that is converged)."""
-    bootstrap: int = 0
+    bootstrap: int = option(0, ge=0)
     """Resamples of the fitting episodes (drawn with replacement) on which the named effects are refitted, for the
     bootstrap std and 95 % interval of each fitted value in the report (`gap.bootstrap`; 0: none). Each costs about
     one local fit."""
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 @dataclass
