@@ -384,6 +384,27 @@ def test_mbpo_samples_counts_the_rows_behind_each_run_against_the_teachers_n_mf(
             module.main()
 
 
+def test_gap_table_takes_a_version_39_row_for_the_current_version_and_no_other(tmp_path):
+    """`--reuse version-39 DIR`: the current settings undo version 40's only change, so a finished row of version 39
+    (also one reused there from earlier) is copied with its version kept; a row of version 40 runs again."""
+    import argparse
+
+    gap_table = load_script(BENCHMARKS / "gap_table.py", "script_gap_table_reuse")
+    args = argparse.Namespace(seed=0, episodes=9, steps=150)
+    case = gap_table.CASES["payload_1x"]
+    settings = gap_table.settings(args, case)
+    for ran_at, reused in ((39, True), (40, False)):
+        earlier = tmp_path / f"v{ran_at}.json"
+        row = {"case": case.name, "named": [], "settings": {**settings, "version": ran_at}}
+        earlier.write_text(json.dumps(row))
+        path = tmp_path / f"now{ran_at}.json"
+        assert gap_table.reuse_row(earlier, path, args, "version-39") == reused
+        assert path.is_file() == reused
+    taken = json.loads((tmp_path / "now39.json").read_text())
+    assert taken["settings"] == settings and taken["reused_version"] == 39
+    assert gap_table.REUSABLE["version-39"]({"settings": {"version": 41}, "reused_version": 39})
+
+
 def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactly(tmp_path):
     """`gap_table.py --oracle`: on the case's own measured data, the true simulator removes nearly all of a motor
     strength gap, and what it leaves is sensor noise (not above its own floor)."""
