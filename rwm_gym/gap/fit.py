@@ -64,7 +64,7 @@ class FitConfig:
     screen_stride: int = option(1, ge=1)
     """The coarse grid is screened on every this-many-th fitting window (1: all). It ranks the effects and brackets
     their refinement, which runs on every window. At 2 (10 % faster on 16 x 250 steps), friction and a payload on a
-    converged robot's excitation data brought a third, false effect (PD gains) into refinement, and it was named."""
+    converged robot's excitation data came out with a third, false effect named beside them (PD gains)."""
     max_evaluations: int = option(12, ge=1)
     """Cap on re-simulations of the local search."""
     penalty_per_parameter: float = option(0.1, ge=0)
