@@ -736,7 +736,7 @@ REUSABLE = {
         and (_ran_at(row) >= 27 or "ambiguous" not in row["reason"])
     ),
     "own-solver-kept": lambda row: row.get("solver_taken") == "own",
-    "version-39": lambda row: _ran_at(row) == 39,
+    "version-39": lambda row: row["settings"]["version"] == 39 or _ran_at(row) == 39,
 }
 """`--reuse WHEN DIR`: which earlier rows a version's change cannot reach: one whose nominal gap was above the noise
 floor (a change to gaps near the floor), one where step 1 named nothing (a change to the steps after it), one that
@@ -750,8 +750,8 @@ nothing if it ran at version 25, and that did not end on an ambiguity if it ran 
 and 28 change only what follows a naming, an ambiguity and an `unexplained` step 1; rows of version 24 or earlier
 run again), or one where the solver check kept the sim env's own solver (a change that can only lower the own
 solver's best in the check leaves a converged solve that was not materially better so; only one that was, and failed
-the p-value alone, could differ; the selection under the own solver takes the same fits), or one that ran at version
-39 (version 41 undoes version 40's only change)."""
+the p-value alone, could differ; the selection under the own solver takes the same fits), or one that stood at
+version 39, run there or taken there from earlier (version 41 undoes version 40's only change)."""
 
 
 def _ran_at(row: dict) -> int:

@@ -403,6 +403,8 @@ def test_gap_table_takes_a_version_39_row_for_the_current_version_and_no_other(t
     taken = json.loads((tmp_path / "now39.json").read_text())
     assert taken["settings"] == settings and taken["reused_version"] == 39
     assert gap_table.REUSABLE["version-39"]({"settings": {"version": 41}, "reused_version": 39})
+    assert gap_table.REUSABLE["version-39"]({"settings": {"version": 39}, "reused_version": 38})  # stood at 39
+    assert not gap_table.REUSABLE["version-39"]({"settings": {"version": 40}, "reused_version": 38})
 
 
 def test_gap_table_oracle_scores_the_simulator_with_the_hidden_effect_set_exactly(tmp_path):
